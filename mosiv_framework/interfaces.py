@@ -1,0 +1,141 @@
+"""The component kinds of MOSIV (DESIGN.md section 2), as small abstract base classes.
+
+A plugin implements one of these and registers a factory for it through the registry. The core
+only ever talks to these interfaces; it never imports a plugin.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+
+from mosiv_framework.laws.base import ConstitutiveLaw, ParamSpec
+from mosiv_framework.types import (
+    GaussianFrames,
+    GeometryFrames,
+    ParticleSet,
+    Reconstruction,
+    SimulationParams,
+    Trajectory,
+    World,
+)
+
+if TYPE_CHECKING:  # the scene module is heavier (image I/O); only its types are needed here
+    from mosiv_framework.scene import Camera, Scene
+
+__all__ = [
+    "ConstitutiveLaw",
+    "Lifter",
+    "Loss",
+    "PhysicsTerm",
+    "Reconstructor",
+    "RenderOutput",
+    "Renderer",
+    "SceneSource",
+    "Simulator",
+]
+
+
+class Reconstructor(ABC):
+    """Multi-view video + masks -> per-object dynamic Gaussians over all frames."""
+
+    @abstractmethod
+    def fit(self, scene: Scene, *, run_dir: Path | None = None) -> Reconstruction: ...
+
+
+class Lifter(ABC):
+    """Reconstruction at frame 0 -> simulation particles tagged with object and material."""
+
+    @abstractmethod
+    def lift(self, reconstruction: Reconstruction, scene: Scene) -> ParticleSet: ...
+
+
+class Simulator(ABC):
+    """Particles + per-object parameters -> trajectory, differentiable in torch.
+
+    ``rollout`` must be differentiable with respect to every tensor of ``params`` (through a
+    torch.autograd.Function) and must raise ``SimulationDiverged`` instead of returning NaN.
+    """
+
+    #: material families this backend implements natively
+    supported_laws: frozenset[str] = frozenset()
+    #: physics-term names this backend implements
+    supported_terms: frozenset[str] = frozenset()
+
+    @abstractmethod
+    def rollout(
+        self,
+        particles: ParticleSet,
+        params: SimulationParams,
+        *,
+        world: World,
+        frames: int,
+    ) -> Trajectory:
+        """Simulate ``frames`` video frames after frame 0; returns frames+1 states."""
+
+    def reset_peak_memory(self) -> None:
+        """Start a new peak-memory measurement (backends that track their own memory)."""
+
+    def peak_memory_bytes(self) -> int | None:
+        """Peak device memory (bytes) used by the backend since the last reset, if known."""
+        return None
+
+
+class Loss(ABC):
+    """Compares simulated and target geometry at observed frames; returns a scalar tensor."""
+
+    @abstractmethod
+    def __call__(self, predicted: GeometryFrames, target: GeometryFrames) -> torch.Tensor: ...
+
+
+@dataclass
+class RenderOutput:
+    """One camera's render: rgb [H, W, 3], alpha [H, W], depth [H, W] (m, along the optical
+    axis; 0 where empty) and object_alpha [K, H, W] (one channel per object id 1..K)."""
+
+    rgb: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    object_alpha: torch.Tensor
+
+
+class Renderer(ABC):
+    """Gaussians (one frame) -> images through a camera; differentiable."""
+
+    @abstractmethod
+    def render(
+        self, gaussians: GaussianFrames, camera: Camera, *, frame: int = 0, n_objects: int
+    ) -> RenderOutput: ...
+
+
+class PhysicsTerm(ABC):
+    """An optional physical effect (drag, wind, ...) that simulators can switch on.
+
+    The core holds its schema and a torch reference of the extra acceleration it adds
+    (for body-force terms); backends implement it natively and say so in
+    ``Simulator.supported_terms``.
+    """
+
+    name: str
+    params: tuple[ParamSpec, ...]
+    #: regimes where it acts: any of "free_flight", "object_contact", "ground_contact", "rest"
+    regimes: frozenset[str]
+    description: str = ""
+
+    def reference_acceleration(
+        self, velocity: torch.Tensor, values: dict[str, torch.Tensor]
+    ) -> torch.Tensor | None:
+        """Extra acceleration [N, 3] (m/s^2) for body-force terms, None for boundary terms."""
+        return None
+
+
+class SceneSource(ABC):
+    """Writes scenes in the ``mosiv-scene/1`` format (generators, converters)."""
+
+    @abstractmethod
+    def generate(self, out_dir: Path) -> Path:
+        """Write one scene into ``out_dir`` and return its path."""

@@ -1,0 +1,65 @@
+"""The run folder: atomic writes and per-stage completion markers, so runs resume safely.
+
+Every file is written under a temporary name and moved into place with ``os.replace``: an
+interrupted run never leaves a truncated result under a final name. A stage counts as done only
+when its marker exists and records the same configuration fingerprint as the current recipe.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import uuid
+from pathlib import Path
+from typing import Any
+
+import torch
+
+
+def fingerprint(*parts: Any) -> str:
+    """A short stable hash of JSON-serialisable configuration pieces."""
+    text = json.dumps(parts, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+class RunDir:
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def path(self, name: str) -> Path:
+        return self.root / name
+
+    def write_bytes(self, name: str, data: bytes) -> Path:
+        target = self.path(name)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
+        with open(tmp, "wb") as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, target)
+        return target
+
+    def save_json(self, name: str, data: Any) -> Path:
+        return self.write_bytes(name, (json.dumps(data, indent=2, default=float) + "\n").encode())
+
+    def load_json(self, name: str) -> Any:
+        return json.loads(self.path(name).read_text())
+
+    def save_torch(self, name: str, obj: Any) -> Path:
+        buffer = io.BytesIO()
+        torch.save(obj, buffer)
+        return self.write_bytes(name, buffer.getvalue())
+
+    def load_torch(self, name: str) -> Any:
+        return torch.load(self.path(name), weights_only=False)
+
+    def stage_done(self, stage: str, config_hash: str) -> bool:
+        marker = self.path(f"stages/{stage}.json")
+        return marker.is_file() and json.loads(marker.read_text()).get("config") == config_hash
+
+    def mark_done(self, stage: str, config_hash: str, **info: Any) -> None:
+        self.save_json(f"stages/{stage}.json", {"config": config_hash, **info})

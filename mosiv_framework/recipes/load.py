@@ -1,0 +1,148 @@
+"""Loading, overriding and validating recipes.
+
+``load_recipe`` returns the fully resolved recipe (defaults and component options filled in) or
+raises ConfigError listing *every* problem at once, so a user fixes a recipe in one pass before
+anything runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from mosiv_framework.errors import ConfigError
+from mosiv_framework.recipes.schema import COMPONENT_SECTIONS, MULTI_COMPONENT_SECTIONS, Recipe
+from mosiv_framework.registry import Registry, get_registry, validate_options
+
+
+def read_recipe_file(path: str | Path, overrides: Sequence[str] = ()) -> dict[str, Any]:
+    """The recipe as written plus ``key=value`` overrides, as plain containers (no schema yet)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"recipe file {str(path)!r} does not exist")
+    try:
+        user = OmegaConf.load(path)
+    except Exception as exc:  # yaml errors carry the line and column
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(user, DictConfig):
+        raise ConfigError(f"{path}: a recipe is a mapping of sections, got a {type(user).__name__}")
+    bad = [o for o in overrides if "=" not in o]
+    if bad:
+        raise ConfigError([f"override {o!r} is not of the form key=value" for o in bad])
+    try:
+        user = OmegaConf.merge(user, OmegaConf.from_dotlist(list(overrides)))
+    except OmegaConfBaseException as exc:
+        raise ConfigError(f"overrides {list(overrides)}: {exc}") from exc
+    return OmegaConf.to_container(user, resolve=True)  # type: ignore[return-value]
+
+
+def validate_recipe(raw: Mapping[str, Any], registry: Registry) -> tuple[dict[str, Any], list[str]]:
+    """Check a raw recipe against the schema and the registry; returns (resolved, problems)."""
+    problems: list[str] = []
+    resolved: dict[str, Any] = {}
+    sections = {f.name: f for f in dataclasses.fields(Recipe)}
+    for key in raw:
+        if key not in sections:
+            problems.append(
+                f"unknown recipe section {key!r}; valid sections: {', '.join(sections)}"
+            )
+    defaults = Recipe()
+    for name, _fld in sections.items():
+        value = raw.get(name, getattr(defaults, name))
+        if name in COMPONENT_SECTIONS:
+            resolved[name] = _check_component(
+                name, COMPONENT_SECTIONS[name], value, registry, problems
+            )
+        elif name in MULTI_COMPONENT_SECTIONS:
+            resolved[name] = _check_components(
+                name, MULTI_COMPONENT_SECTIONS[name], value, registry, problems
+            )
+        else:
+            resolved[name] = _check_section(name, type(getattr(defaults, name)), value, problems)
+    source = (resolved.get("scene") or {}).get("source")
+    if source is not None:
+        resolved["scene"]["source"] = _check_component(
+            "scene.source", "scene_source", source, registry, problems
+        )
+    return resolved, problems
+
+
+def load_recipe(
+    path: str | Path, overrides: Sequence[str] = (), *, registry: Registry | None = None
+) -> DictConfig:
+    """Read, override and validate a recipe; raise ConfigError with every problem found."""
+    raw = read_recipe_file(path, overrides)
+    resolved, problems = validate_recipe(raw, registry or get_registry())
+    if problems:
+        raise ConfigError([f"{path}: {p}" for p in problems])
+    return OmegaConf.create(resolved)
+
+
+def _check_section(name: str, schema: type, value: Any, problems: list[str]) -> dict[str, Any]:
+    """A plain dataclass section: unknown keys and wrongly typed values."""
+    if not isinstance(value, Mapping):
+        if dataclasses.is_dataclass(value):
+            return dataclasses.asdict(value)
+        problems.append(f"section {name!r} must be a mapping, got {value!r}")
+        return {}
+    valid = [f.name for f in dataclasses.fields(schema)]
+    merged = OmegaConf.structured(schema)
+    for key, item in value.items():
+        if key not in valid:
+            problems.append(f"unknown key {name}.{key}; valid keys of {name}: {', '.join(valid)}")
+            continue
+        try:
+            merged = OmegaConf.merge(merged, {key: item})
+        except OmegaConfBaseException as exc:
+            first = str(exc).strip().splitlines()[0]
+            problems.append(f"{name}.{key}={item!r}: {first}")
+    return OmegaConf.to_container(merged, resolve=True)  # type: ignore[return-value]
+
+
+def _check_component(
+    where: str, kind: str, value: Any, registry: Registry, problems: list[str]
+) -> dict[str, Any]:
+    """A ``{name: ..., option: ...}`` section: registered name and the component's options."""
+    if not isinstance(value, Mapping) or "name" not in value:
+        problems.append(
+            f"{where} must be a mapping with a 'name' key; valid {kind} names: "
+            f"{', '.join(registry.names(kind)) or 'none installed'}"
+        )
+        return dict(value) if isinstance(value, Mapping) else {}
+    options = {k: v for k, v in value.items() if k != "name"}
+    try:
+        component = registry.get(kind, value["name"])
+    except ConfigError as exc:
+        problems.extend(f"{where}.name: {p}" for p in exc.problems)
+        return dict(value)
+    try:
+        return {"name": value["name"], **validate_options(component, options)}
+    except ConfigError as exc:
+        problems.extend(f"{where}: {p}" for p in exc.problems)
+        return dict(value)
+
+
+def _check_components(
+    where: str, kind: str, value: Any, registry: Registry, problems: list[str]
+) -> dict[str, Any]:
+    """A mapping of component name -> options (the ``losses`` section)."""
+    if not isinstance(value, Mapping):
+        problems.append(f"{where} must map {kind} names to their options, got {value!r}")
+        return {}
+    resolved = {}
+    for name, options in value.items():
+        options = {} if options is None else options
+        if not isinstance(options, Mapping):
+            problems.append(f"{where}.{name} must be a mapping of options, got {options!r}")
+            continue
+        checked = _check_component(
+            f"{where}.{name}", kind, {"name": name, **options}, registry, problems
+        )
+        checked.pop("name", None)
+        resolved[name] = checked
+    return resolved

@@ -1,0 +1,1 @@
+"""mosiv-lift: turn a reconstruction into simulation particles with object and material tags."""

@@ -1,0 +1,143 @@
+"""The plugin registry: discovery, guards, clashes, disabling, option validation, light imports."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import dataclass
+
+import pytest
+
+from mosiv_framework.errors import ConfigError
+from mosiv_framework.registry import Component, Registry, hookimpl
+
+
+def test_installed_plugins_register_their_components():
+    registry = Registry().load_entry_points(disabled=[])
+    assert "core" in registry.plugins
+    assert {"chamfer", "scene-chamfer", "silhouette", "scene-silhouette"} <= set(registry.names("loss"))
+    assert set(registry.names("constitutive_law")) == {
+        "elastic", "plasticine", "sand", "newtonian", "non_newtonian", "snow"
+    }
+    assert {"linear_drag", "quadratic_drag", "wind", "gravity"} <= set(registry.names("physics_term"))
+    assert registry.get("loss", "chamfer").distribution == "mosiv-framework"
+
+
+def test_example_plugin_is_discovered_and_broken_one_reported(with_test_plugins):
+    registry = Registry().load_entry_points(disabled=[])
+    assert registry.plugins["example"].distribution == "mosiv-example-plugin"
+    assert registry.plugins["example"].version == "0.0.1"
+    loss = registry.create("loss", "centroid", {"weight": 2.0})
+    assert loss.weight == 2.0
+    # the broken plugin is reported by name with its error, and did not stop the others
+    [broken] = [b for b in registry.broken if b.name == "broken"]
+    assert broken.distribution == "mosiv-broken-plugin"
+    assert "not-installed-anywhere" in broken.error
+    assert "core" in registry.plugins
+
+
+def test_disable_plugins_by_environment(with_test_plugins, monkeypatch):
+    monkeypatch.setenv("MOSIV_DISABLE_PLUGINS", "broken, mosiv-example-plugin")
+    registry = Registry().load_entry_points()
+    assert "example" not in registry.plugins
+    assert not [b for b in registry.broken if b.name == "broken"]
+    assert set(registry.disabled) == {"broken", "example"}
+
+
+class _Plugin:
+    def __init__(self, name):
+        self.name = name
+
+    @hookimpl
+    def mosiv_losses(self, register):
+        register(Component("loss", "same-name", factory=dict, description=self.name))
+
+
+def test_name_clash_reports_both_distributions():
+    registry = Registry()
+    registry.add_plugin(_Plugin("a"), name="a", distribution="dist-a")
+    registry.add_plugin(_Plugin("b"), name="b", distribution="dist-b")
+    [conflict] = registry.conflicts
+    assert "dist-a" in conflict.message() and "dist-b" in conflict.message()
+    with pytest.raises(ConfigError, match="dist-a.*dist-b"):
+        registry.get("loss", "same-name")
+
+
+def test_hook_that_raises_is_reported_not_fatal():
+    class Raising:
+        @hookimpl
+        def mosiv_simulators(self, register):
+            raise RuntimeError("backend misconfigured")
+
+    registry = Registry()
+    registry.add_plugin(Raising(), name="raising", distribution="dist-raising")
+    [broken] = registry.broken
+    assert broken.name == "raising" and "backend misconfigured" in broken.error
+
+
+def test_register_rejects_wrong_kind_and_non_records():
+    class WrongKind:
+        @hookimpl
+        def mosiv_losses(self, register):
+            register(Component("simulator", "x", factory=dict))
+
+    registry = Registry()
+    registry.add_plugin(WrongKind(), name="wrong")
+    assert "mosiv_losses" in registry.broken[0].error
+    with pytest.raises(ValueError, match="unknown component kind"):
+        Component("shader", "x", factory=dict)
+
+
+@dataclass
+class _Options:
+    grid: int = 64
+    mode: str = "a"
+
+    def __post_init__(self):
+        if self.mode not in ("a", "b"):
+            raise ValueError(f"mode must be 'a' or 'b', got {self.mode!r}")
+
+
+def test_unknown_name_lists_valid_choices_and_options_are_validated():
+    class Provider:
+        @hookimpl
+        def mosiv_simulators(self, register):
+            register(Component("simulator", "toy", factory=lambda **o: o, options=_Options))
+
+    registry = Registry()
+    registry.add_plugin(Provider(), name="provider")
+    with pytest.raises(ConfigError, match="valid simulator names: toy"):
+        registry.get("simulator", "nope")
+    assert registry.create("simulator", "toy", {"grid": 32}) == {"grid": 32, "mode": "a"}
+    with pytest.raises(ConfigError) as err:
+        registry.create("simulator", "toy", {"grdi": 1, "grid": "many"})
+    text = str(err.value)
+    assert "no option 'grdi'" in text and "valid options: grid, mode" in text and "grid='many'" in text
+    with pytest.raises(ConfigError, match="mode must be 'a' or 'b'"):
+        registry.create("simulator", "toy", {"mode": "c"})
+
+
+def test_import_is_light():
+    """Neither importing the core nor loading every plugin imports a backend."""
+    code = (
+        "import sys, mosiv_framework, mosiv_framework.interfaces, mosiv_framework.recipes\n"
+        "from mosiv_framework.registry import get_registry\n"
+        "get_registry()\n"
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('warp', 'taichi'))\n"
+        "print(heavy)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_plugins_command_json_lists_plugins_and_broken(with_test_plugins, capsys, monkeypatch):
+    from mosiv_framework.cli.main import main
+    from mosiv_framework.registry import manager
+
+    monkeypatch.setattr(manager, "_REGISTRY", Registry().load_entry_points(disabled=[]))
+    assert main(["plugins", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    dists = {p["distribution"] for p in report["plugins"]}
+    assert {"mosiv-framework", "mosiv-example-plugin"} <= dists
+    assert [b["name"] for b in report["broken"]] == ["broken"]
