@@ -77,6 +77,24 @@ class Simulator(ABC):
     ) -> Trajectory:
         """Simulate ``frames`` video frames after frame 0; returns frames+1 states."""
 
+    def evaluate_law(
+        self,
+        family: str,
+        F: torch.Tensor,
+        values: dict[str, torch.Tensor],
+        *,
+        plastic_J: torch.Tensor,
+        velocity_gradient: torch.Tensor,
+        dt: float,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """Run the backend's own implementation of a law on given inputs.
+
+        Returns (Kirchhoff stress [N,3,3], return-mapped F [N,3,3], plastic_J [N]) so the parity
+        suite can compare it with the core's torch reference; None if the backend cannot expose
+        its law kernels (then the suite reports the law check as failed, not skipped).
+        """
+        return None
+
     def reset_peak_memory(self) -> None:
         """Start a new peak-memory measurement (backends that track their own memory)."""
 
