@@ -125,6 +125,7 @@ def run_pipeline(recipe: DictConfig, *, run_dir: Path) -> dict:
             vector=vector,
             section=recipe.identify,
             run_dir=rd,
+            config_hash=key,
         )
         rd.save_json("identify/history.json", history)
         rd.save_json("identified.json", vector.to_json())

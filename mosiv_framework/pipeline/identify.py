@@ -58,8 +58,13 @@ def identify(
     vector: ParameterVector,
     section,
     run_dir: RunDir,
+    config_hash: str = "",
 ) -> tuple[ParameterVector, list[dict]]:
-    """Optimise ``vector`` in place; returns it and the per-iteration history."""
+    """Optimise ``vector`` in place; returns it and the per-iteration history.
+
+    A checkpoint is resumed only if it was written under the same ``config_hash`` (the
+    fingerprint of everything identification depends on); otherwise it starts afresh.
+    """
     if observed_frames < 2:
         raise ConfigError(f"identification needs at least 2 observed frames, got {observed_frames}")
     phases = [
@@ -68,8 +73,8 @@ def identify(
     ]
     history: list[dict] = []
     start_phase, start_iter, opt_state = 0, 0, None
-    if run_dir.path(CHECKPOINT).is_file():  # resume
-        ckpt = run_dir.load_torch(CHECKPOINT)
+    ckpt = run_dir.load_torch(CHECKPOINT) if run_dir.path(CHECKPOINT).is_file() else None
+    if ckpt is not None and ckpt.get("config") == config_hash:  # resume
         start_phase, start_iter, history = ckpt["phase"], ckpt["iteration"], ckpt["history"]
         opt_state = ckpt["optimizer"]
         with torch.no_grad():
@@ -81,21 +86,24 @@ def identify(
     for index, phase in enumerate(phases):
         if index < start_phase or phase.iterations == 0:
             continue
-        leaves = (
-            list(vector.velocity.values())
-            if phase.name == "velocity"
-            else list(vector.normalized.values())
-        )
+        if phase.name == "velocity":
+            leaves = list(vector.velocity.values())
+        else:
+            leaves = list(vector.normalized.values())
         if not leaves:
             continue
         optimizer = torch.optim.Adam(leaves, lr=phase.lr)
-        first = 0
-        if index == start_phase and opt_state is not None:
-            optimizer.load_state_dict(opt_state)
-            first = start_iter
-        bar = tqdm(
-            range(first, phase.iterations), desc=f"identify {phase.name}", unit="it", leave=False
+        # cosine decay to a tenth of the rate: big steps early, settling at the end
+        schedule = torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda i, n=phase.iterations: 0.1 + 0.45 * (1 + math.cos(math.pi * i / n))
         )
+        first, best = 0, _Best()
+        if index == start_phase and opt_state is not None:
+            optimizer.load_state_dict(opt_state["optimizer"])
+            schedule.load_state_dict(opt_state["schedule"])
+            best = _Best(opt_state["best_loss"], opt_state["best_leaves"])
+            first = start_iter
+        bar = tqdm(range(first, phase.iterations), desc=f"identify {phase.name}", unit="it")
         for it in bar:
             h = horizon(
                 it,
@@ -111,10 +119,13 @@ def identify(
             target = geometry({k: t.to(device) for k, t in targets.items()}, frames)
             loss, terms = objective.evaluate(geometry(traj, frames), target)
             loss.backward()
-            grad_norm = float(
-                torch.sqrt(sum((leaf.grad**2).sum() for leaf in leaves if leaf.grad is not None))
-            )
+            loss_value = float(loss.detach())
+            grads = [(leaf.grad**2).sum() for leaf in leaves if leaf.grad is not None]
+            grad_norm = float(torch.sqrt(sum(grads))) if grads else 0.0
+            if h == observed_frames - 1:  # only full-horizon losses are comparable
+                best.offer(loss_value, vector)
             optimizer.step()
+            schedule.step()
             with torch.no_grad():  # keep normalised coordinates inside their bounds
                 for u in vector.normalized.values():
                     u.clamp_(0.0, 1.0)
@@ -123,27 +134,66 @@ def identify(
                     "phase": phase.name,
                     "iteration": it,
                     "horizon": h,
-                    "loss": float(loss),
+                    "loss": loss_value,
                     "terms": terms,
                     "grad_norm": grad_norm,
                     "values": vector.to_json(),
                 }
             )
-            bar.set_postfix(loss=f"{float(loss):.3e}", h=h)
-            if (it + 1) % max(1, section.checkpoint_every) == 0 or it + 1 == phase.iterations:
-                nxt_phase, nxt_iter = (
-                    (index, it + 1) if it + 1 < phase.iterations else (index + 1, 0)
+            bar.set_postfix(loss=f"{loss_value:.3e}", h=h)
+            last = it + 1 == phase.iterations
+            if (it + 1) % max(1, section.checkpoint_every) == 0 or last:
+                if last:
+                    best.apply(vector)
+                resume = (
+                    None
+                    if last
+                    else {
+                        "optimizer": optimizer.state_dict(),
+                        "schedule": schedule.state_dict(),
+                        "best_loss": best.loss,
+                        "best_leaves": best.leaves,
+                    }
                 )
                 run_dir.save_torch(
                     CHECKPOINT,
                     {
-                        "phase": nxt_phase,
-                        "iteration": nxt_iter,
+                        "config": config_hash,
+                        "phase": index + 1 if last else index,
+                        "iteration": 0 if last else it + 1,
                         "history": history,
-                        "optimizer": optimizer.state_dict() if nxt_iter else None,
+                        "optimizer": resume,
                         "velocity": {k: v.detach().clone() for k, v in vector.velocity.items()},
                         "normalized": {k: u.detach().clone() for k, u in vector.normalized.items()},
                     },
                 )
         opt_state = None
     return vector, history
+
+
+class _Best:
+    """The lowest full-horizon loss seen in a phase and the leaves that gave it.
+
+    Adam on a noisy (subsampled) objective wanders around the optimum; returning the best
+    iterate rather than the last makes the result independent of where it stopped.
+    """
+
+    def __init__(self, loss: float = math.inf, leaves: dict | None = None):
+        self.loss, self.leaves = loss, leaves
+
+    def offer(self, loss: float, vector: ParameterVector) -> None:
+        if loss < self.loss:
+            self.loss = loss
+            self.leaves = {
+                "velocity": {k: v.detach().clone() for k, v in vector.velocity.items()},
+                "normalized": {k: u.detach().clone() for k, u in vector.normalized.items()},
+            }
+
+    def apply(self, vector: ParameterVector) -> None:
+        if self.leaves is None:
+            return
+        with torch.no_grad():
+            for k, v in self.leaves["velocity"].items():
+                vector.velocity[k].copy_(v)
+            for k, u in self.leaves["normalized"].items():
+                vector.normalized[k].copy_(u)
