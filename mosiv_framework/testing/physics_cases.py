@@ -1,0 +1,299 @@
+"""Physics acceptance tests shared by every MPM backend (written once, called by each plugin).
+
+Each case takes ``make_simulator(**options)`` (options: grid, substeps, contact) and uses only
+the Simulator interface. Scenes are small (grid <= 32, <= a few thousand particles, <= 0.5 s) so
+they run on 2 CPU cores. Every case asserts an analytic or conservation criterion with the
+tolerance stated in its docstring and returns the measured numbers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from mosiv_framework.testing.shapes import block, combine, default_params, sphere
+from mosiv_framework.types import ParticleSet, SimulationParams, World
+
+MakeSimulator = Callable[..., object]
+G = 9.8
+
+
+def _world(upper=(1.0, 1.0, 1.0), *, ground: float | None = 0.0, gravity=(0.0, 0.0, -G)) -> World:
+    return World((0.0, 0.0, 0.0), upper, gravity=gravity, ground_height=ground, fps=24.0)
+
+
+def _run(sim, particles: ParticleSet, params: SimulationParams, world: World, frames: int):
+    with torch.no_grad():
+        return sim.rollout(particles, params, world=world, frames=frames)
+
+
+def _masses(particles: ParticleSet, params: SimulationParams) -> torch.Tensor:
+    rho = torch.stack([params.objects[int(k)]["rho"].detach() for k in particles.object_ids])
+    return rho * particles.volumes
+
+
+def _extent(points: torch.Tensor) -> torch.Tensor:
+    """Axis-aligned size [3] (m) of a point set, robust to stray particles (1%-99% quantiles)."""
+    q = torch.quantile(points, torch.tensor([0.01, 0.99]), dim=0)
+    return q[1] - q[0]
+
+
+def free_fall(make_simulator: MakeSimulator) -> dict:
+    """No ground: the centroid follows x0 + v0 t + g t^2 / 2 for 0.5 s, error <= 1% of the
+    free-fall distance g T^2 / 2 (1.2 m)."""
+    sim = make_simulator(grid=24, substeps=20)
+    world = _world(ground=None)
+    p = block((0.45, 0.45, 0.45), (0.55, 0.55, 0.55), spacing=0.02, object_id=1)
+    v0 = (0.3, 0.0, 2.0)
+    params = default_params(p, velocities={1: v0})
+    frames = 12
+    traj = _run(sim, p, params, world, frames)
+    t = torch.arange(frames + 1, dtype=torch.float32)[:, None] / world.fps
+    expected = (
+        p.positions.mean(0)[None]
+        + torch.tensor(v0)[None] * t
+        + 0.5 * torch.tensor(world.gravity)[None] * t**2
+    )
+    err = (traj.centroids()[1] - expected).norm(dim=1).max().item()
+    scale = 0.5 * G * (frames / world.fps) ** 2
+    assert err <= 0.01 * scale, f"free fall: centroid off by {err:.4g} m > 1% of {scale:.3g} m"
+    return {"max_error_m": err, "scale_m": scale}
+
+
+def momentum_conservation(make_simulator: MakeSimulator) -> dict:
+    """Two elastic blocks collide with gravity and ground off: total momentum is conserved
+    within 1e-3 of its initial magnitude, and the collision really happens (block 1 slows)."""
+    sim = make_simulator(grid=24, substeps=20)
+    world = _world(ground=None, gravity=(0.0, 0.0, 0.0))
+    a = block((0.25, 0.42, 0.42), (0.41, 0.58, 0.58), spacing=0.02, object_id=1)
+    b = block((0.47, 0.45, 0.45), (0.57, 0.55, 0.55), spacing=0.02, object_id=2)
+    p = combine([a, b])
+    params = default_params(p, velocities={1: (1.5, 0.0, 0.0), 2: (-1.0, 0.2, 0.0)})
+    traj = _run(sim, p, params, world, 4)  # 0.17 s: contact at 0.025 s, walls not yet reached
+    m = _masses(p, params)
+    momentum = (m[None, :, None] * traj.velocities).sum(1)  # [T, 3]
+    drift = (momentum - momentum[0]).norm(dim=1).max().item() / momentum[0].norm().item()
+    v1 = traj.velocities[-1, p.object_ids == 1, 0].mean().item()
+    assert v1 < 0.9 * 1.5, f"momentum test: the blocks did not collide (block 1 vx={v1:.3g})"
+    assert drift <= 1e-3, f"total momentum drifted by {drift:.3g} (relative) > 1e-3"
+    return {"relative_drift": drift, "block1_final_vx": v1}
+
+
+def ground_friction_stop(make_simulator: MakeSimulator) -> dict:
+    """A block sliding at v0 = 1 m/s on ground with friction mu = 0.5 stops after
+    v0^2 / (2 mu g) = 0.102 m, within 10%."""
+    sim = make_simulator(grid=32, substeps=20)
+    world = _world((1.0, 0.5, 0.5))
+    p = block((0.2, 0.2, 0.0), (0.36, 0.3, 0.06), spacing=1.0 / 64, object_id=1)
+    v0, mu = 1.0, 0.5
+    params = default_params(
+        p, overrides={1: {"E": 2e5}}, velocities={1: (v0, 0.0, 0.0)}, ground_friction=mu
+    )
+    traj = _run(sim, p, params, world, 10)  # 0.42 s, the block stops at 0.2 s
+    c = traj.centroids()[1]
+    distance = (c[-1, 0] - c[0, 0]).item()
+    expected = v0**2 / (2 * mu * G)
+    final_speed = traj.velocities[-1, :, 0].mean().abs().item()
+    assert final_speed < 0.05 * v0, f"sliding block still moves at {final_speed:.3g} m/s"
+    assert abs(distance - expected) <= 0.1 * expected, (
+        f"sliding block stopped after {distance:.4g} m, expected {expected:.4g} m +- 10%"
+    )
+    return {"distance_m": distance, "expected_m": expected}
+
+
+def _drop_ball(make_simulator, family: str, overrides: dict, frames: int) -> tuple:
+    sim = make_simulator(grid=24, substeps=40)
+    world = _world((0.6, 0.6, 0.6))
+    p = sphere((0.3, 0.3, 0.15), 0.08, spacing=0.0125, object_id=1, material=family)
+    params = default_params(
+        p, overrides={1: overrides}, velocities={1: (0.0, 0.0, -2.0)}, ground_friction=0.3
+    )
+    return p, _run(sim, p, params, world, frames)
+
+
+def elastic_bounce(make_simulator: MakeSimulator) -> dict:
+    """An elastic ball thrown at the ground at 2 m/s rebounds (upward centroid speed >= 20% of
+    the impact speed) and recovers its shape (height/width within 10% of the initial ones)."""
+    p, traj = _drop_ball(make_simulator, "elastic", {"E": 1e5, "nu": 0.3}, 12)
+    vz = traj.velocities[:, :, 2].mean(1)
+    rebound = vz.max().item()
+    size0 = _extent(traj.positions[0])
+    size_end = _extent(traj.positions[-1])
+    change = ((size_end - size0).abs() / size0).max().item()
+    assert rebound >= 0.2 * 2.0, f"elastic ball did not rebound (max centroid vz {rebound:.3g} m/s)"
+    assert change <= 0.1, f"elastic ball kept a deformation of {100 * change:.1f}% (> 10%)"
+    return {"rebound_vz": rebound, "shape_change": change}
+
+
+def plasticine_flattening(make_simulator: MakeSimulator) -> dict:
+    """A plasticine ball thrown at the ground keeps a permanent flattening: its final height is
+    below 85% of its diameter and its width above it."""
+    p, traj = _drop_ball(make_simulator, "plasticine", {"E": 1e5, "yield_stress": 500.0}, 12)
+    size0 = _extent(traj.positions[0])
+    size_end = _extent(traj.positions[-1])
+    vz_end = traj.velocities[-1, :, 2].mean().abs().item()
+    height, width = (size_end[2] / size0[2]).item(), (size_end[:2] / size0[:2]).mean().item()
+    assert vz_end < 0.1, f"plasticine ball has not settled (centroid |vz| {vz_end:.3g} m/s)"
+    assert height < 0.85 and width > 1.0, (
+        f"plasticine ball not flattened: height {height:.3f}, width {width:.3f} of initial"
+    )
+    return {"height_ratio": height, "width_ratio": width}
+
+
+def _volume(points: torch.Tensor, spacing: float) -> float:
+    """Volume (m^3) of the convex hull of the points dilated by half a lattice spacing (a
+    polyhedral Minkowski sum; exact for a lattice box). Valid while the body stays near-convex,
+    which is why the newtonian case stops early in the collapse."""
+    from scipy.spatial import ConvexHull
+
+    r = 0.5 * spacing
+    dirs = np.array(
+        [
+            (i, j, k)
+            for i in (-1, 0, 1)
+            for j in (-1, 0, 1)
+            for k in (-1, 0, 1)
+            if (i, j, k) != (0, 0, 0)
+        ],
+        dtype=np.float64,
+    )
+    pts = points.double().numpy()
+    dilated = (pts[:, None, :] + r * dirs[None]).reshape(-1, 3)
+    return float(ConvexHull(dilated).volume)
+
+
+def newtonian_volume(make_simulator: MakeSimulator) -> dict:
+    """A newtonian blob collapsing on the ground spreads (footprint +15%) while its volume
+    (dilated convex hull, an upper bound for a slumping mound) stays within 5% of the initial one."""
+    sim = make_simulator(grid=24, substeps=50)  # sound speed 10 m/s: CFL 0.33
+    world = _world((0.6, 0.6, 0.6))
+    spacing = 0.0125
+    p = block(
+        (0.24, 0.24, 0.0), (0.36, 0.36, 0.12), spacing=spacing, object_id=1, material="newtonian"
+    )
+    params = default_params(p, overrides={1: {"viscosity": 10.0, "bulk_modulus": 1e5}})
+    traj = _run(sim, p, params, world, 2)
+    v0 = _volume(traj.positions[0], spacing)
+    v1 = _volume(traj.positions[-1], spacing)
+    spread = (_extent(traj.positions[-1])[:2] / _extent(traj.positions[0])[:2]).mean().item()
+    assert spread > 1.15, f"newtonian blob did not spread (footprint ratio {spread:.3f})"
+    change = abs(v1 - v0) / v0
+    assert change <= 0.05, f"newtonian blob volume changed by {100 * change:.1f}% (> 5%)"
+    return {"volume_change": change, "spread": spread}
+
+
+def sand_friction_angle(make_simulator: MakeSimulator) -> dict:
+    """A sand column collapses wider at friction angle 20 deg than at 45 deg (footprint at
+    least 10% larger)."""
+    sim = make_simulator(grid=24, substeps=30)
+    world = _world((0.6, 0.6, 0.6))
+    p = block((0.25, 0.25, 0.0), (0.35, 0.35, 0.2), spacing=0.0125, object_id=1, material="sand")
+    widths = {}
+    for angle in (20.0, 45.0):
+        params = default_params(p, overrides={1: {"friction_angle": angle}}, ground_friction=0.5)
+        traj = _run(sim, p, params, world, 8)
+        widths[angle] = _extent(traj.positions[-1])[:2].mean().item()
+    assert widths[20.0] >= 1.1 * widths[45.0], f"sand footprints (m) by friction angle: {widths}"
+    return {"width_20deg_m": widths[20.0], "width_45deg_m": widths[45.0]}
+
+
+def frictionless_contact(make_simulator: MakeSimulator) -> dict:
+    """Multi-field contact, gravity and ground off: block 2 slides along +x over block 1 while
+    pressing into it. Frictionless: its x speed changes < 2%; with friction 0.5: > 2%."""
+    sim = make_simulator(grid=24, substeps=20, contact="multi_field")
+    world = _world(ground=None, gravity=(0.0, 0.0, 0.0))
+    # The slider overhangs the plate's leading end and starts past its trailing end, so only
+    # the flat interface is in contact (edge nodes have oblique normals in any grid method).
+    a = block((0.25, 0.35, 0.3), (0.55, 0.65, 0.42), spacing=0.02, object_id=1)
+    b = block((0.4, 0.42, 0.46), (0.7, 0.58, 0.54), spacing=0.02, object_id=2)
+    p = combine([a, b])
+    changes = {}
+    for mu in (0.0, 0.5):
+        params = default_params(
+            p,
+            overrides={1: {"friction": mu, "E": 1e5}, 2: {"friction": mu, "E": 1e5}},
+            velocities={2: (1.0, 0.0, -0.3)},
+        )
+        traj = _run(sim, p, params, world, 4)
+        vz = traj.velocities[:, p.object_ids == 2, 2].mean(1)
+        assert vz.max().item() > -0.2, "contact test: block 2 never touched block 1"
+        vx = traj.velocities[-1, p.object_ids == 2, 0].mean().item()
+        changes[mu] = abs(vx - 1.0)
+    assert changes[0.0] < 0.02, (
+        f"frictionless contact dragged the slider: dv/v = {changes[0.0]:.3g}"
+    )
+    assert changes[0.5] > 0.02, (
+        f"frictional contact did not drag the slider: dv/v = {changes[0.5]:.3g}"
+    )
+    return {"frictionless_dv": changes[0.0], "friction_dv": changes[0.5]}
+
+
+ALL_CASES = (
+    free_fall,
+    momentum_conservation,
+    ground_friction_stop,
+    elastic_bounce,
+    plasticine_flattening,
+    newtonian_volume,
+    sand_friction_angle,
+    frictionless_contact,
+)
+
+
+def _rollout_loss(sim, particles, params, world, frames, weights) -> torch.Tensor:
+    """A smooth scalar of the whole rollout: weighted displacements summed over frames (m)."""
+    traj = sim.rollout(particles, params, world=world, frames=frames)
+    return ((traj.positions[1:] - traj.positions[:1]) * weights).sum(dim=(1, 2)).mean()
+
+
+def gradient_check(make_simulator: MakeSimulator, family: str, *, rel_step: float = 1e-2) -> dict:
+    """Autograd gradients of a rollout loss w.r.t. every law parameter, rho, the initial
+    velocity and ground friction agree with central finite differences within 5%.
+
+    A block of ``family`` is thrown onto the ground (sliding and deforming) for 3 frames.
+    Central differences use a relative step ``rel_step`` (float32 needs it well above 1e-4).
+    """
+    sim = make_simulator(grid=16, substeps=30)
+    world = _world((0.5, 0.5, 0.5))
+    p = block((0.2, 0.2, 0.04), (0.3, 0.28, 0.1), spacing=1.0 / 48, object_id=1, material=family)
+    params = default_params(p, velocities={1: (1.0, 0.3, -1.0)}, ground_friction=0.4)
+    g = torch.Generator().manual_seed(0)
+    weights = torch.randn(len(p), 3, generator=g)
+    frames = 3
+
+    named = dict(params.named_tensors())
+    names = [n for n in named if not n.endswith(".friction")]  # friction: two-body contact only
+    leaves = {n: named[n].detach().clone().requires_grad_(True) for n in names}
+    loss = _rollout_loss(sim, p, params.with_tensors(leaves), world, frames, weights)
+    grads = torch.autograd.grad(loss, [leaves[n] for n in names])
+
+    report, bad = {}, []
+    for n, grad in zip(names, grads):
+        base = named[n].detach()
+        for i in range(base.numel()):
+            h = rel_step * max(abs(base.reshape(-1)[i].item()), 1e-1)
+            vals = []
+            for sign in (1.0, -1.0):
+                t = base.clone().reshape(-1)
+                t[i] += sign * h
+                with torch.no_grad():
+                    vals.append(
+                        _rollout_loss(
+                            sim,
+                            p,
+                            params.with_tensors({n: t.reshape(base.shape)}),
+                            world,
+                            frames,
+                            weights,
+                        ).item()
+                    )
+            fd = (vals[0] - vals[1]) / (2 * h)
+            ad = grad.reshape(-1)[i].item()
+            key = f"{n}[{i}]" if base.numel() > 1 else n
+            report[key] = (ad, fd)
+            if abs(ad - fd) > 0.05 * abs(fd) + 1e-6 * abs(loss.item()):
+                bad.append(f"{key}: autograd {ad:.5g} vs finite difference {fd:.5g}")
+    assert not bad, f"{family} gradients disagree with central differences:\n" + "\n".join(bad)
+    return report

@@ -1,0 +1,271 @@
+"""MLS-MPM kernels (Hu et al. 2018, APIC, quadratic B-splines) for several objects at once.
+
+Grid arrays are flat: field f, node (i, j, k) lives at ((f * NX + i) * NY + j) * NZ + k, with
+NX, NY, NZ node counts. In multi-field mode field f is object index f; in single-field mode every
+object uses field 0. Kernels never write an array they read, so Warp's tape can replay them.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from mosiv_warp_mpm.laws import kirchhoff_stress, return_map, safe_norm, vec5
+
+PAD = wp.constant(3)  # boundary node layers outside the scene domain (slip walls)
+MASS_EPS = wp.constant(1.0e-12)  # kg: nodes lighter than this carry no velocity
+#: divergence reasons, stored in the low bits of the per-object flag (substep * 4 + reason)
+REASON_NONFINITE = wp.constant(1)
+REASON_CFL = wp.constant(2)
+NO_FLAG = 2**30
+
+
+@wp.func
+def node_index(f: int, i: int, j: int, k: int, nodes: wp.vec3i):
+    return ((f * nodes[0] + i) * nodes[1] + j) * nodes[2] + k
+
+
+@wp.func
+def bspline_weights(fx: wp.vec3):
+    # quadratic B-spline weights, row r = node base + r, column = axis
+    w0 = 0.5 * wp.cw_mul(wp.vec3(1.5) - fx, wp.vec3(1.5) - fx)
+    w1 = wp.vec3(0.75) - wp.cw_mul(fx - wp.vec3(1.0), fx - wp.vec3(1.0))
+    w2 = 0.5 * wp.cw_mul(fx - wp.vec3(0.5), fx - wp.vec3(0.5))
+    return wp.matrix_from_rows(w0, w1, w2)
+
+
+@wp.func
+def bspline_slopes(fx: wp.vec3):
+    # d(weight)/d(fx) of the quadratic B-spline, same layout as bspline_weights
+    return wp.matrix_from_rows(fx - wp.vec3(1.5), -2.0 * (fx - wp.vec3(1.0)), fx - wp.vec3(0.5))
+
+
+@wp.func
+def cell_base(xl: wp.vec3):
+    # lowest of the 3 nodes per axis touched by a particle at grid coordinates xl (>= 1)
+    return wp.vec3i(int(xl[0] - 0.5), int(xl[1] - 0.5), int(xl[2] - 0.5))
+
+
+@wp.kernel
+def p2g(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    plastic_J: wp.array(dtype=float),
+    volume: wp.array(dtype=float),
+    obj: wp.array(dtype=int),
+    law_of: wp.array(dtype=int),
+    field_of: wp.array(dtype=int),
+    params: wp.array(dtype=vec5),
+    rho: wp.array(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    grid_m: wp.array(dtype=float),
+    grid_mv: wp.array(dtype=wp.vec3),
+    grid_gm: wp.array(dtype=wp.vec3),
+):
+    # MLS-MPM P2G: m w, w (m v + (-dt 4/dx^2 V0 tau + m C) dpos), and m grad w for contact normals
+    p = wp.tid()
+    o = obj[p]
+    f = field_of[o]
+    m = rho[o] * volume[p]
+    inv_dx = 1.0 / dx
+    tau = kirchhoff_stress(law_of[o], params[o], F[p], C[p], plastic_J[p])
+    affine = (-dt * 4.0 * inv_dx * inv_dx * volume[p]) * tau + m * C[p]
+    xl = (x[p] - origin) * inv_dx
+    base = cell_base(xl)
+    fx = xl - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    W = bspline_weights(fx)
+    D = bspline_slopes(fx)
+    mom = m * v[p]
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                w = W[i, 0] * W[j, 1] * W[k, 2]
+                grad_w = inv_dx * wp.vec3(
+                    D[i, 0] * W[j, 1] * W[k, 2],
+                    W[i, 0] * D[j, 1] * W[k, 2],
+                    W[i, 0] * W[j, 1] * D[k, 2],
+                )
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                n = node_index(f, base[0] + i, base[1] + j, base[2] + k, nodes)
+                wp.atomic_add(grid_m, n, w * m)
+                wp.atomic_add(grid_mv, n, w * (mom + affine * dpos))
+                wp.atomic_add(grid_gm, n, m * grad_w)
+
+
+@wp.kernel
+def grid_free_velocity(
+    grid_m: wp.array(dtype=float),
+    grid_mv: wp.array(dtype=wp.vec3),
+    accel: wp.array(dtype=wp.vec3),
+    drag: wp.array(dtype=float),
+    dt: float,
+    grid_vs: wp.array(dtype=wp.vec3),
+):
+    # v = mv/m + dt (g + wind - c_lin v - c_quad |v| v)
+    n = wp.tid()
+    m = grid_m[n]
+    vf = wp.vec3()
+    if m > MASS_EPS:
+        vs = grid_mv[n] / m
+        a = accel[0] - drag[0] * vs - drag[1] * safe_norm(vs) * vs
+        vf = vs + dt * a
+    grid_vs[n] = vf
+
+
+@wp.func
+def coulomb_contact(v: wp.vec3, v_cm: wp.vec3, normal: wp.vec3, mu: float):
+    # approaching (v - v_cm).n > 0: drop the normal part, Coulomb-limit the tangential part
+    rel = v - v_cm
+    vn = wp.dot(rel, normal)
+    out = v
+    if vn > 0.0:
+        rel_t = rel - vn * normal
+        scale = wp.max(0.0, 1.0 - mu * vn / safe_norm(rel_t))
+        out = v_cm + scale * rel_t
+    return out
+
+
+@wp.func
+def ground_contact(v: wp.vec3, mu: float):
+    # moving into the ground (v_z < 0): v_z <- 0, tangential speed reduced by mu |v_z|
+    out = v
+    if v[2] < 0.0:
+        vt = wp.vec3(v[0], v[1], 0.0)
+        out = wp.max(0.0, 1.0 - mu * (-v[2]) / safe_norm(vt)) * vt
+    return out
+
+
+@wp.func
+def slip_walls(v: wp.vec3, i: int, j: int, k: int, nodes: wp.vec3i):
+    # in the PAD outer node layers the outward normal component is removed
+    out = v
+    if (i < PAD and out[0] < 0.0) or (i > nodes[0] - 1 - PAD and out[0] > 0.0):
+        out = wp.vec3(0.0, out[1], out[2])
+    if (j < PAD and out[1] < 0.0) or (j > nodes[1] - 1 - PAD and out[1] > 0.0):
+        out = wp.vec3(out[0], 0.0, out[2])
+    if (k < PAD and out[2] < 0.0) or (k > nodes[2] - 1 - PAD and out[2] > 0.0):
+        out = wp.vec3(out[0], out[1], 0.0)
+    return out
+
+
+@wp.kernel
+def grid_boundaries(
+    grid_m: wp.array(dtype=float),
+    grid_vs: wp.array(dtype=wp.vec3),
+    grid_gm: wp.array(dtype=wp.vec3),
+    n_fields: int,
+    friction: wp.array(dtype=float),
+    nodes: wp.vec3i,
+    ground_on: int,
+    ground_k: float,
+    ground_friction: wp.array(dtype=float),
+    grid_v: wp.array(dtype=wp.vec3),
+):
+    # multi-field Coulomb contact, ground plane and slip walls at one spatial node
+    s = wp.tid()
+    per_field = nodes[0] * nodes[1] * nodes[2]
+    k = s % nodes[2]
+    j = (s // nodes[2]) % nodes[1]
+    i = s // (nodes[1] * nodes[2])
+    m_tot = float(0.0)  # noqa: UP018 (Warp needs a dynamic variable in the loop)
+    p_tot = wp.vec3()
+    g_tot = wp.vec3()
+    mu_tot = float(0.0)  # noqa: UP018
+    count = int(0)  # noqa: UP018
+    for f in range(n_fields):
+        m = grid_m[f * per_field + s]
+        if m > MASS_EPS:
+            m_tot += m
+            p_tot += m * grid_vs[f * per_field + s]
+            g_tot += grid_gm[f * per_field + s]
+            mu_tot += m * friction[f]
+            count += 1
+    for f in range(n_fields):
+        n = f * per_field + s
+        m = grid_m[n]
+        v = grid_vs[n]
+        if m > MASS_EPS:
+            if count >= 2:
+                # outward normal of f against the others: normalize(gm_f - sum of the others' gm)
+                g = grid_gm[n]
+                d = g - (g_tot - g)
+                normal = d / safe_norm(d)
+                mu = 0.5 * (friction[f] + (mu_tot - m * friction[f]) / (m_tot - m))
+                v = coulomb_contact(v, p_tot / m_tot, normal, mu)
+            if ground_on != 0 and float(k) <= ground_k:
+                v = ground_contact(v, ground_friction[0])
+            v = slip_walls(v, i, j, k, nodes)
+        grid_v[n] = v
+
+
+@wp.kernel
+def g2p(
+    x: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    plastic_J: wp.array(dtype=float),
+    obj: wp.array(dtype=int),
+    law_of: wp.array(dtype=int),
+    field_of: wp.array(dtype=int),
+    params: wp.array(dtype=vec5),
+    grid_v: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    substep: int,
+    flag: wp.array(dtype=int),
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    C_out: wp.array(dtype=wp.mat33),
+    F_out: wp.array(dtype=wp.mat33),
+    plastic_J_out: wp.array(dtype=float),
+):
+    # MLS-MPM G2P: v = sum w v_i, C = 4/dx^2 sum w v_i dpos^T, F <- return_map((I + dt C) F), x += dt v
+    p = wp.tid()
+    o = obj[p]
+    f = field_of[o]
+    inv_dx = 1.0 / dx
+    xl = (x[p] - origin) * inv_dx
+    base = cell_base(xl)
+    fx = xl - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    W = bspline_weights(fx)
+    vn = wp.vec3()
+    Cn = wp.mat33()
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                w = W[i, 0] * W[j, 1] * W[k, 2]
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                gv = grid_v[node_index(f, base[0] + i, base[1] + j, base[2] + k, nodes)]
+                vn += w * gv
+                Cn += (4.0 * inv_dx * inv_dx * w) * wp.outer(gv, dpos)
+    F_trial = (wp.identity(n=3, dtype=float) + dt * Cn) * F[p]
+    Fn, pj = return_map(law_of[o], params[o], F_trial, plastic_J[p], dt)
+    xn = x[p] + dt * vn
+    finite = wp.isfinite(xn) and wp.isfinite(vn) and wp.isfinite(Fn) and wp.isfinite(Cn)
+    finite = finite and wp.isfinite(pj)
+    if not finite:
+        # keep the state usable (no out-of-grid index next substep); the host raises at frame end
+        wp.atomic_min(flag, o, substep * 4 + REASON_NONFINITE)
+        xn = x[p]
+        vn = wp.vec3()
+        Cn = wp.mat33()
+        Fn = wp.identity(n=3, dtype=float)
+        pj = 1.0
+    elif wp.length(dt * vn) > dx:
+        # moving more than one cell per substep breaks the CFL condition of explicit MPM
+        wp.atomic_min(flag, o, substep * 4 + REASON_CFL)
+    # particles stay in the padded interior, so the 3x3x3 stencil never leaves the grid
+    lo = origin + wp.vec3(2.0 * dx)
+    hi = origin + dx * wp.vec3(float(nodes[0] - 3), float(nodes[1] - 3), float(nodes[2] - 3))
+    x_out[p] = wp.vec3(
+        wp.clamp(xn[0], lo[0], hi[0]), wp.clamp(xn[1], lo[1], hi[1]), wp.clamp(xn[2], lo[2], hi[2])
+    )
+    v_out[p] = vn
+    C_out[p] = Cn
+    F_out[p] = Fn
+    plastic_J_out[p] = pj

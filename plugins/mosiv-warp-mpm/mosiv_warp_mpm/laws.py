@@ -1,0 +1,266 @@
+"""The six MOSIV constitutive laws as Warp functions (equations: /work/notes/laws_spec.md).
+
+Every law reads its parameters from one ``vec5`` per object, in the order of
+``LAW_PARAM_NAMES`` (unused slots are 0). ``kirchhoff_stress`` and ``return_map`` dispatch on the
+law id so that a single P2G/G2P kernel serves every material of a multi-object scene.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+#: parameters per object slot (the largest law, snow, has five)
+N_SLOTS = 5
+vec5 = wp.types.vector(length=N_SLOTS, dtype=wp.float32)
+
+#: family name -> law id used inside kernels
+LAW_IDS: dict[str, int] = {
+    "elastic": 0,
+    "plasticine": 1,
+    "sand": 2,
+    "newtonian": 3,
+    "non_newtonian": 4,
+    "snow": 5,
+}
+
+#: family name -> parameter names, in slot order of the object's vec5
+LAW_PARAM_NAMES: dict[str, tuple[str, ...]] = {
+    "elastic": ("E", "nu"),
+    "plasticine": ("E", "nu", "yield_stress"),
+    "sand": ("friction_angle", "E", "nu"),
+    "newtonian": ("viscosity", "bulk_modulus"),
+    "non_newtonian": ("shear_modulus", "bulk_modulus", "yield_stress", "plastic_viscosity"),
+    "snow": ("E", "nu", "critical_compression", "critical_stretch", "hardening"),
+}
+
+SINGULAR_MIN = wp.constant(1.0e-4)  # singular values are clamped to this before log (spec)
+J_MIN = wp.constant(1.0e-6)  # J is clamped to this before log(J) and J^-6 (same as the reference)
+NORM_EPS = wp.constant(1.0e-30)  # under square roots: finite gradient of |0|
+DEG = wp.constant(0.017453292519943295)  # radians per degree
+
+
+@wp.func
+def lame_mu(E: float, nu: float):
+    # mu = E / (2 (1 + nu))
+    return E / (2.0 * (1.0 + nu))
+
+
+@wp.func
+def lame_lam(E: float, nu: float):
+    # lambda = E nu / ((1 + nu)(1 - 2 nu))
+    return E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+
+
+@wp.func
+def safe_norm(a: wp.vec3):
+    # |a| with a finite gradient at a = 0
+    return wp.sqrt(wp.dot(a, a) + NORM_EPS)
+
+
+@wp.func
+def proper_svd(F: wp.mat33):
+    # F = U diag(s) V^T with det U = det V = +1; a reflection moves into the sign of s_3
+    U = wp.mat33()
+    s = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, s, V)
+    flip = wp.diag(wp.vec3(1.0, 1.0, -1.0))
+    if wp.determinant(U) < 0.0:
+        U = U * flip
+        s = wp.vec3(s[0], s[1], -s[2])
+    if wp.determinant(V) < 0.0:
+        V = V * flip
+        s = wp.vec3(s[0], s[1], -s[2])
+    return U, s, V
+
+
+@wp.func
+def hencky(s: wp.vec3):
+    # eps = log(max(s, 1e-4))
+    return wp.vec3(
+        wp.log(wp.max(s[0], SINGULAR_MIN)),
+        wp.log(wp.max(s[1], SINGULAR_MIN)),
+        wp.log(wp.max(s[2], SINGULAR_MIN)),
+    )
+
+
+@wp.func
+def deviatoric(eps: wp.vec3):
+    # dev(eps) = eps - mean(eps)
+    m = (eps[0] + eps[1] + eps[2]) / 3.0
+    return eps - wp.vec3(m, m, m)
+
+
+@wp.func
+def trace3(a: wp.vec3):
+    return a[0] + a[1] + a[2]
+
+
+@wp.func
+def exp3(a: wp.vec3):
+    return wp.vec3(wp.exp(a[0]), wp.exp(a[1]), wp.exp(a[2]))
+
+
+@wp.func
+def neo_hookean_tau(F: wp.mat33, mu: float, lam: float):
+    # tau = mu (F F^T - I) + lam ln(J) I
+    J = wp.max(wp.determinant(F), J_MIN)
+    return mu * (F * wp.transpose(F) - wp.identity(n=3, dtype=float)) + lam * wp.log(
+        J
+    ) * wp.identity(n=3, dtype=float)
+
+
+@wp.func
+def hencky_tau(F: wp.mat33, mu: float, lam: float):
+    # tau = U diag(2 mu eps + lam tr(eps)) U^T  (StVK-Hencky)
+    U, s, V = proper_svd(F)
+    eps = hencky(s)
+    tr = trace3(eps)
+    t = 2.0 * mu * eps + wp.vec3(lam * tr, lam * tr, lam * tr)
+    return U * wp.diag(t) * wp.transpose(U)
+
+
+@wp.func
+def newtonian_tau(F: wp.mat33, L: wp.mat33, viscosity: float, bulk: float):
+    # tau = J viscosity (L + L^T) + (bulk / 7)(J - J^-6) I
+    J = wp.max(wp.determinant(F), J_MIN)
+    pressure = bulk / 7.0 * (J - wp.pow(J, -6.0))
+    return J * viscosity * (L + wp.transpose(L)) + pressure * wp.identity(n=3, dtype=float)
+
+
+@wp.func
+def polar_rotation(F: wp.mat33):
+    # R of F = R S by scaled Newton iteration R <- (g R + R^-T / g) / 2 (Higham 1986); unlike
+    # U V^T from the SVD its gradient stays well-conditioned when singular values coincide
+    R = F
+    for _ in range(10):
+        Ri = wp.inverse(R)
+        g = wp.sqrt(wp.sqrt(wp.ddot(Ri, Ri) / wp.ddot(R, R)))
+        R = 0.5 * (g * R + wp.transpose(Ri) / g)
+    return R
+
+
+@wp.func
+def snow_tau(F: wp.mat33, p: vec5, plastic_J: float):
+    # tau = 2 mu (F - R) F^T + lam (J - 1) J I, mu/lam hardened by exp(xi (1 - J_p))
+    h = wp.exp(p[4] * (1.0 - plastic_J))
+    mu = lame_mu(p[0], p[1]) * h
+    lam = lame_lam(p[0], p[1]) * h
+    R = polar_rotation(F)
+    J = wp.determinant(F)
+    return 2.0 * mu * (F - R) * wp.transpose(F) + lam * (J - 1.0) * J * wp.identity(
+        n=3, dtype=float
+    )
+
+
+@wp.func
+def kirchhoff_stress(law: int, p: vec5, F: wp.mat33, L: wp.mat33, plastic_J: float):
+    # Kirchhoff stress tau = J sigma (Pa) of the object's law
+    tau = wp.mat33()
+    if law == 0:
+        tau = neo_hookean_tau(F, lame_mu(p[0], p[1]), lame_lam(p[0], p[1]))
+    elif law == 1:
+        tau = hencky_tau(F, lame_mu(p[0], p[1]), lame_lam(p[0], p[1]))
+    elif law == 2:
+        tau = hencky_tau(F, lame_mu(p[1], p[2]), lame_lam(p[1], p[2]))
+    elif law == 3:
+        tau = newtonian_tau(F, L, p[0], p[1])
+    elif law == 4:
+        tau = hencky_tau(F, p[0], p[1] - 2.0 * p[0] / 3.0)
+    else:
+        tau = snow_tau(F, p, plastic_J)
+    return tau
+
+
+@wp.func
+def shrink_deviatoric(F: wp.mat33, U: wp.mat33, eps: wp.vec3, V: wp.mat33, dg: float):
+    # eps <- eps - dg e/||e|| where dg > 0, F = U diag(exp(eps)) V^T; F unchanged otherwise
+    out = F
+    if dg > 0.0:
+        e = deviatoric(eps)
+        eps_new = eps - dg * e / safe_norm(e)
+        out = U * wp.diag(exp3(eps_new)) * wp.transpose(V)
+    return out
+
+
+@wp.func
+def von_mises_map(F: wp.mat33, mu: float, yield_stress: float, relax: float):
+    # dg = (||dev eps|| - yield / (2 mu)) / relax  (relax = 1 for plasticine)
+    U, s, V = proper_svd(F)
+    eps = hencky(s)
+    dg = (safe_norm(deviatoric(eps)) - yield_stress / (2.0 * mu)) / relax
+    return shrink_deviatoric(F, U, eps, V, dg)
+
+
+@wp.func
+def drucker_prager_map(F: wp.mat33, p: vec5):
+    # tr eps > 0: F = U V^T; else dg = ||e|| + alpha (3 lam + 2 mu) tr(eps) / (2 mu)
+    mu = lame_mu(p[1], p[2])
+    lam = lame_lam(p[1], p[2])
+    sin_phi = wp.sin(p[0] * DEG)
+    alpha = wp.sqrt(2.0 / 3.0) * 2.0 * sin_phi / (3.0 - sin_phi)
+    U, s, V = proper_svd(F)
+    eps = hencky(s)
+    tr = trace3(eps)
+    out = F
+    if tr > 0.0:
+        out = U * wp.transpose(V)
+    else:
+        dg = safe_norm(deviatoric(eps)) + alpha * (3.0 * lam + 2.0 * mu) * tr / (2.0 * mu)
+        out = shrink_deviatoric(F, U, eps, V, dg)
+    return out
+
+
+@wp.func
+def snow_map(F: wp.mat33, p: vec5, plastic_J: float):
+    # s <- clamp(s, 1 - theta_c, 1 + theta_s); J_p <- J_p prod(s) / prod(s_new)
+    U, s, V = proper_svd(F)
+    lo = 1.0 - p[2]
+    hi = 1.0 + p[3]
+    sn = wp.vec3(wp.clamp(s[0], lo, hi), wp.clamp(s[1], lo, hi), wp.clamp(s[2], lo, hi))
+    out = F
+    pj = plastic_J
+    if sn[0] != s[0] or sn[1] != s[1] or sn[2] != s[2]:
+        # only recompose when clamped: the SVD adjoint is ill-conditioned at equal s_i
+        pj = plastic_J * (s[0] * s[1] * s[2]) / (sn[0] * sn[1] * sn[2])
+        out = U * wp.diag(sn) * wp.transpose(V)
+    return out, pj
+
+
+@wp.func
+def return_map(law: int, p: vec5, F: wp.mat33, plastic_J: float, dt: float):
+    # plastic projection of the trial F; returns (F_new, plastic_J_new)
+    out = F
+    pj = plastic_J
+    if law == 1:
+        out = von_mises_map(F, lame_mu(p[0], p[1]), p[2], 1.0)
+    elif law == 2:
+        out = drucker_prager_map(F, p)
+    elif law == 3:
+        J = wp.max(wp.determinant(F), J_MIN)
+        out = wp.pow(J, 1.0 / 3.0) * wp.identity(n=3, dtype=float)
+    elif law == 4:
+        out = von_mises_map(F, p[0], p[2], 1.0 + p[3] / (2.0 * p[0] * dt))
+    elif law == 5:
+        out, pj = snow_map(F, p, plastic_J)
+    return out, pj
+
+
+@wp.kernel
+def evaluate_laws(
+    law: int,
+    params: wp.array(dtype=vec5),
+    F: wp.array(dtype=wp.mat33),
+    L: wp.array(dtype=wp.mat33),
+    plastic_J: wp.array(dtype=float),
+    dt: float,
+    tau: wp.array(dtype=wp.mat33),
+    F_new: wp.array(dtype=wp.mat33),
+    plastic_J_new: wp.array(dtype=float),
+):
+    # per-particle stress and return map of one law (used by the parity tests)
+    i = wp.tid()
+    tau[i] = kirchhoff_stress(law, params[i], F[i], L[i], plastic_J[i])
+    f, pj = return_map(law, params[i], F[i], plastic_J[i], dt)
+    F_new[i] = f
+    plastic_J_new[i] = pj

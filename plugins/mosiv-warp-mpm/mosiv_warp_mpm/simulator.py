@@ -1,0 +1,367 @@
+"""The warp-mpm Simulator: input checks, parameter packing and the substep/frame loop.
+
+``MPMRun`` owns the Warp buffers of one rollout and knows how to advance a frame forward (CUDA
+graph on GPUs) and how to back-propagate through one frame (see autograd.py for the schedule).
+``WarpMPMSimulator`` is the component the registry hands out.
+"""
+
+from __future__ import annotations
+
+import torch
+import warp as wp
+
+from mosiv_framework.errors import ConfigError, SimulationDiverged
+from mosiv_framework.interfaces import Simulator
+from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, World
+from mosiv_warp_mpm import kernels as K
+from mosiv_warp_mpm.laws import LAW_IDS, LAW_PARAM_NAMES, N_SLOTS
+from mosiv_warp_mpm.options import WarpMPMOptions
+from mosiv_warp_mpm.state import Grid, GridLayout, ObjectTables, ParticleState
+
+#: physics term -> its parameter names (mpm_spec.md, "Body-force PhysicsTerms")
+TERMS: dict[str, tuple[str, ...]] = {
+    "linear_drag": ("coefficient",),
+    "quadratic_drag": ("coefficient",),
+    "wind": ("acceleration",),
+    "gravity": ("acceleration",),
+}
+
+_WARP_READY = False
+
+
+def init_warp() -> None:
+    """Initialise Warp once per process (quietly)."""
+    global _WARP_READY
+    if not _WARP_READY:
+        wp.config.quiet = True
+        wp.init()
+        _WARP_READY = True
+
+
+def resolve_device(name: str) -> str:
+    """Warp device string for the ``device`` option ("auto" picks CUDA when available)."""
+    if name == "auto":
+        return "cuda:0" if wp.is_cuda_available() else "cpu"
+    if name.startswith("cuda") and not wp.is_cuda_available():
+        raise ConfigError(f"simulator warp-mpm: device={name!r} but Warp sees no CUDA device")
+    return "cuda:0" if name == "cuda" else name
+
+
+class MPMRun:
+    """Buffers and loops of one rollout (fixed particles, objects, grid and substeps)."""
+
+    def __init__(
+        self,
+        *,
+        layout: GridLayout,
+        world: World,
+        substeps: int,
+        device: str,
+        object_ids: list[int],
+        families: list[str],
+        obj_index: torch.Tensor,
+        volumes: torch.Tensor,
+    ):
+        self.layout, self.world, self.substeps, self.device = layout, world, substeps, device
+        self.object_ids = object_ids
+        self.dt = 1.0 / (world.fps * substeps)
+        self.n = int(obj_index.shape[0])
+        k = len(object_ids)
+        fields = list(range(k)) if layout.fields > 1 else [0] * k
+        self.tables = ObjectTables([LAW_IDS[f] for f in families], fields, device)
+        self.obj = wp.from_torch(obj_index.to(torch.int32).contiguous(), dtype=wp.int32)
+        self.obj = wp.clone(self.obj, device=device)
+        self.volume = wp.clone(wp.from_torch(volumes.float().contiguous()), device=device)
+        self.flag = wp.full(k, K.NO_FLAG, dtype=int, device=device)
+        self.grid = Grid(layout, device)
+        self.a = ParticleState(self.n, device)
+        self.b = ParticleState(self.n, device)
+        self.checkpoints: list[ParticleState] = []
+        self._graph = None
+        self.ground_on = int(world.ground_height is not None)
+        z0 = layout.origin[2]
+        self.ground_k = ((world.ground_height or 0.0) - z0) / layout.dx + 1e-4
+        self.peak_sampler = None  # callable sampling device memory, set by the simulator
+
+    # -- one substep -----------------------------------------------------------------------
+    def substep(self, src: ParticleState, dst: ParticleState, grid: Grid, s: int) -> None:
+        """P2G, grid update (contact, ground, walls, terms) and G2P from src into dst."""
+        lay, t, dev = self.layout, self.tables, self.device
+        origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
+        wp.launch(
+            K.p2g,
+            dim=self.n,
+            inputs=[src.x, src.v, src.C, src.F, src.plastic_J, self.volume, self.obj]
+            + [t.law_of, t.field_of, t.params, t.rho, origin, lay.dx, self.dt, nodes],
+            outputs=[grid.m, grid.mv, grid.gm],
+            device=dev,
+        )
+        wp.launch(
+            K.grid_free_velocity,
+            dim=lay.size,
+            inputs=[grid.m, grid.mv, t.accel, t.drag, self.dt],
+            outputs=[grid.vs],
+            device=dev,
+        )
+        wp.launch(
+            K.grid_boundaries,
+            dim=lay.nodes_per_field,
+            inputs=[grid.m, grid.vs, grid.gm, lay.fields, t.friction, nodes]
+            + [self.ground_on, self.ground_k, t.ground_friction],
+            outputs=[grid.v],
+            device=dev,
+        )
+        wp.launch(
+            K.g2p,
+            dim=self.n,
+            inputs=[src.x, src.F, src.plastic_J, self.obj, t.law_of, t.field_of, t.params]
+            + [grid.v, origin, lay.dx, self.dt, nodes, s, self.flag],
+            outputs=[dst.x, dst.v, dst.C, dst.F, dst.plastic_J],
+            device=dev,
+        )
+
+    # -- forward ----------------------------------------------------------------------------
+    def _frame_launches(self) -> None:
+        self.flag.fill_(K.NO_FLAG)
+        src, dst = self.a, self.b
+        for s in range(self.substeps):
+            self.grid.clear()
+            self.substep(src, dst, self.grid, s)
+            src, dst = dst, src
+        if src is not self.a:  # odd substep count: the result sits in b
+            self.a.copy_from(src)
+
+    def advance_frame(self, frame: int) -> None:
+        """Advance state ``a`` by one video frame; raise SimulationDiverged if it blew up.
+
+        On CUDA the frame's launches are captured once into a graph and replayed, so the
+        substep loop costs no Python per substep.
+        """
+        if wp.get_device(self.device).is_cuda:
+            if self._graph is None:
+                with wp.ScopedCapture(device=self.device, force_module_load=True) as capture:
+                    self._frame_launches()
+                self._graph = capture.graph
+            wp.capture_launch(self._graph)
+        else:
+            self._frame_launches()
+        self.check_divergence(frame)
+
+    def check_divergence(self, frame: int) -> None:
+        """Raise SimulationDiverged for the earliest flagged substep of this frame."""
+        flags = self.flag.numpy()
+        if int(flags.min()) >= K.NO_FLAG:
+            return
+        oi = int(flags.argmin())
+        code = int(flags[oi])
+        substep, reason = code // 4, code % 4
+        obj_id = self.object_ids[oi]
+        if reason == int(K.REASON_NONFINITE):
+            why = "non-finite position, velocity or deformation gradient"
+            advice = (
+                f"Increase substeps (now {self.substeps}, dt={self.dt:.3g} s), lower the "
+                f"stiffness (E / bulk_modulus / shear_modulus) of object {obj_id}, or check its "
+                "parameters for extreme values."
+            )
+        else:
+            why = (
+                f"a particle moved more than one grid cell (dx={self.layout.dx:.3g} m) in a substep"
+            )
+            advice = (
+                f"Increase substeps (now {self.substeps}) or use a coarser grid; very soft or very "
+                f"stiff parameters of object {obj_id} can also cause it."
+            )
+        raise SimulationDiverged(
+            object_id=obj_id, frame=frame, substep=substep, reason=why, advice=advice
+        )
+
+    def forward(
+        self, x0: torch.Tensor, v0: torch.Tensor, theta: torch.Tensor, frames: int, *, keep: bool
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Roll out ``frames`` frames; returns positions and velocities [frames+1, N, 3] (torch,
+        on the run's device). ``keep`` stores frame-start checkpoints for the backward pass."""
+        self.tables.load(theta)
+        self.a.set_initial(x0, v0)
+        dev = wp.device_to_torch(self.device)
+        pos = torch.empty(frames + 1, self.n, 3, device=dev)
+        vel = torch.empty(frames + 1, self.n, 3, device=dev)
+        pos[0], vel[0] = wp.to_torch(self.a.x), wp.to_torch(self.a.v)
+        self.checkpoints = []
+        for f in range(1, frames + 1):
+            if keep:
+                ckpt = ParticleState(self.n, self.device)
+                ckpt.copy_from(self.a)
+                self.checkpoints.append(ckpt)
+            self.advance_frame(f)
+            pos[f], vel[f] = wp.to_torch(self.a.x), wp.to_torch(self.a.v)
+            self._sample_memory()
+        return pos, vel
+
+    def _sample_memory(self) -> None:
+        if self.peak_sampler is not None:
+            self.peak_sampler()
+
+    def checkpoint_bytes(self) -> int:
+        return sum(c.nbytes() for c in self.checkpoints)
+
+
+def pack_theta(
+    params: SimulationParams, object_ids: list[int], gravity: tuple, device
+) -> torch.Tensor:
+    """Flatten every differentiable parameter into ObjectTables' layout (float32, differentiable).
+
+    Layout: per object N_SLOTS law parameters | rho per object | friction per object |
+    ground_friction | body acceleration (3) | drag (linear, quadratic).
+    """
+    zero = torch.zeros((), dtype=torch.float32, device=device)
+
+    def val(t) -> torch.Tensor:
+        return torch.as_tensor(t, dtype=torch.float32).to(device).reshape(-1)
+
+    parts = []
+    for k in object_ids:
+        p = params.objects[k]
+        names = LAW_PARAM_NAMES[p.family]
+        parts += [val(p.values[n]) for n in names] + [zero.reshape(1)] * (N_SLOTS - len(names))
+    parts += [val(params.objects[k].values["rho"]) for k in object_ids]
+    parts += [val(params.objects[k].values["friction"]) for k in object_ids]
+    parts.append(val(params.ground_friction))
+    terms = params.terms
+    g = val(terms["gravity"]["acceleration"]) if "gravity" in terms else val(gravity)
+    wind = val(terms["wind"]["acceleration"]) if "wind" in terms else torch.zeros(3, device=device)
+    parts.append(g + wind)
+    lin = val(terms["linear_drag"]["coefficient"]) if "linear_drag" in terms else val(zero)
+    quad = val(terms["quadratic_drag"]["coefficient"]) if "quadratic_drag" in terms else val(zero)
+    parts += [lin, quad]
+    return torch.cat(parts)
+
+
+def check_inputs(particles: ParticleSet, params: SimulationParams, world: World, frames: int):
+    """Raise ConfigError listing every inconsistency between particles, params and world."""
+    problems = []
+    if not isinstance(frames, int) or frames < 0:
+        problems.append(f"frames={frames!r}: must be an integer >= 0")
+    for k, fam in sorted(particles.materials.items()):
+        if fam not in LAW_IDS:
+            problems.append(f"object {k}: material {fam!r} unsupported; valid: {list(LAW_IDS)}")
+            continue
+        if k not in params.objects:
+            problems.append(f"object {k}: no ObjectParams in params.objects")
+            continue
+        p = params.objects[k]
+        if p.family != fam:
+            problems.append(f"object {k}: params family {p.family!r} but particles say {fam!r}")
+        needed = (*LAW_PARAM_NAMES[fam], "rho", "friction")
+        for name in needed:
+            if name not in p.values:
+                problems.append(f"object {k} ({fam}): missing parameter {name!r}; needs {needed}")
+            elif not torch.isfinite(torch.as_tensor(p.values[name])).all():
+                problems.append(f"object {k}: parameter {name} is not finite")
+        if "nu" in p.values and not 0.0 <= float(p.values["nu"]) < 0.5:
+            problems.append(f"object {k}: nu={float(p.values['nu'])} must lie in [0, 0.5)")
+        if k not in params.initial_velocity:
+            problems.append(f"object {k}: no initial_velocity")
+    for term, values in params.terms.items():
+        if term not in TERMS:
+            problems.append(f"physics term {term!r} unsupported; valid: {sorted(TERMS)}")
+        elif set(values) != set(TERMS[term]):
+            problems.append(
+                f"physics term {term!r} needs exactly {TERMS[term]}, got {sorted(values)}"
+            )
+    x = particles.positions
+    lo = torch.tensor(world.domain_lower, dtype=x.dtype, device=x.device)
+    hi = torch.tensor(world.domain_upper, dtype=x.dtype, device=x.device)
+    outside = int(((x < lo) | (x > hi)).any(dim=1).sum())
+    if outside:
+        problems.append(
+            f"{outside} particle(s) lie outside the scene domain {world.domain_lower}.."
+            f"{world.domain_upper} m"
+        )
+    if problems:
+        raise ConfigError([f"warp-mpm rollout: {p}" for p in problems])
+
+
+class WarpMPMSimulator(Simulator):
+    """Differentiable multi-object MLS-MPM on Warp (see mpm_spec.md for the contract)."""
+
+    supported_laws = frozenset(LAW_IDS)
+    supported_terms = frozenset(TERMS)
+
+    def __init__(self, options: WarpMPMOptions | None = None, **kwargs):
+        self.options = options if options is not None else WarpMPMOptions(**kwargs)
+        init_warp()
+        self.device = resolve_device(self.options.device)
+        #: bytes held for the last differentiable rollout: checkpoints (forward) and the
+        #: backward's one-frame workspace; filled by autograd.py
+        self.last_memory: dict[str, int] = {}
+        self._peak = 0
+
+    # -- memory ----------------------------------------------------------------------------
+    def reset_peak_memory(self) -> None:
+        if wp.get_device(self.device).is_cuda:
+            torch.cuda.reset_peak_memory_stats()
+            self._peak = wp.get_mempool_used_mem_current(self.device)
+
+    def _sample_peak(self) -> None:
+        self._peak = max(self._peak, wp.get_mempool_used_mem_current(self.device))
+
+    def peak_memory_bytes(self) -> int | None:
+        """Peak CUDA memory since reset_peak_memory (Warp pool + torch); None on CPU."""
+        if not wp.get_device(self.device).is_cuda:
+            return None
+        self._sample_peak()
+        return int(self._peak + torch.cuda.max_memory_allocated())
+
+    # -- rollout ---------------------------------------------------------------------------
+    def rollout(
+        self, particles: ParticleSet, params: SimulationParams, *, world: World, frames: int
+    ) -> Trajectory:
+        from mosiv_warp_mpm.autograd import WarpRollout  # keeps the two modules one-way
+
+        check_inputs(particles, params, world, frames)
+        ids = particles.object_list
+        fields = len(ids) if self.options.contact == "multi_field" else 1
+        layout = GridLayout.for_world(world, grid=self.options.grid, fields=fields)
+        dev = wp.device_to_torch(self.device)
+        out_dev = particles.positions.device
+
+        # Sort particles by cell once: neighbouring particles then scatter to neighbouring
+        # nodes (cache-friendly P2G, fewer atomic conflicts); outputs are un-permuted below.
+        x0 = particles.positions.to(dev, torch.float32)
+        order = torch.argsort(layout.cell_keys(x0))
+        inverse = torch.empty_like(order)
+        inverse[order] = torch.arange(order.numel(), device=dev)
+        index_of = {k: i for i, k in enumerate(ids)}
+        obj_index = torch.tensor(
+            [index_of[int(k)] for k in particles.object_ids.tolist()], device=dev
+        )[order]
+        v_obj = torch.stack(
+            [torch.as_tensor(params.initial_velocity[k], dtype=torch.float32).to(dev) for k in ids]
+        )
+        v0 = v_obj[obj_index]
+        theta = pack_theta(params, ids, world.gravity, dev)
+
+        run = MPMRun(
+            layout=layout,
+            world=world,
+            substeps=self.options.substeps,
+            device=self.device,
+            object_ids=ids,
+            families=[params.objects[k].family for k in ids],
+            obj_index=obj_index,
+            volumes=particles.volumes.to(dev)[order],
+        )
+        if wp.get_device(self.device).is_cuda:
+            run.peak_sampler = self._sample_peak
+        x0s = x0[order]
+        needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (x0s, v0, theta))
+        if needs_grad:
+            pos, vel = WarpRollout.apply(run, self, frames, x0s, v0, theta)
+        else:  # cheap path: no checkpoints, no tape
+            pos, vel = run.forward(x0s, v0, theta, frames, keep=False)
+        return Trajectory(
+            positions=pos[:, inverse].to(out_dev),
+            object_ids=particles.object_ids,
+            fps=world.fps,
+            velocities=vel[:, inverse].detach().to(out_dev),
+        )

@@ -1,0 +1,187 @@
+"""Warp buffers of one rollout: particle states, the multi-field grid and per-object parameters.
+
+Everything here is plain storage; kernels live in kernels.py and orchestration in simulator.py.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import warp as wp
+
+from mosiv_framework.types import World
+from mosiv_warp_mpm.kernels import PAD
+from mosiv_warp_mpm.laws import N_SLOTS, vec5
+
+PAD_CELLS = int(PAD)
+
+
+@dataclass(frozen=True)
+class GridLayout:
+    """Regular grid over the scene domain plus PAD cells on each side.
+
+    dx (m) = longest domain side / grid; ``nodes`` = node counts per axis; ``origin`` (m) is the
+    position of node (0, 0, 0); ``fields`` = velocity fields (objects, or 1 when single-field).
+    """
+
+    dx: float
+    origin: tuple[float, float, float]
+    nodes: tuple[int, int, int]
+    fields: int
+
+    @classmethod
+    def for_world(cls, world: World, *, grid: int, fields: int) -> GridLayout:
+        dx = world.extent / grid
+        cells = [
+            max(1, math.ceil((u - lo) / dx - 1e-6)) + 2 * PAD_CELLS
+            for lo, u in zip(world.domain_lower, world.domain_upper)
+        ]
+        origin = tuple(lo - PAD_CELLS * dx for lo in world.domain_lower)
+        return cls(dx=dx, origin=origin, nodes=tuple(c + 1 for c in cells), fields=fields)
+
+    @property
+    def nodes_per_field(self) -> int:
+        return self.nodes[0] * self.nodes[1] * self.nodes[2]
+
+    @property
+    def size(self) -> int:
+        return self.fields * self.nodes_per_field
+
+    def cell_keys(self, positions: torch.Tensor) -> torch.Tensor:
+        """Linear cell index of each position [N, 3] (for sorting particles by cell)."""
+        origin = torch.tensor(self.origin, dtype=positions.dtype, device=positions.device)
+        c = ((positions - origin) / self.dx).floor().long()
+        return (c[:, 0] * self.nodes[1] + c[:, 1]) * self.nodes[2] + c[:, 2]
+
+
+class ParticleState:
+    """Per-particle state: position x (m), velocity v (m/s), affine C (1/s), elastic F,
+    plastic volume ratio plastic_J."""
+
+    FIELDS = ("x", "v", "C", "F", "plastic_J")
+
+    def __init__(self, n: int, device, *, requires_grad: bool = False):
+        kw = {"device": device, "requires_grad": requires_grad}
+        self.x = wp.zeros(n, dtype=wp.vec3, **kw)
+        self.v = wp.zeros(n, dtype=wp.vec3, **kw)
+        self.C = wp.zeros(n, dtype=wp.mat33, **kw)
+        self.F = wp.zeros(n, dtype=wp.mat33, **kw)
+        self.plastic_J = wp.zeros(n, dtype=float, **kw)
+
+    def arrays(self) -> list[wp.array]:
+        return [getattr(self, f) for f in self.FIELDS]
+
+    def copy_from(self, other: ParticleState) -> None:
+        for dst, src in zip(self.arrays(), other.arrays()):
+            wp.copy(dst, src)
+
+    def copy_grad_from(self, other: ParticleState) -> None:
+        for dst, src in zip(self.arrays(), other.arrays()):
+            wp.copy(dst.grad, src.grad)
+
+    def zero_grad(self) -> None:
+        for a in self.arrays():
+            a.grad.zero_()
+
+    def set_initial(self, x0: torch.Tensor, v0: torch.Tensor) -> None:
+        """x, v from torch [N, 3]; F = I, C = 0, plastic_J = 1 (rest state of frame 0)."""
+        wp.copy(self.x, wp.from_torch(x0.detach().float().contiguous(), dtype=wp.vec3))
+        wp.copy(self.v, wp.from_torch(v0.detach().float().contiguous(), dtype=wp.vec3))
+        eye = np.broadcast_to(np.eye(3, dtype=np.float32), (self.F.shape[0], 3, 3))
+        self.F.assign(eye)
+        self.C.zero_()
+        self.plastic_J.fill_(1.0)
+
+    def nbytes(self) -> int:
+        """Bytes of the values (and gradients, when allocated) held by this state."""
+        total = 0
+        for a in self.arrays():
+            total += a.capacity
+            if a.grad is not None:
+                total += a.grad.capacity
+        return total
+
+
+class Grid:
+    """Per-field node mass (kg), momentum (kg m/s), mass gradient (kg/m), free and final
+    velocities (m/s); flat arrays of GridLayout.size."""
+
+    def __init__(self, layout: GridLayout, device, *, requires_grad: bool = False):
+        kw = {"device": device, "requires_grad": requires_grad}
+        self.m = wp.zeros(layout.size, dtype=float, **kw)
+        self.mv = wp.zeros(layout.size, dtype=wp.vec3, **kw)
+        self.gm = wp.zeros(layout.size, dtype=wp.vec3, **kw)
+        self.vs = wp.zeros(layout.size, dtype=wp.vec3, **kw)
+        self.v = wp.zeros(layout.size, dtype=wp.vec3, **kw)
+
+    def arrays(self) -> list[wp.array]:
+        return [self.m, self.mv, self.gm, self.vs, self.v]
+
+    def clear(self) -> None:
+        self.m.zero_()
+        self.mv.zero_()
+        self.gm.zero_()
+
+    def zero_grad(self) -> None:
+        for a in self.arrays():
+            if a.grad is not None:
+                a.grad.zero_()
+
+
+class ObjectTables:
+    """Per-object constants (law id, velocity field) and differentiable parameters.
+
+    ``params`` [K] vec5 law parameters, ``rho`` [K] kg/m^3, ``friction`` [K], ``ground_friction``
+    [1], ``accel`` [1] body acceleration (gravity + wind, m/s^2), ``drag`` [2] (linear 1/s,
+    quadratic 1/m). The flat torch vector ``theta`` of the autograd function maps onto them in
+    this order.
+    """
+
+    def __init__(self, law_ids: list[int], fields: list[int], device):
+        k = len(law_ids)
+        self.k = k
+        self.law_of = wp.array(np.array(law_ids, dtype=np.int32), dtype=int, device=device)
+        self.field_of = wp.array(np.array(fields, dtype=np.int32), dtype=int, device=device)
+        kw = {"device": device, "requires_grad": True}
+        self.params = wp.zeros(k, dtype=vec5, **kw)
+        self.rho = wp.zeros(k, dtype=float, **kw)
+        self.friction = wp.zeros(k, dtype=float, **kw)
+        self.ground_friction = wp.zeros(1, dtype=float, **kw)
+        self.accel = wp.zeros(1, dtype=wp.vec3, **kw)
+        self.drag = wp.zeros(2, dtype=float, **kw)
+
+    def _parts(self) -> list[tuple[wp.array, int]]:
+        k = self.k
+        return [
+            (self.params, k * N_SLOTS),
+            (self.rho, k),
+            (self.friction, k),
+            (self.ground_friction, 1),
+            (self.accel, 3),
+            (self.drag, 2),
+        ]
+
+    @staticmethod
+    def theta_size(k: int) -> int:
+        return k * N_SLOTS + 2 * k + 1 + 3 + 2
+
+    def load(self, theta: torch.Tensor) -> None:
+        """Copy the flat float32 parameter vector into the Warp tables."""
+        flat = theta.detach().float().cpu().numpy()
+        at = 0
+        for arr, size in self._parts():
+            arr.assign(flat[at : at + size].reshape(arr.numpy().shape))
+            at += size
+
+    def zero_grad(self) -> None:
+        for arr, _ in self._parts():
+            arr.grad.zero_()
+
+    def grad_theta(self) -> torch.Tensor:
+        """The accumulated gradients as a flat float32 torch vector (CPU), theta's layout."""
+        return torch.from_numpy(
+            np.concatenate([arr.grad.numpy().reshape(-1) for arr, _ in self._parts()])
+        )
