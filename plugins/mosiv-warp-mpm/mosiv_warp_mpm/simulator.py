@@ -312,6 +312,38 @@ class WarpMPMSimulator(Simulator):
         self._sample_peak()
         return int(self._peak + torch.cuda.max_memory_allocated())
 
+    # -- law kernels, for the parity suite -------------------------------------------------
+    def evaluate_law(self, family, F, values, *, plastic_J, velocity_gradient, dt):
+        """The Warp stress and return-map functions of ``family`` on given inputs (float32)."""
+        from mosiv_warp_mpm.laws import LAW_PARAM_NAMES, N_SLOTS, evaluate_laws, vec5
+
+        n = F.shape[0]
+        slots = torch.zeros(n, N_SLOTS, dtype=torch.float32)
+        for i, name in enumerate(LAW_PARAM_NAMES[family]):
+            slots[:, i] = torch.as_tensor(values[name], dtype=torch.float32).expand(n)
+
+        def arr(t, dtype):
+            return wp.array(t.detach().cpu().float().numpy(), dtype=dtype, device=self.device)
+
+        tau = wp.zeros(n, dtype=wp.mat33, device=self.device)
+        F_new = wp.zeros(n, dtype=wp.mat33, device=self.device)
+        pj_new = wp.zeros(n, dtype=float, device=self.device)
+        wp.launch(
+            evaluate_laws,
+            dim=n,
+            inputs=[
+                LAW_IDS[family],
+                arr(slots, vec5),
+                arr(F, wp.mat33),
+                arr(velocity_gradient, wp.mat33),
+                arr(plastic_J, float),
+                float(dt),
+            ],
+            outputs=[tau, F_new, pj_new],
+            device=self.device,
+        )
+        return tuple(torch.from_numpy(a.numpy()) for a in (tau, F_new, pj_new))
+
     # -- rollout ---------------------------------------------------------------------------
     def rollout(
         self, particles: ParticleSet, params: SimulationParams, *, world: World, frames: int

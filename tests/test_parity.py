@@ -1,0 +1,57 @@
+"""The parity suite catches a backend that gets one law wrong, and passes a correct one.
+
+The tiny test backend delegates to the installed warp-mpm but treats plasticine's yield stress
+three times too high, in its law kernels and in its rollouts alike: a realistic bug (a unit or
+factor slip in one law) that a third-party author could make.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from mosiv_framework.interfaces import Simulator
+from mosiv_framework.registry import get_registry
+from mosiv_framework.testing import check_backend
+from mosiv_framework.types import ObjectParams
+
+pytest.importorskip("mosiv_warp_mpm", reason="the parity demonstration wraps warp-mpm")
+
+
+class YieldStressSlip(Simulator):
+    """warp-mpm with plasticine's yield stress scaled by 3 (the deliberate bug)."""
+
+    def __init__(self, **options):
+        self.inner = get_registry().create("simulator", "warp-mpm", options)
+        self.supported_laws = self.inner.supported_laws
+
+    @staticmethod
+    def _slip(family, values):
+        if family != "plasticine":
+            return values
+        return {**values, "yield_stress": values["yield_stress"] * 3.0}
+
+    def evaluate_law(self, family, F, values, **kwargs):
+        return self.inner.evaluate_law(family, F, self._slip(family, values), **kwargs)
+
+    def rollout(self, particles, params, *, world, frames):
+        objects = {
+            k: ObjectParams(p.family, self._slip(p.family, p.values))
+            for k, p in params.objects.items()
+        }
+        slipped = type(params)(objects, params.initial_velocity, params.ground_friction, params.terms)
+        return self.inner.rollout(particles, slipped, world=world, frames=frames)
+
+
+def test_one_line_check_catches_the_wrong_law():
+    report = check_backend(
+        YieldStressSlip(grid=32, substeps=40), laws=("elastic", "plasticine"), gradients=False
+    )
+    failed = {(r.law, r.check) for r in report.failures}
+    assert ("plasticine", "law-return") in failed, report.table()
+    assert any(law == "plasticine" and check.startswith("forward") for law, check in failed)
+    assert not any(law == "elastic" for law, _ in failed), report.table()
+
+
+def test_a_correct_backend_passes_its_own_reference():
+    report = check_backend("warp-mpm", reference=None, laws=("elastic", "sand"))
+    assert report.passed, report.table()
