@@ -127,7 +127,7 @@ class ParameterVector:
             "objects": {
                 str(k): {
                     "family": p.family,
-                    "params": {n: float(v) for n, v in sorted(p.values.items())},
+                    "params": {n: float(v.detach()) for n, v in sorted(p.values.items())},
                     "initial_velocity": [float(x) for x in params.initial_velocity[k]],
                 }
                 for k, p in params.objects.items()

@@ -62,6 +62,7 @@ def p2g(
     dx: float,
     dt: float,
     nodes: wp.vec3i,
+    with_normals: int,
     grid_m: wp.array(dtype=float),
     grid_mv: wp.array(dtype=wp.vec3),
     grid_gm: wp.array(dtype=wp.vec3),
@@ -93,7 +94,8 @@ def p2g(
                 n = node_index(f, base[0] + i, base[1] + j, base[2] + k, nodes)
                 wp.atomic_add(grid_m, n, w * m)
                 wp.atomic_add(grid_mv, n, w * (mom + affine * dpos))
-                wp.atomic_add(grid_gm, n, m * grad_w)
+                if with_normals != 0:  # contact normals matter only with several fields
+                    wp.atomic_add(grid_gm, n, m * grad_w)
 
 
 @wp.kernel

@@ -92,7 +92,8 @@ class MPMRun:
             K.p2g,
             dim=self.n,
             inputs=[src.x, src.v, src.C, src.F, src.plastic_J, self.volume, self.obj]
-            + [t.law_of, t.field_of, t.params, t.rho, origin, lay.dx, self.dt, nodes],
+            + [t.law_of, t.field_of, t.params, t.rho, origin, lay.dx, self.dt, nodes]
+            + [int(lay.fields > 1)],
             outputs=[grid.m, grid.mv, grid.gm],
             device=dev,
         )
