@@ -15,6 +15,14 @@ def add_parser(sub) -> None:
     synth.add_argument("out_dir", help="folder to write the scene into")
     synth.add_argument("--source", default="synth", help="registered scene source (default: synth)")
     synth.add_argument(
+        "--conceal",
+        action="append",
+        default=[],
+        metavar="KIND[:param=value,...]",
+        help="add physics the scene does not declare (repeatable): linear_drag, quadratic_drag, "
+        "wind, gravity, ground_friction; e.g. --conceal wind:acceleration=1.5,0,0",
+    )
+    synth.add_argument(
         "options", nargs="*", help="source options as key=value (see `mosiv plugins`)"
     )
     synth.set_defaults(handler=run_synth)
@@ -36,6 +44,12 @@ def run_synth(args) -> int:
     if bad:
         raise ConfigError([f"option {o!r} is not of the form key=value" for o in bad])
     options = OmegaConf.to_container(OmegaConf.from_dotlist(args.options))
+    if args.conceal:
+        if "conceal" in options:
+            raise ConfigError(
+                "give concealed effects either as --conceal or as conceal=..., not both"
+            )
+        options["conceal"] = list(args.conceal)
     source = get_registry().create("scene_source", args.source, options)
     path = source.generate(Path(args.out_dir))
     print(f"wrote scene {path}")

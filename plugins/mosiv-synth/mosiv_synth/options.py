@@ -1,0 +1,105 @@
+"""Options of the ``synth`` scene source (the registry validates recipe/CLI options against them).
+
+Defaults follow the paper's benchmark protocol (section 4.1): 2 objects, 11 cameras on the upper
+hemisphere, 30 frames at 24 fps of which 15 are observed. Tests shrink resolution, cameras,
+frames and particle density to make scenes in seconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from mosiv_framework.errors import ConfigError
+from mosiv_synth.conceal import parse_conceal
+from mosiv_synth.materials import MATERIAL_RANGES
+from mosiv_synth.shapes import SHAPE_NAMES
+
+
+def _as_name_list(value: Any, what: str, valid: tuple[str, ...], problems: list[str]) -> list[str]:
+    """``"random"`` -> [], ``"a,b"`` or ``["a", "b"]`` -> ["a", "b"], each checked against
+    ``valid``."""
+    if value is None or value == "random":
+        return []
+    items = value.split(",") if isinstance(value, str) else list(value)
+    names = [str(v).strip() for v in items if str(v).strip()]
+    for name in names:
+        if name not in valid:
+            problems.append(f"{what}: unknown name {name!r}; valid: random or {', '.join(valid)}")
+    return names
+
+
+@dataclass
+class SynthOptions:
+    """Options of one generated scene.
+
+    n_objects: 2 or 3 objects; shapes / materials: "random", a comma-separated string or a list
+    of names (one per object; shape names in ``mosiv_synth.shapes.SHAPE_NAMES``, families in
+    ``mosiv_synth.materials.MATERIAL_RANGES``); resolution: image width = height (pixels);
+    n_cameras, n_frames, observed_frames, fps (1/s); particle_spacing: lattice spacing of the
+    simulation particles (m); simulator: registered simulator name; simulator_options: its
+    options (grid, substeps, device, ...); collision_frame: frame at which the objects first
+    touch (0 = choose from the seed); conceal: "KIND[:param=value,...]" effects separated by
+    ";" or a list of them (see ``mosiv_synth.conceal``); seed: everything random derives from
+    it; name: scene name (empty = derived from materials and seed); progress: show a bar.
+    """
+
+    n_objects: int = 2
+    shapes: Any = "random"
+    materials: Any = "random"
+    resolution: int = 128
+    n_cameras: int = 11
+    n_frames: int = 30
+    observed_frames: int = 15
+    fps: float = 24.0
+    particle_spacing: float = 0.008
+    simulator: str = "warp-mpm"
+    simulator_options: dict[str, Any] = field(default_factory=dict)
+    collision_frame: int = 0
+    conceal: Any = None
+    seed: int = 0
+    name: str = ""
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        problems: list[str] = []
+        if self.n_objects not in (2, 3):
+            problems.append(f"n_objects={self.n_objects!r}: the protocol uses 2 or 3 objects")
+        self.shapes = _as_name_list(self.shapes, "shapes", SHAPE_NAMES, problems)
+        self.materials = _as_name_list(
+            self.materials, "materials", tuple(MATERIAL_RANGES), problems
+        )
+        for what, names in (("shapes", self.shapes), ("materials", self.materials)):
+            if names and len(names) != self.n_objects:
+                problems.append(
+                    f"{what}: {len(names)} names given for n_objects={self.n_objects}; "
+                    "give one per object or 'random'"
+                )
+        if self.resolution < 16:
+            problems.append(f"resolution={self.resolution}: must be at least 16 pixels")
+        if self.n_cameras < 1:
+            problems.append(f"n_cameras={self.n_cameras}: must be at least 1")
+        if self.n_frames < 2:
+            problems.append(f"n_frames={self.n_frames}: must be at least 2")
+        if not 1 <= self.observed_frames <= self.n_frames:
+            problems.append(
+                f"observed_frames={self.observed_frames}: must lie in 1..n_frames={self.n_frames}"
+            )
+        if self.fps <= 0:
+            problems.append(f"fps={self.fps}: must be positive (frames per second)")
+        if not 0.002 <= self.particle_spacing <= 0.03:
+            problems.append(
+                f"particle_spacing={self.particle_spacing} m: must lie in [0.002, 0.03] m "
+                "(objects are 0.08-0.15 m across)"
+            )
+        if self.collision_frame != 0 and not 2 <= self.collision_frame < self.n_frames:
+            problems.append(
+                f"collision_frame={self.collision_frame}: must be 0 (automatic) or in "
+                f"2..n_frames-1={self.n_frames - 1}"
+            )
+        try:
+            self.conceal = [e.spec() for e in parse_conceal(self.conceal)]
+        except ValueError as exc:
+            problems.append(f"conceal: {exc}")
+        if problems:
+            raise ConfigError([f"scene_source synth: {p}" for p in problems])
