@@ -141,3 +141,12 @@ def test_plugins_command_json_lists_plugins_and_broken(with_test_plugins, capsys
     dists = {p["distribution"] for p in report["plugins"]}
     assert {"mosiv-framework", "mosiv-example-plugin"} <= dists
     assert [b["name"] for b in report["broken"]] == ["broken"]
+
+
+def test_option_called_name_is_rejected():
+    @dataclass
+    class Shadowing:
+        name: str = ""
+
+    with pytest.raises(ValueError, match="may not have a field called 'name'"):
+        Component("scene_source", "x", factory=dict, options=Shadowing)

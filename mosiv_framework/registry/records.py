@@ -42,3 +42,9 @@ class Component:
             raise ValueError(f"unknown component kind {self.kind!r}; valid kinds: {list(KINDS)}")
         if not self.name or not isinstance(self.name, str):
             raise ValueError(f"a {self.kind} component needs a non-empty string name")
+        if self.options is not None and "name" in getattr(self.options, "__dataclass_fields__", {}):
+            # recipes write {name: <component>, <option>: ...}: an option called "name" would
+            # shadow the component's name
+            raise ValueError(
+                f"{self.kind} {self.name!r}: its options may not have a field called 'name'"
+            )

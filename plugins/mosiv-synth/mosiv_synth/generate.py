@@ -118,7 +118,7 @@ def plan_scene(opts: SynthOptions) -> ScenePlan:
         opts.n_cameras, resolution=opts.resolution, azimuth0=float(rng.uniform(0, 2 * np.pi))
     )
     return ScenePlan(
-        name=opts.name or f"{'-'.join(materials)}-{opts.seed:04d}",
+        name=opts.scene_name or f"{'-'.join(materials)}-{opts.seed:04d}",
         shapes=list(shapes),
         materials=list(materials),
         sizes=sizes,

@@ -41,7 +41,7 @@ class SynthOptions:
     options (grid, substeps, device, ...); collision_frame: frame at which the objects first
     touch (0 = choose from the seed); conceal: "KIND[:param=value,...]" effects separated by
     ";" or a list of them (see ``mosiv_synth.conceal``); seed: everything random derives from
-    it; name: scene name (empty = derived from materials and seed); progress: show a bar.
+    it; scene_name: scene name (empty = derived from materials and seed); progress: show a bar.
     """
 
     n_objects: int = 2
@@ -58,7 +58,7 @@ class SynthOptions:
     collision_frame: int = 0
     conceal: Any = None
     seed: int = 0
-    name: str = ""
+    scene_name: str = ""
     progress: bool = True
 
     def __post_init__(self) -> None:
