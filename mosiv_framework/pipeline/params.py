@@ -20,8 +20,11 @@ GROUND_FRICTION = ParamSpec(
     "ground_friction", "1", 0.0, 2.0, 0.3, description="table Coulomb coefficient"
 )
 
-#: parameters never identified from geometry alone: density trades off against every stiffness
-FIXED_BY_DEFAULT = ("rho",)
+#: Scaling every object's density and stiffness by one factor leaves the motion unchanged
+#: (stress, weight and friction all scale alike), so one density fixes that gauge: the first
+#: object's rho stays at its given value and the other objects' densities are identified
+#: relative to it (their ratios decide how momentum is exchanged in a collision).
+GAUGE_PARAM = "rho"
 
 
 def initial_velocity_from_points(
@@ -66,22 +69,24 @@ class ParameterVector:
     ) -> ParameterVector:
         """Leaves for every parameter of every object's law (from ``values`` or defaults).
 
-        ``identify`` restricts which parameter names are optimised (default: all but rho);
-        the rest are kept fixed at their value.
+        ``identify`` restricts which parameter names are optimised (default: all but the
+        first object's density, see GAUGE_PARAM); the rest are kept fixed at their value.
         """
         values = values or {}
         fixed: dict[int, dict[str, float]] = {}
         normalized: dict[str, torch.Tensor] = {}
         specs: dict[str, ParamSpec] = {}
+        gauge_object = min(families)
         for k, family in families.items():
             law = get_law(family)
             start = {**law.defaults(), **values.get(k, {})}
             law.validate(start, where=f"object {k}: ")
             fixed[k] = {}
             for spec in law.all_params:
-                free = (identify is None and spec.name not in FIXED_BY_DEFAULT) or (
-                    identify is not None and spec.name in identify
-                )
+                if identify is None:
+                    free = not (spec.name == GAUGE_PARAM and k == gauge_object)
+                else:
+                    free = spec.name in identify
                 if spec.name == "friction" and (not identify_friction or len(families) < 2):
                     free = False  # inter-object friction only matters with two or more bodies
                 if free:
