@@ -56,14 +56,22 @@ def registry(monkeypatch):
 
 def make_recipe(tmp_path, registry, **identify):
     raw = {
-        "scene": {"path": str(tmp_path / "scene"),
-                  "source": {"name": "example", "n_frames": 8, "n_cameras": 2, "size": 24}},
+        "scene": {
+            "path": str(tmp_path / "scene"),
+            "source": {"name": "example", "n_frames": 8, "n_cameras": 2, "size": 24},
+        },
         "reconstructor": {"name": "oracle", "max_points": 300},
         "lifter": {"name": "gt-points", "max_particles_per_object": 300},
         "simulator": {"name": "ballistic"},
         "losses": {"chamfer": {"weight": 1.0, "max_points": 300}},
-        "identify": {"velocity_iterations": 60, "param_iterations": 0, "velocity_lr": 0.1,
-                     "horizon_start": 2, "checkpoint_every": 20, **identify},
+        "identify": {
+            "velocity_iterations": 60,
+            "param_iterations": 0,
+            "velocity_lr": 0.1,
+            "horizon_start": 2,
+            "checkpoint_every": 20,
+            **identify,
+        },
         "evaluate": {"emd_samples": 128},
         "output": {"dir": str(tmp_path / "run")},
     }
@@ -76,8 +84,16 @@ def test_pipeline_recovers_ballistic_motion_and_resumes(tmp_path, registry):
     recipe = make_recipe(tmp_path, registry)
     metrics = run_pipeline(recipe, run_dir=tmp_path / "run")
     run = tmp_path / "run"
-    for name in ("recipe.yaml", "reconstruction.pt", "particles.pt", "identified.json",
-                 "metrics.json", "trajectories.png", "identify/loss.png", "identify/history.json"):
+    for name in (
+        "recipe.yaml",
+        "reconstruction.pt",
+        "particles.pt",
+        "identified.json",
+        "metrics.json",
+        "trajectories.png",
+        "identify/loss.png",
+        "identify/history.json",
+    ):
         assert (run / name).is_file(), name
     on_disk = json.loads((run / "metrics.json").read_text())
     assert on_disk["future"]["cd_mm2"] == pytest.approx(metrics["future"]["cd_mm2"])
@@ -126,3 +142,24 @@ def test_interrupted_identification_resumes_from_checkpoint(tmp_path, registry, 
     assert Ballistic.calls == 11
     history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
     assert [h["iteration"] for h in history] == list(range(30))
+
+
+def test_a_diverged_rollout_steps_back_and_continues(tmp_path, registry, monkeypatch):
+    from mosiv_framework.errors import SimulationDiverged
+
+    original = Ballistic.rollout
+
+    def unstable(self, *args, **kwargs):
+        if Ballistic.calls in (5, 6):  # two consecutive blow-ups, as with a too-stiff step
+            Ballistic.calls += 1
+            raise SimulationDiverged(
+                object_id=1, frame=2, substep=3, reason="non-finite", advice=""
+            )
+        return original(self, *args, **kwargs)
+
+    Ballistic.calls = 0
+    monkeypatch.setattr(Ballistic, "rollout", unstable)
+    metrics = run_pipeline(make_recipe(tmp_path, registry), run_dir=tmp_path / "run")
+    history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
+    assert [h["iteration"] for h in history if "diverged" in h] == [5, 6]
+    assert metrics["future"]["cd_mm2"] < 1.0

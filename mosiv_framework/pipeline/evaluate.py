@@ -115,6 +115,7 @@ def plot_history(history: list[dict], path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 3.4))
+    history = [h for h in history if "loss" in h]  # diverged, stepped-back iterations have none
     losses = [h["loss"] for h in history]
     ax.semilogy(range(len(losses)), [max(v, 1e-20) for v in losses])
     changes = [i for i in range(1, len(history)) if history[i]["phase"] != history[i - 1]["phase"]]

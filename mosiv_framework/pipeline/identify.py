@@ -13,13 +13,15 @@ from dataclasses import dataclass
 import torch
 from tqdm import tqdm
 
-from mosiv_framework.errors import ConfigError
+from mosiv_framework.errors import ConfigError, SimulationDiverged
 from mosiv_framework.losses import WeightedSum
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.pipeline.rundir import RunDir
 from mosiv_framework.types import GeometryFrames, ParticleSet, Trajectory, World
 
 CHECKPOINT = "identify/checkpoint.pt"
+#: consecutive diverged rollouts tolerated (each halves the step size) before giving up
+MAX_BACKOFFS = 6
 
 
 @dataclass
@@ -104,6 +106,7 @@ def identify(
             best = _Best(opt_state["best_loss"], opt_state["best_leaves"])
             first = start_iter
         bar = tqdm(range(first, phase.iterations), desc=f"identify {phase.name}", unit="it")
+        backoffs, previous = 0, None
         for it in bar:
             h = horizon(
                 it,
@@ -113,7 +116,35 @@ def identify(
                 observed=observed_frames,
             )
             optimizer.zero_grad()
-            traj = simulator.rollout(particles, vector.physical(), world=world, frames=h)
+            try:
+                traj = simulator.rollout(particles, vector.physical(), world=world, frames=h)
+            except SimulationDiverged as exc:
+                # the last step went somewhere the simulator cannot follow (too stiff or too
+                # soft for its substeps): step back and take smaller steps from there
+                backoffs += 1
+                if backoffs > MAX_BACKOFFS or previous is None:
+                    raise SimulationDiverged(
+                        object_id=exc.object_id,
+                        frame=exc.frame,
+                        substep=exc.substep,
+                        reason=f"{exc.reason} (identification, {phase.name} iteration {it})",
+                        advice=f"{exc.advice} Or lower identify.{phase.name}_lr.",
+                    ) from exc
+                previous.apply(vector)
+                for group in optimizer.param_groups:
+                    group["lr"] *= 0.5
+                history.append(
+                    {
+                        "phase": phase.name,
+                        "iteration": it,
+                        "horizon": h,
+                        "diverged": str(exc),
+                        "values": vector.to_json(),
+                    }
+                )
+                continue
+            backoffs = 0
+            previous = _Best.snapshot(vector)  # the leaves this step starts from
             frames = list(range(1, h + 1))
             device = traj.positions.device
             target = geometry({k: t.to(device) for k, t in targets.items()}, frames)
@@ -188,6 +219,13 @@ class _Best:
                 "velocity": {k: v.detach().clone() for k, v in vector.velocity.items()},
                 "normalized": {k: u.detach().clone() for k, u in vector.normalized.items()},
             }
+
+    @classmethod
+    def snapshot(cls, vector: ParameterVector) -> _Best:
+        """A copy of the current leaves (to step back to)."""
+        best = cls()
+        best.offer(-math.inf, vector)
+        return best
 
     def apply(self, vector: ParameterVector) -> None:
         if self.leaves is None:
