@@ -172,34 +172,34 @@ def identify(
                 }
             )
             bar.set_postfix(loss=f"{loss_value:.3e}", h=h)
-            last = it + 1 == phase.iterations
-            if (it + 1) % max(1, section.checkpoint_every) == 0 or last:
-                if last:
-                    best.apply(vector)
-                resume = (
-                    None
-                    if last
-                    else {
-                        "optimizer": optimizer.state_dict(),
-                        "schedule": schedule.state_dict(),
-                        "best_loss": best.loss,
-                        "best_leaves": best.leaves,
-                    }
-                )
-                run_dir.save_torch(
-                    CHECKPOINT,
-                    {
-                        "config": config_hash,
-                        "phase": index + 1 if last else index,
-                        "iteration": 0 if last else it + 1,
-                        "history": history,
-                        "optimizer": resume,
-                        "velocity": {k: v.detach().clone() for k, v in vector.velocity.items()},
-                        "normalized": {k: u.detach().clone() for k, u in vector.normalized.items()},
-                    },
-                )
+            if (it + 1) % max(1, section.checkpoint_every) == 0 and it + 1 < phase.iterations:
+                resume = {
+                    "optimizer": optimizer.state_dict(),
+                    "schedule": schedule.state_dict(),
+                    "best_loss": best.loss,
+                    "best_leaves": best.leaves,
+                }
+                _save_checkpoint(run_dir, config_hash, index, it + 1, history, resume, vector)
+        # end of phase (also when its last iteration diverged): keep the best iterate
+        best.apply(vector)
+        _save_checkpoint(run_dir, config_hash, index + 1, 0, history, None, vector)
         opt_state = None
     return vector, history
+
+
+def _save_checkpoint(run_dir, config_hash, phase, iteration, history, resume, vector) -> None:
+    run_dir.save_torch(
+        CHECKPOINT,
+        {
+            "config": config_hash,
+            "phase": phase,
+            "iteration": iteration,
+            "history": history,
+            "optimizer": resume,
+            "velocity": {k: v.detach().clone() for k, v in vector.velocity.items()},
+            "normalized": {k: u.detach().clone() for k, u in vector.normalized.items()},
+        },
+    )
 
 
 class _Best:
