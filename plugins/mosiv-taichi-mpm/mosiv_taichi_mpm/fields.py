@@ -1,0 +1,173 @@
+"""Taichi field allocation for one problem size (particles, objects, grid, substeps).
+
+All fields of a problem live in one SNode tree built with ``ti.FieldsBuilder`` so that they can
+be freed together (``destroy``) when a later rollout needs another size. Particle state is kept
+for every substep of one video frame (index 0..substeps): Taichi's reverse-mode autodiff needs
+every value a kernel read to still be there when its adjoint runs (the global data access
+rule), so substep s+1 is written to fresh storage instead of overwriting substep s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import taichi as ti
+
+from mosiv_taichi_mpm.laws import MAX_LAW_PARAMS
+
+#: empty grid cells added around the scene domain on every side; the slip walls live in them
+PAD_CELLS = 3
+#: sentinel of the divergence flags: no substep flagged yet
+NO_DIVERGENCE = 2**30
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Sizes that fix the shapes of all fields (a new Layout means new fields and kernels).
+
+    capacity: particle slots; n_objects: K; n_fields: grid velocity fields (K or 1);
+    nodes: grid nodes per axis including the padding; substeps: per video frame;
+    dx: cell size (m); origin: world position of node (0, 0, 0) (m).
+    """
+
+    capacity: int
+    n_objects: int
+    n_fields: int
+    nodes: tuple[int, int, int]
+    substeps: int
+    dx: float
+    origin: tuple[float, float, float]
+
+
+def make_layout(
+    *,
+    n_particles: int,
+    n_objects: int,
+    single_field: bool,
+    grid: int,
+    substeps: int,
+    domain_lower: tuple[float, float, float],
+    domain_upper: tuple[float, float, float],
+) -> Layout:
+    """Grid geometry: dx = longest domain side / grid; other axes get ceil(extent / dx) cells."""
+    extents = [u - lo for lo, u in zip(domain_lower, domain_upper)]
+    if min(extents) <= 0:
+        raise ValueError(
+            f"world domain must have positive extent on every axis, got lower={domain_lower} "
+            f"upper={domain_upper}"
+        )
+    dx = max(extents) / grid
+    cells = [max(1, math.ceil(e / dx - 1e-6)) + 2 * PAD_CELLS for e in extents]
+    nodes = tuple(c + 1 for c in cells)
+    origin = tuple(lo - PAD_CELLS * dx for lo in domain_lower)
+    # round the particle count up so nearby sizes reuse the compiled kernels
+    capacity = max(256, -(-n_particles // 256) * 256)
+    return Layout(
+        capacity=capacity,
+        n_objects=n_objects,
+        n_fields=1 if single_field else n_objects,
+        nodes=nodes,  # type: ignore[arg-type]
+        substeps=substeps,
+        dx=dx,
+        origin=origin,  # type: ignore[arg-type]
+    )
+
+
+@ti.data_oriented
+class SimFields:
+    """Every field of one problem; ``.grad`` companions exist for all differentiable ones."""
+
+    def __init__(self, layout: Layout):
+        self.layout = layout
+        f32, S, N = ti.f32, layout.substeps, layout.capacity
+        mat = ti.types.matrix(3, 3, f32)
+        vec = ti.types.vector(3, f32)
+
+        # particle state per substep of one frame: s = 0..S (index [s, p])
+        self.x = ti.field(vec, needs_grad=True)  # position (m)
+        self.v = ti.field(vec, needs_grad=True)  # velocity (m/s)
+        self.C = ti.field(mat, needs_grad=True)  # APIC affine velocity (1/s)
+        self.F = ti.field(mat, needs_grad=True)  # elastic deformation gradient
+        self.U = ti.field(mat, needs_grad=True)  # left rotation of F's SVD
+        self.V = ti.field(mat, needs_grad=True)  # right rotation of F's SVD
+        self.sig = ti.field(vec, needs_grad=True)  # singular values of F
+        self.Jp = ti.field(f32, needs_grad=True)  # plastic volume ratio (snow)
+        # per substep s = 0..S-1: trial F = (I + dt C) F and its singular values
+        self.F_trial = ti.field(mat, needs_grad=True)
+        self.sig_trial = ti.field(vec, needs_grad=True)
+
+        # per particle, recomputed every substep: mass (kg) and MLS affine momentum term
+        self.pmass = ti.field(f32, needs_grad=True)
+        self.affine = ti.field(mat, needs_grad=True)
+
+        # constant per particle
+        self.obj = ti.field(ti.i32)  # object index 0..K-1
+        self.vol = ti.field(f32)  # rest volume (m^3)
+
+        # grid, one velocity field per object (or one shared): index [g, i, j, k]
+        self.m = ti.field(f32, needs_grad=True)  # mass (kg)
+        self.mv = ti.field(vec, needs_grad=True)  # momentum incl. stress impulse (kg m/s)
+        self.gm = ti.field(vec, needs_grad=True)  # mass gradient (kg/m) for contact normals
+        self.vf = ti.field(vec, needs_grad=True)  # velocity after body forces (m/s)
+        self.vg = ti.field(vec, needs_grad=True)  # velocity after contact and boundaries (m/s)
+
+        # parameters (differentiable), index [k] per object
+        K = layout.n_objects
+        self.law_id = ti.field(ti.i32)
+        self.law_p = ti.field(ti.types.vector(MAX_LAW_PARAMS, f32), needs_grad=True)
+        self.rho = ti.field(f32, needs_grad=True)  # kg/m^3
+        self.friction = ti.field(f32, needs_grad=True)
+        self.v0 = ti.field(vec, needs_grad=True)  # initial velocity (m/s)
+        self.ground_mu = ti.field(f32, needs_grad=True)
+        self.gravity = ti.field(vec, needs_grad=True)  # m/s^2 (world or `gravity` term)
+        self.wind = ti.field(vec, needs_grad=True)  # m/s^2
+        self.lin_drag = ti.field(f32, needs_grad=True)  # 1/s
+        self.quad_drag = ti.field(f32, needs_grad=True)  # 1/m
+
+        # diagnostics (forward only): first flagged substep * 4 + reason, per object
+        self.div_code = ti.field(ti.i32)
+        self.contact = ti.field(ti.i32)  # [K, K+1] object-object / ground contact this frame
+
+        fb = ti.FieldsBuilder()
+        per_step = (self.x, self.v, self.C, self.F, self.U, self.V, self.sig, self.Jp)
+        fb.dense(ti.ij, (S + 1, N)).place(*per_step)
+        fb.dense(ti.ij, (S, N)).place(self.F_trial, self.sig_trial)
+        fb.dense(ti.i, N).place(self.obj, self.vol, self.pmass, self.affine)
+        grid_shape = (layout.n_fields, *layout.nodes)
+        fb.dense(ti.ijkl, grid_shape).place(self.m, self.mv, self.gm, self.vf, self.vg)
+        fb.dense(ti.i, K).place(
+            self.law_id, self.law_p, self.rho, self.friction, self.v0, self.div_code
+        )
+        fb.place(self.ground_mu, self.gravity, self.wind, self.lin_drag, self.quad_drag)
+        fb.dense(ti.ij, (K, K + 1)).place(self.contact)
+        fb.lazy_grad()
+        self._tree = fb.finalize()
+
+    #: the differentiable parameter fields, by the name the simulator maps tensors to
+    def param_fields(self) -> dict[str, ti.Field]:
+        return {
+            "law_p": self.law_p,
+            "rho": self.rho,
+            "friction": self.friction,
+            "v0": self.v0,
+            "ground_mu": self.ground_mu,
+            "gravity": self.gravity,
+            "wind": self.wind,
+            "lin_drag": self.lin_drag,
+            "quad_drag": self.quad_drag,
+        }
+
+    def nbytes(self) -> int:
+        """Approximate bytes held by these fields (values and gradients)."""
+        lay = self.layout
+        per_particle_step = 3 + 3 + 9 + 9 + 9 + 9 + 3 + 1
+        trial = 9 + 3
+        n_nodes = lay.n_fields * math.prod(lay.nodes)
+        floats = lay.capacity * ((lay.substeps + 1) * per_particle_step + lay.substeps * trial)
+        floats += lay.capacity * 10 + n_nodes * (1 + 3 * 4)
+        return 4 * (2 * floats + 2 * lay.capacity)
+
+    def destroy(self) -> None:
+        """Free the device memory of every field (they must not be used afterwards)."""
+        self._tree.destroy()

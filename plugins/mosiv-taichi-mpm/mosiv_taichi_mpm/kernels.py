@@ -1,0 +1,421 @@
+"""Taichi kernels of one MLS-MPM substep (Hu et al. 2018, APIC, quadratic B-splines).
+
+A substep from buffer ``s`` to ``s + 1`` runs, in order:
+``clear_grid`` -> ``stress(s)`` -> ``p2g(s, 0..2)`` -> ``grid_forces`` -> ``grid_contact`` ->
+``clear_particle_velocity(s)`` -> ``g2p(s, 0..2)`` -> ``advect(s)`` -> ``svd(s)`` -> ``plasticity(s)``.
+Every kernel except ``svd`` is differentiated by Taichi (``kernel.grad``); ``svd_backward`` is the
+hand-written adjoint of ``svd``. Kernels read and write disjoint fields so that the recorded
+values survive until their adjoints run. ``check`` and ``detect_contact`` are forward-only.
+"""
+
+# no `from __future__ import annotations`: Taichi reads the annotations at runtime
+import taichi as ti
+
+from mosiv_taichi_mpm.fields import SimFields
+from mosiv_taichi_mpm.laws import kirchhoff_stress, return_map
+from mosiv_taichi_mpm.svd_grad import svd_adjoint
+
+MASS_EPS = 1e-12  # kg; grid nodes lighter than this count as empty
+NORMAL_EPS = 1e-20  # guards normalisation of near-zero mass gradients
+WALL_LAYERS = 3  # outer node layers with slip walls (contract)
+
+# divergence reasons (stored in the low 2 bits of div_code)
+#: (i, j) offsets of the stencil rows; each row of 3 nodes is one p2g / g2p kernel
+STENCIL_ROWS = tuple((i, j) for i in range(3) for j in range(3))
+
+REASON_NONFINITE = 1
+REASON_LEFT_DOMAIN = 2
+
+FLOAT_BIG = 1e30  # |value| above this counts as non-finite (catches inf and, via compare, NaN)
+
+
+@ti.func
+def spline_weight(d):
+    """Quadratic B-spline N(d) at d = (x_p - x_i)/dx, and dN/dx_i in cell units (the gradient
+    with respect to the node position, so that sum m_p dN/dx_i is the grid mass gradient)."""
+    # ti.select, not if/else: locals assigned in branches inside the dynamic stencil loop would
+    # need Taichi's adstack in the adjoint kernel
+    a = ti.abs(d)
+    inner = a < 0.5
+    w = ti.select(inner, 0.75 - a * a, 0.5 * (1.5 - a) ** 2)
+    dw = ti.select(inner, 2.0 * d, (1.5 - a) * ti.select(d > 0.0, 1.0, -1.0))
+    return w, dw
+
+
+@ti.func
+def stencil(fx, offset):
+    """Weight of node base + offset for a particle at fx (cell units from base), its gradient
+    (1/cell, with respect to the node position) and the offset vector in cells."""
+    d = fx - ti.cast(offset, ti.f32)
+    w0, g0 = spline_weight(d[0])
+    w1, g1 = spline_weight(d[1])
+    w2, g2 = spline_weight(d[2])
+    return w0 * w1 * w2, ti.Vector([g0 * w1 * w2, w0 * g1 * w2, w0 * w1 * g2]), -d
+
+
+@ti.data_oriented
+class MPMKernels:
+    """Kernels bound to one ``SimFields`` and one set of material families.
+
+    ``present_laws`` (tuple of law ids) selects which laws are compiled in; ``needs_svd`` says
+    whether any of them uses the SVD of F (all but elastic and newtonian).
+    """
+
+    def __init__(self, fields: SimFields, present_laws: tuple[int, ...]):
+        self.f = fields
+        # kernels reach fields as attributes of self (Taichi resolves them at compile time)
+        for name, value in vars(fields).items():
+            if isinstance(value, ti.Field):
+                setattr(self, name, value)
+        lay = fields.layout
+        self.present = tuple(sorted(present_laws))
+        self.needs_svd = any(law not in (0, 3) for law in self.present)
+        self.K = lay.n_objects
+        self.G = lay.n_fields
+        self.multi = lay.n_fields > 1
+        self.nodes = lay.nodes
+        self.dx = lay.dx
+        self.inv_dx = 1.0 / lay.dx
+        self.origin = ti.Vector(list(lay.origin), ti.f32)
+        # particles are kept inside [1, nodes - 2] cells so the 3x3x3 stencil stays on the grid
+        self.lo = 1.0
+        self.hi = ti.Vector([n - 2.0 - 1e-3 for n in lay.nodes], ti.f32)
+
+    # ------------------------------------------------------------------------------------------
+    # state transfer (not differentiated; the autograd function moves adjoints explicitly)
+    # ------------------------------------------------------------------------------------------
+    @ti.kernel
+    def set_particles(self, n: ti.i32, obj: ti.types.ndarray(), vol: ti.types.ndarray()):
+        for p in range(n):
+            self.obj[p] = obj[p]
+            self.vol[p] = vol[p]
+
+    @ti.kernel
+    def rest_state(self, n: ti.i32, x: ti.types.ndarray()):
+        """Frame 0: x given, F = U = V = I, singular values 1, C = 0, plastic_J = 1."""
+        for p in range(n):
+            self.x[0, p] = ti.Vector([x[p, 0], x[p, 1], x[p, 2]])
+            self.C[0, p] = ti.Matrix.zero(ti.f32, 3, 3)
+            self.F[0, p] = ti.Matrix.identity(ti.f32, 3)
+            self.U[0, p] = ti.Matrix.identity(ti.f32, 3)
+            self.V[0, p] = ti.Matrix.identity(ti.f32, 3)
+            self.sig[0, p] = ti.Vector([1.0, 1.0, 1.0])
+            self.Jp[0, p] = 1.0
+
+    @ti.kernel
+    def initial_velocity(self, n: ti.i32):
+        """v(t=0) = v0 of the particle's object."""
+        for p in range(n):
+            self.v[0, p] = self.v0[self.obj[p]]
+
+    @ti.kernel
+    def transfer_state(
+        self,
+        s: ti.i32,
+        n: ti.i32,
+        to_fields: ti.template(),
+        use_grad: ti.template(),
+        x: ti.types.ndarray(),
+        v: ti.types.ndarray(),
+        C: ti.types.ndarray(),
+        F: ti.types.ndarray(),
+        U: ti.types.ndarray(),
+        V: ti.types.ndarray(),
+        sig: ti.types.ndarray(),
+        Jp: ti.types.ndarray(),
+    ):
+        """Copy buffer s (values or adjoints) to (to_fields=False) or from flat arrays."""
+        for p in range(n):
+            for i in ti.static(range(3)):
+                if ti.static(to_fields):
+                    if ti.static(use_grad):
+                        self.x.grad[s, p][i] = x[p, i]
+                        self.v.grad[s, p][i] = v[p, i]
+                        self.sig.grad[s, p][i] = sig[p, i]
+                    else:
+                        self.x[s, p][i] = x[p, i]
+                        self.v[s, p][i] = v[p, i]
+                        self.sig[s, p][i] = sig[p, i]
+                else:
+                    if ti.static(use_grad):
+                        x[p, i] = self.x.grad[s, p][i]
+                        v[p, i] = self.v.grad[s, p][i]
+                        sig[p, i] = self.sig.grad[s, p][i]
+                    else:
+                        x[p, i] = self.x[s, p][i]
+                        v[p, i] = self.v[s, p][i]
+                        sig[p, i] = self.sig[s, p][i]
+                for j in ti.static(range(3)):
+                    if ti.static(to_fields):
+                        if ti.static(use_grad):
+                            self.C.grad[s, p][i, j] = C[p, i, j]
+                            self.F.grad[s, p][i, j] = F[p, i, j]
+                            self.U.grad[s, p][i, j] = U[p, i, j]
+                            self.V.grad[s, p][i, j] = V[p, i, j]
+                        else:
+                            self.C[s, p][i, j] = C[p, i, j]
+                            self.F[s, p][i, j] = F[p, i, j]
+                            self.U[s, p][i, j] = U[p, i, j]
+                            self.V[s, p][i, j] = V[p, i, j]
+                    else:
+                        if ti.static(use_grad):
+                            C[p, i, j] = self.C.grad[s, p][i, j]
+                            F[p, i, j] = self.F.grad[s, p][i, j]
+                            U[p, i, j] = self.U.grad[s, p][i, j]
+                            V[p, i, j] = self.V.grad[s, p][i, j]
+                        else:
+                            C[p, i, j] = self.C[s, p][i, j]
+                            F[p, i, j] = self.F[s, p][i, j]
+                            U[p, i, j] = self.U[s, p][i, j]
+                            V[p, i, j] = self.V[s, p][i, j]
+            if ti.static(to_fields):
+                if ti.static(use_grad):
+                    self.Jp.grad[s, p] = Jp[p]
+                else:
+                    self.Jp[s, p] = Jp[p]
+            else:
+                if ti.static(use_grad):
+                    Jp[p] = self.Jp.grad[s, p]
+                else:
+                    Jp[p] = self.Jp[s, p]
+
+    @ti.kernel
+    def add_position_grad(self, s: ti.i32, n: ti.i32, g: ti.types.ndarray()):
+        """dL/dx[s] += g (the loss gradient of the positions output at a frame boundary)."""
+        for p in range(n):
+            self.x.grad[s, p] += ti.Vector([g[p, 0], g[p, 1], g[p, 2]])
+
+    @ti.kernel
+    def clear_grid(self, grads: ti.template()):
+        """Zero the grid (or its adjoints) before a substep's transfer."""
+        for I in ti.grouped(self.m):
+            if ti.static(grads):
+                self.m.grad[I] = 0.0
+                self.mv.grad[I] = ti.Vector.zero(ti.f32, 3)
+                self.gm.grad[I] = ti.Vector.zero(ti.f32, 3)
+                self.vf.grad[I] = ti.Vector.zero(ti.f32, 3)
+                self.vg.grad[I] = ti.Vector.zero(ti.f32, 3)
+            else:
+                self.m[I] = 0.0
+                self.mv[I] = ti.Vector.zero(ti.f32, 3)
+                self.gm[I] = ti.Vector.zero(ti.f32, 3)
+
+    # ------------------------------------------------------------------------------------------
+    # one substep
+    # ------------------------------------------------------------------------------------------
+    @ti.kernel
+    def stress(self, s: ti.i32, n: ti.i32, dt: ti.f32):
+        """Per particle: mass m_p = rho V0 and MLS affine term A = -dt 4/dx^2 V0 tau + m_p C."""
+        for p in range(n):
+            k = self.obj[p]
+            mass = self.rho[k] * self.vol[p]
+            tau = kirchhoff_stress(
+                self.present, self.law_id[k], self.F[s, p], self.U[s, p], self.sig[s, p],
+                self.C[s, p], self.Jp[s, p], self.law_p[k],
+            )  # fmt: skip
+            self.pmass[p] = mass
+            self.affine[p] = -dt * 4.0 * self.inv_dx * self.inv_dx * self.vol[p] * tau + (
+                mass * self.C[s, p]
+            )
+
+    @ti.kernel
+    def p2g(self, s: ti.i32, n: ti.i32, i: ti.template(), j: ti.template()):
+        """MLS-MPM P2G over the 3 stencil nodes with offsets (i, j, 0..2):
+        m_i += w m_p; (m v)_i += w (m_p v_p + A dpos); (grad m)_i += m_p grad w.
+
+        The stencil is unrolled (Taichi's adjoint of a dynamic inner loop is wrong here) and
+        split in nine kernels because the adjoint's compile time grows faster than linearly
+        with kernel size."""
+        for p in range(n):
+            g = self.obj[p] if ti.static(self.multi) else 0
+            mass = self.pmass[p]
+            xg = (self.x[s, p] - self.origin) * self.inv_dx
+            base = ti.cast(xg - 0.5, ti.i32)
+            fx = xg - ti.cast(base, ti.f32)
+            mom = mass * self.v[s, p]
+            A = self.affine[p]
+            for l in ti.static(range(3)):
+                offset = ti.Vector([i, j, l])
+                weight, grad_w, dcell = stencil(fx, offset)
+                node = base + offset
+                self.m[g, node[0], node[1], node[2]] += weight * mass
+                self.mv[g, node[0], node[1], node[2]] += weight * (mom + A @ (dcell * self.dx))
+                self.gm[g, node[0], node[1], node[2]] += (mass * self.inv_dx) * grad_w
+
+    @ti.kernel
+    def grid_forces(self, dt: ti.f32):
+        """v = (m v)/m + dt (gravity + wind - c_lin v - c_quad |v| v) on nodes with mass."""
+        for I in ti.grouped(self.m):
+            vel = ti.Vector.zero(ti.f32, 3)
+            if self.m[I] > MASS_EPS:
+                vel = self.mv[I] / self.m[I]
+                speed = ti.sqrt(vel.dot(vel) + NORMAL_EPS)
+                acc = self.gravity[None] + self.wind[None]
+                acc -= self.lin_drag[None] * vel + self.quad_drag[None] * speed * vel
+                vel += dt * acc
+            self.vf[I] = vel
+
+    @ti.func
+    def _coulomb(self, rel, normal, mu):
+        """Remove the approaching normal part of rel and apply Coulomb friction mu (tangential
+        change at most mu times the normal change; full stop beyond)."""
+        vn = rel.dot(normal)
+        out = rel
+        if vn > 0.0:
+            tangent = rel - vn * normal
+            t_norm = ti.sqrt(tangent.dot(tangent) + NORMAL_EPS)
+            out = tangent * ti.max(1.0 - mu * vn / t_norm, 0.0)
+        return out
+
+    @ti.kernel
+    def grid_contact(self, ground_z: ti.f32, has_ground: ti.i32):
+        """Multi-field contact (mu = (mu_a + mu_b)/2, free separation), ground, slip walls."""
+        for i, j, l in ti.ndrange(*self.nodes):
+            m_tot = 0.0
+            mom = ti.Vector.zero(ti.f32, 3)
+            grad_sum = ti.Vector.zero(ti.f32, 3)
+            fric_mass = 0.0
+            n_with_mass = 0
+            for g in ti.static(range(self.G)):
+                m_tot += self.m[g, i, j, l]
+                mom += self.m[g, i, j, l] * self.vf[g, i, j, l]
+                grad_sum += self.gm[g, i, j, l]
+                if ti.static(self.multi):
+                    fric_mass += self.m[g, i, j, l] * self.friction[g]
+                if self.m[g, i, j, l] > MASS_EPS:
+                    n_with_mass += 1
+            v_cm = mom / ti.max(m_tot, MASS_EPS)
+            z = self.origin[2] + l * self.dx
+            for g in ti.static(range(self.G)):
+                vel = self.vf[g, i, j, l]
+                m_g = self.m[g, i, j, l]
+                if ti.static(self.multi):
+                    if n_with_mass >= 2 and m_g > MASS_EPS:
+                        # outward normal of object g: towards the others' mass, away from its own
+                        nrm = grad_sum - 2.0 * self.gm[g, i, j, l]
+                        nrm = nrm / ti.sqrt(nrm.dot(nrm) + NORMAL_EPS)
+                        mu_other = (fric_mass - m_g * self.friction[g]) / ti.max(
+                            m_tot - m_g, MASS_EPS
+                        )
+                        mu = 0.5 * (self.friction[g] + mu_other)
+                        vel = v_cm + self._coulomb(vel - v_cm, nrm, mu)
+                if has_ground != 0:  # nested ifs: `and` confuses Taichi's adjoint of locals
+                    if z <= ground_z:
+                        # outward normal of the table is -e_z: moving down = approaching it
+                        vel = self._coulomb(vel, ti.Vector([0.0, 0.0, -1.0]), self.ground_mu[None])
+                for d in ti.static(range(3)):
+                    if (i, j, l)[d] < WALL_LAYERS:
+                        vel[d] = ti.max(vel[d], 0.0)  # slip: no outward normal velocity
+                    if (i, j, l)[d] >= self.nodes[d] - WALL_LAYERS:
+                        vel[d] = ti.min(vel[d], 0.0)
+                self.vg[g, i, j, l] = vel
+
+    @ti.kernel
+    def clear_particle_velocity(self, s: ti.i32, n: ti.i32):
+        """Zero v[s + 1] and C[s + 1] before ``g2p`` accumulates into them."""
+        for p in range(n):
+            self.v[s + 1, p] = ti.Vector.zero(ti.f32, 3)
+            self.C[s + 1, p] = ti.Matrix.zero(ti.f32, 3, 3)
+
+    @ti.kernel
+    def g2p(self, s: ti.i32, n: ti.i32, i: ti.template(), j: ti.template()):
+        """G2P gather over the 3 stencil nodes with offsets (i, j, 0..2): v += w v_i,
+        C += 4/dx^2 w v_i dpos^T (APIC); accumulated into the fields (see ``p2g``)."""
+        for p in range(n):
+            g = self.obj[p] if ti.static(self.multi) else 0
+            xg = (self.x[s, p] - self.origin) * self.inv_dx
+            base = ti.cast(xg - 0.5, ti.i32)
+            fx = xg - ti.cast(base, ti.f32)
+            for l in ti.static(range(3)):
+                offset = ti.Vector([i, j, l])
+                weight, _grad_w, dcell = stencil(fx, offset)
+                node = base + offset
+                gv = self.vg[g, node[0], node[1], node[2]]
+                self.v[s + 1, p] += weight * gv
+                self.C[s + 1, p] += (4.0 * self.inv_dx * weight) * gv.outer_product(dcell)
+
+    @ti.kernel
+    def advect(self, s: ti.i32, n: ti.i32, dt: ti.f32):
+        """x += dt v (kept inside the padded grid), F_trial = (I + dt C) F."""
+        for p in range(n):
+            x_new = (self.x[s, p] + dt * self.v[s + 1, p] - self.origin) * self.inv_dx
+            x_new = ti.min(ti.max(x_new, self.lo), self.hi)
+            self.x[s + 1, p] = self.origin + x_new * self.dx
+            self.F_trial[s, p] = (ti.Matrix.identity(ti.f32, 3) + dt * self.C[s + 1, p]) @ self.F[
+                s, p
+            ]
+
+    @ti.kernel
+    def svd(self, s: ti.i32, n: ti.i32):
+        """F_trial = U diag(s) V^T with proper rotations (not differentiated by Taichi)."""
+        for p in range(n):
+            U, S, V = ti.svd(self.F_trial[s, p])
+            self.U[s + 1, p] = U
+            self.V[s + 1, p] = V
+            self.sig_trial[s, p] = ti.Vector([S[0, 0], S[1, 1], S[2, 2]])
+
+    @ti.kernel
+    def svd_backward(self, s: ti.i32, n: ti.i32):
+        """Hand-written adjoint of ``svd`` (svd_grad.py)."""
+        for p in range(n):
+            self.F_trial.grad[s, p] += svd_adjoint(
+                self.U[s + 1, p], self.sig_trial[s, p], self.V[s + 1, p],
+                self.U.grad[s + 1, p], self.sig_trial.grad[s, p], self.V.grad[s + 1, p],
+            )  # fmt: skip
+
+    @ti.kernel
+    def plasticity(self, s: ti.i32, n: ti.i32, dt: ti.f32):
+        """Return map of the particle's law: (F_trial, plastic_J) -> (F, s, plastic_J)."""
+        for p in range(n):
+            k = self.obj[p]
+            F_new, s_new, Jp_new = return_map(
+                self.present, self.law_id[k], self.F_trial[s, p], self.U[s + 1, p], self.sig_trial[s, p],
+                self.V[s + 1, p], self.Jp[s, p], self.law_p[k], dt,
+            )  # fmt: skip
+            self.F[s + 1, p] = F_new
+            self.sig[s + 1, p] = s_new
+            self.Jp[s + 1, p] = Jp_new
+
+    @ti.kernel
+    def copy_identity_svd(self, s: ti.i32, n: ti.i32):
+        """Without SVD laws U, V are unused; keep them (and the trial s) defined anyway."""
+        for p in range(n):
+            self.U[s + 1, p] = ti.Matrix.identity(ti.f32, 3)
+            self.V[s + 1, p] = ti.Matrix.identity(ti.f32, 3)
+            self.sig_trial[s, p] = ti.Vector([1.0, 1.0, 1.0])
+
+    # ------------------------------------------------------------------------------------------
+    # diagnostics (forward only)
+    # ------------------------------------------------------------------------------------------
+    @ti.kernel
+    def check(self, s: ti.i32, n: ti.i32, step: ti.i32):
+        """Flag non-finite state or particles pinned at the grid clamp: div_code = step*4+reason."""
+        for p in range(n):
+            total = self.x[s, p].sum() + self.v[s, p].sum() + self.F[s, p].sum() + self.Jp[s, p]
+            reason = 0
+            if not (ti.abs(total) < FLOAT_BIG):
+                reason = REASON_NONFINITE
+            else:
+                xg = (self.x[s, p] - self.origin) * self.inv_dx
+                if (xg <= self.lo + 1e-4).any() or (xg >= self.hi - 1e-4).any():
+                    reason = REASON_LEFT_DOMAIN
+            if reason != 0:
+                ti.atomic_min(self.div_code[self.obj[p]], step * 4 + reason)
+
+    @ti.kernel
+    def detect_contact(self, ground_z: ti.f32, has_ground: ti.i32):
+        """contact[a, b] = 1 where a and b share an approaching node; contact[a, K] for ground."""
+        for i, j, l in ti.ndrange(*self.nodes):
+            z = self.origin[2] + l * self.dx
+            for a in ti.static(range(self.G)):
+                if self.m[a, i, j, l] > MASS_EPS:
+                    if has_ground != 0 and z <= ground_z and self.vf[a, i, j, l][2] < 0.0:
+                        self.contact[a, self.K] = 1
+                    for b in ti.static(range(self.G)):
+                        if ti.static(a != b):
+                            if self.m[b, i, j, l] > MASS_EPS:
+                                nrm = self.gm[b, i, j, l] - self.gm[a, i, j, l]
+                                rel = self.vf[a, i, j, l] - self.vf[b, i, j, l]
+                                if rel.dot(nrm) > 0.0:
+                                    self.contact[a, b] = 1
+                                    self.contact[b, a] = 1

@@ -1,0 +1,48 @@
+"""The process-wide Taichi runtime: one active architecture at a time.
+
+Taichi allows a single runtime per process. When a simulator asks for another device, the runtime
+is reset (``ti.reset``) and re-initialised; every field allocated before becomes invalid, which
+simulators notice through ``generation()`` and answer by re-allocating.
+"""
+
+from __future__ import annotations
+
+import taichi as ti
+import torch
+
+from mosiv_framework.errors import ConfigError
+
+_state = {"device": None, "generation": 0}
+
+
+def resolve_device(device: str) -> str:
+    """'auto' -> 'cuda' when torch sees a CUDA GPU, else 'cpu'."""
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return device
+
+
+def ensure(device: str) -> int:
+    """Make the runtime run on ``device`` ('cpu' or 'cuda'); returns its generation number."""
+    if _state["device"] == device:
+        return _state["generation"]
+    if _state["device"] is not None:
+        ti.reset()
+    arch = ti.cuda if device == "cuda" else ti.cpu
+    # float32 throughout; fast_math off so NaN/inf checks are not optimised away
+    ti.init(arch=arch, default_fp=ti.f32, offline_cache=True, fast_math=False, log_level="warn")
+    actual = ti.lang.impl.current_cfg().arch
+    if device == "cuda" and actual != ti.cuda:
+        ti.reset()
+        _state["device"] = None
+        raise ConfigError(
+            f"taichi-mpm option device='cuda' but Taichi could not start on CUDA (got {actual}); "
+            "use device='cpu' or 'auto'"
+        )
+    _state["device"] = device
+    _state["generation"] += 1
+    return _state["generation"]
+
+
+def generation() -> int:
+    return _state["generation"]

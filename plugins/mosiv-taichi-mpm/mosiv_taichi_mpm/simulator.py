@@ -1,0 +1,262 @@
+"""The ``taichi-mpm`` Simulator: validation, parameter packing and the rollout entry point.
+
+Physics lives in kernels.py / laws.py, the reverse mode in autograd.py; this module turns the
+framework's torch-level ParticleSet / SimulationParams / World into field contents and back.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from mosiv_framework.errors import ConfigError
+from mosiv_framework.interfaces import Simulator
+from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, World
+from mosiv_taichi_mpm import runtime
+from mosiv_taichi_mpm.autograd import RolloutFunction, RolloutRun
+from mosiv_taichi_mpm.engine import Engine
+from mosiv_taichi_mpm.fields import make_layout
+from mosiv_taichi_mpm.laws import LAW_IDS, LAW_PARAMS, MAX_LAW_PARAMS
+from mosiv_taichi_mpm.options import TaichiMPMOptions
+
+#: term name -> {parameter name: shape}
+TERMS: dict[str, dict[str, tuple[int, ...]]] = {
+    "linear_drag": {"coefficient": ()},
+    "quadratic_drag": {"coefficient": ()},
+    "wind": {"acceleration": (3,)},
+    "gravity": {"acceleration": (3,)},
+}
+#: term parameter -> the field that carries it
+_TERM_FIELD = {
+    ("linear_drag", "coefficient"): "lin_drag",
+    ("quadratic_drag", "coefficient"): "quad_drag",
+    ("wind", "acceleration"): "wind",
+    ("gravity", "acceleration"): "gravity",
+}
+#: what to lower when an object of a family diverges
+_STIFFNESS_ADVICE = {
+    "elastic": "lower E",
+    "plasticine": "lower E",
+    "sand": "lower E",
+    "newtonian": "lower bulk_modulus or viscosity",
+    "non_newtonian": "lower bulk_modulus or shear_modulus",
+    "snow": "lower E or hardening",
+}
+
+
+class TaichiMPMSimulator(Simulator):
+    """Differentiable multi-object MLS-MPM on Taichi (see /work/notes/mpm_spec.md)."""
+
+    supported_laws = frozenset(LAW_IDS)
+    supported_terms = frozenset(TERMS)
+
+    def __init__(self, options: TaichiMPMOptions | None = None, **kwargs):
+        self.options = options if options is not None else TaichiMPMOptions(**kwargs)
+        self.device_name = runtime.resolve_device(self.options.device)
+        self._engine: Engine | None = None
+        self._engine_key: tuple | None = None
+        self._peak_checkpoint_bytes = 0
+        self._peak_bytes = 0
+
+    @property
+    def torch_device(self) -> torch.device:
+        return torch.device("cuda" if self.device_name == "cuda" else "cpu")
+
+    # ------------------------------------------------------------------ memory
+    def reset_peak_memory(self) -> None:
+        self._peak_bytes = 0
+        if self.device_name == "cuda":
+            torch.cuda.reset_peak_memory_stats()
+
+    def peak_memory_bytes(self) -> int | None:
+        """Taichi field bytes (values + adjoints) plus the torch checkpoints of the last rollout
+        (on CUDA: plus torch's own peak allocation, which holds the checkpoints)."""
+        if self._peak_bytes == 0:
+            return None
+        if self.device_name == "cuda":
+            fields = self._engine.fields.nbytes() if self._engine else 0
+            return fields + int(torch.cuda.max_memory_allocated())
+        return self._peak_bytes
+
+    def evaluate_law(self, family, F, values, *, plastic_J=None, velocity_gradient=None, dt=1e-3):
+        """The backend's own stress and return map of ``family`` on a batch of F (parity suite):
+        returns (tau [N, 3, 3] Pa, F_new [N, 3, 3], plastic_J_new [N])."""
+        if family not in LAW_IDS:
+            raise ConfigError(f"unknown family {family!r}; taichi-mpm supports {sorted(LAW_IDS)}")
+        runtime.ensure(self.device_name)
+        from mosiv_taichi_mpm.law_eval import evaluate_law
+
+        return evaluate_law(
+            family, F, values, plastic_J=plastic_J, velocity_gradient=velocity_gradient, dt=dt
+        )
+
+    # ------------------------------------------------------------------ rollout
+    def rollout(
+        self, particles: ParticleSet, params: SimulationParams, *, world: World, frames: int
+    ) -> Trajectory:
+        if not isinstance(frames, int) or frames < 1:
+            raise ConfigError(f"rollout frames={frames!r} must be an integer >= 1")
+        object_ids = particles.object_list
+        self._validate(particles, params, object_ids)
+        generation = runtime.ensure(self.device_name)
+        dev = self.torch_device
+        families = [params.objects[k].family for k in object_ids]
+        present = tuple(sorted({LAW_IDS[f] for f in families}))
+        layout = make_layout(
+            n_particles=len(particles),
+            n_objects=len(object_ids),
+            single_field=self.options.contact == "single_field",
+            grid=self.options.grid,
+            substeps=self.options.substeps,
+            domain_lower=tuple(world.domain_lower),
+            domain_upper=tuple(world.domain_upper),
+        )
+        engine = self._get_engine(layout, present, generation)
+
+        index_of = {k: i for i, k in enumerate(object_ids)}
+        obj = particles.object_ids.detach().cpu().numpy()
+        obj_index = torch.from_numpy(np.vectorize(index_of.get)(obj).astype(np.int32)).to(dev)
+        self._check_inside(particles, world)
+        engine.configure(
+            positions=particles.positions.detach().to(dev, torch.float32).contiguous(),
+            volumes=particles.volumes.detach().to(dev, torch.float32).contiguous(),
+            obj_index=obj_index.contiguous(),
+            object_ids=object_ids,
+            dt=1.0 / (world.fps * self.options.substeps),
+            ground_z=world.ground_height,
+            advice_info={k: _STIFFNESS_ADVICE[params.objects[k].family] for k in object_ids},
+        )
+        names, tensors = zip(*params.named_tensors())
+        engine.set_params(self._pack(params, object_ids, world))
+
+        run = RolloutRun(engine=engine, frames=frames, n=len(particles), device=dev)
+
+        def grads_of():
+            return self._unpack_grads(engine.param_grads(), names, params, object_ids)
+
+        positions = RolloutFunction.apply(run, grads_of, *tensors)
+        ckpt = frames * sum(t.numel() * 4 for t in run.checkpoints[0].values())
+        self._peak_bytes = max(self._peak_bytes, engine.fields.nbytes() + ckpt)
+        out_device = particles.positions.device
+        return Trajectory(
+            positions=positions.to(out_device),
+            object_ids=particles.object_ids,
+            fps=world.fps,
+            velocities=run.velocities.to(out_device),
+            contact=None if run.contact is None else run.contact.to(out_device),
+        )
+
+    def _get_engine(self, layout, present, generation) -> Engine:
+        key = (layout, present, generation)
+        if self._engine_key != key:
+            if self._engine is not None and self._engine_key[2] == generation:
+                self._engine.destroy()
+            self._engine = Engine(layout, present, self.torch_device)
+            self._engine_key = key
+        return self._engine
+
+    # ------------------------------------------------------------------ validation
+    def _validate(self, particles, params: SimulationParams, object_ids: list[int]) -> None:
+        problems = []
+        for k in object_ids:
+            if k not in params.objects:
+                problems.append(f"params.objects has no entry for object {k}")
+                continue
+            fam = params.objects[k].family
+            if fam not in LAW_IDS:
+                problems.append(
+                    f"object {k}: material family {fam!r} not supported by taichi-mpm; "
+                    f"valid: {sorted(LAW_IDS)}"
+                )
+                continue
+            if particles.materials.get(k, fam) != fam:
+                problems.append(
+                    f"object {k}: particles say {particles.materials[k]!r} but params say {fam!r}"
+                )
+            missing = [
+                p
+                for p in (*LAW_PARAMS[fam], "rho", "friction")
+                if p not in params.objects[k].values
+            ]
+            if missing:
+                problems.append(f"object {k} ({fam}): missing parameter(s) {missing}")
+            v0 = params.initial_velocity.get(k)
+            if v0 is None or tuple(v0.shape) != (3,):
+                problems.append(f"params.initial_velocity[{k}] must be a [3] tensor (m/s)")
+        for term, values in params.terms.items():
+            if term not in TERMS:
+                problems.append(
+                    f"physics term {term!r} not supported by taichi-mpm; valid: {sorted(TERMS)}"
+                )
+                continue
+            for pname, shape in TERMS[term].items():
+                t = values.get(pname)
+                if t is None or t.numel() != math.prod(shape):
+                    problems.append(f"term {term!r} needs {pname!r} with shape {shape}")
+            extra = sorted(set(values) - set(TERMS[term]))
+            if extra:
+                problems.append(f"term {term!r} has unknown parameter(s) {extra}")
+        if problems:
+            raise ConfigError(problems)
+
+    def _check_inside(self, particles: ParticleSet, world: World) -> None:
+        pos = particles.positions.detach()
+        lo = torch.tensor(world.domain_lower, dtype=pos.dtype, device=pos.device)
+        hi = torch.tensor(world.domain_upper, dtype=pos.dtype, device=pos.device)
+        outside = ((pos < lo) | (pos > hi)).any(dim=1)
+        if bool(outside.any()):
+            k = int(particles.object_ids[outside][0])
+            raise ConfigError(
+                f"{int(outside.sum())} particles (e.g. of object {k}) start outside the world "
+                f"domain lower={world.domain_lower} upper={world.domain_upper}"
+            )
+
+    # ------------------------------------------------------------------ packing
+    def _pack(self, params: SimulationParams, object_ids, world: World) -> dict[str, np.ndarray]:
+        K = len(object_ids)
+        law_id = np.zeros(K, np.int32)
+        law_p = np.zeros((K, MAX_LAW_PARAMS), np.float32)
+        rho, fric = np.zeros(K, np.float32), np.zeros(K, np.float32)
+        v0 = np.zeros((K, 3), np.float32)
+        for i, k in enumerate(object_ids):
+            p = params.objects[k]
+            law_id[i] = LAW_IDS[p.family]
+            for j, name in enumerate(LAW_PARAMS[p.family]):
+                law_p[i, j] = float(p.values[name].detach())
+            rho[i] = float(p.values["rho"].detach())
+            fric[i] = float(p.values["friction"].detach())
+            v0[i] = params.initial_velocity[k].detach().cpu().numpy()
+        out = {"law_id": law_id, "law_p": law_p, "rho": rho, "friction": fric, "v0": v0}
+        out["ground_mu"] = np.array(float(params.ground_friction.detach()), np.float32)
+        out["gravity"] = np.array(world.gravity, np.float32)
+        out["wind"] = np.zeros(3, np.float32)
+        out["lin_drag"] = np.array(0.0, np.float32)
+        out["quad_drag"] = np.array(0.0, np.float32)
+        for (term, pname), fld in _TERM_FIELD.items():
+            if term in params.terms:
+                t = params.terms[term][pname].detach().cpu().numpy().astype(np.float32)
+                out[fld] = t.reshape(out[fld].shape)
+        return out
+
+    def _unpack_grads(self, g: dict[str, np.ndarray], names, params, object_ids):
+        """Field adjoints -> one torch tensor per named parameter tensor (same order)."""
+        index_of = {k: i for i, k in enumerate(object_ids)}
+        by_name: dict[str, np.ndarray] = {}
+        for k in object_ids:
+            i, fam = index_of[k], params.objects[k].family
+            for j, pname in enumerate(LAW_PARAMS[fam]):
+                by_name[f"obj{k}.{pname}"] = g["law_p"][i, j]
+            by_name[f"obj{k}.rho"] = g["rho"][i]
+            by_name[f"obj{k}.friction"] = g["friction"][i]
+            by_name[f"v0.obj{k}"] = g["v0"][i]
+        by_name["ground_friction"] = g["ground_mu"]
+        for (term, pname), fld in _TERM_FIELD.items():
+            if term in params.terms:
+                by_name[f"term.{term}.{pname}"] = g[fld]
+        out = []
+        for name in names:
+            arr = by_name.get(name)
+            out.append(None if arr is None else torch.as_tensor(np.array(arr, np.float32)))
+        return out
