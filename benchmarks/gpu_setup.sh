@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
 # On the GPU machine (Python 3.12, CUDA torch, no package index): install the staged warp and
 # taichi wheels (see ../shared/tools/stage-device-wheels.sh) and this checkout, offline.
-# Usage: source benchmarks/gpu_setup.sh   (from the repository root, with .ti carried)
+# Usage: source benchmarks/gpu_setup.sh   (repository root; carry .ti and .tideps, the small
+# pure-Python packages taichi needs: dill colorama rich pygments markdown-it-py mdurl)
 set -e
 if [ ! -d /root/site/warp ]; then
   (cd /root/stash && cat warp.part.* > "$(cat warp.name)")
   python3 -m pip install -q --no-index --no-deps --target /root/site /root/stash/*.whl .ti/*.whl
 fi
-export PYTHONPATH=/root/site:$PWD:$PWD/plugins/mosiv-warp-mpm:$PWD/plugins/mosiv-taichi-mpm:$PWD/plugins/mosiv-gauss:$PWD/plugins/mosiv-lift
+export PYTHONPATH=/root/site:$PWD/.tideps:$PWD:$PWD/plugins/mosiv-warp-mpm:$PWD/plugins/mosiv-taichi-mpm:$PWD/plugins/mosiv-gauss:$PWD/plugins/mosiv-lift
 for d in . plugins/mosiv-warp-mpm plugins/mosiv-taichi-mpm plugins/mosiv-gauss plugins/mosiv-lift; do
   python3 -m pip install -q --no-deps --no-build-isolation --no-index -e "$d" >/dev/null 2>&1 || true
 done

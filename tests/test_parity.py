@@ -38,7 +38,9 @@ class YieldStressSlip(Simulator):
             k: ObjectParams(p.family, self._slip(p.family, p.values))
             for k, p in params.objects.items()
         }
-        slipped = type(params)(objects, params.initial_velocity, params.ground_friction, params.terms)
+        slipped = type(params)(
+            objects, params.initial_velocity, params.ground_friction, params.terms
+        )
         return self.inner.rollout(particles, slipped, world=world, frames=frames)
 
 
@@ -55,3 +57,23 @@ def test_one_line_check_catches_the_wrong_law():
 def test_a_correct_backend_passes_its_own_reference():
     report = check_backend("warp-mpm", reference=None, laws=("elastic", "sand"))
     assert report.passed, report.table()
+
+
+def test_warp_and_taichi_agree_on_every_law():
+    """The two independently written backends, forward: laws vs reference, positions and
+    centroids after 1 and 10 frames of every standard scene, within TOLERANCES."""
+    pytest.importorskip("mosiv_taichi_mpm", reason="needs both MPM backends")
+    from mosiv_framework.testing.parity import run_parity
+
+    registry = get_registry()
+    report = run_parity(
+        {
+            name: (
+                lambda name=name, **o: registry.create("simulator", name, {**o, "device": "cpu"})
+            )
+            for name in ("warp-mpm", "taichi-mpm")
+        },
+        gradients=False,
+    )
+    assert report.passed, report.table()
+    assert len(report.results) == 6 * 2 * 2 + 7 * 4  # every law, check and scene was run
