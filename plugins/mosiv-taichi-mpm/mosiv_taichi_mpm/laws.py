@@ -19,24 +19,14 @@ import math
 
 import taichi as ti
 
-#: family name -> law id used inside kernels (scene-format order)
-LAW_IDS: dict[str, int] = {
-    "elastic": 0,
-    "plasticine": 1,
-    "sand": 2,
-    "newtonian": 3,
-    "non_newtonian": 4,
-    "snow": 5,
-}
+from mosiv_framework.laws import FAMILIES, get_law
 
-#: family name -> its parameter names in the order they are packed into P
+#: family name -> law id used inside kernels (the core's family order)
+LAW_IDS: dict[str, int] = {family: i for i, family in enumerate(FAMILIES)}
+
+#: family name -> parameter names, in the order they are packed into P (the core's schema order)
 LAW_PARAMS: dict[str, tuple[str, ...]] = {
-    "elastic": ("E", "nu"),
-    "plasticine": ("E", "nu", "yield_stress"),
-    "sand": ("friction_angle", "E", "nu"),
-    "newtonian": ("viscosity", "bulk_modulus"),
-    "non_newtonian": ("shear_modulus", "bulk_modulus", "yield_stress", "plastic_viscosity"),
-    "snow": ("E", "nu", "critical_compression", "critical_stretch", "hardening"),
+    family: tuple(spec.name for spec in get_law(family).params) for family in FAMILIES
 }
 MAX_LAW_PARAMS = 5
 

@@ -9,28 +9,18 @@ from __future__ import annotations
 
 import warp as wp
 
+from mosiv_framework.laws import FAMILIES, get_law
+
 #: parameters per object slot (the largest law, snow, has five)
 N_SLOTS = 5
 vec5 = wp.types.vector(length=N_SLOTS, dtype=wp.float32)
 
-#: family name -> law id used inside kernels
-LAW_IDS: dict[str, int] = {
-    "elastic": 0,
-    "plasticine": 1,
-    "sand": 2,
-    "newtonian": 3,
-    "non_newtonian": 4,
-    "snow": 5,
-}
+#: family name -> law id used inside kernels (the core's family order)
+LAW_IDS: dict[str, int] = {family: i for i, family in enumerate(FAMILIES)}
 
-#: family name -> parameter names, in slot order of the object's vec5
+#: family name -> parameter names, in slot order of the object's vec5 (the core's schema order)
 LAW_PARAM_NAMES: dict[str, tuple[str, ...]] = {
-    "elastic": ("E", "nu"),
-    "plasticine": ("E", "nu", "yield_stress"),
-    "sand": ("friction_angle", "E", "nu"),
-    "newtonian": ("viscosity", "bulk_modulus"),
-    "non_newtonian": ("shear_modulus", "bulk_modulus", "yield_stress", "plastic_viscosity"),
-    "snow": ("E", "nu", "critical_compression", "critical_stretch", "hardening"),
+    family: tuple(spec.name for spec in get_law(family).params) for family in FAMILIES
 }
 
 SINGULAR_MIN = wp.constant(1.0e-4)  # singular values are clamped to this before log (spec)
