@@ -41,7 +41,9 @@ class ParamSpec:
 
     def __post_init__(self) -> None:
         if not self.lower <= self.default <= self.upper:
-            raise ValueError(f"{self.name}: default {self.default} outside [{self.lower}, {self.upper}]")
+            raise ValueError(
+                f"{self.name}: default {self.default} outside [{self.lower}, {self.upper}]"
+            )
         if self.log_scale and self.lower <= 0:
             raise ValueError(f"{self.name}: log-scale parameters need a positive lower bound")
 
@@ -73,7 +75,9 @@ class ParamSpec:
 # Parameters every object carries whatever its law: density and Coulomb friction coefficient.
 OBJECT_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("rho", "kg/m^3", 50.0, 5000.0, 1000.0, log_scale=True, description="density"),
-    ParamSpec("friction", "1", 0.0, 2.0, 0.3, description="Coulomb coefficient against other bodies"),
+    ParamSpec(
+        "friction", "1", 0.0, 2.0, 0.3, description="Coulomb coefficient against other bodies"
+    ),
 )
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from mosiv_framework.laws.base import ConstitutiveLaw, ParamSpec
+from mosiv_framework.laws.base import ParamSpec
 from mosiv_framework.laws.linalg import (
     deviatoric,
     gather_params,
@@ -17,7 +17,7 @@ from mosiv_framework.laws.linalg import (
     plastic_j_or_ones,
     safe_norm,
 )
-from mosiv_framework.laws.plasticine import deviatoric_flow, hencky_kirchhoff, isotropic_return
+from mosiv_framework.laws.plasticine import HenckyElastic, deviatoric_flow, isotropic_return
 
 Tensor = torch.Tensor
 
@@ -27,7 +27,7 @@ def _viscoplastic(s: Tensor, radius: Tensor, relax: Tensor) -> tuple[Tensor, Ten
     return deviatoric_flow(s, (safe_norm(deviatoric(hencky_strain(s))) - radius) * relax)
 
 
-class NonNewtonian(ConstitutiveLaw):
+class NonNewtonian(HenckyElastic):
     """StVK-Hencky with viscoplastic (rate-dependent) von Mises flow."""
 
     name = "non_newtonian"
@@ -48,17 +48,6 @@ class NonNewtonian(ConstitutiveLaw):
         names = ("shear_modulus", "bulk_modulus", "yield_stress", "plastic_viscosity")
         mu, kappa, ys, eta = gather_params(values, names, like=like, law=self.name)
         return {"mu": mu, "lam": kappa - 2.0 * mu / 3.0, "yield_stress": ys, "eta": eta}
-
-    def kirchhoff_stress(
-        self,
-        F: Tensor,
-        values: dict[str, Tensor],
-        *,
-        plastic_J: Tensor | None = None,
-        velocity_gradient: Tensor | None = None,
-    ) -> Tensor:
-        d = self.derived(values, like=F)
-        return hencky_kirchhoff(F, d["mu"], d["lam"])
 
     def return_map(
         self,

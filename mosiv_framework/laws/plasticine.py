@@ -64,7 +64,23 @@ def _von_mises(s: Tensor, radius: Tensor) -> tuple[Tensor, Tensor]:
     return deviatoric_flow(s, safe_norm(deviatoric(hencky_strain(s))) - radius)
 
 
-class Plasticine(ConstitutiveLaw):
+class HenckyElastic(ConstitutiveLaw):
+    """Laws whose elastic part is StVK-Hencky (plasticine, sand, non_newtonian): the stress
+    comes from the Lame constants ``mu``, ``lam`` that each law's ``derived`` provides."""
+
+    def kirchhoff_stress(
+        self,
+        F: Tensor,
+        values: dict[str, Tensor],
+        *,
+        plastic_J: Tensor | None = None,
+        velocity_gradient: Tensor | None = None,
+    ) -> Tensor:
+        d = self.derived(values, like=F)
+        return hencky_kirchhoff(F, d["mu"], d["lam"])
+
+
+class Plasticine(HenckyElastic):
     """StVK-Hencky + von Mises: plastic flow keeps 2 mu ||dev eps|| <= yield_stress."""
 
     name = "plasticine"
@@ -84,17 +100,6 @@ class Plasticine(ConstitutiveLaw):
         E, nu, ys = gather_params(values, ("E", "nu", "yield_stress"), like=like, law=self.name)
         mu, lam = lame_parameters(E, nu)
         return {"mu": mu, "lam": lam, "yield_stress": ys}
-
-    def kirchhoff_stress(
-        self,
-        F: Tensor,
-        values: dict[str, Tensor],
-        *,
-        plastic_J: Tensor | None = None,
-        velocity_gradient: Tensor | None = None,
-    ) -> Tensor:
-        d = self.derived(values, like=F)
-        return hencky_kirchhoff(F, d["mu"], d["lam"])
 
     def return_map(
         self,

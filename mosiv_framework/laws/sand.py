@@ -10,7 +10,7 @@ import math
 
 import torch
 
-from mosiv_framework.laws.base import ConstitutiveLaw, ParamSpec, lame_parameters
+from mosiv_framework.laws.base import ParamSpec, lame_parameters
 from mosiv_framework.laws.elastic import YOUNGS_MODULUS
 from mosiv_framework.laws.linalg import (
     deviatoric,
@@ -19,7 +19,7 @@ from mosiv_framework.laws.linalg import (
     plastic_j_or_ones,
     safe_norm,
 )
-from mosiv_framework.laws.plasticine import deviatoric_flow, hencky_kirchhoff, isotropic_return
+from mosiv_framework.laws.plasticine import HenckyElastic, deviatoric_flow, isotropic_return
 
 Tensor = torch.Tensor
 
@@ -34,7 +34,7 @@ def _drucker_prager(s: Tensor, slope: Tensor) -> tuple[Tensor, Tensor]:
     return torch.where(expanded[:, None], torch.ones_like(s), s_cone), expanded | on_cone
 
 
-class Sand(ConstitutiveLaw):
+class Sand(HenckyElastic):
     """Drucker-Prager sand: no tension, shear bounded by the friction cone."""
 
     name = "sand"
@@ -56,17 +56,6 @@ class Sand(ConstitutiveLaw):
         sin_phi = torch.sin(phi_deg * (math.pi / 180.0))
         alpha = math.sqrt(2.0 / 3.0) * 2.0 * sin_phi / (3.0 - sin_phi)
         return {"mu": mu, "lam": lam, "alpha": alpha}
-
-    def kirchhoff_stress(
-        self,
-        F: Tensor,
-        values: dict[str, Tensor],
-        *,
-        plastic_J: Tensor | None = None,
-        velocity_gradient: Tensor | None = None,
-    ) -> Tensor:
-        d = self.derived(values, like=F)
-        return hencky_kirchhoff(F, d["mu"], d["lam"])
 
     def return_map(
         self,

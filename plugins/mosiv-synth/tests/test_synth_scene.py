@@ -30,7 +30,9 @@ def _working_simulator() -> str:
     """warp-mpm when it is installed, otherwise any registered simulator (the generator picks
     the backend by name)."""
     names = get_registry().names("simulator")
-    if not names:  # a generator test without any simulator cannot run at all; say why
+    if not names:
+        # the generator simulates by registered name: without any simulator there is nothing
+        # to test, which is reported as a skip rather than a failure of the generator
         pytest.skip("no simulator backend is installed")
     return "warp-mpm" if "warp-mpm" in names else names[0]
 
