@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from mosiv_warp_mpm.field_sums import field_sums
 from mosiv_warp_mpm.laws import kirchhoff_stress, return_map, safe_norm, vec5
 
 PAD = wp.constant(3)  # boundary node layers outside the scene domain (slip walls)
@@ -173,30 +174,27 @@ def grid_boundaries(
     k = s % nodes[2]
     j = (s // nodes[2]) % nodes[1]
     i = s // (nodes[1] * nodes[2])
-    m_tot = float(0.0)  # noqa: UP018 (Warp needs a dynamic variable in the loop)
-    p_tot = wp.vec3()
-    g_tot = wp.vec3()
-    mu_tot = float(0.0)  # noqa: UP018
-    count = int(0)  # noqa: UP018
-    for f in range(n_fields):
-        m = grid_m[f * per_field + s]
-        if m > MASS_EPS:
-            m_tot += m
-            p_tot += m * grid_vs[f * per_field + s]
-            g_tot += grid_gm[f * per_field + s]
-            mu_tot += m * friction[f]
-            count += 1
+    # sums over fields go through field_sums: Warp cannot differentiate a local variable
+    # accumulated in a loop over the run-time field count
+    m_tot, p_tot, g_tot, mu_tot, count = field_sums(
+        grid_m, grid_vs, grid_gm, friction, s, per_field, n_fields, -1, MASS_EPS
+    )
     for f in range(n_fields):
         n = f * per_field + s
         m = grid_m[n]
         v = grid_vs[n]
         if m > MASS_EPS:
             if count >= 2:
+                # the other fields' sums, accumulated directly: subtracting f's share from a
+                # total cancels catastrophically when f dominates the node's mass (and rounds
+                # differently under CUDA's fused multiply-adds), which gave wild coefficients
+                m_other, p_other, g_other, mu_other, n_other = field_sums(
+                    grid_m, grid_vs, grid_gm, friction, s, per_field, n_fields, f, MASS_EPS
+                )
                 # outward normal of f against the others: normalize(gm_f - sum of the others' gm)
-                g = grid_gm[n]
-                d = g - (g_tot - g)
+                d = grid_gm[n] - g_other
                 normal = d / safe_norm(d)
-                mu = 0.5 * (friction[f] + (mu_tot - m * friction[f]) / (m_tot - m))
+                mu = 0.5 * (friction[f] + mu_other / m_other)
                 v = coulomb_contact(v, p_tot / m_tot, normal, mu)
             if ground_on != 0 and float(k) <= ground_k:
                 v = ground_contact(v, ground_friction[0])

@@ -2,7 +2,8 @@
 
 Every law reads its parameters from one ``vec5`` per object, in the order of
 ``LAW_PARAM_NAMES`` (unused slots are 0). ``kirchhoff_stress`` and ``return_map`` dispatch on the
-law id so that a single P2G/G2P kernel serves every material of a multi-object scene.
+law id so that a single P2G/G2P kernel serves every material of a multi-object scene. Every SVD
+goes through ``svd.proper_svd``, whose adjoint stays finite at repeated singular values.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import warp as wp
 
 from mosiv_framework.laws import FAMILIES, get_law
+from mosiv_warp_mpm.svd import proper_svd
 
 #: parameters per object slot (the largest law, snow, has five)
 N_SLOTS = 5
@@ -45,23 +47,6 @@ def lame_lam(E: float, nu: float):
 def safe_norm(a: wp.vec3):
     # |a| with a finite gradient at a = 0
     return wp.sqrt(wp.dot(a, a) + NORM_EPS)
-
-
-@wp.func
-def proper_svd(F: wp.mat33):
-    # F = U diag(s) V^T with det U = det V = +1; a reflection moves into the sign of s_3
-    U = wp.mat33()
-    s = wp.vec3()
-    V = wp.mat33()
-    wp.svd3(F, U, s, V)
-    flip = wp.diag(wp.vec3(1.0, 1.0, -1.0))
-    if wp.determinant(U) < 0.0:
-        U = U * flip
-        s = wp.vec3(s[0], s[1], -s[2])
-    if wp.determinant(V) < 0.0:
-        V = V * flip
-        s = wp.vec3(s[0], s[1], -s[2])
-    return U, s, V
 
 
 @wp.func
@@ -119,24 +104,13 @@ def newtonian_tau(F: wp.mat33, L: wp.mat33, viscosity: float, bulk: float):
 
 
 @wp.func
-def polar_rotation(F: wp.mat33):
-    # R of F = R S by scaled Newton iteration R <- (g R + R^-T / g) / 2 (Higham 1986); unlike
-    # U V^T from the SVD its gradient stays well-conditioned when singular values coincide
-    R = F
-    for _ in range(10):
-        Ri = wp.inverse(R)
-        g = wp.sqrt(wp.sqrt(wp.ddot(Ri, Ri) / wp.ddot(R, R)))
-        R = 0.5 * (g * R + wp.transpose(Ri) / g)
-    return R
-
-
-@wp.func
 def snow_tau(F: wp.mat33, p: vec5, plastic_J: float):
     # tau = 2 mu (F - R) F^T + lam (J - 1) J I, mu/lam hardened by exp(xi (1 - J_p))
     h = wp.exp(p[4] * (1.0 - plastic_J))
     mu = lame_mu(p[0], p[1]) * h
     lam = lame_lam(p[0], p[1]) * h
-    R = polar_rotation(F)
+    U, s, V = proper_svd(F)
+    R = U * wp.transpose(V)  # proper rotation even for an inverted F (det F < 0)
     J = wp.determinant(F)
     return 2.0 * mu * (F - R) * wp.transpose(F) + lam * (J - 1.0) * J * wp.identity(
         n=3, dtype=float
@@ -211,7 +185,7 @@ def snow_map(F: wp.mat33, p: vec5, plastic_J: float):
     out = F
     pj = plastic_J
     if sn[0] != s[0] or sn[1] != s[1] or sn[2] != s[2]:
-        # only recompose when clamped: the SVD adjoint is ill-conditioned at equal s_i
+        # recompose only when clamped: unyielded particles keep F bit-exactly (laws_spec.md)
         pj = plastic_J * (s[0] * s[1] * s[2]) / (sn[0] * sn[1] * sn[2])
         out = U * wp.diag(sn) * wp.transpose(V)
     return out, pj
