@@ -1,4 +1,4 @@
-"""Pipeline commands: ``mosiv run``, ``eval``, ``simulate``, ``diagnose``.
+"""Pipeline commands: ``mosiv run``, ``eval``, ``simulate`` (``diagnose`` lives in diagnose.py).
 
 Each command says plainly when the stage it needs is not available in this installation,
 rather than failing somewhere deep inside.
@@ -7,8 +7,6 @@ rather than failing somewhere deep inside.
 from __future__ import annotations
 
 from pathlib import Path
-
-from mosiv_framework.errors import StageNotAvailable
 
 
 def add_parsers(sub) -> None:
@@ -19,25 +17,36 @@ def add_parsers(sub) -> None:
 
     ev = sub.add_parser("eval", help="evaluate a finished run folder again (metrics, plots)")
     ev.add_argument("run_dir")
-    ev.set_defaults(handler=not_built("eval", "the evaluation stage (issue #8)"))
+    ev.set_defaults(handler=run_eval)
 
-    sim = sub.add_parser("simulate", help="novel interactions from a finished run")
+    sim = sub.add_parser(
+        "simulate",
+        help="novel interactions from a finished run: swapped materials, edited parameters, "
+        "new initial velocities (rollout.npz, params.json, video.gif)",
+    )
     sim.add_argument("run_dir")
-    sim.add_argument("--swap", help="swap the parameters of two objects, e.g. 1,2")
-    sim.set_defaults(handler=not_built("simulate", "novel-interaction rollouts (issue #8)"))
+    sim.add_argument("--swap", help="swap the materials of two objects, e.g. 1,2")
+    sim.add_argument(
+        "--set",
+        dest="sets",
+        action="append",
+        default=[],
+        metavar="objK.NAME=VALUE",
+        help="set a parameter (SI units), e.g. obj1.E=1e5 or ground_friction=0.5; repeatable",
+    )
+    sim.add_argument(
+        "--velocity",
+        dest="velocities",
+        action="append",
+        default=[],
+        metavar="objK=VX,VY,VZ",
+        help="new initial velocity of an object in m/s, e.g. obj1=0,0,1; repeatable",
+    )
+    sim.add_argument("--frames", type=int, help="frames to simulate (default: the scene's)")
+    sim.add_argument("--out", help="output folder (default: RUN_DIR/simulate/<edits>)")
+    sim.add_argument("--size", type=int, default=256, help="video size in pixels")
+    sim.set_defaults(handler=run_simulate)
 
-    diag = sub.add_parser("diagnose", help="locate and explain what the fitted model misses")
-    diag.add_argument("run_dir")
-    diag.set_defaults(handler=not_built("diagnose", "missing-physics diagnosis (issue #9)"))
-
-
-def not_built(command: str, what: str):
-    def handler(args) -> int:
-        raise StageNotAvailable(
-            f"`mosiv {command}` needs {what}, which this version of MOSIV does not provide yet."
-        )
-
-    return handler
 
 
 def run_recipe(args) -> int:
@@ -46,4 +55,47 @@ def run_recipe(args) -> int:
 
     recipe = load_recipe(args.recipe, args.overrides)
     run_pipeline(recipe, run_dir=Path(recipe.output.dir))
+    return 0
+
+
+def run_eval(args) -> int:
+    from mosiv_framework.pipeline import evaluate_run
+    from mosiv_framework.pipeline.novel import load_finished_run
+
+    run = load_finished_run(args.run_dir)
+    metrics = evaluate_run(
+        recipe=run.recipe,
+        scene=run.scene,
+        particles=run.particles,
+        reconstruction=run.reconstruction,
+        identified=run.identified,
+        simulator=run.simulator(),
+        run_dir=run.run_dir,
+    )
+    future = metrics["future"]
+    print(
+        f"{run.run_dir.root}: observed cd {metrics['observed']['cd_mm2']:.3g} mm^2"
+        + (f", future cd {future['cd_mm2']:.3g} mm^2" if future else "")
+        + f"; wrote {run.run_dir.path('metrics.json')}"
+    )
+    return 0
+
+
+def run_simulate(args) -> int:
+    from mosiv_framework.pipeline.novel import edit_params, load_finished_run, simulate_novel
+
+    run = load_finished_run(args.run_dir)
+    params = edit_params(run.identified, swap=args.swap, sets=args.sets, velocities=args.velocities)
+    label = (
+        "-".join(
+            ([f"swap{args.swap.replace(',', '-')}"] if args.swap else [])
+            + [s.replace("=", "_") for s in args.sets]
+            + [v.replace("=", "_v").replace(",", "_") for v in args.velocities]
+        )
+        or "identified"
+    )
+    out = Path(args.out) if args.out else run.run_dir.path(f"simulate/{label}")
+    written = simulate_novel(run, params, frames=args.frames, out_dir=out, size=args.size)
+    for what, path in written.items():
+        print(f"{what}: {path}")
     return 0

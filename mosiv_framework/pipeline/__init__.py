@@ -8,17 +8,34 @@ from __future__ import annotations
 
 import resource
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from mosiv_framework.errors import ConfigError, StageNotAvailable
+from mosiv_framework.errors import ConfigError
 from mosiv_framework.losses import WeightedSum
-from mosiv_framework.pipeline.evaluate import parameter_errors, plot_centroids, plot_history, score
+from mosiv_framework.pipeline.evaluate import (
+    parameter_errors,
+    plot_centroids,
+    plot_history,
+    plot_parameters,
+    score,
+)
 from mosiv_framework.pipeline.identify import identify
-from mosiv_framework.pipeline.params import ParameterVector, initial_velocity_from_points
+from mosiv_framework.pipeline.library import library_params, pick_prototypes
+from mosiv_framework.pipeline.params import (
+    GROUND_FRICTION,
+    ParameterVector,
+    free_flight_frames,
+    initial_velocity_from_points,
+    stiffness_ceilings,
+)
 from mosiv_framework.pipeline.rundir import RunDir, fingerprint
+from mosiv_framework.pipeline.silhouettes import SILHOUETTE_LOSSES, SilhouetteObjective
+from mosiv_framework.pipeline.video import pick_camera, save_rollout_npz, write_comparison_video
+from mosiv_framework.recipes.terms import identified_terms, term_tensors
 from mosiv_framework.registry import get_registry
 from mosiv_framework.scene import read_scene
 
@@ -85,57 +102,185 @@ def run_pipeline(recipe: DictConfig, *, run_dir: Path) -> dict:
     # Stage III: identification
     sim_name, sim_options = _component(recipe.simulator)
     simulator = registry.create("simulator", sim_name, sim_options)
-    world = scene.world
+    check_terms_supported(plain.get("physics_terms") or {}, simulator, sim_name)
     key = fingerprint(key, plain["simulator"], plain["losses"], plain["identify"])
+    if plain.get("physics_terms"):  # only then, so runs made without terms keep their key
+        key = fingerprint(key, plain["physics_terms"])
     if rd.stage_done("identify", key):
         identified = ParameterVector.from_json(rd.load_json("identified.json"))
-        history = rd.load_json("identify/history.json")
     else:
-        terms = {}
-        for loss_name, options in plain["losses"].items():
-            if loss_name in ("silhouette", "scene-silhouette") and options.get("weight", 1.0) > 0:
-                raise StageNotAvailable(
-                    f"losses.{loss_name} needs silhouettes of simulated states, which need particles "
-                    f"carrying appearance (the Gaussian lifter, mosiv-lift); set "
-                    f"losses.{loss_name}.weight=0 or use a lifter that binds Gaussians"
-                )
-            terms[loss_name] = registry.create("loss", loss_name, options)
-        objective = WeightedSum(terms)
-        v0 = initial_velocity_from_points(
-            reconstruction.points, fps=scene.fps, gravity=scene.gravity
+        identified = identify_stage(
+            recipe, scene, particles, reconstruction, simulator, sim_options, rd, key
         )
-        vector = ParameterVector.create(
-            particles.materials,
-            v0,
-            ground_friction=None if world.ground_height is None else 0.3,
-            identify_friction=recipe.identify.identify_friction,
-            identify_ground_friction=recipe.identify.identify_ground_friction,
-        )
-        _say(
-            f"identifying {len(vector.normalized)} parameters and {len(v0)} initial velocities "
-            f"with {sim_name!r}"
-        )
-        vector, history = identify(
-            simulator=simulator,
-            particles=particles,
-            world=world,
-            targets=reconstruction.points,
-            observed_frames=scene.observed_frames,
-            objective=objective,
-            vector=vector,
-            section=recipe.identify,
-            run_dir=rd,
-            config_hash=key,
-        )
-        rd.save_json("identify/history.json", history)
-        rd.save_json("identified.json", vector.to_json())
-        plot_history(history, rd.path("identify/loss.png"))
-        identified = vector.physical()
         rd.mark_done("identify", key)
-        identified = identified.detached()
 
     # Evaluation
     _say("evaluating over observed and future frames")
+    metrics = evaluate_run(
+        recipe=recipe,
+        scene=scene,
+        particles=particles,
+        reconstruction=reconstruction,
+        identified=identified,
+        simulator=simulator,
+        run_dir=rd,
+        started=t_start,
+    )
+    _say(
+        f"done: observed cd {metrics['observed']['cd_mm2']:.3g} mm^2"
+        + (f", future cd {metrics['future']['cd_mm2']:.3g} mm^2" if metrics["future"] else "")
+        + f"; results in {rd.root}"
+    )
+    return metrics
+
+
+def check_terms_supported(section: dict, simulator, sim_name: str) -> None:
+    """Raise ConfigError if the recipe switches on a physics term the simulator lacks."""
+    supported = set(getattr(simulator, "supported_terms", frozenset()))
+    missing = sorted(set(section) - supported)
+    if missing:
+        raise ConfigError(
+            f"physics_terms {missing}: simulator {sim_name!r} does not implement them; it "
+            f"implements {sorted(supported) or 'no physics terms'}"
+        )
+
+
+def build_objective(losses: dict, registry) -> WeightedSum:
+    """The recipe's weighted loss terms (terms of weight 0 are left out)."""
+    terms = {
+        name: registry.create("loss", name, options)
+        for name, options in losses.items()
+        if float(options.get("weight", 1.0)) > 0
+    }
+    if not terms:
+        raise ConfigError(f"every loss weight in losses={losses} is 0; nothing to minimise")
+    return WeightedSum(terms)
+
+
+def identify_stage(recipe, scene, particles, reconstruction, simulator, sim_options, rd, key):
+    """Velocities, then parameters (gradient) or prototypes (library); writes identified.json,
+    identify/history.json and the identification plots. Returns detached SimulationParams."""
+    section = recipe.identify
+    world = scene.world
+    plain = OmegaConf.to_container(recipe, resolve=True)
+    objective = build_objective(plain["losses"], get_registry())
+    if any(name in SILHOUETTE_LOSSES for name in objective.terms):
+        # compare at most 48 px (the recorded masks are area-averaged down to it)
+        size = min(48, max(max(c.width, c.height) for c in scene.cameras))
+        objective = SilhouetteObjective(objective, scene=scene, particles=particles, size=size)
+    targets = reconstruction.points
+    grid, substeps = sim_options.get("grid"), sim_options.get("substeps")
+    dx = world.extent / grid if isinstance(grid, int) and grid > 0 else None
+    gap = section.contact_gap or (2.0 * dx if dx else 0.02)
+    free = free_flight_frames(targets, world, gap=gap)
+    v0 = initial_velocity_from_points(targets, fps=scene.fps, gravity=scene.gravity, frames=free)
+    ceilings = None
+    if section.stiffness_cfl > 0 and dx and isinstance(substeps, int) and substeps > 0:
+        ceilings = stiffness_ceilings(
+            particles.materials,
+            {},
+            dx=dx,
+            dt=1.0 / (scene.fps * substeps),
+            cfl=section.stiffness_cfl,
+        )
+    physics_terms = plain.get("physics_terms") or {}
+    vector = ParameterVector.create(
+        particles.materials,
+        v0,
+        ground_friction=None if world.ground_height is None else GROUND_FRICTION.default,
+        identify_friction=section.identify_friction,
+        identify_ground_friction=section.identify_ground_friction,
+        ceilings=ceilings,
+        terms=term_tensors(physics_terms),
+        identify_terms=identified_terms(physics_terms),
+    )
+    if physics_terms:
+        _say(
+            "physics terms on: "
+            + ", ".join(
+                f"{n} ({'identified' if n in identified_terms(physics_terms) else 'fixed'})"
+                for n in physics_terms
+            )
+        )
+    velocity_frames = min(free, scene.observed_frames)
+    _say(
+        f"{free} free-flight frame(s) before contact: initial velocities from their centroids"
+        + ("" if section.velocity_window == "free" else "; velocity phase fits every frame")
+    )
+    library = section.method == "library"
+    _say(
+        f"identifying {len(v0)} initial velocities and "
+        + (
+            "a prototype per object (library baseline)"
+            if library
+            else f"{len(vector.normalized)} parameters"
+        )
+        + f" with {recipe.simulator.name!r}"
+    )
+    vector, history = identify(
+        simulator=simulator,
+        particles=particles,
+        world=world,
+        targets=targets,
+        observed_frames=scene.observed_frames,
+        objective=objective,
+        vector=vector,
+        section=_velocity_only(section) if library else section,
+        run_dir=rd,
+        config_hash=key,
+        velocity_frames=velocity_frames if section.velocity_window == "free" else None,
+    )
+    identified_json = vector.to_json()
+    if library:
+        choice, tried = pick_prototypes(
+            simulator=simulator,
+            particles=particles,
+            world=world,
+            targets=targets,
+            observed_frames=scene.observed_frames,
+            objective=objective,
+            velocities=vector.velocity,
+            ground_friction=float(vector.physical().ground_friction),
+            terms=vector.physical().terms,
+            scope=section.library_scope,
+            sweeps=section.library_sweeps,
+        )
+        params = library_params(
+            choice,
+            vector.velocity,
+            ground_friction=identified_json["ground_friction"],
+            terms=vector.physical().terms,
+        )
+        for k, proto in choice.items():
+            entry = identified_json["objects"][str(k)]
+            entry["family"] = proto.family
+            entry["params"] = {n: float(v) for n, v in sorted(params.objects[k].values.items())}
+        identified_json["library"] = {str(k): p.name for k, p in choice.items()}
+        rd.save_json("identify/library.json", tried)
+        _say("library choice: " + ", ".join(f"object {k}: {p.name}" for k, p in choice.items()))
+    rd.save_json("identify/history.json", history)
+    rd.save_json("identified.json", identified_json)
+    plot_history(history, rd.path("identify/loss.png"))
+    plot_parameters(history, rd.path("identify/parameters.png"))
+    return ParameterVector.from_json(identified_json)
+
+
+def _velocity_only(section):
+    """The identify section with the parameter phase switched off (library baseline)."""
+    copy = OmegaConf.create(OmegaConf.to_container(section, resolve=True))
+    copy.param_iterations = 0
+    return copy
+
+
+def evaluate_run(
+    *, recipe, scene, particles, reconstruction, identified, simulator, run_dir, started=None
+) -> dict:
+    """Roll ``identified`` over every frame, score it, write metrics.json, plots and videos."""
+    t_start = time.perf_counter() if started is None else started
+    rd = run_dir
+    world = scene.world
+    # the identified families may differ from the lifted ones (library baseline, scope "all")
+    particles = replace(particles, materials={k: p.family for k, p in identified.objects.items()})
     with torch.no_grad():
         traj = simulator.rollout(particles, identified, world=world, frames=scene.n_frames - 1)
     reference = scene.gt_points() if scene.has_gt else reconstruction.points
@@ -167,11 +312,17 @@ def run_pipeline(recipe: DictConfig, *, run_dir: Path) -> dict:
         "rollout.pt",
         {"positions": traj.positions.detach().cpu(), "object_ids": traj.object_ids.cpu()},
     )
-    _say(
-        f"done: observed cd {metrics['observed']['cd_mm2']:.3g} mm^2"
-        + (f", future cd {metrics['future']['cd_mm2']:.3g} mm^2" if metrics["future"] else "")
-        + f"; results in {rd.root}"
-    )
+    save_rollout_npz(traj, rd.path("rollout.npz"))
+    if recipe.evaluate.render_videos:
+        write_comparison_video(
+            traj,
+            reference,
+            camera=pick_camera(scene, recipe.evaluate.video_camera),
+            path=rd.path("videos/prediction_vs_reference.gif"),
+            size=recipe.evaluate.video_size,
+            fps=recipe.evaluate.video_fps or scene.fps,
+            observed_frames=scene.observed_frames,
+        )
     return metrics
 
 

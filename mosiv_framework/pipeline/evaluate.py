@@ -16,7 +16,15 @@ def parameter_errors(identified: SimulationParams, gt_params: dict) -> dict:
     """Per object and parameter: identified value, true value, relative (or absolute) error.
 
     Angles are compared in degrees (absolute error); every other parameter by relative error.
+    Motion only determines stresses relative to density (scaling every density and stress-like
+    parameter by one factor changes nothing, see ``params.GAUGE_PARAM``), so parameters in Pa,
+    Pa*s and kg/m^3 also get ``rel_error_gauge_free``: the error after rescaling by
+    true / identified density of the gauge object (the lowest id), the error of what the
+    recording can tell.
     """
+    from mosiv_framework.laws import get_law
+
+    gauge = _gauge_factor(identified, gt_params)
     out: dict[str, dict] = {}
     for obj in gt_params.get("objects", []):
         k = int(obj["id"])
@@ -35,6 +43,12 @@ def parameter_errors(identified: SimulationParams, gt_params: dict) -> dict:
                     "true": true,
                     "rel_error": abs(value - true) / max(abs(true), 1e-12),
                 }
+                family = identified.objects[k].family
+                unit = "kg/m^3" if name == "rho" else _unit(get_law(family), name)
+                if gauge is not None and unit in ("Pa", "Pa*s", "kg/m^3"):
+                    errors[name]["rel_error_gauge_free"] = abs(value * gauge - true) / max(
+                        abs(true), 1e-12
+                    )
         if "initial_velocity" in obj and k in identified.initial_velocity:
             v = identified.initial_velocity[k].detach().float()
             t = torch.tensor(obj["initial_velocity"], dtype=torch.float32)
@@ -45,6 +59,24 @@ def parameter_errors(identified: SimulationParams, gt_params: dict) -> dict:
             }
         out[str(k)] = errors
     return out
+
+
+def _unit(law, name: str) -> str:
+    try:
+        return law.param(name).unit
+    except (KeyError, ValueError):
+        return ""
+
+
+def _gauge_factor(identified: SimulationParams, gt_params: dict) -> float | None:
+    """True / identified density of the lowest-id object (None if either is unknown)."""
+    objects = {int(o["id"]): o for o in gt_params.get("objects", [])}
+    k = min(identified.objects, default=None)
+    if k is None or k not in objects or "rho" not in identified.objects[k].values:
+        return None
+    true = objects[k].get("params", {}).get("rho")
+    value = float(identified.objects[k].values["rho"])
+    return None if true is None or value <= 0 else float(true) / value
 
 
 def score(
@@ -123,6 +155,51 @@ def plot_history(history: list[dict], path) -> None:
         ax.axvline(i, color="grey", lw=0.8)
     ax.set_xlabel("iteration (velocity phase, then parameter phase)")
     ax.set_ylabel("loss")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_parameters(history: list[dict], path) -> None:
+    """Per iteration: every identified quantity (relative to its first value, so parameters of
+    different units share an axis) and the gradient norm of each optimised leaf."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    history = [h for h in history if "loss" in h]
+    fig, (ax_v, ax_g) = plt.subplots(1, 2, figsize=(12, 3.6))
+    if history:
+        series: dict[str, list[float]] = {}
+        for h in history:
+            for k, obj in h["values"]["objects"].items():
+                for name, value in obj["params"].items():
+                    series.setdefault(f"obj{k}.{name}", []).append(value)
+                speed = sum(x * x for x in obj["initial_velocity"]) ** 0.5
+                series.setdefault(f"|v0.obj{k}|", []).append(speed)
+            series.setdefault("ground_friction", []).append(h["values"]["ground_friction"])
+            for term, values in h["values"].get("terms", {}).items():
+                for name, value in values.items():
+                    # vectors (a wind's acceleration) are plotted by their magnitude
+                    size = sum(x * x for x in value) ** 0.5 if isinstance(value, list) else value
+                    series.setdefault(f"{term}.{name}", []).append(size)
+        for name, values in series.items():
+            if max(values) - min(values) > 1e-9 * max(1.0, abs(values[0])):  # only what moved
+                first = values[0] if values[0] != 0 else 1.0
+                ax_v.plot([v / first for v in values], label=name)
+        names = sorted({n for h in history for n in h.get("grads", {})})
+        for name in names:
+            ax_g.semilogy(
+                [max(h.get("grads", {}).get(name, float("nan")), 1e-30) for h in history],
+                label=name,
+            )
+    ax_v.set_title("identified values / their first value")
+    ax_g.set_title("gradient norm per leaf (unscaled loss)")
+    for ax in (ax_v, ax_g):
+        ax.set_xlabel("iteration (velocity phase, then parameter phase)")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=6, ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

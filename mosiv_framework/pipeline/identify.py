@@ -26,14 +26,17 @@ MAX_BACKOFFS = 6
 
 @dataclass
 class Phase:
+    """One optimisation phase: its leaves' name, iterations, learning rate and ``last``, the
+    last frame it fits (the horizon its curriculum grows to)."""
+
     name: str
     iterations: int
     lr: float
+    last: int
 
 
-def horizon(iteration: int, iterations: int, *, start: int, full_at: float, observed: int) -> int:
-    """Frames rolled out at ``iteration``: linear from ``start`` to all observed frames."""
-    last = observed - 1
+def horizon(iteration: int, iterations: int, *, start: int, full_at: float, last: int) -> int:
+    """Frames rolled out at ``iteration``: linear from ``start`` up to frame ``last``."""
     ramp = max(1, math.ceil(full_at * iterations))
     h = start + (last - start) * min(1.0, iteration / ramp)
     return int(max(1, min(last, round(h))))
@@ -61,17 +64,26 @@ def identify(
     section,
     run_dir: RunDir,
     config_hash: str = "",
+    velocity_frames: int | None = None,
 ) -> tuple[ParameterVector, list[dict]]:
     """Optimise ``vector`` in place; returns it and the per-iteration history.
 
+    The velocity phase fits frames ``1..velocity_frames - 1`` (the free flight before any
+    contact, whose motion does not depend on the unknown materials; default: all observed
+    frames); the parameter phase fits every observed frame. Each phase minimises its loss
+    divided by the phase's first loss, so Adam's step sizes are the recipe's learning rates
+    whatever the loss's unit or magnitude (Adam is invariant to a constant factor except for
+    its epsilon, which would otherwise swamp gradients of m^2-sized Chamfer losses).
     A checkpoint is resumed only if it was written under the same ``config_hash`` (the
     fingerprint of everything identification depends on); otherwise it starts afresh.
     """
     if observed_frames < 2:
         raise ConfigError(f"identification needs at least 2 observed frames, got {observed_frames}")
+    last = observed_frames - 1
+    v_last = last if velocity_frames is None else max(1, min(last, velocity_frames - 1))
     phases = [
-        Phase("velocity", section.velocity_iterations, section.velocity_lr),
-        Phase("params", section.param_iterations, section.param_lr),
+        Phase("velocity", section.velocity_iterations, section.velocity_lr, v_last),
+        Phase("params", section.param_iterations, section.param_lr, last),
     ]
     history: list[dict] = []
     start_phase, start_iter, opt_state = 0, 0, None
@@ -89,9 +101,10 @@ def identify(
         if index < start_phase or phase.iterations == 0:
             continue
         if phase.name == "velocity":
-            leaves = list(vector.velocity.values())
+            named = {f"v0.obj{k}": v for k, v in vector.velocity.items()}
         else:
-            leaves = list(vector.normalized.values())
+            named = dict(vector.normalized)
+        leaves = list(named.values())
         if not leaves:
             continue
         optimizer = torch.optim.Adam(leaves, lr=phase.lr)
@@ -105,6 +118,16 @@ def identify(
             schedule.load_state_dict(opt_state["schedule"])
             best = _Best(opt_state["best_loss"], opt_state["best_leaves"])
             first = start_iter
+            scale = opt_state.get("scale")
+        else:
+            scale = None
+            # the start competes too: a phase never returns something worse than it was given
+            # (Adam's first steps are about one learning rate long whatever the gradient, which
+            # can throw an already good start, e.g. free-flight velocities, far off)
+            best.offer(
+                _window_loss(simulator, particles, vector, world, targets, phase.last, objective),
+                vector,
+            )
         bar = tqdm(range(first, phase.iterations), desc=f"identify {phase.name}", unit="it")
         backoffs, previous = 0, None
         for it in bar:
@@ -113,7 +136,7 @@ def identify(
                 phase.iterations,
                 start=section.horizon_start,
                 full_at=section.horizon_full_at,
-                observed=observed_frames,
+                last=phase.last,
             )
             optimizer.zero_grad()
             try:
@@ -131,6 +154,8 @@ def identify(
                         advice=f"{exc.advice} Or lower identify.{phase.name}_lr.",
                     ) from exc
                 previous.apply(vector)
+                # halve the schedule's base rate too, or its next step would undo the halving
+                schedule.base_lrs = [lr * 0.5 for lr in schedule.base_lrs]
                 for group in optimizer.param_groups:
                     group["lr"] *= 0.5
                 history.append(
@@ -149,11 +174,18 @@ def identify(
             device = traj.positions.device
             target = geometry({k: t.to(device) for k, t in targets.items()}, frames)
             loss, terms = objective.evaluate(geometry(traj, frames), target)
-            loss.backward()
             loss_value = float(loss.detach())
-            grads = [(leaf.grad**2).sum() for leaf in leaves if leaf.grad is not None]
-            grad_norm = float(torch.sqrt(sum(grads))) if grads else 0.0
-            if h == observed_frames - 1:  # only full-horizon losses are comparable
+            if scale is None:  # the phase's first loss sets its unit (see the docstring)
+                scale = 1.0 / max(loss_value, 1e-30)
+            (loss * scale).backward()
+            # gradients of the unscaled loss, per leaf, for the log
+            grads = {
+                n: float(leaf.grad.norm()) / scale
+                for n, leaf in named.items()
+                if leaf.grad is not None
+            }
+            grad_norm = math.sqrt(sum(g * g for g in grads.values()))
+            if h == phase.last:  # only losses over the phase's whole window are comparable
                 best.offer(loss_value, vector)
             optimizer.step()
             schedule.step()
@@ -168,6 +200,8 @@ def identify(
                     "loss": loss_value,
                     "terms": terms,
                     "grad_norm": grad_norm,
+                    "grads": grads,
+                    "lr": optimizer.param_groups[0]["lr"],
                     "values": vector.to_json(),
                 }
             )
@@ -178,6 +212,7 @@ def identify(
                     "schedule": schedule.state_dict(),
                     "best_loss": best.loss,
                     "best_leaves": best.leaves,
+                    "scale": scale,
                 }
                 _save_checkpoint(run_dir, config_hash, index, it + 1, history, resume, vector)
         # end of phase (also when its last iteration diverged): keep the best iterate
@@ -185,6 +220,16 @@ def identify(
         _save_checkpoint(run_dir, config_hash, index + 1, 0, history, None, vector)
         opt_state = None
     return vector, history
+
+
+def _window_loss(simulator, particles, vector, world, targets, last, objective) -> float:
+    """The objective over frames 1..last for the current leaves, without a tape."""
+    frames = list(range(1, last + 1))
+    with torch.no_grad():
+        traj = simulator.rollout(particles, vector.physical(), world=world, frames=last)
+        device = traj.positions.device
+        target = geometry({k: t.to(device) for k, t in targets.items()}, frames)
+        return float(objective(geometry(traj, frames), target))
 
 
 def _save_checkpoint(run_dir, config_hash, phase, iteration, history, resume, vector) -> None:

@@ -8,13 +8,16 @@ magnitude and bounds always hold.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import torch
 
 from mosiv_framework.laws import get_law
 from mosiv_framework.laws.base import ParamSpec
-from mosiv_framework.types import ObjectParams, SimulationParams
+from mosiv_framework.registry import get_registry
+from mosiv_framework.types import ObjectParams, SimulationParams, World
 
 GROUND_FRICTION = ParamSpec(
     "ground_friction", "1", 0.0, 2.0, 0.3, description="table Coulomb coefficient"
@@ -28,25 +31,114 @@ GAUGE_PARAM = "rho"
 
 
 def initial_velocity_from_points(
-    points: dict[int, torch.Tensor], *, fps: float, gravity: tuple[float, float, float]
+    points: dict[int, torch.Tensor],
+    *,
+    fps: float,
+    gravity: tuple[float, float, float],
+    frames: int = 2,
 ) -> dict[int, torch.Tensor]:
-    """v0 per object from the centroid displacement over the first frame.
+    """v0 per object from a least-squares ballistic fit of its centroid over ``frames`` frames.
 
-    Ballistic flight: c(1) - c(0) = v0 dt + g dt^2 / 2, so v0 = (c(1) - c(0)) / dt - g dt / 2.
+    The centre of mass of a body in free flight moves as c(t) = c0 + v0 t + g t^2 / 2 whatever it
+    does internally (rotation, vibration), so over the frames before any contact
+    c(t) - g t^2 / 2 is a straight line in t whose slope is v0 (m/s). With ``frames=2`` this is
+    v0 = (c(1) - c(0)) / dt - g dt / 2.
     """
-    dt = 1.0 / fps
-    g = torch.tensor(gravity, dtype=torch.float32)
-    return {
-        k: ((pts[1].mean(0) - pts[0].mean(0)) / dt - 0.5 * g * dt).to(torch.float32)
-        for k, pts in points.items()
-    }
+    g = torch.tensor(gravity, dtype=torch.float64)
+    out = {}
+    for k, pts in points.items():
+        n = max(2, min(int(frames), pts.shape[0]))
+        t = torch.arange(n, dtype=torch.float64) / fps
+        c = pts[:n].to(torch.float64).mean(dim=1) - 0.5 * t[:, None] ** 2 * g
+        # slope of the least-squares line through (t_i, c_i): cov(t, c) / var(t)
+        tc = t - t.mean()
+        out[k] = ((tc[:, None] * (c - c.mean(dim=0))).sum(0) / (tc**2).sum()).to(torch.float32)
+    return out
+
+
+def free_flight_frames(points: dict[int, torch.Tensor], world: World, *, gap: float) -> int:
+    """How many leading frames show every object in free flight (at least 2).
+
+    An object is free at a frame while its points stay more than ``gap`` (m) from every other
+    object's points and from the ground plane; the count stops at the first frame where any
+    object is not. Frames after that depend on material parameters, which the velocity phase
+    does not know yet.
+    """
+    from scipy.spatial import cKDTree
+
+    ids = sorted(points)
+    n_frames = min(p.shape[0] for p in points.values())
+    for f in range(n_frames):
+        clouds = {k: points[k][f].detach().cpu().double().numpy() for k in ids}
+        for i, a in enumerate(ids):
+            if (
+                world.ground_height is not None
+                and clouds[a][:, 2].min() - world.ground_height < gap
+            ):
+                return max(2, f)
+            for b in ids[i + 1 :]:
+                dist, _ = cKDTree(clouds[b]).query(clouds[a], k=1)
+                if dist.min() < gap:
+                    return max(2, f)
+    return max(2, n_frames)
+
+
+#: parameters (Pa) that set how fast elastic waves travel, and how each enters the P-wave
+#: modulus M = lambda + 2 mu (with the other parameter of the law at its current value)
+_STIFFNESS = ("E", "bulk_modulus", "shear_modulus")
+
+
+def stiffness_ceilings(
+    families: dict[int, str],
+    values: dict[int, dict[str, float]],
+    *,
+    dx: float,
+    dt: float,
+    cfl: float,
+) -> dict[int, dict[str, float]]:
+    """Per object, the largest stiffness an explicit MPM step of ``dt`` (s) on cells of ``dx``
+    (m) can follow: the P-wave speed sqrt(M / rho) must stay below ``cfl * dx / dt``.
+
+    For E (with Poisson ratio nu): M = E (1 - nu) / ((1 + nu)(1 - 2 nu)); for a bulk modulus K:
+    M >= K; for a shear modulus G: M >= 4 G / 3. Density and nu are taken at the given values
+    (law defaults where absent). The optimiser then cannot step into stiffnesses the simulator
+    would diverge on, which otherwise costs a back-off per excursion.
+    """
+    c_max = cfl * dx / dt
+    out: dict[int, dict[str, float]] = {}
+    for k, family in families.items():
+        law = get_law(family)
+        vals = {**law.defaults(), **values.get(k, {})}
+        m_max = vals["rho"] * c_max**2
+        caps = {}
+        for spec in law.all_params:
+            if spec.name == "E":
+                nu = vals.get("nu", 0.25)
+                caps["E"] = m_max * (1 + nu) * (1 - 2 * nu) / (1 - nu)
+            elif spec.name == "bulk_modulus":
+                caps["bulk_modulus"] = m_max
+            elif spec.name == "shear_modulus":
+                caps["shear_modulus"] = 0.75 * m_max
+        out[k] = caps
+    return out
+
+
+def _capped(spec: ParamSpec, cap: float | None) -> ParamSpec:
+    """``spec`` with its upper bound lowered to ``cap`` (never below its lower bound)."""
+    if cap is None or not math.isfinite(cap) or cap >= spec.upper:
+        return spec
+    upper = max(cap, spec.lower * (1 + 1e-6))
+    return dataclasses.replace(spec, upper=upper, default=min(spec.default, upper))
 
 
 @dataclass
 class ParameterVector:
     """The identified quantities of a scene as optimisable leaves.
 
-    ``velocity`` leaves are m/s; ``normalized`` leaves are ParamSpec coordinates in [0, 1].
+    ``velocity`` leaves are m/s; ``normalized`` leaves are ParamSpec coordinates in [0, 1],
+    keyed ``objK.NAME``, ``ground_friction`` or ``term.TERM.NAME`` (physics-term parameters,
+    [3] leaves for vector parameters). ``fixed_terms`` holds the physics-term parameters that
+    are switched on but not identified (SI values).
     """
 
     families: dict[int, str]
@@ -54,6 +146,7 @@ class ParameterVector:
     velocity: dict[int, torch.Tensor]
     normalized: dict[str, torch.Tensor]
     specs: dict[str, ParamSpec] = field(default_factory=dict)
+    fixed_terms: dict[str, dict[str, torch.Tensor]] = field(default_factory=dict)
 
     @classmethod
     def create(
@@ -66,11 +159,19 @@ class ParameterVector:
         identify: tuple[str, ...] | None = None,
         identify_friction: bool = True,
         identify_ground_friction: bool = True,
+        ceilings: dict[int, dict[str, float]] | None = None,
+        terms: dict[str, dict[str, torch.Tensor]] | None = None,
+        identify_terms: tuple[str, ...] = (),
     ) -> ParameterVector:
         """Leaves for every parameter of every object's law (from ``values`` or defaults).
 
         ``identify`` restricts which parameter names are optimised (default: all but the
         first object's density, see GAUGE_PARAM); the rest are kept fixed at their value.
+        ``ceilings`` lowers upper bounds per object and parameter (see ``stiffness_ceilings``);
+        a start value above its ceiling starts at the ceiling.
+        ``terms`` switches physics terms on (term name -> parameter name -> SI value, as in
+        SimulationParams.terms); those named in ``identify_terms`` get leaves in the term's
+        normalised space (within its ParamSpec bounds), the others stay fixed.
         """
         values = values or {}
         fixed: dict[int, dict[str, float]] = {}
@@ -91,8 +192,10 @@ class ParameterVector:
                     free = False  # inter-object friction only matters with two or more bodies
                 if free:
                     key = f"obj{k}.{spec.name}"
+                    spec = _capped(spec, (ceilings or {}).get(k, {}).get(spec.name))
                     specs[key] = spec
-                    normalized[key] = spec.to_normalized(torch.tensor(float(start[spec.name])))
+                    value = min(float(start[spec.name]), spec.upper)
+                    normalized[key] = spec.to_normalized(torch.tensor(value))
                 else:
                     fixed[k][spec.name] = float(start[spec.name])
         if ground_friction is not None:
@@ -103,10 +206,26 @@ class ParameterVector:
                 )
             else:
                 fixed[0] = {"ground_friction": float(ground_friction)}
+        fixed_terms: dict[str, dict[str, torch.Tensor]] = {}
+        unknown = sorted(set(identify_terms) - set(terms or {}))
+        if unknown:
+            raise ValueError(
+                f"identify_terms {unknown} are not among the terms {sorted(terms or {})}"
+            )
+        for name, term_values in (terms or {}).items():
+            term_specs = term_param_specs(name)
+            for pname, value in term_values.items():
+                value = torch.as_tensor(value, dtype=torch.float32).detach().clone()
+                if name in identify_terms:
+                    key = f"term.{name}.{pname}"
+                    specs[key] = term_specs[pname]
+                    normalized[key] = term_specs[pname].to_normalized(value)
+                else:
+                    fixed_terms.setdefault(name, {})[pname] = value
         velocity = {k: v.detach().clone().to(torch.float32) for k, v in velocities.items()}
         for leaf in [*velocity.values(), *normalized.values()]:
             leaf.requires_grad_(True)
-        return cls(dict(families), fixed, velocity, normalized, specs)
+        return cls(dict(families), fixed, velocity, normalized, specs, fixed_terms)
 
     def physical(self) -> SimulationParams:
         """The SimulationParams these leaves stand for (differentiable w.r.t. the leaves)."""
@@ -123,22 +242,31 @@ class ParameterVector:
             gf = GROUND_FRICTION.from_normalized(self.normalized["ground_friction"])
         else:
             gf = torch.tensor(self.fixed.get(0, {}).get("ground_friction", GROUND_FRICTION.default))
-        return SimulationParams(objects, dict(self.velocity), gf.to(torch.float32))
+        terms = {name: dict(values) for name, values in self.fixed_terms.items()}
+        for key, u in self.normalized.items():
+            if key.startswith("term."):
+                _, name, pname = key.split(".", 2)
+                terms.setdefault(name, {})[pname] = self.specs[key].from_normalized(u).float()
+        return SimulationParams(objects, dict(self.velocity), gf.to(torch.float32), terms)
 
     def to_json(self) -> dict:
-        """Plain numbers: per object family, parameter values and initial velocity."""
-        params = self.physical()
-        return {
+        """Plain numbers: per object family, parameter values and initial velocity; the ground
+        friction; and, when terms are switched on, their values (lists for vectors)."""
+        params = self.physical().detached()
+        out = {
             "objects": {
                 str(k): {
                     "family": p.family,
                     "params": {n: float(v.detach()) for n, v in sorted(p.values.items())},
-                    "initial_velocity": [float(x) for x in params.initial_velocity[k]],
+                    "initial_velocity": [float(x) for x in params.initial_velocity[k].detach()],
                 }
                 for k, p in params.objects.items()
             },
-            "ground_friction": float(params.ground_friction),
+            "ground_friction": float(torch.as_tensor(params.ground_friction).detach()),
         }
+        if params.terms:
+            out["terms"] = terms_json(params.terms)
+        return out
 
     @staticmethod
     def from_json(data: dict) -> SimulationParams:
@@ -148,4 +276,22 @@ class ParameterVector:
                 obj["family"], {n: torch.tensor(float(v)) for n, v in obj["params"].items()}
             )
             v0[int(k)] = torch.tensor(obj["initial_velocity"], dtype=torch.float32)
-        return SimulationParams(objects, v0, torch.tensor(float(data["ground_friction"])))
+        terms = {
+            name: {p: torch.tensor(v, dtype=torch.float32) for p, v in values.items()}
+            for name, values in data.get("terms", {}).items()
+        }
+        return SimulationParams(objects, v0, torch.tensor(float(data["ground_friction"])), terms)
+
+
+def term_param_specs(name: str) -> dict[str, ParamSpec]:
+    """Parameter name -> ParamSpec of the registered physics term ``name``."""
+    term = get_registry().create("physics_term", name, {})
+    return {spec.name: spec for spec in term.params}
+
+
+def terms_json(terms: dict[str, dict[str, torch.Tensor]]) -> dict:
+    """SimulationParams.terms as plain numbers: floats for scalars, lists for vectors."""
+    return {
+        name: {p: v.detach().cpu().tolist() for p, v in sorted(values.items())}
+        for name, values in sorted(terms.items())
+    }

@@ -17,6 +17,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.recipes.schema import COMPONENT_SECTIONS, MULTI_COMPONENT_SECTIONS, Recipe
+from mosiv_framework.recipes.terms import check_physics_terms
 from mosiv_framework.registry import Registry, get_registry, validate_options
 
 
@@ -58,6 +59,8 @@ def validate_recipe(raw: Mapping[str, Any], registry: Registry) -> tuple[dict[st
             resolved[name] = _check_component(
                 name, COMPONENT_SECTIONS[name], value, registry, problems
             )
+        elif name == "physics_terms":
+            resolved[name] = check_physics_terms(value, registry, problems)
         elif name in MULTI_COMPONENT_SECTIONS:
             resolved[name] = _check_components(
                 name, MULTI_COMPONENT_SECTIONS[name], value, registry, problems
@@ -101,7 +104,11 @@ def _check_section(name: str, schema: type, value: Any, problems: list[str]) -> 
         except OmegaConfBaseException as exc:
             first = str(exc).strip().splitlines()[0]
             problems.append(f"{name}.{key}={item!r}: {first}")
-    return OmegaConf.to_container(merged, resolve=True)  # type: ignore[return-value]
+    resolved = OmegaConf.to_container(merged, resolve=True)
+    check_values = getattr(schema, "value_problems", None)  # range and choice checks
+    if check_values is not None:
+        problems.extend(check_values(resolved))
+    return resolved  # type: ignore[return-value]
 
 
 def _check_component(

@@ -6,7 +6,9 @@ registered component and that component's options beside it::
     simulator: {name: warp-mpm, grid: 64, substeps: 200}
 
 ``losses`` maps registered loss names to their options (``losses.chamfer.weight=0`` switches the
-Chamfer term off). Everything else is plain typed fields with defaults.
+Chamfer term off). ``physics_terms`` maps registered physics-term names to their initial values
+and an ``identify`` flag (see ``mosiv_framework.recipes.terms``). Everything else is plain typed
+fields with defaults.
 """
 
 from __future__ import annotations
@@ -35,10 +37,31 @@ class SceneSection:
     source: dict[str, Any] | None = None
 
 
+#: identification methods: continuous gradient refinement (the paper) or the discrete-library
+#: baseline (each object's material picked from fixed prototypes, no refinement)
+IDENTIFY_METHODS = ("gradient", "library")
+#: which frames the velocity phase fits: the free flight before any contact, or all observed
+VELOCITY_WINDOWS = ("free", "observed")
+#: prototypes the library baseline may pick from: the object's known family, or every family
+LIBRARY_SCOPES = ("family", "all")
+
+
 @dataclass
 class IdentifySection:
-    """Stage III: initial velocity first, then per-object parameters (paper section 3.5)."""
+    """Stage III: initial velocity first, then per-object parameters (paper section 3.5).
 
+    method: "gradient" (Adam through the simulator) or "library" (the discrete-library
+    baseline: velocities as usual, then each object's material picked from fixed prototypes by
+    the observed loss, see ``mosiv_framework.pipeline.library``);
+    velocity_window: "free" fits initial velocities on the frames before any contact (detected
+    from the targets with ``contact_gap``), "observed" on every observed frame;
+    contact_gap (m): objects closer than this to each other or the ground are in contact
+    (0: two cells of the simulator grid, or 2 cm when the simulator has no grid);
+    stiffness_cfl: cap stiffnesses so the P-wave speed stays below this fraction of one grid
+    cell per substep (0: no cap; needs the simulator's ``grid`` and ``substeps`` options).
+    """
+
+    method: str = "gradient"
     velocity_iterations: int = 80
     param_iterations: int = 200
     velocity_lr: float = 0.05
@@ -54,6 +77,37 @@ class IdentifySection:
     identify_ground_friction: bool = True
     seed: int = 0
     checkpoint_every: int = 10
+    velocity_window: str = "free"
+    contact_gap: float = 0.0
+    stiffness_cfl: float = 0.5
+    #: library baseline: which prototypes are candidates, and how many coordinate sweeps over
+    #: the objects (each sweep tries every candidate of one object with the others held fixed)
+    library_scope: str = "family"
+    library_sweeps: int = 2
+
+    @staticmethod
+    def value_problems(values: dict[str, Any]) -> list[str]:
+        """Values the type check cannot catch, each naming the key and what is valid."""
+        out = []
+        for key, valid in (
+            ("method", IDENTIFY_METHODS),
+            ("velocity_window", VELOCITY_WINDOWS),
+            ("library_scope", LIBRARY_SCOPES),
+        ):
+            if values.get(key) not in valid:
+                out.append(f"identify.{key}={values.get(key)!r}: valid values are {list(valid)}")
+        for key in ("velocity_iterations", "param_iterations", "library_sweeps"):
+            if values.get(key, 0) < 0:
+                out.append(f"identify.{key}={values[key]!r}: must be >= 0")
+        for key in ("velocity_lr", "param_lr"):
+            if not values.get(key, 1.0) > 0:
+                out.append(f"identify.{key}={values[key]!r}: must be a positive learning rate")
+        for key in ("contact_gap", "stiffness_cfl"):
+            if values.get(key, 0.0) < 0:
+                out.append(f"identify.{key}={values[key]!r}: must be >= 0 (0 = automatic/off)")
+        if values.get("horizon_start", 1) < 1:
+            out.append(f"identify.horizon_start={values['horizon_start']!r}: must be >= 1 frame")
+        return out
 
 
 @dataclass
@@ -63,6 +117,11 @@ class EvaluateSection:
     emd_samples: int = 2048
     render_videos: bool = True
     seed: int = 0
+    #: videos: the scene camera they are drawn from ("" = the first in cameras.json), their
+    #: size in pixels and frame rate (0 = the scene's fps)
+    video_camera: str = ""
+    video_size: int = 256
+    video_fps: float = 0.0
 
 
 @dataclass
@@ -92,6 +151,9 @@ class Recipe:
     losses: dict[str, Any] = field(
         default_factory=lambda: {"chamfer": {"weight": 1.0}, "silhouette": {"weight": 1.0}}
     )
+    #: optional effects (drag, wind, ...) in every rollout: term name -> initial values and
+    #: ``identify`` (whether the parameter phase fits them)
+    physics_terms: dict[str, Any] = field(default_factory=dict)
     identify: IdentifySection = field(default_factory=IdentifySection)
     evaluate: EvaluateSection = field(default_factory=EvaluateSection)
     diagnose: DiagnoseSection = field(default_factory=DiagnoseSection)
