@@ -21,8 +21,19 @@ def test_plugins_site(tmp_path_factory) -> Path:
     site = tmp_path_factory.mktemp("plugin-site")
     for name in ("example", "broken"):
         subprocess.run(
-            [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
-             "--no-compile", "--target", str(site), str(TESTS / "plugins" / name)],
+            [
+                sys.executable,
+                "-m",
+                "pip",
+                "install",
+                "-q",
+                "--no-deps",
+                "--no-build-isolation",
+                "--no-compile",
+                "--target",
+                str(site),
+                str(TESTS / "plugins" / name),
+            ],
             check=True,
         )
     return site

@@ -1,4 +1,4 @@
-"""The command line: every command exists, unbuilt stages say so, data check exit codes."""
+"""The command line: every command exists, stages refuse non-run folders clearly, data check exit codes."""
 
 from __future__ import annotations
 
@@ -19,9 +19,10 @@ def test_every_design_command_is_present():
 
 
 @pytest.mark.parametrize("command", ["eval", "simulate", "diagnose"])
-def test_unbuilt_stages_say_so(command, capsys, tmp_path):
+def test_stages_on_a_folder_that_is_not_a_run_name_what_is_missing(command, capsys, tmp_path):
     assert main([command, str(tmp_path)]) == 2
-    assert "does not provide yet" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert str(tmp_path) in err and "recipe.yaml" in err
 
 
 def test_console_script_runs():

@@ -16,11 +16,20 @@ from mosiv_framework.registry import Component, Registry, hookimpl
 def test_installed_plugins_register_their_components():
     registry = Registry().load_entry_points(disabled=[])
     assert "core" in registry.plugins
-    assert {"chamfer", "scene-chamfer", "silhouette", "scene-silhouette"} <= set(registry.names("loss"))
+    assert {"chamfer", "scene-chamfer", "silhouette", "scene-silhouette"} <= set(
+        registry.names("loss")
+    )
     assert set(registry.names("constitutive_law")) == {
-        "elastic", "plasticine", "sand", "newtonian", "non_newtonian", "snow"
+        "elastic",
+        "plasticine",
+        "sand",
+        "newtonian",
+        "non_newtonian",
+        "snow",
     }
-    assert {"linear_drag", "quadratic_drag", "wind", "gravity"} <= set(registry.names("physics_term"))
+    assert {"linear_drag", "quadratic_drag", "wind", "gravity"} <= set(
+        registry.names("physics_term")
+    )
     assert registry.get("loss", "chamfer").distribution == "mosiv-framework"
 
 
@@ -113,7 +122,9 @@ def test_unknown_name_lists_valid_choices_and_options_are_validated():
     with pytest.raises(ConfigError) as err:
         registry.create("simulator", "toy", {"grdi": 1, "grid": "many"})
     text = str(err.value)
-    assert "no option 'grdi'" in text and "valid options: grid, mode" in text and "grid='many'" in text
+    assert (
+        "no option 'grdi'" in text and "valid options: grid, mode" in text and "grid='many'" in text
+    )
     with pytest.raises(ConfigError, match="mode must be 'a' or 'b'"):
         registry.create("simulator", "toy", {"mode": "c"})
 

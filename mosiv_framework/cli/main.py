@@ -13,7 +13,7 @@ from mosiv_framework.errors import MosivError
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from mosiv_framework.cli import bench, data, parity, plugins, recipe, stages
+    from mosiv_framework.cli import bench, data, diagnose, parity, plugins, recipe, stages
 
     parser = argparse.ArgumentParser(
         prog="mosiv",
@@ -26,6 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_parser(sub)
     parity.add_parser(sub)
     stages.add_parsers(sub)
+    diagnose.add_parsers(sub)
     return parser
 
 

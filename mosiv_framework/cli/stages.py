@@ -48,7 +48,6 @@ def add_parsers(sub) -> None:
     sim.set_defaults(handler=run_simulate)
 
 
-
 def run_recipe(args) -> int:
     from mosiv_framework.pipeline import run_pipeline
     from mosiv_framework.recipes import load_recipe

@@ -1,0 +1,12 @@
+"""Finding missing physics (DESIGN.md section 6): ``mosiv diagnose RUN``.
+
+One module per step: ``context`` (the loaded run), ``locate`` with ``changepoint`` (where the
+model misses), ``candidates`` and ``hypothesise``
+(which registered effects could explain it), ``model`` (refit with each), ``decide`` (held-out
+and information-criterion evidence), ``report`` (diagnosis.json / diagnosis.md), and ``suite``
+(scores the whole chain on generated scenes with concealed effects).
+"""
+
+from mosiv_framework.diagnose.diagnosis import BUDGETS, Budget, diagnose_run, split_frames
+
+__all__ = ["BUDGETS", "Budget", "diagnose_run", "split_frames"]

@@ -1,0 +1,233 @@
+"""The physics a diagnosis may add: one ``Candidate`` per registered PhysicsTerm plus the
+friction coefficients the run kept fixed.
+
+A candidate turns a small coefficient vector theta (zero = "absent", the model the run fitted)
+into SimulationParams. Body-force terms come from the registry (kind ``physics_term``), so a
+third-party term is screened exactly like the built-in ones, provided the run's simulator lists
+it in ``supported_terms``. A term parameter whose ParamSpec description begins with ``[3]`` is
+a 3-vector (the convention of ``mosiv_framework.terms``); others are scalars.
+
+Two built-in terms get a narrower parametrisation, because their full form is indistinguishable
+from another candidate: ``gravity`` replaces the declared gravity vector, and a change of its
+direction is exactly a steady ``wind``; so the gravity candidate changes only the magnitude
+along the declared direction (one coefficient, m/s^2), and ``wind`` covers the rest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.interfaces import PhysicsTerm
+from mosiv_framework.laws.base import OBJECT_PARAMS
+from mosiv_framework.pipeline.params import GROUND_FRICTION
+from mosiv_framework.recipes.terms import param_size
+from mosiv_framework.registry import get_registry
+from mosiv_framework.types import ObjectParams, SimulationParams
+
+GROUND_REGIMES = frozenset({"ground_contact", "rest"})
+CONTACT_REGIMES = frozenset({"object_contact"})
+FRICTION = next(spec for spec in OBJECT_PARAMS if spec.name == "friction")
+
+
+@dataclass
+class Candidate:
+    """One hypothesis: a named effect with coefficients theta (zero means absent).
+
+    ``lower``/``upper`` bound theta (sign constraints: drag >= 0); ``step`` is a natural size
+    of theta used to probe the loss and scale the optimiser; ``units`` per coefficient.
+    """
+
+    name: str
+    kind: str  # "term", "gravity", "ground_friction" or "object_friction"
+    coefficient_names: list[str]
+    units: list[str]
+    lower: torch.Tensor
+    upper: torch.Tensor
+    step: torch.Tensor
+    regimes: frozenset[str]
+    description: str
+    term: PhysicsTerm | None = None
+    base: dict = field(default_factory=dict)
+
+    @property
+    def dim(self) -> int:
+        return len(self.coefficient_names)
+
+    def zero(self) -> torch.Tensor:
+        return torch.zeros(self.dim, dtype=torch.float32)
+
+    def clamp(self, theta: torch.Tensor) -> torch.Tensor:
+        return torch.maximum(torch.minimum(theta, self.upper), self.lower)
+
+    def apply(self, params: SimulationParams, theta: torch.Tensor) -> SimulationParams:
+        """``params`` with this effect switched on at ``theta`` (differentiable in theta).
+
+        theta is used as given (a clamp would halve gradients at a bound such as zero drag);
+        callers keep it inside [lower, upper] with ``clamp``.
+        """
+        terms = dict(params.terms)
+        objects = params.objects
+        ground = params.ground_friction
+        if self.kind == "gravity":
+            g = torch.tensor(self.base["gravity"], dtype=torch.float32)
+            terms["gravity"] = {"acceleration": g + theta[0] * g / g.norm()}
+        elif self.kind == "ground_friction":
+            ground = params.ground_friction + theta[0]
+        elif self.kind == "object_friction":
+            objects = {
+                k: ObjectParams(p.family, {**p.values, "friction": p.values["friction"] + theta[0]})
+                for k, p in params.objects.items()
+            }
+        else:
+            values, i = {}, 0
+            for spec in self.term.params:
+                size = 3 if _is_vector(spec) else 1
+                values[spec.name] = theta[i : i + size] if size == 3 else theta[i]
+                i += size
+            terms[self.name] = values
+        return SimulationParams(objects, dict(params.initial_velocity), ground, terms)
+
+    def acceleration(self, velocity: torch.Tensor, theta: torch.Tensor) -> torch.Tensor | None:
+        """Extra acceleration [N, 3] (m/s^2) at ``velocity`` for body-force candidates."""
+        if self.kind == "gravity":
+            g = torch.tensor(self.base["gravity"], dtype=torch.float32)
+            return (theta[0] * g / g.norm()).expand_as(velocity)
+        if self.kind != "term":
+            return None
+        values, i = {}, 0
+        for spec in self.term.params:
+            size = 3 if _is_vector(spec) else 1
+            values[spec.name] = theta[i : i + size] if size == 3 else theta[i]
+            i += size
+        return self.term.reference_acceleration(velocity, values)
+
+    def physical(self, theta: torch.Tensor) -> dict[str, float | list[float]]:
+        """Coefficient values as the recipe would write them."""
+        theta = self.clamp(theta.detach().float())
+        if self.kind == "gravity":
+            g = torch.tensor(self.base["gravity"], dtype=torch.float32)
+            return {"acceleration": (g + theta[0] * g / g.norm()).tolist()}
+        if self.kind == "ground_friction":
+            return {"ground_friction": float(self.base["ground_friction"] + theta[0])}
+        if self.kind == "object_friction":
+            return {"friction_change": float(theta[0])}
+        out, i = {}, 0
+        for spec in self.term.params:
+            if _is_vector(spec):
+                out[spec.name] = theta[i : i + 3].tolist()
+                i += 3
+            else:
+                out[spec.name] = float(theta[i])
+                i += 1
+        return out
+
+
+def _is_vector(spec) -> bool:
+    return param_size(spec) == 3
+
+
+def build_candidates(ctx: RunContext) -> tuple[list[Candidate], list[str]]:
+    """Every effect the run's simulator can add; returns (candidates, reasons for skipped ones)."""
+    registry = get_registry()
+    supported = set(getattr(ctx.simulator, "supported_terms", frozenset()))
+    gravity = tuple(float(x) for x in ctx.world.gravity)
+    out, skipped = [], []
+    for component in registry.components("physics_term"):
+        term = component.factory()
+        if term.name not in supported:
+            skipped.append(f"{term.name}: simulator {ctx.simulator_name!r} does not implement it")
+            continue
+        if term.name in ctx.identified.terms:
+            skipped.append(f"{term.name}: already part of the fitted model")
+            continue
+        if term.name == "gravity":
+            if sum(g * g for g in gravity) == 0.0:
+                skipped.append("gravity: the scene declares none, so no direction to rescale")
+                continue
+            spec = term.params[0]
+            g_norm = sum(g * g for g in gravity) ** 0.5
+            scale = 0.01 * (spec.upper - spec.lower)
+            out.append(
+                Candidate(
+                    "gravity",
+                    "gravity",
+                    ["magnitude_change"],
+                    [spec.unit],
+                    # |g| may range over [0, the spec's bound]
+                    torch.tensor([-g_norm]),
+                    torch.tensor([spec.upper - g_norm]),
+                    torch.tensor([scale]),
+                    term.regimes,
+                    "gravity magnitude other than declared",
+                    term,
+                    {"gravity": gravity},
+                )
+            )
+            continue
+        names, units, lower, upper, step = [], [], [], [], []
+        for spec in term.params:
+            size = 3 if _is_vector(spec) else 1
+            for axis in range(size):
+                names.append(f"{spec.name}.{'xyz'[axis]}" if size == 3 else spec.name)
+                units.append(spec.unit)
+                lower.append(spec.lower)
+                upper.append(spec.upper)
+                # probe 1 % of the admissible range: visible in the loss, small enough for
+                # the quadratic model of the probe to hold
+                step.append(0.01 * (spec.upper - spec.lower))
+        out.append(
+            Candidate(
+                term.name,
+                "term",
+                names,
+                units,
+                torch.tensor(lower),
+                torch.tensor(upper),
+                torch.tensor(step),
+                term.regimes,
+                term.description or term.name,
+                term,
+            )
+        )
+    free = set(ctx.parameter_vector().normalized)
+    if ctx.world.ground_height is not None:
+        if "ground_friction" in free:
+            skipped.append("ground_friction: already identified by the run")
+        else:
+            mu = float(ctx.identified.ground_friction)
+            out.append(
+                Candidate(
+                    "ground_friction",
+                    "ground_friction",
+                    ["ground_friction_change"],
+                    ["1"],
+                    torch.tensor([GROUND_FRICTION.lower - mu]),
+                    torch.tensor([GROUND_FRICTION.upper - mu]),
+                    torch.tensor([0.01 * (GROUND_FRICTION.upper - GROUND_FRICTION.lower)]),
+                    GROUND_REGIMES,
+                    "table Coulomb friction other than assumed",
+                    base={"ground_friction": mu},
+                )
+            )
+    if len(ctx.object_ids) > 1:
+        if any(key.endswith(".friction") for key in free):
+            skipped.append("object_friction: already identified by the run")
+        else:
+            mus = [float(p.values["friction"]) for p in ctx.identified.objects.values()]
+            out.append(
+                Candidate(
+                    "object_friction",
+                    "object_friction",
+                    ["friction_change"],
+                    ["1"],
+                    torch.tensor([FRICTION.lower - min(mus)]),
+                    torch.tensor([FRICTION.upper - max(mus)]),
+                    torch.tensor([0.01 * (FRICTION.upper - FRICTION.lower)]),
+                    CONTACT_REGIMES,
+                    "object-object Coulomb friction other than assumed",
+                )
+            )
+    return out, skipped

@@ -1,0 +1,149 @@
+"""Step 4 of a diagnosis: accept a candidate only on evidence that extra parameters cannot game.
+
+Two tests, both required:
+- held-out: every model was fitted on the fit frames only; on the frames it did not see (a
+  held-out block at the end of the observed window and the future frames) the candidate's
+  Chamfer error must be lower than the equally refitted null model's by more than
+  ``z`` bootstrap standard deviations, resampling (object, time block) units;
+- information criterion: on the fit frames, BIC = n log(mean excess error) + p log n must be
+  lower with the candidate than without (n frame-object residuals, p free parameters; the
+  excess error is the Chamfer above frame 0's, which no dynamics can remove).
+Verdicts: "missing physics" (a candidate passed both), "unexplained" (the residual is above the
+noise floor but no candidate passed), "no missing physics" (the residual is at noise level).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.diagnose.locate import object_residuals
+from mosiv_framework.diagnose.model import Fit
+
+VERDICTS = ("missing physics", "unexplained", "no missing physics")
+
+
+@dataclass(frozen=True)
+class DecideOptions:
+    """bootstrap: resamples; block: frames per time block; z: bootstrap standard deviations
+    the held-out drop must exceed; seed: resampling seed."""
+
+    bootstrap: int = 200
+    block: int = 2
+    z: float = 2.0
+    seed: int = 0
+
+
+def frame_errors(ctx: RunContext, fit_or_traj) -> np.ndarray:
+    """[K, T] Chamfer error (m^2) per object and frame of a fit's (or trajectory's) rollout."""
+    traj = fit_or_traj.trajectory if isinstance(fit_or_traj, Fit) else fit_or_traj
+    res = object_residuals(ctx, traj, ctx.n_frames)
+    return np.stack([res[k].chamfer for k in ctx.object_ids])
+
+
+def bootstrap_drop(
+    null: np.ndarray, cand: np.ndarray, *, block: int, resamples: int, seed: int
+) -> tuple[float, float]:
+    """Relative drop of the mean error, 1 - sum(cand) / sum(null), over [K, F] held-out errors,
+    and its bootstrap standard deviation over (object, time block) units."""
+    k, f = null.shape
+    blocks = [list(range(s, min(s + block, f))) for s in range(0, f, block)]
+    units = [(i, b) for i in range(k) for b in blocks]
+    sums = np.array([[null[i, b].sum(), cand[i, b].sum()] for i, b in units])
+    drop = 1.0 - sums[:, 1].sum() / max(sums[:, 0].sum(), 1e-300)
+    if len(units) < 2:  # one unit has no spread to measure: no evidence either way
+        return float(drop), math.inf
+    rng = np.random.default_rng(seed)
+    draws = []
+    for _ in range(resamples):
+        pick = sums[rng.integers(0, len(units), len(units))]
+        draws.append(1.0 - pick[:, 1].sum() / max(pick[:, 0].sum(), 1e-300))
+    return float(drop), float(np.std(draws))
+
+
+def bic(errors: np.ndarray, floor: np.ndarray, n_params: int) -> float:
+    """n log(mean excess Chamfer) + p log n over [K, F] fit-frame errors (``floor`` [K, 1])."""
+    excess = np.clip(errors - floor, 1e-14, None)
+    n = excess.size
+    return n * math.log(float(excess.mean())) + n_params * math.log(n)
+
+
+@dataclass
+class Evidence:
+    """The evidence for one candidate against the refitted null model."""
+
+    name: str
+    heldout_drop: float
+    heldout_spread: float
+    delta_bic: float
+    passes_heldout: bool
+    passes_bic: bool
+    fit_loss: float
+    n_new: int
+
+    @property
+    def accepted(self) -> bool:
+        return self.passes_heldout and self.passes_bic
+
+    def to_json(self) -> dict:
+        return {
+            "name": self.name,
+            "heldout_drop": self.heldout_drop,
+            "heldout_spread": self.heldout_spread,
+            "delta_bic": self.delta_bic,
+            "passes_heldout": self.passes_heldout,
+            "passes_bic": self.passes_bic,
+            "accepted": self.accepted,
+            "fit_loss_m2": self.fit_loss,
+            "new_coefficients": self.n_new,
+        }
+
+
+def decide(
+    ctx: RunContext,
+    null: Fit,
+    fits: list[Fit],
+    *,
+    fit_frames: list[int],
+    heldout_frames: list[int],
+    options: DecideOptions = DecideOptions(),
+) -> tuple[list[Evidence], dict[str, np.ndarray]]:
+    """Evidence per candidate fit, best first (accepted ones first, then by held-out drop);
+    also returns the [K, T] error tables by model name (``null`` included)."""
+    errors = {"null": frame_errors(ctx, null)}
+    floor = errors["null"][:, :1]  # frame 0 is the lifted state: identical for every model
+    bic_null = bic(errors["null"][:, fit_frames], floor, null.n_params)
+    evidence = []
+    for fit in fits:
+        errors[fit.name] = frame_errors(ctx, fit)
+        drop, spread = bootstrap_drop(
+            errors["null"][:, heldout_frames],
+            errors[fit.name][:, heldout_frames],
+            block=options.block,
+            resamples=options.bootstrap,
+            seed=options.seed,
+        )
+        delta = bic(errors[fit.name][:, fit_frames], floor, fit.n_params) - bic_null
+        evidence.append(
+            Evidence(
+                fit.name,
+                drop,
+                spread,
+                delta,
+                passes_heldout=drop > 0 and drop > options.z * spread,
+                passes_bic=delta < 0,
+                fit_loss=fit.loss,
+                n_new=fit.n_params - null.n_params,
+            )
+        )
+    evidence.sort(key=lambda e: (e.accepted, e.heldout_drop), reverse=True)
+    return evidence, errors
+
+
+def verdict(significant: bool, evidence: list[Evidence]) -> str:
+    if evidence and evidence[0].accepted:
+        return VERDICTS[0]
+    return VERDICTS[1] if significant else VERDICTS[2]

@@ -1,0 +1,181 @@
+"""``mosiv diagnose RUN``: locate -> hypothesise -> model -> decide -> report (DESIGN.md §6).
+
+The frames of the run are split three ways: fit frames (1 .. the observed window minus a
+held-out block) on which every model is refitted, the held-out block (the last observed frames)
+and the future frames (after the observed window); the last two together are what the decision
+judges models on, frames none of the compared refits saw.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+
+from mosiv_framework.diagnose.candidates import build_candidates
+from mosiv_framework.diagnose.context import load_run
+from mosiv_framework.diagnose.decide import DecideOptions, decide, frame_errors, verdict
+from mosiv_framework.diagnose.hypothesise import regression_estimate, screen
+from mosiv_framework.diagnose.locate import locate
+from mosiv_framework.diagnose.model import RefitOptions, coefficient_interval, refit
+from mosiv_framework.diagnose.report import write_report
+from mosiv_framework.errors import ConfigError
+
+#: multiples of the screening's estimates that further refit starts begin at
+START_FACTORS = (1.0, 0.5, 1.5, 2.0, 0.25)
+
+
+def refit_starts(screen_result, count: int) -> list:
+    """Up to ``count`` (coefficient, initial-velocity change) starts: the regression estimate
+    (if any, with the velocity change it implies), the probe's, then multiples of the first."""
+    starts = [] if screen_result.regression is None else [screen_result.regression]
+    starts.append((screen_result.theta, None))
+    starts += [(f * starts[0][0], starts[0][1]) for f in START_FACTORS[1:]]
+    return starts[:count]
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How much a diagnosis may compute: candidates refitted, refit iterations and starts,
+    bootstrap resamples, and the fraction of the observed window held out."""
+
+    max_candidates: int
+    iterations: int
+    starts: int
+    bootstrap: int
+    heldout_fraction: float = 0.25
+
+
+BUDGETS = {
+    # the small budget fits the whole observed window (as the run did) and judges on the
+    # future frames only: short windows leave too few fitted frames to tell effects apart
+    "small": Budget(max_candidates=2, iterations=6, starts=2, bootstrap=200, heldout_fraction=0.0),
+    "full": Budget(max_candidates=3, iterations=20, starts=3, bootstrap=1000),
+}
+
+
+def split_frames(observed: int, n_frames: int, heldout_fraction: float) -> tuple[list, list]:
+    """(fit frames, held-out frames): the last ``heldout_fraction`` of the observed window plus
+    every future frame are held out; at least 2 frames are fitted and 2 held out."""
+    block = round(heldout_fraction * observed)
+    if n_frames - observed + block < 2:
+        block = 2 - (n_frames - observed)  # no future to speak of: hold out observed frames
+    last_fit = observed - 1 - block
+    if last_fit < 2:
+        raise ConfigError(
+            f"the run observes {observed} of {n_frames} frames; a diagnosis needs 2 fitted "
+            f"and 2 held-out frames (it would hold out {block} observed frames): observe more "
+            f"frames or lower the held-out fraction"
+        )
+    return list(range(1, last_fit + 1)), list(range(last_fit + 1, n_frames))
+
+
+def diagnose_run(
+    run_dir: str | Path,
+    *,
+    budget: str | Budget = "small",
+    simulator_overrides: dict | None = None,
+    say=print,
+) -> dict:
+    """Diagnose a finished run folder; writes diagnosis.json / diagnosis.md there and returns
+    the diagnosis as a dict."""
+    t_start = time.perf_counter()
+    report = say
+
+    def say(message: str) -> None:
+        report(f"{message} [{time.perf_counter() - t_start:.0f} s]")
+
+    if isinstance(budget, str):
+        if budget not in BUDGETS:
+            raise ConfigError(f"budget {budget!r} is unknown; valid: {sorted(BUDGETS)}")
+        budget = BUDGETS[budget]
+    ctx = load_run(run_dir, simulator_overrides=simulator_overrides)
+    section = ctx.recipe.get("diagnose", None)
+    if section is not None:  # the recipe may narrow the screened terms and the budget
+        budget = replace(
+            budget, max_candidates=min(budget.max_candidates, int(section.max_candidates))
+        )
+    allowed_names = list(section.terms) if section is not None and section.terms else None
+    fit_frames, heldout = split_frames(ctx.observed_frames, ctx.n_frames, budget.heldout_fraction)
+
+    say(f"locating the mismatch over {ctx.observed_frames} observed frames")
+    location = locate(ctx)
+    before = frame_errors(ctx, ctx.identified_rollout())
+    result = {
+        "run_dir": str(ctx.run_dir.root),
+        "frames": {"fit": fit_frames, "heldout": heldout, "observed": ctx.observed_frames},
+        "location": location.summary,
+        "budget": budget.__dict__,
+    }
+    screens, fits, evidence, errors, accepted = [], [], [], {"identified": before}, None
+    if location.significant:
+        candidates, skipped = build_candidates(ctx)
+        if allowed_names is not None:
+            skipped += [
+                f"{c.name}: not in the recipe's diagnose.terms"
+                for c in candidates
+                if c.name not in allowed_names
+            ]
+            candidates = [c for c in candidates if c.name in allowed_names]
+        say(f"screening {len(candidates)} candidate effects in regimes {location.flagged_regimes}")
+        screens = screen(
+            ctx,
+            candidates,
+            flagged_regimes=location.flagged_regimes,
+            fit_frames=fit_frames,
+            residuals=location.residuals,
+            regimes=location.regimes,
+        )
+        kept = [s for s in screens if s.allowed and s.drop_fraction > 0][: budget.max_candidates]
+        refit_options = RefitOptions(iterations=budget.iterations)
+        say(f"refitting the null model and {[s.candidate.name for s in kept]}")
+        null_start = regression_estimate(
+            ctx, None, location.residuals, location.regimes, fit_frames
+        )
+        null = refit(
+            ctx,
+            None,
+            fit_frames=fit_frames,
+            starts=[(torch.zeros(0), None if null_start is None else null_start[1])],
+            options=refit_options,
+        )
+        fits = [
+            refit(
+                ctx,
+                s.candidate,
+                fit_frames=fit_frames,
+                starts=refit_starts(s, budget.starts),
+                options=refit_options,
+            )
+            for s in kept
+        ]
+        evidence, model_errors = decide(
+            ctx,
+            null,
+            fits,
+            fit_frames=fit_frames,
+            heldout_frames=heldout,
+            options=DecideOptions(bootstrap=budget.bootstrap),
+        )
+        errors.update(model_errors)
+        if evidence and evidence[0].accepted:
+            accepted = next(f for f in fits if f.name == evidence[0].name)
+            accepted_interval = coefficient_interval(ctx, accepted, fit_frames=fit_frames)
+        result["skipped_candidates"] = skipped
+        result["null"] = null
+    result["verdict"] = verdict(location.significant, evidence)
+    result["screening"] = [s.to_json() for s in screens]
+    result["evidence"] = [e.to_json() for e in evidence]
+    result["fits"] = fits
+    result["accepted"] = accepted
+    result["interval"] = accepted_interval if accepted is not None else None
+    result["errors"] = errors
+    result["time_s"] = time.perf_counter() - t_start
+    summary = write_report(ctx, location, result)
+    say(
+        f"verdict: {summary['verdict']}"
+        + (f" ({summary['accepted']['name']})" if summary.get("accepted") else "")
+    )
+    return summary

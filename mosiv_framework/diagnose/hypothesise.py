@@ -1,0 +1,220 @@
+"""Step 2 of a diagnosis: which candidate effects could explain the residual?
+
+Screening is first order plus one probe, through the differentiable simulator:
+1. one rollout with every allowed candidate switched on at zero (the fitted model itself) and
+   one backward pass give the gradient g of the observed loss with respect to each coefficient;
+2. per candidate, one more rollout at a probe step along the descent direction d (projected on
+   the sign constraints) gives the curvature h along d, so the quadratic model
+   L(a) = L0 + (g.d) a + h a^2 / 2 predicts the best step a* and the loss drop it buys;
+3. candidates are ranked by a BIC-style score of that drop,
+   n log(L0 / (L0 - drop)) - dim log n, with n the frame-object residual count, so a
+   three-coefficient term must explain more than a one-coefficient term to rank above it.
+A candidate is allowed only if it acts in a regime the location flagged (``PhysicsTerm.regimes``).
+
+For body-force candidates a second, simulator-free estimate of the coefficient comes from the
+centroid paths: in free flight an extra acceleration a(v; theta) shifts an object's centroid by
+its double time integral, and a changed initial velocity by dv0 t; least squares of the
+centroid residual on both (``regression_estimate``) gives theta net of what the initial
+velocity can absorb, which is where a refit should start.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from mosiv_framework.diagnose.candidates import Candidate
+from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.errors import SimulationDiverged
+
+
+@dataclass
+class Screen:
+    """The screening result of one candidate; ``theta`` is the predicted best coefficient."""
+
+    candidate: Candidate
+    allowed: bool
+    gradient: list[float]
+    theta: torch.Tensor
+    drop_fraction: float
+    score: float
+    note: str = ""
+    regression: tuple[torch.Tensor, dict[int, torch.Tensor]] | None = None
+
+    def to_json(self) -> dict:
+        return {
+            "name": self.candidate.name,
+            "allowed": self.allowed,
+            "regimes": sorted(self.candidate.regimes),
+            "coefficients": self.candidate.coefficient_names,
+            "gradient": self.gradient,
+            "predicted_theta": self.theta.tolist(),
+            "predicted_drop_fraction": self.drop_fraction,
+            "score": self.score if math.isfinite(self.score) else None,
+            "regression_theta": None if self.regression is None else self.regression[0].tolist(),
+            "note": self.note,
+        }
+
+
+def bic_gain(fraction: float, *, n: int, dim: int) -> float:
+    """BIC decrease for explaining ``fraction`` of a Gaussian residual with ``dim`` new
+    coefficients from ``n`` residuals: n log(1 / (1 - fraction)) - dim log n."""
+    fraction = min(max(fraction, 0.0), 1.0 - 1e-12)
+    return -n * math.log1p(-fraction) - dim * math.log(n)
+
+
+def _double_integral(a: np.ndarray, dt: float) -> np.ndarray:
+    """Displacement [T, 3] (m) from accelerations [T, 3] (m/s^2) at frames, starting at rest
+    (trapezoidal rule twice)."""
+    v = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (a[1:] + a[:-1]), axis=0) * dt])
+    return np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (v[1:] + v[:-1]), axis=0) * dt])
+
+
+def regression_estimate(
+    ctx: RunContext,
+    candidate: Candidate | None,
+    residuals: dict,
+    regimes: dict[int, list[str]],
+    fit_frames: list[int],
+) -> tuple[torch.Tensor, dict[int, torch.Tensor]] | None:
+    """Least-squares (theta, initial-velocity change per object) from free-flight centroids.
+
+    Per object, the frames from 0 while the object is in free flight (within the fit frames)
+    give rows r_k(t) = sum_j theta_j X_kj(t) + dv0_k t dt per axis, X_kj the double integral of
+    the candidate's acceleration at unit coefficient j along the simulated centroid velocity.
+    With ``candidate`` None only dv0 is estimated (the null model's start). Returns None if the
+    candidate is not a body force or no object has 3 free-flight frames.
+    """
+    dt = 1.0 / ctx.fps
+    objects = sorted(residuals)
+    dim = 0 if candidate is None else candidate.dim
+    blocks, targets = [], []
+    for index, k in enumerate(objects):
+        m = 0
+        while m <= max(fit_frames) and m < len(regimes[k]) and regimes[k][m] == "free_flight":
+            m += 1
+        if m < 3:
+            continue
+        velocity = torch.as_tensor(residuals[k].sim_velocity[:m], dtype=torch.float32)
+        columns = []
+        for j in range(dim):
+            unit = candidate.zero()
+            unit[j] = float(candidate.step[j])
+            a = candidate.acceleration(velocity, unit)
+            if a is None:
+                return None
+            columns.append(_double_integral(a.double().numpy() / float(candidate.step[j]), dt))
+        design = np.zeros((m, 3, dim + 3 * len(objects)))
+        if columns:
+            design[:, :, :dim] = np.stack(columns, axis=-1)
+        for axis in range(3):
+            design[:, axis, dim + 3 * index + axis] = np.arange(m) * dt
+        blocks.append(design[1:].reshape(-1, design.shape[-1]))
+        targets.append(residuals[k].centroid[1:m].reshape(-1))
+    if not blocks:
+        return None
+    design, y = np.concatenate(blocks), np.concatenate(targets)
+    coef = np.zeros(design.shape[1])
+    used = np.abs(design).sum(axis=0) > 0  # velocity columns of objects without rows stay 0
+    coef[used] = np.linalg.lstsq(design[:, used], y, rcond=None)[0]
+    theta = torch.tensor(coef[:dim], dtype=torch.float32)
+    if candidate is not None:
+        theta = candidate.clamp(theta)
+    dv0 = {
+        k: torch.tensor(coef[dim + 3 * i : dim + 3 * i + 3], dtype=torch.float32)
+        for i, k in enumerate(objects)
+    }
+    return theta, dv0
+
+
+def _max_step(candidate: Candidate, direction: torch.Tensor) -> float:
+    """Largest a with a * direction inside the candidate's bounds (theta starts at 0)."""
+    limit = math.inf
+    for d, lo, hi in zip(direction.tolist(), candidate.lower.tolist(), candidate.upper.tolist()):
+        if d > 0:
+            limit = min(limit, hi / d)
+        elif d < 0:
+            limit = min(limit, lo / d)
+    return limit
+
+
+def screen(
+    ctx: RunContext,
+    candidates: list[Candidate],
+    *,
+    flagged_regimes: list[str],
+    fit_frames: list[int],
+    residuals: dict | None = None,
+    regimes: dict[int, list[str]] | None = None,
+) -> list[Screen]:
+    """Screen ``candidates`` on the loss over ``fit_frames``; returns them best first."""
+    allowed = [c for c in candidates if c.regimes & set(flagged_regimes)]
+    out = [
+        Screen(c, False, [], c.zero(), 0.0, -math.inf, f"acts only in {sorted(c.regimes)}")
+        for c in candidates
+        if c not in allowed
+    ]
+    if not allowed:
+        return out
+    horizon = max(fit_frames)
+    thetas = [c.zero().requires_grad_(True) for c in allowed]
+    params = ctx.identified.detached()
+    for c, theta in zip(allowed, thetas):
+        params = c.apply(params, theta)
+    traj = ctx.simulator.rollout(ctx.particles, params, world=ctx.world, frames=horizon)
+    loss0 = ctx.loss(traj, fit_frames)
+    loss0.backward()
+    base = float(loss0.detach())
+    n = len(fit_frames) * len(ctx.object_ids)
+    for c, theta in zip(allowed, thetas):
+        g = theta.grad.detach().clone()
+        # descent direction preconditioned by each coefficient's natural size, then one
+        # natural step long
+        direction = -g * c.step**2
+        at_lower = (direction < 0) & (c.lower >= 0)
+        at_upper = (direction > 0) & (c.upper <= 0)
+        direction[at_lower | at_upper] = 0.0
+        size = float((direction / c.step).norm())
+        if size == 0.0:
+            out.append(
+                Screen(c, True, g.tolist(), c.zero(), 0.0, -math.inf, "no descent direction")
+            )
+            continue
+        direction = direction / size
+        slope = float(g @ direction)
+        try:
+            probe = ctx.loss(
+                ctx.rollout(c.apply(ctx.identified, direction), frames=horizon), fit_frames
+            )
+        except SimulationDiverged as exc:
+            out.append(
+                Screen(c, True, g.tolist(), c.zero(), 0.0, -math.inf, f"probe diverged: {exc}")
+            )
+            continue
+        curvature = 2.0 * (float(probe) - base - slope)
+        limit = _max_step(c, direction)
+        step = -slope / curvature if curvature > 0 else 1.0  # concave: trust the probe only
+        step = min(step, limit)
+        drop = -(slope * step + 0.5 * max(curvature, 0.0) * step**2)
+        if curvature <= 0:
+            drop = base - float(probe)
+        fraction = max(0.0, drop / base) if base > 0 else 0.0
+        regression = None
+        if residuals is not None and regimes is not None:
+            regression = regression_estimate(ctx, c, residuals, regimes, fit_frames)
+        out.append(
+            Screen(
+                c,
+                True,
+                g.tolist(),
+                (step * direction).detach(),
+                fraction,
+                bic_gain(fraction, n=n, dim=c.dim),
+                regression=regression,
+            )
+        )
+    out.sort(key=lambda s: s.score, reverse=True)
+    return out

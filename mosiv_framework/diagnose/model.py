@@ -1,0 +1,230 @@
+"""Step 3 of a diagnosis: refit the model with a candidate effect, through the simulator.
+
+A new coefficient fitted alone would be judged against old parameters that were biased to make
+up for the missing effect, so the refit frees the run's parameters (initial velocities, the
+material parameters the run identified, see ``pipeline.params.ParameterVector``) together with
+the candidate's coefficients. The model without any new effect (the "null") is refitted by the
+same procedure and budget, so any improvement a candidate shows is not just more optimisation.
+Several starts (the screening's regression and probe estimates of the coefficient, and
+multiples of them) guard against local minima; their spread feeds the coefficient's interval.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from mosiv_framework.diagnose.candidates import Candidate
+from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.errors import SimulationDiverged
+from mosiv_framework.pipeline.params import ParameterVector
+from mosiv_framework.types import SimulationParams, Trajectory
+
+
+@dataclass(frozen=True)
+class RefitOptions:
+    """iterations: Adam steps per start; velocity_lr (m/s per step), param_lr (normalised
+    units per step) and coefficient_lr (in units of the coefficient's scale, see ``refit``):
+    step sizes."""
+
+    iterations: int = 8
+    velocity_lr: float = 0.02
+    param_lr: float = 0.01
+    coefficient_lr: float = 0.15
+
+    def __post_init__(self) -> None:
+        if self.iterations < 1:
+            raise ValueError(f"refit iterations={self.iterations}: must be >= 1")
+
+
+@dataclass
+class Fit:
+    """A refitted model: ``params`` with ``theta`` applied; ``loss`` over the fit frames (m^2);
+    ``starts`` holds (theta, loss) of every start; ``n_params`` counts free scalars."""
+
+    name: str
+    candidate: Candidate | None
+    params: SimulationParams
+    theta: torch.Tensor
+    loss: float
+    n_params: int
+    starts: list[tuple[list[float], float]] = field(default_factory=list)
+    trajectory: Trajectory | None = None
+    history: list[float] = field(default_factory=list)
+
+
+def _count(vector: ParameterVector) -> int:
+    leaves = [*vector.velocity.values(), *vector.normalized.values()]
+    return sum(v.numel() for v in leaves)  # a vector term parameter counts as 3
+
+
+def refit(
+    ctx: RunContext,
+    candidate: Candidate | None,
+    *,
+    fit_frames: list[int],
+    starts: list[tuple[torch.Tensor, dict | None]] | None = None,
+    options: RefitOptions = RefitOptions(),
+) -> Fit:
+    """Refit the run's free parameters (plus ``candidate``'s coefficients) on ``fit_frames``.
+
+    Each of ``starts`` (coefficient vector, initial-velocity change per object or None;
+    default: zero and none) begins a fit. The coefficient is
+    optimised as theta = scale * u with scale the larger of |start| and the candidate's natural
+    step, so one learning rate suits coefficients of any unit. Returns the best start; a start
+    whose rollouts all diverge is skipped. A null model (no candidate) has one start.
+    """
+    horizon = max(fit_frames)
+    if not starts:
+        starts = [(torch.zeros(0) if candidate is None else candidate.zero(), None)]
+    if candidate is None:
+        starts = starts[:1]
+    best: Fit | None = None
+    tried: list[tuple[list[float], float]] = []
+    for start, velocity_change in starts:
+        vector = ctx.parameter_vector()
+        if velocity_change is not None:
+            with torch.no_grad():
+                for k, dv in velocity_change.items():
+                    vector.velocity[k].add_(dv)
+        if candidate is not None:
+            theta_start = candidate.clamp(start.detach().float())
+            scale = torch.maximum(theta_start.abs(), candidate.step)
+            u = (theta_start / scale).clone().requires_grad_(True)
+        else:
+            scale = torch.ones(0)
+            u = torch.zeros(0, requires_grad=True)
+        groups = [
+            {"params": list(vector.velocity.values()), "lr": options.velocity_lr},
+            {"params": list(vector.normalized.values()), "lr": options.param_lr},
+        ]
+        if candidate is not None:
+            groups.append({"params": [u], "lr": options.coefficient_lr})
+        optimizer = torch.optim.Adam([g for g in groups if g["params"]])
+        best_start = (math.inf, None)
+        history = []
+        for _ in range(options.iterations + 1):  # the last pass only scores the last step
+            optimizer.zero_grad()
+            params = _assemble(vector, candidate, u, scale)
+            try:
+                traj = ctx.simulator.rollout(ctx.particles, params, world=ctx.world, frames=horizon)
+            except SimulationDiverged:
+                break
+            loss = ctx.loss(traj, fit_frames)
+            value = float(loss.detach())
+            history.append(value)
+            if value < best_start[0]:
+                best_start = (value, _snapshot(vector, u))
+            loss.backward()
+            optimizer.step()
+            with torch.no_grad():
+                for leaf in vector.normalized.values():
+                    leaf.clamp_(0.0, 1.0)
+                if candidate is not None:
+                    u.copy_(candidate.clamp(u * scale) / scale)
+        if best_start[1] is None:
+            continue
+        _restore(vector, u, best_start[1])
+        theta = (u * scale).detach() if candidate is not None else torch.zeros(0)
+        tried.append((theta.tolist(), best_start[0]))
+        if best is None or best_start[0] < best.loss:
+            best = Fit(
+                "null" if candidate is None else candidate.name,
+                candidate,
+                _assemble(vector, candidate, u, scale).detached(),
+                theta,
+                best_start[0],
+                _count(vector) + (candidate.dim if candidate is not None else 0),
+                history=history,
+            )
+    if best is None:
+        raise SimulationDiverged(
+            object_id=-1,
+            frame=-1,
+            substep=-1,
+            reason=f"every refit start of {candidate.name if candidate else 'the null model'} diverged",
+            advice="lower the refit learning rates or raise the simulator's substeps",
+        )
+    best.starts = tried
+    best.trajectory = ctx.rollout(best.params)
+    return best
+
+
+def _assemble(vector, candidate, u, scale) -> SimulationParams:
+    params = vector.physical()
+    return params if candidate is None else candidate.apply(params, u * scale)
+
+
+def _snapshot(vector: ParameterVector, u: torch.Tensor) -> dict:
+    return {
+        "velocity": {k: v.detach().clone() for k, v in vector.velocity.items()},
+        "normalized": {k: v.detach().clone() for k, v in vector.normalized.items()},
+        "u": u.detach().clone(),
+    }
+
+
+def _restore(vector: ParameterVector, u: torch.Tensor, snap: dict) -> None:
+    with torch.no_grad():
+        for k, v in snap["velocity"].items():
+            vector.velocity[k].copy_(v)
+        for k, v in snap["normalized"].items():
+            vector.normalized[k].copy_(v)
+        u.copy_(snap["u"])
+
+
+def coefficient_interval(
+    ctx: RunContext, fit: Fit, *, fit_frames: list[int], confidence_chi2: float = 3.84
+) -> tuple[list[float], list[float]]:
+    """(lower, upper) per coefficient of ``fit``: a profile interval joined with the starts.
+
+    Along each coefficient (others held at the fit) the loss is probed one natural step either
+    side and modelled as quadratic, L(theta) = L* + h (theta - theta*)^2 / 2. Treating the loss
+    as the mean of n Gaussian residuals (n = frames x objects), the likelihood ratio
+    n log(L / L*) <= chi2 (3.84: 95 %) gives the half-width sqrt(2 chi2 L* / (n h)). The interval is widened to cover every start whose loss
+    lies within the same likelihood-ratio bound, so disagreeing starts show up as width.
+    """
+    candidate = fit.candidate
+    n = len(fit_frames) * len(ctx.object_ids)
+    base_params = _without(fit, ctx)
+    horizon = max(fit_frames)
+    lower, upper = [], []
+    for i in range(candidate.dim):
+        h_step = float(candidate.step[i])
+        losses = []
+        for sign in (-1.0, 1.0):
+            theta = fit.theta.clone()
+            theta[i] += sign * h_step
+            theta = candidate.clamp(theta)
+            try:
+                traj = ctx.rollout(candidate.apply(base_params, theta), frames=horizon)
+                losses.append(float(ctx.loss(traj, fit_frames)))
+            except SimulationDiverged:
+                losses.append(math.inf)
+        curvature = (losses[0] + losses[1] - 2.0 * fit.loss) / h_step**2
+        if math.isfinite(curvature) and curvature > 0:
+            half = math.sqrt(2.0 * confidence_chi2 * fit.loss / (n * curvature))
+        else:
+            half = math.inf  # flat or non-convex: the data do not pin the coefficient down
+        lo, hi = float(fit.theta[i]) - half, float(fit.theta[i]) + half
+        for theta, loss in fit.starts:
+            if n * math.log(max(loss, 1e-300) / max(fit.loss, 1e-300)) <= confidence_chi2:
+                lo, hi = min(lo, theta[i]), max(hi, theta[i])
+        lower.append(max(lo, float(candidate.lower[i])))
+        upper.append(min(hi, float(candidate.upper[i])))
+    return lower, upper
+
+
+def _without(fit: Fit, ctx: RunContext) -> SimulationParams:
+    """The fit's parameters with the candidate's effect taken out again (it is re-applied
+    at probed coefficients)."""
+    params = fit.params
+    candidate = fit.candidate
+    if candidate.kind == "term" or candidate.kind == "gravity":
+        terms = {k: v for k, v in params.terms.items() if k != candidate.term.name}
+        return SimulationParams(
+            params.objects, params.initial_velocity, params.ground_friction, terms
+        )
+    # friction candidates shift a coefficient: undo the shift
+    return candidate.apply(params, -fit.theta)

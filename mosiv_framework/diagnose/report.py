@@ -1,0 +1,274 @@
+"""Step 5 of a diagnosis: say it in words and numbers, in the run folder.
+
+Writes ``diagnosis.json`` (everything, machine-readable), ``diagnosis.md`` (for a person) and
+two plots under ``diagnose/``: the located residuals and the centroid paths before and after
+modelling. The recipe change is a YAML snippet to paste into the run's recipe: the whole
+``physics_terms`` section (the run's own terms at their refitted values plus the accepted term at
+its fitted value, ``identify: true``; format in ``mosiv_framework.recipes.terms``), or the
+``identify`` switch that frees a friction coefficient.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import yaml
+from omegaconf import OmegaConf
+
+from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.diagnose.locate import Location, plot_location
+from mosiv_framework.recipes.terms import IDENTIFY_KEY
+
+MM2 = 1e6  # m^2 -> mm^2, the unit metrics.json reports Chamfer errors in
+
+
+def _block_means(errors: np.ndarray, observed: int) -> dict:
+    """Mean Chamfer (mm^2) over objects and the observed / future frames of a [K, T] table."""
+    future = errors[:, observed:]
+    return {
+        "observed_cd_mm2": float(errors[:, :observed].mean() * MM2),
+        "future_cd_mm2": float(future.mean() * MM2) if future.size else None,
+    }
+
+
+def _param_shift(before, after) -> dict:
+    """Per object: each parameter and initial velocity before and after, with relative change."""
+    out = {}
+    for k, p in sorted(before.objects.items()):
+        rows = {}
+        for name, value in sorted(p.values.items()):
+            b, a = float(value), float(after.objects[k].values[name])
+            rows[name] = {"before": b, "after": a, "rel_change": (a - b) / max(abs(b), 1e-12)}
+        vb = before.initial_velocity[k].detach().float()
+        va = after.initial_velocity[k].detach().float()
+        rows["initial_velocity"] = {
+            "before": vb.tolist(),
+            "after": va.tolist(),
+            "rel_change": float((va - vb).norm() / max(float(vb.norm()), 1e-12)),
+        }
+        out[str(k)] = rows
+    gb, ga = float(before.ground_friction), float(after.ground_friction)
+    out["ground_friction"] = {"before": gb, "after": ga}
+    return out
+
+
+def _rounded(value):
+    """6 significant digits: what the fit resolves, and readable in a recipe."""
+    if isinstance(value, list):
+        return [_rounded(x) for x in value]
+    return float(f"{float(value):.6g}")
+
+
+def recipe_change(fit, run_terms: dict | None = None) -> str:
+    """The YAML a recipe needs to include the accepted effect.
+
+    ``run_terms`` is the run's resolved ``physics_terms`` section: its terms are carried into
+    the snippet at their values in the fit (which refitted the identified ones), so the
+    snippet replaces the recipe's section as a whole and is pasted, not merged.
+    """
+    c = fit.candidate
+    if c.kind == "ground_friction":
+        snippet = {"identify": {"identify_ground_friction": True}}
+    elif c.kind == "object_friction":
+        snippet = {"identify": {"identify_friction": True}}
+    else:
+        section = {}
+        for name, entry in (run_terms or {}).items():
+            values = fit.params.terms.get(name, {})
+            section[name] = {
+                **{p: _rounded(v.tolist()) for p, v in sorted(values.items())},
+                IDENTIFY_KEY: bool(entry.get(IDENTIFY_KEY, False)),
+            }
+        fitted = {p: _rounded(v) for p, v in c.physical(fit.theta).items()}
+        section[c.name] = {**fitted, IDENTIFY_KEY: True}  # the next run refines it
+        snippet = {"physics_terms": section}
+    return yaml.safe_dump(snippet, sort_keys=False, default_flow_style=None)
+
+
+def plot_paths(ctx: RunContext, trajectories: dict, path) -> None:
+    """Centroid x, y, z per object: targets (black) and each model's rollout."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(
+        len(ctx.object_ids), 3, figsize=(12, 2.8 * len(ctx.object_ids)), squeeze=False
+    )
+    t = np.arange(ctx.n_frames) / ctx.fps
+    for row, k in enumerate(ctx.object_ids):
+        target = ctx.targets[k][: ctx.n_frames].mean(1).numpy()
+        for axis in range(3):
+            ax = axes[row, axis]
+            ax.plot(t, target[:, axis], "k.-", lw=1.5, label="recording")
+            for name, traj in trajectories.items():
+                c = traj.object_positions(k)[: ctx.n_frames].detach().cpu().mean(1).numpy()
+                ax.plot(t, c[:, axis], label=name)
+            ax.axvline((ctx.observed_frames - 0.5) / ctx.fps, color="grey", lw=0.8)
+            ax.set_title(f"object {k} centroid {'xyz'[axis]} (m)", fontsize=9)
+    axes[0, 0].legend(fontsize=7)
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s); grey line: end of the observed window")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
+    """Write diagnosis.json, diagnosis.md and the plots; returns the JSON-ready summary."""
+    rd = ctx.run_dir
+    rd.path("diagnose").mkdir(exist_ok=True)
+    plot_location(location, fps=ctx.fps, path=rd.path("diagnose/residuals.png"))
+    errors = result["errors"]
+    observed = ctx.observed_frames
+    summary = {
+        "verdict": result["verdict"],
+        "where": {
+            "object": location.flagged_object,
+            "regimes": location.flagged_regimes,
+            "significant": location.significant,
+            **{
+                key: location.summary["objects"][str(location.flagged_object)][key]
+                for key in (
+                    "window",
+                    "onset_frame",
+                    "signal_to_noise",
+                    "noise_floor_m",
+                    "direction_fraction",
+                )
+            },
+        },
+        "location": location.summary,
+        "frames": result["frames"],
+        "budget": result["budget"],
+        "skipped_candidates": result.get("skipped_candidates", []),
+        "screening": result["screening"],
+        "evidence": result["evidence"],
+        "errors": {name: _block_means(e, observed) for name, e in errors.items()},
+        "accepted": None,
+        "time_s": result["time_s"],
+    }
+    trajectories = {"identified": ctx.identified_rollout()}
+    if result.get("null") is not None:
+        trajectories["refit without new physics"] = result["null"].trajectory
+    fit = result["accepted"]
+    if fit is not None:
+        lower, upper = result["interval"]
+        summary["accepted"] = {
+            "name": fit.name,
+            "description": fit.candidate.description,
+            "coefficients": dict(zip(fit.candidate.coefficient_names, fit.theta.tolist())),
+            "interval_95": {
+                n: [lo, hi] for n, lo, hi in zip(fit.candidate.coefficient_names, lower, upper)
+            },
+            "units": dict(zip(fit.candidate.coefficient_names, fit.candidate.units)),
+            "value": fit.candidate.physical(fit.theta),
+            "starts": [{"theta": th, "fit_loss_m2": loss} for th, loss in fit.starts],
+            "param_shift": _param_shift(ctx.identified, fit.params),
+            "recipe_change": recipe_change(
+                fit, OmegaConf.to_container(ctx.recipe, resolve=True).get("physics_terms")
+            ),
+        }
+        trajectories[f"with {fit.name}"] = fit.trajectory
+    plot_paths(ctx, trajectories, rd.path("diagnose/paths.png"))
+    rd.save_json("diagnosis.json", summary)
+    rd.write_bytes("diagnosis.md", _markdown(summary).encode())
+    return summary
+
+
+def _fmt(x) -> str:
+    return "n/a" if x is None else f"{x:.4g}"
+
+
+def _markdown(s: dict) -> str:
+    where = s["where"]
+    lines = [
+        "# Diagnosis",
+        "",
+        f"**Verdict: {s['verdict']}.**",
+        "",
+        "## Where",
+        f"Object {where['object']} carries the largest unexplained error: centroid residual "
+        f"{where['signal_to_noise']:.3g} x its noise floor ({where['noise_floor_m'] * 1e3:.3g} mm), "
+        f"from frame {where['onset_frame']} (change point) to {where['window'][1]}, in regimes "
+        f"{', '.join(where['regimes'])}. Residual by direction: "
+        + ", ".join(f"{d} {100 * f:.0f} %" for d, f in where["direction_fraction"].items())
+        + ".",
+        "",
+        "![residuals](diagnose/residuals.png)",
+        "",
+    ]
+    acc = s["accepted"]
+    if acc is not None:
+        lines += [
+            "## What was left out",
+            f"{acc['description']} (`{acc['name']}`):",
+            "",
+            "| coefficient | value | 95 % interval | unit |",
+            "|---|---|---|---|",
+        ]
+        for name, value in acc["coefficients"].items():
+            lo, hi = acc["interval_95"][name]
+            lines.append(f"| {name} | {value:.4g} | [{lo:.4g}, {hi:.4g}] | {acc['units'][name]} |")
+        lines += ["", "Shift of the original parameters when refitted with it:", ""]
+        lines += [
+            "| object | parameter | before | after | relative change |",
+            "|---|---|---|---|---|",
+        ]
+        for k, rows in acc["param_shift"].items():
+            if k == "ground_friction":
+                continue
+            for name, row in rows.items():
+                if name == "initial_velocity":
+                    b = ", ".join(f"{x:.3g}" for x in row["before"])
+                    a = ", ".join(f"{x:.3g}" for x in row["after"])
+                    lines.append(f"| {k} | v0 (m/s) | {b} | {a} | {row['rel_change']:.2%} |")
+                else:
+                    lines.append(
+                        f"| {k} | {name} | {row['before']:.4g} | {row['after']:.4g} | {row['rel_change']:.2%} |"
+                    )
+        lines += [
+            "",
+            "Recipe change that adds it:",
+            "",
+            "```yaml",
+            acc["recipe_change"].rstrip(),
+            "```",
+            "",
+        ]
+    lines += [
+        "## Errors (mean Chamfer against the run's targets, mm^2)",
+        "",
+        "| model | observed | future |",
+        "|---|---|---|",
+    ]
+    for name, e in s["errors"].items():
+        lines.append(f"| {name} | {_fmt(e['observed_cd_mm2'])} | {_fmt(e['future_cd_mm2'])} |")
+    lines += ["", "![paths](diagnose/paths.png)", ""]
+    if s["evidence"]:
+        lines += [
+            "## Evidence (against the null model refitted with the same budget)",
+            "",
+            "| candidate | held-out drop | bootstrap sd | dBIC | held-out | BIC | accepted |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for e in s["evidence"]:
+            lines.append(
+                f"| {e['name']} | {e['heldout_drop']:.2%} | {e['heldout_spread']:.2%} | "
+                f"{e['delta_bic']:.3g} | {'pass' if e['passes_heldout'] else 'fail'} | "
+                f"{'pass' if e['passes_bic'] else 'fail'} | {'yes' if e['accepted'] else 'no'} |"
+            )
+        lines.append("")
+    if s["screening"]:
+        lines += [
+            "## Screening",
+            "",
+            "| candidate | allowed | predicted drop | score | note |",
+            "|---|---|---|---|---|",
+        ]
+        for r in s["screening"]:
+            lines.append(
+                f"| {r['name']} | {'yes' if r['allowed'] else 'no'} | {r['predicted_drop_fraction']:.2%} | "
+                f"{_fmt(r['score'])} | {r['note']} |"
+            )
+        lines.append("")
+    return "\n".join(lines)

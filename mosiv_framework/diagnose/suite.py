@@ -1,0 +1,227 @@
+"""``mosiv diagnose-suite OUT``: prove the diagnosis on scenes with effects their files conceal.
+
+For each suite entry a scene is generated through the registry's ``synth`` scene source with a
+``conceal`` option (the effect is written to ``gt/effects.json``, nowhere else), the pipeline
+runs on it (oracle reconstructor), the run is diagnosed, and only then is ``gt/effects.json``
+read to score the diagnosis. Entries: concealed effects at two strengths on mixed material
+pairs, controls with nothing concealed, and out-of-library entries whose concealed term is
+removed from the screened library (the right answer there is "unexplained").
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from mosiv_framework.diagnose.diagnosis import diagnose_run
+from mosiv_framework.pipeline import run_pipeline
+from mosiv_framework.recipes import load_recipe
+from mosiv_framework.scene import read_scene
+
+#: the recipe the suite's scenes run with unless another is given
+DEFAULT_RECIPES = {
+    True: Path(__file__).resolve().parents[2] / "recipes" / "diagnose_small.yaml",
+    False: Path(__file__).resolve().parents[2] / "recipes" / "diagnose_suite.yaml",
+}
+#: every term the suite may leave out of the library for an out-of-library entry
+LIBRARY = ("linear_drag", "quadratic_drag", "wind", "gravity")
+
+
+@dataclass
+class Entry:
+    """One suite scene: ``conceal`` spec ("" for a control), material pair, seed, and the
+    library restriction (``exclude``: a term the diagnosis may not screen)."""
+
+    name: str
+    conceal: str = ""
+    materials: str = "elastic,elastic"
+    seed: int = 0
+    exclude: str = ""
+
+    @property
+    def kind(self) -> str:
+        return self.conceal.split(":", 1)[0] if self.conceal else ""
+
+
+def suite_entries(small: bool) -> list[Entry]:
+    """The small suite (CPU, minutes) or the full one (issue 9's proof)."""
+    if small:
+        return [
+            Entry("wind", "wind:acceleration=2.5,0,0"),
+            Entry("linear_drag", "linear_drag:coefficient=2.0", seed=1),
+            Entry("control", "", seed=2),
+        ]
+    pairs = ("elastic,plasticine", "elastic,elastic", "plasticine,sand", "elastic,sand")
+    strengths = {
+        "linear_drag": ("linear_drag:coefficient=1.0", "linear_drag:coefficient=2.5"),
+        "quadratic_drag": ("quadratic_drag:coefficient=1.0", "quadratic_drag:coefficient=2.5"),
+        "wind": ("wind:acceleration=1.5,0,0", "wind:acceleration=0,2.5,0"),
+        "gravity": ("gravity:acceleration=0,0,-12", "gravity:acceleration=0,0,-7.5"),
+        "ground_friction": ("ground_friction:coefficient=1.2", "ground_friction:coefficient=0.05"),
+    }
+    out, seed = [], 10
+    for kind, specs in strengths.items():
+        for level, spec in enumerate(specs):
+            out.append(Entry(f"{kind}-{level}", spec, pairs[seed % len(pairs)], seed))
+            seed += 1
+    for i in range(6):
+        out.append(Entry(f"control-{i}", "", pairs[i % len(pairs)], 100 + i))
+    for i, kind in enumerate(("quadratic_drag", "gravity")):
+        spec = strengths[kind][1]
+        out.append(Entry(f"outside-{kind}", spec, pairs[i], 200 + i, exclude=kind))
+    return out
+
+
+@dataclass
+class Score:
+    """How the diagnosis did on one entry (errors relative; None where not applicable)."""
+
+    name: str
+    concealed: str
+    verdict: str
+    accepted: str | None
+    ranked_first: str | None
+    correct: bool
+    signal_to_noise: float
+    coefficient_error: float | None
+    future_reduction: float | None
+    extra: dict = field(default_factory=dict)
+
+
+def coefficient_error(accepted: dict, effect: dict) -> float | None:
+    """Relative error |fitted - true| / |true| of the accepted effect against gt/effects.json."""
+    true = effect["params"]
+    value = accepted["value"]
+    if effect["kind"] == "ground_friction":
+        fitted, truth = [value["ground_friction"]], [true["coefficient"]]
+    else:
+        name = next(iter(true))
+        if name not in value:
+            return None
+        fitted = value[name] if isinstance(value[name], list) else [value[name]]
+        truth = true[name] if isinstance(true[name], list) else [true[name]]
+    diff = math.sqrt(sum((a - b) ** 2 for a, b in zip(fitted, truth)))
+    norm = math.sqrt(sum(b * b for b in truth))
+    return diff / max(norm, 1e-12)
+
+
+def score_entry(entry: Entry, diagnosis: dict, effects: list[dict]) -> Score:
+    accepted = diagnosis.get("accepted")
+    ranked = diagnosis["evidence"][0]["name"] if diagnosis["evidence"] else None
+    errors = diagnosis["errors"]
+    reduction = None
+    if accepted is not None:
+        before = errors["identified"]["future_cd_mm2"]
+        after = errors[accepted["name"]]["future_cd_mm2"]
+        if before:
+            reduction = 1.0 - after / before
+    if not entry.conceal:
+        correct = accepted is None
+    elif entry.exclude:
+        correct = diagnosis["verdict"] == "unexplained"
+    else:
+        correct = accepted is not None and accepted["name"] == entry.kind
+    coef = None
+    if accepted is not None and effects and accepted["name"] == effects[0]["kind"]:
+        coef = coefficient_error(accepted, effects[0])
+    return Score(
+        entry.name,
+        entry.conceal or "-",
+        diagnosis["verdict"],
+        accepted["name"] if accepted else None,
+        ranked,
+        correct,
+        float(diagnosis["where"]["signal_to_noise"]),
+        coef,
+        reduction,
+    )
+
+
+def run_suite(
+    out: str | Path,
+    *,
+    small: bool = True,
+    recipe: str | Path | None = None,
+    budget: str | None = None,
+    entries: list[Entry] | None = None,
+    say=print,
+) -> dict:
+    """Generate, run, diagnose and score every entry into ``out``; returns the summary."""
+    out = Path(out)
+    recipe_path = Path(recipe) if recipe is not None else DEFAULT_RECIPES[small]
+    budget = budget or ("small" if small else "full")
+    scores = []
+    for entry in entries if entries is not None else suite_entries(small):
+        run_dir = out / entry.name
+        overrides = [
+            f"scene.path={run_dir / 'scene'}",
+            f"output.dir={run_dir}",
+            f"scene.source.materials={entry.materials}",
+            f"scene.source.seed={entry.seed}",
+        ]
+        if entry.conceal:
+            overrides.append(f"scene.source.conceal='{entry.conceal}'")
+        if entry.exclude:
+            kept = ",".join(t for t in LIBRARY if t != entry.exclude)
+            overrides.append(f"diagnose.terms=[{kept}]")
+        say(f"[suite] {entry.name}: {entry.conceal or 'control'} on {entry.materials}")
+        run_pipeline(load_recipe(recipe_path, overrides), run_dir=run_dir)
+        diagnosis = diagnose_run(run_dir, budget=budget, say=lambda m: say(f"[suite]   {m}"))
+        effects = read_scene(run_dir / "scene").gt_effects()  # scoring only, after diagnosis
+        scores.append(score_entry(entry, diagnosis, effects))
+    summary = summarise(scores)
+    (out / "suite.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
+    (out / "suite.md").write_text(table(summary) + "\n")
+    say(table(summary))
+    return summary
+
+
+def summarise(scores: list[Score]) -> dict:
+    concealed = [s for s in scores if s.concealed != "-" and "outside" not in s.name]
+    controls = [s for s in scores if s.concealed == "-"]
+    outside = [s for s in scores if "outside" in s.name]
+    strong = [s for s in concealed if s.signal_to_noise >= 3.0]
+    coefs = [s.coefficient_error for s in concealed if s.coefficient_error is not None]
+    reductions = [s.future_reduction for s in concealed if s.future_reduction is not None]
+
+    def rate(items, pred):
+        return sum(1 for s in items if pred(s)) / len(items) if items else None
+
+    return {
+        "scores": [asdict(s) for s in scores],
+        "correct_first_rate": rate(strong, lambda s: s.correct),
+        "control_false_discovery_rate": rate(controls, lambda s: s.accepted is not None),
+        "outside_reported_unexplained_rate": rate(outside, lambda s: s.correct),
+        "median_coefficient_error": statistics.median(coefs) if coefs else None,
+        "median_future_reduction": statistics.median(reductions) if reductions else None,
+    }
+
+
+def table(summary: dict) -> str:
+    def f(x, pct=False):
+        if x is None:
+            return "-"
+        return f"{100 * x:.0f} %" if pct else f"{x:.3g}"
+
+    lines = [
+        "| scene | concealed | SNR | verdict | accepted | correct | coef. error | future-error reduction |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for s in summary["scores"]:
+        lines.append(
+            f"| {s['name']} | {s['concealed']} | {f(s['signal_to_noise'])} | {s['verdict']} | "
+            f"{s['accepted'] or '-'} | {'yes' if s['correct'] else 'no'} | "
+            f"{f(s['coefficient_error'], True)} | {f(s['future_reduction'], True)} |"
+        )
+    lines += [
+        "",
+        f"correct term first (SNR >= 3): {f(summary['correct_first_rate'], True)}; "
+        f"false discoveries on controls: {f(summary['control_false_discovery_rate'], True)}; "
+        f"out-of-library reported unexplained: {f(summary['outside_reported_unexplained_rate'], True)}; "
+        f"median coefficient error: {f(summary['median_coefficient_error'], True)}; "
+        f"median future-error reduction: {f(summary['median_future_reduction'], True)}",
+    ]
+    return "\n".join(lines)
