@@ -26,9 +26,13 @@ class PointsLifterOptions:
 
     def __post_init__(self) -> None:
         if self.max_particles_per_object < 1:
-            raise ValueError(f"max_particles_per_object must be >= 1, got {self.max_particles_per_object}")
+            raise ValueError(
+                f"max_particles_per_object must be >= 1, got {self.max_particles_per_object}"
+            )
         if not self.voxel_size > 0:
-            raise ValueError(f"voxel_size must be a positive length in metres, got {self.voxel_size}")
+            raise ValueError(
+                f"voxel_size must be a positive length in metres, got {self.voxel_size}"
+            )
 
 
 def occupied_volume(points: torch.Tensor, voxel_size: float) -> float:
