@@ -21,13 +21,16 @@ from typing import Any
 # quadratic_drag 1.0 1/m: at 1.5 m/s it decelerates by 2.25 m/s^2, a quarter of gravity.
 # wind 1.5 m/s^2 sideways: ~5 cm of drift per 0.25 s of flight, several pixels at 128 px.
 # gravity -12 m/s^2: 22 % stronger than declared, so falls are visibly faster.
-# ground_friction 1.2: a grippy table against the 0.3-0.6 the generator draws otherwise.
+# ground_friction 0.05: a slippery table (PTFE-coated or wet, mu ~ 0.04-0.1) against the 0.3-0.6
+#   the generator draws otherwise. A grippier table hardly shows: landed objects already stop
+#   within ~1 cm at 0.3-0.6 (measured: mu = 1.2 moved a tiny scene's centroids < 0.7 cm, mu =
+#   0.05 moved the sliding object by 6-12 cm within 0.3-0.5 s after landing).
 CONCEAL_DEFAULTS: dict[str, dict[str, float | tuple[float, float, float]]] = {
     "linear_drag": {"coefficient": 1.5},
     "quadratic_drag": {"coefficient": 1.0},
     "wind": {"acceleration": (1.5, 0.0, 0.0)},
     "gravity": {"acceleration": (0.0, 0.0, -12.0)},
-    "ground_friction": {"coefficient": 1.2},
+    "ground_friction": {"coefficient": 0.05},
 }
 #: kinds that are simulator PhysicsTerms (the rest are realised through SimulationParams)
 TERM_KINDS = ("linear_drag", "quadratic_drag", "wind", "gravity")

@@ -138,8 +138,10 @@ def plan_scene(opts: SynthOptions) -> ScenePlan:
 def _auto_collision_frame(opts: SynthOptions, rng: np.random.Generator) -> int:
     # inside the first half of the observed frames, so identification sees the collision, the
     # fall and the landing (paper protocol: 15 of 30 frames observed)
+    # clips shorter than 3 frames (previews, projection tests) end before any collision: the
+    # planned one then lies just after the clip, at frame 2
     lo = max(2, opts.observed_frames // 3)
-    hi = min(max(lo, opts.observed_frames // 2), opts.n_frames - 1)
+    hi = max(lo, min(opts.observed_frames // 2, opts.n_frames - 1))
     return int(rng.integers(lo, hi + 1))
 
 

@@ -1,0 +1,110 @@
+"""Options of the ``genesis`` scene source, validated without importing Genesis.
+
+Names match the ``synth`` source where the setting is the same (``mosiv data synth`` flags map
+onto them): n_objects, materials, shapes, resolution, n_cameras, n_frames, observed_frames, fps,
+seed, scene_name, conceal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from mosiv_framework.errors import ConfigError
+from mosiv_genesis.conceal import parse_conceal
+from mosiv_genesis.plan import GENESIS_FAMILIES, SHAPE_NAMES
+
+
+def _names(value: Any, what: str, valid: tuple[str, ...], problems: list[str]) -> list[str]:
+    """``"random"``/None -> [], ``"a,b"`` or a list -> names, each checked against ``valid``."""
+    if value is None or value == "random":
+        return []
+    items = value.split(",") if isinstance(value, str) else list(value)
+    names = [str(v).strip() for v in items if str(v).strip()]
+    problems += [
+        f"{what}: unknown name {n!r}; valid: random or {', '.join(valid)}"
+        for n in names
+        if n not in valid
+    ]
+    return names
+
+
+@dataclass
+class GenesisOptions:
+    """Options of one Genesis scene.
+
+    n_objects: 2 or 3; shapes / materials: "random", comma-separated names or a list, one per
+    object (families: elastic, plasticine, newtonian, sand, snow -- Genesis' Elastic,
+    ElastoPlastic, Liquid, Sand, Snow); resolution: image width = height (pixels); n_cameras;
+    n_frames; observed_frames; fps (1/s); substeps: MPM substeps per frame (140 at 24 fps
+    gives dt = 3e-4 s, inside Genesis' stability hint ~0.02 s / grid_density at 64 cells/m); grid_density: MPM
+    grid cells per metre (1/m); particle_size: MPM particle spacing (m); collision_frame: frame
+    of the mid-air collision (0 = from the seed); conceal: "KIND[:param=value,...]" effects
+    (linear_drag, quadratic_drag, wind, gravity) separated by ";" or a list; vis_mode: how
+    Genesis draws MPM bodies ("visual": the object mesh skinned to its particles, for sand and
+    liquid their particles; "particle"; "recon": a reconstructed surface); backend: "cpu" or "gpu"; seed; scene_name (empty =
+    from materials and seed); progress: print one line per frame.
+    """
+
+    n_objects: int = 2
+    shapes: Any = "random"
+    materials: Any = "random"
+    resolution: int = 128
+    n_cameras: int = 11
+    n_frames: int = 30
+    observed_frames: int = 15
+    fps: float = 24.0
+    substeps: int = 140
+    grid_density: float = 64.0
+    particle_size: float = 0.01
+    collision_frame: int = 0
+    conceal: Any = None
+    vis_mode: str = "visual"
+    backend: str = "cpu"
+    seed: int = 0
+    scene_name: str = ""
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        problems: list[str] = []
+        if self.n_objects not in (2, 3):
+            problems.append(f"n_objects={self.n_objects!r}: the protocol uses 2 or 3 objects")
+        self.shapes = _names(self.shapes, "shapes", SHAPE_NAMES, problems)
+        self.materials = _names(self.materials, "materials", GENESIS_FAMILIES, problems)
+        for what, names in (("shapes", self.shapes), ("materials", self.materials)):
+            if names and len(names) != self.n_objects:
+                problems.append(
+                    f"{what}: {len(names)} names for n_objects={self.n_objects}; give one per "
+                    "object or 'random'"
+                )
+        if self.resolution < 16:
+            problems.append(f"resolution={self.resolution}: must be at least 16 pixels")
+        if self.n_cameras < 1:
+            problems.append(f"n_cameras={self.n_cameras}: must be at least 1")
+        if self.n_frames < 2:
+            problems.append(f"n_frames={self.n_frames}: must be at least 2")
+        if not 1 <= self.observed_frames <= self.n_frames:
+            problems.append(
+                f"observed_frames={self.observed_frames}: must lie in 1..n_frames={self.n_frames}"
+            )
+        if self.fps <= 0 or self.substeps < 1:
+            problems.append(f"fps={self.fps}, substeps={self.substeps}: must be positive")
+        if not 0.003 <= self.particle_size <= 0.03:
+            problems.append(f"particle_size={self.particle_size} m: must lie in [0.003, 0.03] m")
+        if self.grid_density <= 0:
+            problems.append(f"grid_density={self.grid_density}: must be positive (cells/m)")
+        if self.collision_frame != 0 and not 2 <= self.collision_frame < self.n_frames:
+            problems.append(
+                f"collision_frame={self.collision_frame}: must be 0 (automatic) or in "
+                f"2..{self.n_frames - 1}"
+            )
+        if self.vis_mode not in ("visual", "particle", "recon"):
+            problems.append(f"vis_mode={self.vis_mode!r}: valid: visual, particle, recon")
+        if self.backend not in ("cpu", "gpu"):
+            problems.append(f"backend={self.backend!r}: valid: cpu, gpu")
+        try:
+            self.conceal = [e.spec() for e in parse_conceal(self.conceal)]
+        except ValueError as exc:
+            problems.append(f"conceal: {exc}")
+        if problems:
+            raise ConfigError([f"scene_source genesis: {p}" for p in problems])

@@ -1,0 +1,188 @@
+"""Everything a Genesis scene decides before the engine starts, in plain numpy (no Genesis import):
+shapes, material parameters, the mid-air collision layout, cameras and colours.
+
+The ``synth`` source has richer versions of these (ten procedural shapes, exact first-contact
+layout); plugins do not import each other, so this module keeps a deliberately small set.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+# the simulation box (m) as scene.json declares it; the table is the plane z = 0
+DOMAIN_LOWER = (-0.4, -0.4, 0.0)
+DOMAIN_UPPER = (0.4, 0.4, 0.6)
+GROUND_HEIGHT = 0.0
+DECLARED_GRAVITY = (0.0, 0.0, -9.8)
+SIZE_LIMITS = (0.08, 0.15)  # largest extent of an object (m), paper section 4.1
+# collision point 0.22-0.32 m above the table near its centre, approached over 0.12-0.2 m
+COLLISION_HEIGHT = (0.22, 0.32)
+COLLISION_XY = 0.04
+LAUNCH_GAP = (0.12, 0.2)
+LAUNCH_RISE = (-0.04, 0.1)
+MARGIN = 0.02  # clearance kept to the walls at launch (m)
+# cameras: Fibonacci spiral over elevations 12-70 deg, 1.15 m from the look-at point
+ELEVATION = (math.radians(12.0), math.radians(70.0))
+LOOK_AT = (0.0, 0.0, 0.15)
+CAMERA_DISTANCE = 1.15
+FOV_DEG = 45.0  # Genesis' fov is vertical; the images are square, so it is the horizontal one too
+
+# (relative extents x, y, z, trimesh primitive) per shape, scaled to the drawn size
+SHAPES: dict[str, tuple[tuple[float, float, float], str]] = {
+    "egg": ((0.75, 0.75, 1.0), "sphere"),
+    "apple": ((1.0, 1.0, 0.9), "sphere"),
+    "potato": ((1.0, 0.7, 0.55), "sphere"),
+    "barrel": ((0.8, 0.8, 1.0), "cylinder"),
+    "cushion": ((1.0, 1.0, 0.45), "box"),
+    "bread": ((1.0, 0.55, 0.45), "capsule"),
+}
+SHAPE_NAMES = tuple(SHAPES)
+COLORS = {  # one realistic sRGB colour per shape
+    "egg": (0.9, 0.8, 0.68),
+    "apple": (0.75, 0.12, 0.1),
+    "potato": (0.74, 0.6, 0.38),
+    "barrel": (0.55, 0.35, 0.18),
+    "cushion": (0.3, 0.42, 0.75),
+    "bread": (0.8, 0.55, 0.25),
+}
+BACKGROUNDS = ((0.62, 0.7, 0.8), (0.75, 0.72, 0.66), (0.55, 0.58, 0.6), (0.66, 0.74, 0.66))
+
+# Parameter ranges, paper appendix: E 4.75e4-5.25e4 Pa, Poisson 0.2-0.3, density 800-1200.
+# Yield stress and friction angle as in mosiv-synth (plasticine dents at 1-2 m/s impacts but
+# carries its own weight; dry sand 25-40 deg); snow's clamps from the paper's snow row.
+COMMON = {"E": (4.75e4, 5.25e4), "nu": (0.2, 0.3), "rho": (800.0, 1200.0)}
+EXTRA = {
+    "elastic": {},
+    "plasticine": {"yield_stress": (2.0e3, 5.0e3)},
+    "sand": {"friction_angle": (25.0, 40.0)},
+    "newtonian": {},
+    "snow": {"yield_lower": (2.5e-2, 4.5e-2), "yield_higher": (4.5e-3, 7.5e-3)},
+}
+GENESIS_FAMILIES = tuple(EXTRA)
+
+
+def make_mesh(name: str, size: float, rotation: np.ndarray):
+    """Watertight trimesh of shape ``name``, largest extent ``size`` (m), rotated, centred."""
+    import trimesh
+
+    extents, kind = SHAPES[name]
+    if kind == "sphere":
+        mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    elif kind == "cylinder":
+        mesh = trimesh.creation.cylinder(radius=0.5, height=1.0, sections=32)
+    elif kind == "box":
+        mesh = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    else:  # capsule along x: a rounded loaf
+        mesh = trimesh.creation.capsule(height=0.5, radius=0.25, count=(16, 16))
+        mesh.apply_transform(trimesh.transformations.rotation_matrix(math.pi / 2, (0, 1, 0)))
+    mesh.apply_scale(np.asarray(extents) / mesh.extents)
+    mesh.apply_scale(size / max(mesh.extents))
+    mesh.vertices = mesh.vertices @ rotation.T
+    mesh.vertices -= mesh.center_mass
+    return mesh
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """Uniform random rotation matrix (QR of a Gaussian matrix, signs fixed, det +1)."""
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def sample_params(family: str, rng: np.random.Generator) -> dict[str, float]:
+    """Genesis material parameters of one object (uniform in each range)."""
+    ranges = {**COMMON, **EXTRA[family]}
+    return {name: float(rng.uniform(lo, hi)) for name, (lo, hi) in ranges.items()}
+
+
+def scene_format_params(family: str, p: dict[str, float]) -> dict[str, float]:
+    """The mosiv-scene/1 names that mean the same thing in Genesis' model.
+
+    Genesis' Liquid is not our Newtonian law: its pressure term lam J (J - 1) has bulk modulus
+    lam = E nu / ((1 + nu)(1 - 2 nu)) at J = 1, and its shear term is an elastic stress reset
+    every substep, so only density and bulk modulus carry over; E and nu stay generator_params.
+    """
+    if family == "newtonian":
+        lam = p["E"] * p["nu"] / ((1.0 + p["nu"]) * (1.0 - 2.0 * p["nu"]))
+        return {"rho": p["rho"], "bulk_modulus": lam}
+    keep = ("E", "nu", "rho", "yield_stress", "friction_angle")
+    return {k: v for k, v in p.items() if k in keep}
+
+
+def hemisphere_directions(n: int, *, azimuth0: float) -> np.ndarray:
+    """[n, 3] unit vectors to the cameras: equal-area strips in z, golden-angle azimuths."""
+    z0, z1 = math.sin(ELEVATION[0]), math.sin(ELEVATION[1])
+    z = z1 - (z1 - z0) * (np.arange(n) + 0.5) / n
+    azimuth = azimuth0 + math.pi * (3.0 - math.sqrt(5.0)) * np.arange(n)
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(azimuth), r * np.sin(azimuth), z], axis=1)
+
+
+def support(points: np.ndarray, direction: np.ndarray) -> float:
+    """How far a centred shape reaches along ``direction``: max over points of p . d (m)."""
+    return float(np.max(points @ direction))
+
+
+@dataclass
+class Layout:
+    """Per object: start centroid [K, 3] (m), centroid target at the collision time [K, 3]."""
+
+    starts: np.ndarray
+    targets: np.ndarray
+    collision_point: np.ndarray
+
+
+def plan_layout(
+    shapes: list[np.ndarray],
+    *,
+    radii: list[float],
+    collision_time: float,
+    acceleration,
+    rng: np.random.Generator,
+) -> Layout:
+    """Start and target centroids so the objects meet head-on at a collision point.
+
+    Objects 1 and 2 approach along a random horizontal direction u and are planned to touch at
+    the collision point (their targets sit one support distance to either side of it); object
+    3 comes in along the perpendicular direction. Each planned flight (``collision_time`` s
+    under ``acceleration`` m/s^2, bounding spheres of ``radii`` m) must stay inside the domain.
+    Launch velocities follow from ``launch_velocity`` once the engine has placed the particles.
+    """
+    times = np.linspace(0.0, collision_time, 16)
+    lo, hi = np.asarray(DOMAIN_LOWER), np.asarray(DOMAIN_UPPER)
+    for _ in range(200):
+        p = np.array(
+            [*rng.uniform(-COLLISION_XY, COLLISION_XY, size=2), rng.uniform(*COLLISION_HEIGHT)]
+        )
+        theta = rng.uniform(0.0, 2.0 * math.pi)
+        u = np.array([math.cos(theta), math.sin(theta), 0.0])
+        w = np.array([-u[1], u[0], 0.0])
+        targets = [p - support(shapes[0], u) * u, p + support(shapes[1], -u) * u]
+        dirs = [-u, u]
+        if len(shapes) == 3:
+            reach = max(support(s, w) for s in shapes[:2])
+            targets.append(p + (reach + support(shapes[2], -w)) * w)
+            dirs.append(w)
+        starts = [
+            t + rng.uniform(*LAUNCH_GAP) * d + np.array([0.0, 0.0, rng.uniform(*LAUNCH_RISE)])
+            for t, d in zip(targets, dirs)
+        ]
+        inside = True
+        for start, target, r in zip(starts, targets, radii):
+            v0 = launch_velocity(start, target, collision_time, acceleration)
+            path = (
+                start + v0 * times[:, None] + 0.5 * np.asarray(acceleration) * times[:, None] ** 2
+            )
+            inside &= bool(np.all(path - r - MARGIN >= lo) and np.all(path + r + MARGIN <= hi))
+        if inside:
+            return Layout(np.array(starts), np.array(targets), p)
+    raise RuntimeError("no collision layout fits the domain; objects are too large")
+
+
+def launch_velocity(start, target, t: float, acceleration) -> np.ndarray:
+    """v0 with start + v0 t + a t^2 / 2 = target (m/s): ballistic aim under acceleration a."""
+    a = np.asarray(acceleration, dtype=np.float64)
+    return (np.asarray(target) - np.asarray(start) - 0.5 * a * t * t) / t
