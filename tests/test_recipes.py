@@ -57,7 +57,9 @@ def test_resolves_defaults_and_component_options(tmp_path, registry):
 
 def test_override_selects_another_component(tmp_path, registry):
     path = write(tmp_path, "simulator: {name: toy-sim}\n")
-    recipe = load_recipe(path, ["simulator.name=other-sim", "simulator.substeps=5"], registry=registry)
+    recipe = load_recipe(
+        path, ["simulator.name=other-sim", "simulator.substeps=5"], registry=registry
+    )
     assert recipe.simulator.name == "other-sim" and recipe.simulator.substeps == 5
 
 
