@@ -1,8 +1,10 @@
-"""Entry point of the mosiv-gauss plugin: registers the ``gauss-torch`` renderer."""
+"""Entry point of the mosiv-gauss plugin: registers the ``gauss-torch`` renderer and the
+``gauss-dynamic`` reconstructor."""
 
 from __future__ import annotations
 
 from mosiv_framework.registry import Component, hookimpl
+from mosiv_gauss.dynamic_options import DynamicGaussOptions
 from mosiv_gauss.options import TorchRasterizerOptions
 
 
@@ -11,6 +13,28 @@ def make_torch_rasterizer(**options):
     from mosiv_gauss.rasterizer import TorchRasterizer
 
     return TorchRasterizer(TorchRasterizerOptions(**options))
+
+
+def make_dynamic_reconstructor(**options):
+    """Build a GaussDynamicReconstructor from keyword options (validated by
+    DynamicGaussOptions); torch training code is imported only when one is built."""
+    from mosiv_gauss.reconstructor import GaussDynamicReconstructor
+
+    return GaussDynamicReconstructor(**options)
+
+
+@hookimpl
+def mosiv_reconstructors(register):
+    register(
+        Component(
+            "reconstructor",
+            "gauss-dynamic",
+            factory=make_dynamic_reconstructor,
+            options=DynamicGaussOptions,
+            description="object-aware dynamic Gaussians (paper eq. 1-2): visual-hull init, "
+            "basis/coefficient deformation networks, photometric + per-object mask training",
+        )
+    )
 
 
 @hookimpl

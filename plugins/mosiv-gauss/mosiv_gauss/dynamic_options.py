@@ -1,0 +1,147 @@
+"""Options of the object-aware dynamic Gaussian reconstructor (reconstructor ``gauss-dynamic``).
+
+One frozen dataclass, validated in ``__post_init__`` so that a recipe with a bad value fails
+before any training starts, with a message naming the option and its valid range.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from mosiv_framework.errors import ConfigError
+
+#: how the static per-camera background is obtained (see ``train.estimate_background``)
+BACKGROUND_MODES = ("median", "learned")
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+@dataclass(frozen=True)
+class DynamicGaussOptions:
+    """Initialisation, model size and training schedule of the dynamic Gaussians.
+
+    Initialisation (``init.py``):
+        hull_resolution: voxels along the longest side of the scene domain for the visual hull
+            (voxel size = domain extent / hull_resolution, m).
+        max_init_gaussians: at most this many hull voxels seed Gaussians (random subsample,
+            split evenly between objects).
+    Model (paper eq. 1, ``model.py``):
+        n_bases: B, number of temporal bases; basis_width, basis_layers: hidden width and number
+            of hidden layers of the basis network of time; coef_width, coef_layers: the same for
+            the coefficient network of canonical position; pe_frequencies: octaves of the
+            positional encoding of canonical positions.
+    Training (paper eq. 2, ``train.py``):
+        iterations: optimisation steps; views_per_step: (frame, camera) images per step;
+        motion_init_iterations: steps fitting the deformation to per-object visual-hull centroid
+            tracks before the photometric training (0 disables it);
+        lambda_ssim: weight of (1 - SSIM); lambda_radius: weight of the mean radius in voxel
+            units (eq. 2's |r_t|_1 made dimensionless); lambda_mask: weight of the per-object
+            silhouette L1 against the instance masks;
+        lr_position (m per step scale), lr_radius, lr_color, lr_opacity, lr_network,
+            lr_background: Adam learning rates (log-radius, logits and weights are unitless);
+        densify_every, densify_from, densify_until: densification/pruning schedule (steps);
+        densify_grad: clone/split a Gaussian when its mean positional gradient times the voxel
+            size exceeds this; prune_opacity: drop Gaussians whose opacity falls below this;
+        max_gaussians: cap on the number of Gaussians after densification;
+        background: "median" (per-pixel median of the frames outside the masks, fixed) or
+            "learned" (that median refined as a parameter);
+        tile_size: tile side of the torch rasterizer (pixels); raster_checkpoint: let the
+            rasterizer recompute per-pixel values in the backward pass (less memory, slower);
+        device: torch device ("cpu", "cuda", "cuda:1"); seed: random seed; progress: tqdm bar;
+        save_dir: sub-folder of the run folder the reconstruction is saved in ("" = no saving).
+    """
+
+    hull_resolution: int = 64
+    max_init_gaussians: int = 4000
+    n_bases: int = 10
+    basis_width: int = 64
+    basis_layers: int = 4
+    coef_width: int = 64
+    coef_layers: int = 4
+    pe_frequencies: int = 4
+    iterations: int = 3000
+    views_per_step: int = 2
+    motion_init_iterations: int = 400
+    lambda_ssim: float = 0.2
+    lambda_radius: float = 0.01
+    lambda_mask: float = 0.5
+    lr_position: float = 1e-3
+    lr_radius: float = 5e-3
+    lr_color: float = 2e-2
+    lr_opacity: float = 3e-2
+    lr_network: float = 1e-3
+    lr_background: float = 1e-2
+    densify_every: int = 100
+    densify_from: int = 200
+    densify_until: int = 2000
+    densify_grad: float = 2e-4
+    prune_opacity: float = 0.02
+    max_gaussians: int = 20000
+    background: str = "median"
+    tile_size: int = 16
+    raster_checkpoint: bool = False
+    device: str = "cpu"
+    seed: int = 0
+    progress: bool = True
+    save_dir: str = "gauss-dynamic"
+
+    def __post_init__(self) -> None:
+        problems: list[str] = []
+        ints = {
+            "hull_resolution": (8, 512),
+            "max_init_gaussians": (2, 10_000_000),
+            "n_bases": (1, 64),
+            "basis_width": (4, 4096),
+            "basis_layers": (1, 16),
+            "coef_width": (4, 4096),
+            "coef_layers": (1, 16),
+            "pe_frequencies": (0, 16),
+            "iterations": (0, 10_000_000),
+            "views_per_step": (1, 1024),
+            "motion_init_iterations": (0, 1_000_000),
+            "densify_every": (1, 1_000_000),
+            "densify_from": (0, 10_000_000),
+            "densify_until": (0, 10_000_000),
+            "max_gaussians": (2, 100_000_000),
+            "tile_size": (1, 256),
+            "seed": (0, 2**63 - 1),
+        }
+        for name, (lo, hi) in ints.items():
+            value = getattr(self, name)
+            if not _is_int(value) or not lo <= value <= hi:
+                problems.append(f"{name}={value!r}: must be an integer in [{lo}, {hi}]")
+        non_negative = ("lambda_ssim", "lambda_radius", "lambda_mask", "densify_grad")
+        for name in non_negative:
+            value = getattr(self, name)
+            if not _is_number(value) or value < 0:
+                problems.append(f"{name}={value!r}: must be a finite number >= 0")
+        rates = ("lr_position", "lr_radius", "lr_color", "lr_opacity", "lr_network")
+        for name in (*rates, "lr_background"):
+            value = getattr(self, name)
+            if not _is_number(value) or not 0 < value <= 1:
+                problems.append(f"{name}={value!r}: must be a learning rate in (0, 1]")
+        if not _is_number(self.prune_opacity) or not 0 <= self.prune_opacity < 1:
+            problems.append(f"prune_opacity={self.prune_opacity!r}: must be a number in [0, 1)")
+        if self.background not in BACKGROUND_MODES:
+            problems.append(
+                f"background={self.background!r}: must be one of {', '.join(BACKGROUND_MODES)}"
+            )
+        if not isinstance(self.device, str) or self.device.split(":")[0] not in ("cpu", "cuda"):
+            problems.append(f"device={self.device!r}: must be 'cpu', 'cuda' or 'cuda:N'")
+        for name in ("progress", "raster_checkpoint"):
+            if not isinstance(getattr(self, name), bool):
+                problems.append(f"{name}={getattr(self, name)!r}: must be true or false")
+        if not isinstance(self.save_dir, str) or ".." in self.save_dir.split("/"):
+            problems.append(
+                f"save_dir={self.save_dir!r}: must be a folder name inside the run folder "
+                "('' for no saving)"
+            )
+        if problems:
+            raise ConfigError([f"reconstructor gauss-dynamic: {p}" for p in problems])

@@ -1,0 +1,260 @@
+"""Units of the dynamic reconstructor: visual hull, eq. 1 deformation, loss gradients (against
+central finite differences), background estimate, densification and pruning, save/load."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from mosiv_gauss.dynamic_options import DynamicGaussOptions
+from mosiv_gauss.init import carve_labels, hull_init, pixel_lookup, voxel_grid
+from mosiv_gauss.model import DynamicGaussians
+from mosiv_gauss.options import TorchRasterizerOptions
+from mosiv_gauss.rasterizer import rasterize
+from mosiv_gauss.reconstructor import (
+    load_reconstruction,
+    render_silhouettes,
+    save_reconstruction,
+    to_reconstruction,
+)
+from mosiv_gauss.train import densify_and_prune, estimate_background, view_loss
+
+from mosiv_framework.errors import ConfigError
+from mosiv_framework.registry import get_registry
+from mosiv_framework.scene.cameras import Camera
+from mosiv_framework.types import GaussianFrames
+
+LOWER, UPPER = (-0.4, -0.4, 0.0), (0.4, 0.4, 0.6)
+
+
+def small_model(g: int = 24, *, n_frames: int = 4, seed: int = 0, dtype=torch.float32):
+    gen = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    means = torch.tensor([0.0, 0.0, 0.3]) + 0.1 * (torch.rand(g, 3, generator=gen) - 0.5)
+    model = DynamicGaussians(
+        means=means,
+        radii=0.01 + 0.01 * torch.rand(g, generator=gen),
+        colors=torch.rand(g, 3, generator=gen),
+        opacities=0.3 + 0.5 * torch.rand(g, generator=gen),
+        object_ids=torch.arange(g) % 2 + 1,
+        n_objects=2,
+        n_frames=n_frames,
+        lower=LOWER,
+        upper=UPPER,
+        n_bases=3,
+        basis_width=8,
+        basis_layers=2,
+        coef_width=8,
+        coef_layers=2,
+        pe_frequencies=2,
+    )
+    return model.to(dtype)
+
+
+def camera(size: int = 24) -> Camera:
+    return Camera.look_at((0.5, -1.0, 0.7), (0.0, 0.0, 0.3), width=size, height=size, fx=40.0)
+
+
+def test_visual_hull_contains_the_ground_truth_points(tiny_scene):
+    """At least 95% of each object's true frame-0 particles lie in a voxel of its hull."""
+    ids = tiny_scene.load_mask_ids(frames=[0])
+    grid = voxel_grid(tiny_scene.domain_lower, tiny_scene.domain_upper, resolution=64)
+    labels = carve_labels(pixel_lookup(grid.centres, tiny_scene.cameras), ids[0], n_objects=2)
+    lower = torch.tensor(tiny_scene.domain_lower)
+    upper = torch.tensor(tiny_scene.domain_upper)
+    shape = torch.round((upper - lower) / grid.voxel_size).long()
+    for k, points in tiny_scene.gt_points().items():
+        cell = torch.floor((points[0] - lower) / grid.voxel_size).long()
+        flat = (cell[:, 0] * shape[1] + cell[:, 1]) * shape[2] + cell[:, 2]
+        inside = (labels[flat] == k).float().mean().item()
+        assert inside >= 0.95, f"object {k}: only {inside:.1%} of its points are in its hull"
+        # and the hull is a hull of this object, not of the whole scene: under 10x its volume
+        hull_volume = (labels == k).sum().item() * grid.voxel_size**3
+        true_volume = points.shape[1] * 0.015**3  # particles on a 15 mm lattice
+        assert hull_volume < 10 * true_volume
+
+
+def test_hull_init_seeds_each_object_with_its_colour(tiny_scene):
+    ids = tiny_scene.load_mask_ids()
+    rgb = tiny_scene.load_rgb_tensor(frames=[0])[0]
+    seeds = hull_init(
+        tiny_scene.cameras,
+        ids,
+        rgb,
+        lower=LOWER,
+        upper=UPPER,
+        n_objects=2,
+        resolution=48,
+        max_gaussians=200,
+        generator=torch.Generator().manual_seed(0),
+    )
+    assert seeds.tracks.shape == (tiny_scene.n_frames, 2, 3)
+    for k in (1, 2):
+        mine = seeds.object_ids == k
+        assert 0 < mine.sum() <= 100
+        # seeds sit near the true object and take its colour (the mean of its masked pixels)
+        gt = tiny_scene.gt_points()[k][0]
+        assert (seeds.means[mine].mean(0) - gt.mean(0)).norm() < 0.02
+        pix = rgb[ids[0] == k]
+        assert torch.allclose(seeds.colors[mine].mean(0), pix.mean(0), atol=0.1)
+
+
+def test_zero_coefficients_give_the_identity_deformation():
+    model = small_model()
+    means, radii = model.at([0, 1, 2, 3])
+    assert torch.equal(means, model.means.detach().expand_as(means))
+    assert torch.allclose(radii, model.log_radii.exp().expand_as(radii), rtol=1e-6)
+
+
+def test_deformation_is_eq1_sum_over_bases():
+    model = small_model()
+    with torch.no_grad():
+        torch.nn.init.normal_(model.coefficients.net[-1].weight)
+        frames = torch.tensor([0.0, 2.0])
+        psi = model.basis(frames / 3.0)  # [F, B, 4], t normalised by T - 1 = 3
+        alpha = model.coefficients(model.means, model.object_ids)  # [G, B]
+        means, radii = model.at([0, 2])
+    for f in range(2):
+        expected = model.means + sum(alpha[:, b : b + 1] * psi[f, b, :3] for b in range(3))
+        assert torch.allclose(means[f], expected, atol=1e-6)
+        log_r = model.log_radii + sum(alpha[:, b] * psi[f, b, 3] for b in range(3))
+        assert torch.allclose(radii[f], log_r.exp(), rtol=1e-5)
+    assert not torch.allclose(means[0], means[1])  # the networks really move the Gaussians
+
+
+def _render_loss(model, cam, target_rgb, target_masks, opts, frame=1):
+    means, radii = model.at([frame])
+    g = GaussianFrames(means, radii, model.colors(), model.opacities(), model.object_ids)
+    out, _ = rasterize(
+        g,
+        cam,
+        n_objects=2,
+        options=TorchRasterizerOptions(tile_size=8),
+        background=torch.full((3,), 0.2, dtype=means.dtype),
+    )
+    return (
+        view_loss(out.rgb[None], out.object_alpha[None], target_rgb[None], target_masks[None], opts)
+        + opts.lambda_radius * radii.mean() / 0.01
+    )
+
+
+def test_loss_gradient_reaches_the_network_weights_and_matches_finite_differences():
+    model = small_model(dtype=torch.float64)
+    with torch.no_grad():  # leave the identity so every layer of both networks gets gradient
+        torch.nn.init.normal_(model.coefficients.net[-1].weight, std=0.3)
+    cam = camera()
+    target = small_model(seed=1, dtype=torch.float64)
+    with torch.no_grad():
+        t_means, t_radii = target.at([1])
+        g = GaussianFrames(t_means, t_radii, target.colors(), target.opacities(), target.object_ids)
+        ref, _ = rasterize(
+            g,
+            cam,
+            n_objects=2,
+            options=TorchRasterizerOptions(tile_size=8),
+            background=torch.full((3,), 0.2, dtype=torch.float64),
+        )
+    opts = DynamicGaussOptions()
+    loss = _render_loss(model, cam, ref.rgb, ref.object_alpha, opts)
+    loss.backward()
+    for name, p in [*model.basis.named_parameters(), *model.coefficients.named_parameters()]:
+        assert p.grad is not None and p.grad.abs().sum() > 0, f"no gradient reaches {name}"
+    # central finite differences on one weight of each network
+    for param in (model.basis.net[0].weight, model.coefficients.net[0].weight):
+        index = tuple(int(i) for i in torch.nonzero(param.grad.abs() == param.grad.abs().max())[0])
+        eps = 1e-6
+        with torch.no_grad():
+            old = param[index].item()
+            param[index] = old + eps
+            up = _render_loss(model, cam, ref.rgb, ref.object_alpha, opts).item()
+            param[index] = old - eps
+            down = _render_loss(model, cam, ref.rgb, ref.object_alpha, opts).item()
+            param[index] = old
+        numeric = (up - down) / (2 * eps)
+        assert param.grad[index].item() == pytest.approx(numeric, rel=1e-4, abs=1e-9)
+
+
+def test_background_is_the_median_outside_the_masks():
+    gen = torch.Generator().manual_seed(0)
+    background = torch.rand(2, 6, 5, 3, generator=gen)
+    rgb = background.expand(5, -1, -1, -1, -1).clone()
+    ids = torch.zeros(5, 2, 6, 5, dtype=torch.long)
+    for t in range(5):  # an object walks along row 2, painting its pixels red
+        ids[t, :, 2, t] = 1
+        rgb[t, :, 2, t] = torch.tensor([1.0, 0.0, 0.0])
+    ids[:, 1, 4, 4] = 1  # a pixel of camera 1 covered in every frame
+    rgb[:, 1, 4, 4] = torch.tensor([0.0, 1.0, 0.0])
+    est = estimate_background(rgb, ids)
+    hole = torch.zeros(2, 6, 5, dtype=torch.bool)
+    hole[1, 4, 4] = True
+    assert torch.equal(est[~hole], background[~hole])
+    fill = background[1][~hole[1]].reshape(-1, 3).median(dim=0).values
+    assert torch.equal(est[1, 4, 4], fill)
+
+
+def test_densify_clones_splits_and_prunes_keeping_adam_state():
+    model = small_model(g=10)
+    opts = DynamicGaussOptions(densify_grad=1e-3, prune_opacity=0.05, max_gaussians=100)
+    voxel = 0.01
+    with torch.no_grad():
+        model.log_radii[:] = torch.log(torch.tensor(0.5 * voxel))
+        model.log_radii[1] = torch.log(torch.tensor(2.0 * voxel))  # wide: will be split
+        model.opacity_logits[9] = -10.0  # nearly transparent: will be pruned
+    optimizer = torch.optim.Adam(
+        [{"params": [getattr(model, n)], "name": n, "lr": 1e-3} for n in model.canonical_names]
+    )
+    model.means.sum().backward()
+    optimizer.step()
+    grad = torch.zeros(10)
+    grad[0] = grad[1] = 1.0  # score = grad * voxel = 0.01 > 1e-3 for Gaussians 0 and 1
+    ids_before = model.object_ids.clone()
+    moment = optimizer.state[model.means]["exp_avg"].clone()
+    densify_and_prune(model, optimizer, grad, voxel_size=voxel, opts=opts)
+    # 10 - 1 (pruned) - 1 (split) + 1 (clone) + 2 (split children)
+    assert model.n_gaussians == 11
+    kept = [0, 2, 3, 4, 5, 6, 7, 8]
+    assert torch.equal(model.object_ids, ids_before[[*kept, 0, 1, 1]])
+    assert torch.allclose(model.log_radii[-2:].exp(), torch.full((2,), 2.0 * voxel / 1.6))
+    state = optimizer.state[model.means]
+    assert torch.equal(state["exp_avg"], moment[[*kept, 0, 1, 1]])
+    assert optimizer.param_groups[0]["params"][0] is model.means
+
+
+def test_bad_options_name_the_option_and_its_range():
+    with pytest.raises(ConfigError, match="lambda_mask"):
+        get_registry().create("reconstructor", "gauss-dynamic", {"lambda_mask": -1.0})
+    with pytest.raises(ConfigError, match="background"):
+        get_registry().create("reconstructor", "gauss-dynamic", {"background": "green"})
+    with pytest.raises(ConfigError, match="valid options"):
+        get_registry().create("reconstructor", "gauss-dynamic", {"iters": 3})
+
+
+def test_save_load_round_trip_and_silhouettes(tmp_path):
+    model = small_model()
+    with torch.no_grad():
+        torch.nn.init.normal_(model.coefficients.net[-1].weight, std=0.3)
+        gaussians = model.frames()
+    background = torch.rand(2, 24, 24, 3)
+    recon = to_reconstruction(
+        gaussians,
+        background,
+        camera_ids=["a", "b"],
+        extras={"note": "round trip", "values": [1.5, None]},
+    )
+    save_reconstruction(recon, tmp_path / "saved")
+    back = load_reconstruction(tmp_path / "saved")
+    assert back.object_list == recon.object_list == [1, 2]
+    for k in recon.points:
+        assert torch.equal(back.points[k], recon.points[k])
+        assert back.points[k].shape == (4, 12, 3)
+    for name in ("means", "radii", "colors", "opacities", "object_ids"):
+        assert torch.equal(getattr(back.gaussians, name), getattr(recon.gaussians, name))
+    assert set(back.background) == {"a", "b"}
+    assert torch.equal(back.background["b"], background[1])
+    assert back.extras == {"note": "round trip", "values": [1.5, None]}
+    sil_a = render_silhouettes(recon, [camera()], frames=[0, 3])
+    sil_b = render_silhouettes(back, [camera()], frames=[0, 3])
+    assert sorted(sil_a) == [1, 2] and sil_a[1].shape == (2, 1, 24, 24)
+    assert all(torch.equal(sil_a[k], sil_b[k]) for k in (1, 2))
+    assert sil_a[1].max() > 0.1 and sil_a[2].max() > 0.1
+    with pytest.raises(ValueError, match="reconstruction.json"):
+        load_reconstruction(tmp_path / "missing")
