@@ -12,7 +12,15 @@ from mosiv_framework.diagnose import split_frames
 from mosiv_framework.diagnose.changepoint import hinge_change_point, mean_shift_change_point
 from mosiv_framework.diagnose.decide import bic, bootstrap_drop, verdict
 from mosiv_framework.diagnose.hypothesise import bic_gain
-from mosiv_framework.diagnose.locate import decompose_direction, label_regimes
+from mosiv_framework.diagnose.interval import IntervalOptions, linearised_bootstrap
+from mosiv_framework.diagnose.locate import (
+    decompose_direction,
+    difference_noise_std,
+    difference_variance_factor,
+    estimate_noise,
+    label_regimes,
+    points_are_tracked,
+)
 from mosiv_framework.errors import ConfigError
 
 
@@ -119,6 +127,13 @@ def test_bic_penalises_a_parameter_that_buys_nothing():
     floor = np.full((2, 1), 1e-5)
     n = errors.size
     assert bic(errors, floor, 5) - bic(errors, floor, 4) == pytest.approx(math.log(n))
+    # counted in (object, 2-frame block) units the same errors are 2 x 3 observations
+    assert bic(errors, floor, 5, block=2) - bic(errors, floor, 4, block=2) == pytest.approx(
+        math.log(6)
+    )
+    assert bic(errors / 2, floor / 2, 4, block=2) - bic(errors, floor, 4, block=2) == (
+        pytest.approx(-6 * math.log(2))
+    )
     assert bic_gain(0.0, n=n, dim=1) == pytest.approx(-math.log(n))
     # explaining half the residual with one coefficient from 10 residuals is worth it
     assert bic_gain(0.5, n=n, dim=1) == pytest.approx(n * math.log(2) - math.log(n))
@@ -144,3 +159,126 @@ def test_split_frames_holds_out_the_end_of_the_window_and_the_future():
     assert fit == list(range(1, 6)) and held == [6, 7]
     with pytest.raises(ConfigError, match="observes 4 of 4 frames"):
         split_frames(4, 4, 0.25)
+
+
+# --------------------------------------------------------------------------------------------
+# noise floor
+
+
+def _ballistic(frames: int, *, dt: float = 1 / 30) -> np.ndarray:
+    """Centroid path [T, 3] (m) of a throw under gravity: zero third differences."""
+    t = np.arange(frames)[:, None] * dt
+    return (
+        np.array([0.1, -0.2, 0.3])
+        + np.array([0.8, 0.3, 1.5]) * t
+        + 0.5 * np.array([0.0, 0.0, -9.81]) * t**2
+    )
+
+
+@pytest.mark.parametrize("sigma", [2e-4, 1e-3])
+def test_difference_noise_std_recovers_white_noise_on_a_ballistic_path(sigma):
+    rng = np.random.default_rng(7)
+    # per axis std sigma: the 3D RMS noise length is sigma sqrt(3)
+    path = _ballistic(400) + sigma * rng.standard_normal((400, 3))
+    estimate = difference_noise_std(path, order=3)
+    assert estimate == pytest.approx(sigma * math.sqrt(3.0), rel=0.2)
+    # second differences of the same path see gravity (9.81 dt^2 = 11 mm per frame^2) as noise
+    assert difference_noise_std(path, order=2) > 3 * sigma * math.sqrt(3.0)
+
+
+def test_difference_variance_factor_matches_simulated_differences():
+    rng = np.random.default_rng(3)
+    noise = rng.standard_normal(200_000)
+    for order in (1, 2, 3):
+        assert np.diff(noise, n=order).var() == pytest.approx(
+            difference_variance_factor(order), rel=0.03
+        )
+
+
+def _body(n: int, rng) -> np.ndarray:
+    """n points drawn uniformly in a 10 cm cube (m)."""
+    return 0.1 * rng.random((n, 3))
+
+
+def test_tracked_points_have_no_sampling_term():
+    rng = np.random.default_rng(0)
+    body = _body(200, rng)
+    path = _ballistic(10)
+    tracked = body[None] + path[:, None]  # the same points every frame
+    resampled = np.stack([_body(200, rng) for _ in range(10)]) + path[:, None]
+    assert points_are_tracked(tracked)
+    assert not points_are_tracked(resampled)
+    # a tracked body's centroid residual is exact: the floor is float rounding only
+    est = estimate_noise(np.zeros((10, 3)), tracked)
+    assert est.tracked and est.sampling == 0.0 and est.floor < 1e-6
+    # resampled: the closed-form centroid sampling std, spread / sqrt(N) (spread of a 10 cm
+    # uniform cube: 0.1 sqrt(3 / 12) m), carried by frame 0 and frame t alike (sqrt 2)
+    est = estimate_noise(np.zeros((10, 3)), resampled)
+    expected = 0.1 * math.sqrt(3.0 / 12.0) / math.sqrt(200)
+    assert not est.tracked
+    assert est.sampling == pytest.approx(expected, rel=0.05)
+    assert est.floor == pytest.approx(math.sqrt(2.0) * expected, rel=0.05)
+
+
+def test_noise_floor_of_a_noisy_tracked_residual_ignores_smooth_curvature():
+    rng = np.random.default_rng(1)
+    sigma = 5e-4  # per axis, m
+    frames = 300
+    # a residual that grows as a drag's does (smooth, t^2) plus white measurement noise,
+    # measured relative to frame 0 as locate does
+    t = np.arange(frames)[:, None] / 30.0
+    noise = sigma * rng.standard_normal((frames, 3))
+    residual = 0.02 * t**2 * np.array([1.0, 0.5, 0.0]) + noise - noise[0]
+    tracked = _body(50, rng)[None] + _ballistic(frames)[:, None]
+    est = estimate_noise(residual, tracked)
+    assert est.jitter == pytest.approx(sigma * math.sqrt(3.0), rel=0.2)
+    assert est.floor == pytest.approx(math.sqrt(2.0) * sigma * math.sqrt(3.0), rel=0.2)
+    # the residual's RMS over this floor is about 1 for noise alone
+    pure = noise - noise[0]
+    ratio = np.sqrt((np.linalg.norm(pure[1:], axis=1) ** 2).mean()) / est.floor
+    assert ratio == pytest.approx(1.0, rel=0.2)
+
+
+# --------------------------------------------------------------------------------------------
+# coefficient interval
+
+
+def _line_design(frames: int, objects: int, accel: float, rng, noise: float):
+    """Residual paths x_k(t) = dv_k t + a t^2 / 2 + noise; columns: a, then each dv_k."""
+    t = np.arange(1, frames + 1) / 30.0
+    jac = np.zeros((objects * frames, 1 + objects))
+    jac[:, 0] = np.tile(0.5 * t**2, objects)
+    for k in range(objects):
+        jac[k * frames : (k + 1) * frames, 1 + k] = t
+    truth = np.concatenate([[accel], rng.normal(0.0, 0.1, objects)])
+    residual = jac @ truth + noise * rng.standard_normal(objects * frames)
+    unit = np.repeat(np.arange(objects), frames) * frames + np.tile(np.arange(frames) // 2, objects)
+    return jac, residual, unit, truth
+
+
+def test_linearised_bootstrap_covers_the_truth_at_about_95_percent():
+    rng = np.random.default_rng(11)
+    options = IntervalOptions(bootstrap=200, seed=0)
+    hits, trials, widths = 0, 60, []
+    for _ in range(trials):
+        jac, residual, unit, truth = _line_design(8, 2, 2.5, rng, noise=1e-3)
+        # the "fit" is the least-squares estimate; the bootstrap sees the residual left by it
+        fit = np.linalg.lstsq(jac, residual, rcond=None)[0]
+        lo, hi = linearised_bootstrap(
+            jac, residual - jac @ fit, unit, n_coefficients=1, options=options
+        )
+        hits += int(fit[0] + lo[0] <= truth[0] <= fit[0] + hi[0])
+        widths.append(hi[0] - lo[0])
+    assert hits / trials >= 0.85
+    # honest, not vacuous: at most 3x the width of the exact 95 % interval of this design
+    jac = _line_design(8, 2, 2.5, rng, noise=1e-3)[0]
+    exact = 2 * 1.96 * 1e-3 * math.sqrt(np.linalg.inv(jac.T @ jac)[0, 0])
+    assert np.mean(widths) < 3 * exact
+
+
+def test_linearised_bootstrap_reports_an_unidentifiable_coefficient_as_unbounded():
+    rng = np.random.default_rng(2)
+    jac, residual, unit, _ = _line_design(6, 2, 1.0, rng, noise=1e-3)
+    jac[:, 0] = jac[:, 1] + jac[:, 2]  # the coefficient is a sum of the velocity columns
+    lo, hi = linearised_bootstrap(jac, residual, unit, n_coefficients=1, options=IntervalOptions())
+    assert lo[0] == -math.inf and hi[0] == math.inf

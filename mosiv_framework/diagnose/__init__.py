@@ -1,9 +1,10 @@
 """Finding missing physics (DESIGN.md section 6): ``mosiv diagnose RUN``.
 
 One module per step: ``context`` (the loaded run), ``locate`` with ``changepoint`` (where the
-model misses), ``candidates`` and ``hypothesise``
-(which registered effects could explain it), ``model`` (refit with each), ``decide`` (held-out
-and information-criterion evidence), ``report`` (diagnosis.json / diagnosis.md), and ``suite``
+model misses, against a noise floor estimated from the data), ``candidates`` and
+``hypothesise`` (which registered effects could explain it), ``model`` (refit with each),
+``interval`` (the accepted coefficient's uncertainty), ``decide`` (held-out and
+information-criterion evidence), ``report`` (diagnosis.json / diagnosis.md), and ``suite``
 (scores the whole chain on generated scenes with concealed effects).
 """
 

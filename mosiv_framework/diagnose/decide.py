@@ -6,8 +6,10 @@ Two tests, both required:
   Chamfer error must be lower than the equally refitted null model's by more than
   ``z`` bootstrap standard deviations, resampling (object, time block) units;
 - information criterion: on the fit frames, BIC = n log(mean excess error) + p log n must be
-  lower with the candidate than without (n frame-object residuals, p free parameters; the
-  excess error is the Chamfer above frame 0's, which no dynamics can remove).
+  lower with the candidate than without (p free parameters; the excess error is the Chamfer
+  above frame 0's, which no dynamics can remove). n counts independent observations: the
+  errors of consecutive frames of a smooth path are correlated, so n is the number of
+  (object, time block) units, the same units the bootstrap resamples, not of frames.
 Verdicts: "missing physics" (a candidate passed both), "unexplained" (the residual is above the
 noise floor but no candidate passed), "no missing physics" (the residual is at noise level).
 """
@@ -64,10 +66,11 @@ def bootstrap_drop(
     return float(drop), float(np.std(draws))
 
 
-def bic(errors: np.ndarray, floor: np.ndarray, n_params: int) -> float:
-    """n log(mean excess Chamfer) + p log n over [K, F] fit-frame errors (``floor`` [K, 1])."""
+def bic(errors: np.ndarray, floor: np.ndarray, n_params: int, *, block: int = 1) -> float:
+    """n log(mean excess Chamfer) + p log n over [K, F] fit-frame errors (``floor`` [K, 1]),
+    with n = K x ceil(F / block) independent (object, time block) units."""
     excess = np.clip(errors - floor, 1e-14, None)
-    n = excess.size
+    n = excess.shape[0] * math.ceil(excess.shape[1] / block)
     return n * math.log(float(excess.mean())) + n_params * math.log(n)
 
 
@@ -115,7 +118,7 @@ def decide(
     also returns the [K, T] error tables by model name (``null`` included)."""
     errors = {"null": frame_errors(ctx, null)}
     floor = errors["null"][:, :1]  # frame 0 is the lifted state: identical for every model
-    bic_null = bic(errors["null"][:, fit_frames], floor, null.n_params)
+    bic_null = bic(errors["null"][:, fit_frames], floor, null.n_params, block=options.block)
     evidence = []
     for fit in fits:
         errors[fit.name] = frame_errors(ctx, fit)
@@ -126,7 +129,10 @@ def decide(
             resamples=options.bootstrap,
             seed=options.seed,
         )
-        delta = bic(errors[fit.name][:, fit_frames], floor, fit.n_params) - bic_null
+        delta = (
+            bic(errors[fit.name][:, fit_frames], floor, fit.n_params, block=options.block)
+            - bic_null
+        )
         evidence.append(
             Evidence(
                 fit.name,

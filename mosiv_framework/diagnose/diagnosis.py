@@ -18,8 +18,9 @@ from mosiv_framework.diagnose.candidates import build_candidates
 from mosiv_framework.diagnose.context import load_run
 from mosiv_framework.diagnose.decide import DecideOptions, decide, frame_errors, verdict
 from mosiv_framework.diagnose.hypothesise import regression_estimate, screen
+from mosiv_framework.diagnose.interval import coefficient_interval
 from mosiv_framework.diagnose.locate import locate
-from mosiv_framework.diagnose.model import RefitOptions, coefficient_interval, refit
+from mosiv_framework.diagnose.model import RefitOptions, refit
 from mosiv_framework.diagnose.report import write_report
 from mosiv_framework.errors import ConfigError
 

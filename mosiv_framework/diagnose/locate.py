@@ -10,6 +10,7 @@ velocity, vertical, tangential, internal deformation).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -224,23 +225,92 @@ class Location:
     summary: dict = field(default_factory=dict)
 
 
-def noise_floor(res: ObjectResiduals, target_points: torch.Tensor, frames: int) -> float:
-    """Noise floor (m) of one object's centroid residual, estimated from the data.
+def difference_variance_factor(order: int) -> int:
+    """Variance of the ``order``-th difference of unit white noise: the sum of the squared
+    binomial coefficients, C(2k, k) (second differences: 6, third differences: 20)."""
+    return math.comb(2 * order, order)
 
-    Two independent parts added in quadrature: the sampling error of the target centroid
-    (point spread / sqrt(N), averaged over frames) and the frame-to-frame jitter of the
-    residual, from the median absolute second difference (white noise of std s has second
-    differences of std s sqrt(6); MAD / 0.6745 estimates a std robustly).
+
+def difference_noise_std(path: np.ndarray, *, order: int = 3) -> float:
+    """3D noise std (m) of a path [T, 3] of white noise plus a smooth signal.
+
+    The ``order``-th difference removes any polynomial of lower degree (third differences of a
+    ballistic path, constant acceleration, are zero), so what remains is the noise, amplified
+    by sqrt(C(2k, k)). Per axis the std is read robustly as median |difference| / 0.6745 (a
+    kink at a contact spoils a few differences, not the median); the axes add in quadrature,
+    giving the RMS length of the per-frame noise vector. 0 if the path has <= ``order`` frames.
     """
-    pts = target_points[:frames].double()
-    sampling = float((pts.std(dim=1).norm(dim=-1) / pts.shape[1] ** 0.5).mean())
-    r = res.centroid[:frames]
-    if r.shape[0] >= 3:
-        second = np.linalg.norm(r[2:] - 2 * r[1:-1] + r[:-2], axis=1)
-        jitter = float(np.median(second) / 0.6745 / np.sqrt(6.0))
-    else:
-        jitter = 0.0
-    return float(np.hypot(sampling, jitter))
+    if path.shape[0] <= order:
+        return 0.0
+    diff = np.diff(path, n=order, axis=0)
+    per_axis = (
+        np.median(np.abs(diff), axis=0) / 0.6745 / math.sqrt(difference_variance_factor(order))
+    )
+    return float(np.sqrt((per_axis**2).sum()))
+
+
+def points_are_tracked(points: np.ndarray) -> bool:
+    """Whether index i of a [T, N, 3] point sequence is the same material point every frame.
+
+    Tracked points move with their neighbours: after removing the centroid motion, a point's
+    frame-to-frame displacement is small against the gap between neighbouring points. Points
+    drawn afresh each frame land anywhere on the body, so the same index jumps by about the
+    body's size. The test: the median displacement relative to the centroid's is below the
+    median nearest-neighbour distance. A sequence with one frame counts as tracked (there is
+    no second sample to differ).
+    """
+    if points.shape[0] < 2:
+        return True
+    step = np.diff(points, axis=0)
+    relative = step - step.mean(axis=1, keepdims=True)
+    jump = float(np.median(np.linalg.norm(relative, axis=-1)))
+    gap, _ = cKDTree(points[0]).query(points[0], k=2)
+    return jump < float(np.median(gap[:, 1]))
+
+
+@dataclass(frozen=True)
+class NoiseEstimate:
+    """One object's noise floor (m): the RMS length of the noise in its centroid residual.
+
+    jitter: per-frame noise std from third differences of the residual path; sampling: the
+    per-frame std of the target centroid from drawing N of the body's points (0 when the points
+    are tracked: the same points every frame give the same error every frame, which removing
+    the frame-0 offset cancels); floor: sqrt(2) x the larger of the two, because the residual is
+    relative to frame 0 and so carries frame 0's noise as well as its own.
+    """
+
+    floor: float
+    jitter: float
+    sampling: float
+    tracked: bool
+
+    def to_json(self) -> dict:
+        return {
+            "noise_floor_m": self.floor,
+            "jitter_m": self.jitter,
+            "sampling_m": self.sampling,
+            "targets_tracked": self.tracked,
+        }
+
+
+def estimate_noise(centroid_residual: np.ndarray, target_points: np.ndarray) -> NoiseEstimate:
+    """Noise floor of one object's centroid residual [T, 3] (m) from its targets [T, N, 3].
+
+    The jitter estimate already contains resampling noise (it is white across frames), so the
+    two parts are not added; the sampling std, known in closed form (point spread / sqrt(N)),
+    is a lower bound on the white noise when points are resampled, which steadies the jitter
+    estimate on short windows. A floor of float32 rounding of the coordinates keeps the
+    signal-to-noise ratio finite on noise-free data.
+    """
+    tracked = points_are_tracked(target_points)
+    sampling = 0.0
+    if not tracked:
+        spread = np.sqrt(target_points.var(axis=1).sum(axis=-1))  # per frame, m
+        sampling = float(spread.mean() / math.sqrt(target_points.shape[1]))
+    jitter = difference_noise_std(centroid_residual, order=3)
+    rounding = float(np.finfo(np.float32).eps * np.abs(target_points).max())
+    floor = math.sqrt(2.0) * max(jitter, sampling, rounding)
+    return NoiseEstimate(floor, jitter, sampling, tracked)
 
 
 def locate(
@@ -269,7 +339,8 @@ def locate(
     )
     floors, onsets, per_object = {}, {}, {}
     for k, res in residuals.items():
-        floors[k] = noise_floor(res, ctx.targets[k], frames)
+        noise = estimate_noise(res.centroid, ctx.targets[k][:frames].double().numpy())
+        floors[k] = noise.floor
         magnitude = np.linalg.norm(res.centroid, axis=1)
         onsets[k] = hinge_change_point(magnitude)[0]
         window = list(range(onsets[k], frames))
@@ -284,7 +355,7 @@ def locate(
         counts = {r: regimes[k][onsets[k] :].count(r) for r in REGIMES}
         per_object[str(k)] = {
             "centroid_rms_m": rms,
-            "noise_floor_m": floors[k],
+            **noise.to_json(),
             "signal_to_noise": rms / max(floors[k], 1e-12),
             "chamfer_m2": res.chamfer.tolist(),
             "centroid_residual_m": res.centroid.tolist(),

@@ -133,6 +133,9 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
                     "onset_frame",
                     "signal_to_noise",
                     "noise_floor_m",
+                    "jitter_m",
+                    "sampling_m",
+                    "targets_tracked",
                     "direction_fraction",
                 )
             },
@@ -188,7 +191,14 @@ def _markdown(s: dict) -> str:
         "",
         "## Where",
         f"Object {where['object']} carries the largest unexplained error: centroid residual "
-        f"{where['signal_to_noise']:.3g} x its noise floor ({where['noise_floor_m'] * 1e3:.3g} mm), "
+        f"{where['signal_to_noise']:.3g} x its noise floor ({where['noise_floor_m'] * 1e3:.3g} mm: "
+        f"frame jitter {where['jitter_m'] * 1e3:.3g} mm, centroid sampling "
+        + (
+            "none, targets tracked"
+            if where["targets_tracked"]
+            else f"{where['sampling_m'] * 1e3:.3g} mm"
+        )
+        + "), "
         f"from frame {where['onset_frame']} (change point) to {where['window'][1]}, in regimes "
         f"{', '.join(where['regimes'])}. Residual by direction: "
         + ", ".join(f"{d} {100 * f:.0f} %" for d, f in where["direction_fraction"].items())
