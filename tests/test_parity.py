@@ -10,6 +10,7 @@ from __future__ import annotations
 import pytest
 
 from mosiv_framework.interfaces import Simulator
+from mosiv_framework.laws import FAMILIES
 from mosiv_framework.registry import get_registry
 from mosiv_framework.testing import check_backend
 from mosiv_framework.types import ObjectParams
@@ -77,3 +78,25 @@ def test_warp_and_taichi_agree_on_every_law():
     )
     assert report.passed, report.table()
     assert len(report.results) == 6 * 2 * 2 + 7 * 4  # every law, check and scene was run
+
+
+@pytest.mark.parametrize("scene", [*FAMILIES, "collision"])
+def test_warp_and_taichi_gradients_agree(scene, parity_pair):
+    """The two backends' gradients of one rollout loss w.r.t. every parameter (law
+    parameters, initial velocities, frictions), per scene, within TOLERANCES."""
+    from mosiv_framework.testing.parity import check_gradients
+
+    (result,) = check_gradients(parity_pair, scene)
+    assert result.passed, result
+
+
+@pytest.fixture(scope="module")
+def parity_pair():
+    pytest.importorskip("mosiv_taichi_mpm", reason="needs both MPM backends")
+    from mosiv_framework.testing.parity import SCENE_OPTIONS
+
+    registry = get_registry()
+    return {
+        name: registry.create("simulator", name, {**SCENE_OPTIONS, "device": "cpu"})
+        for name in ("warp-mpm", "taichi-mpm")
+    }
