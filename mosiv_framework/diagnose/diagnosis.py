@@ -52,7 +52,7 @@ class Budget:
 BUDGETS = {
     # the small budget fits the whole observed window (as the run did) and judges on the
     # future frames only: short windows leave too few fitted frames to tell effects apart
-    "small": Budget(max_candidates=2, iterations=6, starts=2, bootstrap=200, heldout_fraction=0.0),
+    "small": Budget(max_candidates=3, iterations=6, starts=2, bootstrap=200, heldout_fraction=0.0),
     "full": Budget(max_candidates=3, iterations=20, starts=3, bootstrap=1000),
 }
 
