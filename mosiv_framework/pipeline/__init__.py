@@ -16,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.losses import WeightedSum
+from mosiv_framework.pipeline.appearance import can_render, rollout_images
 from mosiv_framework.pipeline.evaluate import (
     parameter_errors,
     plot_centroids,
@@ -284,12 +285,16 @@ def evaluate_run(
     with torch.no_grad():
         traj = simulator.rollout(particles, identified, world=world, frames=scene.n_frames - 1)
     reference = scene.gt_points() if scene.has_gt else reconstruction.points
+    # PSNR/SSIM need images of the prediction: only particles with bound Gaussians (the
+    # gaussians lifter) can be rendered against the recorded videos
+    images = rollout_images(traj, particles, scene) if can_render(particles) else None
     blocks = score(
         traj,
         reference,
         observed_frames=scene.observed_frames,
         n_samples=recipe.evaluate.emd_samples,
         seed=recipe.evaluate.seed,
+        images=images,
     )
     metrics = {
         "observed": blocks["observed"],

@@ -86,8 +86,12 @@ def score(
     observed_frames: int,
     n_samples: int,
     seed: int,
+    images: tuple[list, list] | None = None,
 ) -> dict:
-    """``observed`` and ``future`` metric blocks of a rollout against reference points."""
+    """``observed`` and ``future`` metric blocks of a rollout against reference points.
+
+    ``images``: (predicted, recorded) per frame (``appearance.rollout_images``); when given,
+    each block also gets PSNR and SSIM over its frames, else they stay None."""
     predicted = {k: traj.object_positions(k).detach().cpu() for k in reference}
     n = min(traj.n_frames, min(r.shape[0] for r in reference.values()))
     blocks = {}
@@ -105,6 +109,8 @@ def score(
             frames=frames,
             n_samples=n_samples,
             seed=seed,
+            predicted_images=None if images is None else [images[0][f] for f in frames],
+            target_images=None if images is None else [images[1][f] for f in frames],
         )
     return blocks
 

@@ -31,13 +31,17 @@ class LiftedAppearance:
     binding: the frame-0 Gaussians bound to the particles (render simulated states with it);
     masses: [N] kg, density times rest volume (ParticleSet has no mass field; simulators take
     rho from the parameters); background: camera id -> [H, W, 3] static background of the
-    reconstruction, when it has one; report: counts of the lift (samples, cells, conflicts).
+    reconstruction, when it has one; report: counts of the lift (samples, cells, conflicts);
+    renderer, renderer_options: the registered renderer (and its options) the Gaussians were
+    carved with, so later stages (evaluation PSNR/SSIM) draw them the same way.
     """
 
     binding: GaussianBinding
     masses: torch.Tensor
     background: dict[str, torch.Tensor] | None = None
     report: dict[str, object] = field(default_factory=dict)
+    renderer: str = ""
+    renderer_options: dict[str, object] = field(default_factory=dict)
 
 
 class GaussiansLifter(Lifter):
@@ -142,6 +146,8 @@ class GaussiansLifter(Lifter):
             masses=emission.masses,
             background=reconstruction.background,
             report=report,
+            renderer=opts.renderer,
+            renderer_options=dict(opts.renderer_options),
         )
         return ParticleSet(
             emission.positions,
