@@ -10,9 +10,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from mosiv_framework.conceal import parse_conceal
 from mosiv_framework.errors import ConfigError
-from mosiv_genesis.conceal import parse_conceal
 from mosiv_genesis.plan import GENESIS_FAMILIES, SHAPE_NAMES
+
+#: concealed effects Genesis can realise: drag and wind as its acceleration fields
+#: (gs.force_fields.Drag / Constant), gravity through SimOptions. Ground friction is not
+#: offered: Genesis' MPM-ground contact has no coefficient to change.
+GENESIS_KINDS = ("linear_drag", "quadratic_drag", "wind", "gravity")
 
 
 def _names(value: Any, what: str, valid: tuple[str, ...], problems: list[str]) -> list[str]:
@@ -103,7 +108,7 @@ class GenesisOptions:
         if self.backend not in ("cpu", "gpu"):
             problems.append(f"backend={self.backend!r}: valid: cpu, gpu")
         try:
-            self.conceal = [e.spec() for e in parse_conceal(self.conceal)]
+            self.conceal = [e.spec() for e in parse_conceal(self.conceal, kinds=GENESIS_KINDS)]
         except ValueError as exc:
             problems.append(f"conceal: {exc}")
         if problems:

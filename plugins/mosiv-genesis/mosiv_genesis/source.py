@@ -16,13 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
+from mosiv_framework.conceal import parse_conceal
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.interfaces import SceneSource
 from mosiv_framework.scene.cameras import Camera
 from mosiv_framework.scene.io import SceneObject, SceneWriter
 from mosiv_genesis import plan as P
-from mosiv_genesis.conceal import parse_conceal
-from mosiv_genesis.options import GenesisOptions
+from mosiv_genesis.options import GENESIS_KINDS, GenesisOptions
 
 # Genesis keeps MPM particles inside its grid box shrunk by this many cells on every side; the
 # box is grown by as much so that this boundary is the declared domain: its floor is the table
@@ -106,7 +106,7 @@ class GenesisSource(SceneSource):
         frame_c = opts.collision_frame or int(
             rng.integers(max(2, opts.observed_frames // 3), max(3, opts.observed_frames // 2) + 1)
         )
-        effects = parse_conceal(opts.conceal)
+        effects = parse_conceal(opts.conceal, kinds=GENESIS_KINDS)
         gravity = np.array(
             next(
                 (e.params["acceleration"] for e in effects if e.kind == "gravity"),

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mosiv_framework.conceal import TERM_KINDS, Effect, parse_conceal
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.interfaces import SceneSource
 from mosiv_framework.laws import get_law
@@ -27,7 +28,6 @@ from mosiv_framework.scene.check import GT_PARAM_NAMES
 from mosiv_framework.scene.io import SceneObject, SceneWriter
 from mosiv_framework.types import ObjectParams, ParticleSet, SimulationParams, World
 from mosiv_synth.cameras import hemisphere_cameras
-from mosiv_synth.conceal import TERM_KINDS, Effect, parse_conceal
 from mosiv_synth.layout import Layout, plan_collision
 from mosiv_synth.materials import GROUND_FRICTION_RANGE, MATERIAL_RANGES, draw, sample_params
 from mosiv_synth.options import SynthOptions

@@ -10,8 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from mosiv_framework.conceal import parse_conceal
 from mosiv_framework.errors import ConfigError
-from mosiv_synth.conceal import parse_conceal
 from mosiv_synth.materials import MATERIAL_RANGES
 from mosiv_synth.shapes import SHAPE_NAMES
 

@@ -12,8 +12,8 @@ import json
 
 import numpy as np
 import pytest
-from mosiv_synth.conceal import CONCEAL_DEFAULTS, parse_conceal
 
+from mosiv_framework.conceal import CONCEAL_DEFAULTS, parse_conceal
 from mosiv_framework.registry import get_registry
 from mosiv_framework.scene import check_scene, read_scene
 

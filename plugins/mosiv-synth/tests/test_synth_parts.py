@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 from mosiv_synth.cameras import ELEVATION_MAX, ELEVATION_MIN, LOOK_AT, hemisphere_cameras
-from mosiv_synth.conceal import parse_conceal
 from mosiv_synth.layout import first_contact_distance, plan_collision
 from mosiv_synth.materials import MATERIAL_RANGES, sample_params
 from mosiv_synth.options import SynthOptions
@@ -18,6 +17,7 @@ from mosiv_synth.sampling import random_rotation, sample_inside
 from mosiv_synth.shapes import SHAPE_NAMES, SIZE_LIMITS, make_shape
 from mosiv_synth.surface import Surface, particle_surface
 
+from mosiv_framework.conceal import parse_conceal
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.laws import get_law
 from mosiv_framework.scene.cameras import Camera

@@ -1,4 +1,7 @@
-"""Concealed physics: effects the generating simulation contains but scene.json does not declare.
+"""Concealed physics: effects a generating simulation contains but scene.json does not declare.
+
+Shared by every scene source (mosiv-synth, mosiv-genesis, third-party generators) so that specs,
+default strengths and gt/effects.json entries mean the same everywhere.
 
 Spec syntax (CLI ``--conceal`` and the ``conceal`` option): ``KIND[:param=value,...]``; several
 effects are separated by ``;`` or given as a list. A vector value continues over the following
@@ -61,13 +64,11 @@ class Effect:
         return f"{self.kind}:{','.join(parts)}" if parts else self.kind
 
 
-def _parse_one(text: str) -> Effect:
+def _parse_one(text: str, kinds: tuple[str, ...]) -> Effect:
     kind, _, rest = text.strip().partition(":")
     kind = kind.strip()
-    if kind not in CONCEAL_DEFAULTS:
-        raise ValueError(
-            f"unknown effect kind {kind!r}; valid kinds: {', '.join(CONCEAL_DEFAULTS)}"
-        )
+    if kind not in kinds:
+        raise ValueError(f"unknown effect kind {kind!r}; valid kinds: {', '.join(kinds)}")
     defaults = CONCEAL_DEFAULTS[kind]
     values: dict[str, list[float]] = {}
     current: str | None = None
@@ -119,15 +120,19 @@ def _check_range(kind: str, params: dict[str, Any]) -> None:
             raise ValueError(f"{kind}.{name}={params[name]} must be >= 0")
 
 
-def parse_conceal(spec: Any) -> list[Effect]:
+def parse_conceal(spec: Any, *, kinds: tuple[str, ...] = tuple(CONCEAL_DEFAULTS)) -> list[Effect]:
     """Effects from ``None``/"" (none), a ``;``-separated string, or a list of specs.
 
+    ``kinds`` are the effect kinds the calling scene source can realise (default: all).
     Raises ValueError naming the bad kind or parameter; a kind may appear only once.
     """
     if spec is None:
         return []
+    unknown = [k for k in kinds if k not in CONCEAL_DEFAULTS]
+    if unknown:
+        raise ValueError(f"no concealed-effect defaults for kind(s) {unknown}")
     items = spec.split(";") if isinstance(spec, str) else [str(s) for s in spec]
-    effects = [_parse_one(s) for s in items if s.strip()]
+    effects = [_parse_one(s, kinds) for s in items if s.strip()]
     kinds = [e.kind for e in effects]
     repeated = sorted({k for k in kinds if kinds.count(k) > 1})
     if repeated:
