@@ -12,26 +12,13 @@ from typing import Any
 
 from mosiv_framework.conceal import parse_conceal
 from mosiv_framework.errors import ConfigError
+from mosiv_framework.scene.protocol import check_clip, name_list
 from mosiv_genesis.plan import GENESIS_FAMILIES, SHAPE_NAMES
 
 #: concealed effects Genesis can realise: drag and wind as its acceleration fields
 #: (gs.force_fields.Drag / Constant), gravity through SimOptions. Ground friction is not
 #: offered: Genesis' MPM-ground contact has no coefficient to change.
 GENESIS_KINDS = ("linear_drag", "quadratic_drag", "wind", "gravity")
-
-
-def _names(value: Any, what: str, valid: tuple[str, ...], problems: list[str]) -> list[str]:
-    """``"random"``/None -> [], ``"a,b"`` or a list -> names, each checked against ``valid``."""
-    if value is None or value == "random":
-        return []
-    items = value.split(",") if isinstance(value, str) else list(value)
-    names = [str(v).strip() for v in items if str(v).strip()]
-    problems += [
-        f"{what}: unknown name {n!r}; valid: random or {', '.join(valid)}"
-        for n in names
-        if n not in valid
-    ]
-    return names
 
 
 @dataclass
@@ -72,26 +59,17 @@ class GenesisOptions:
 
     def __post_init__(self) -> None:
         problems: list[str] = []
-        if self.n_objects not in (2, 3):
-            problems.append(f"n_objects={self.n_objects!r}: the protocol uses 2 or 3 objects")
-        self.shapes = _names(self.shapes, "shapes", SHAPE_NAMES, problems)
-        self.materials = _names(self.materials, "materials", GENESIS_FAMILIES, problems)
-        for what, names in (("shapes", self.shapes), ("materials", self.materials)):
-            if names and len(names) != self.n_objects:
-                problems.append(
-                    f"{what}: {len(names)} names for n_objects={self.n_objects}; give one per "
-                    "object or 'random'"
-                )
-        if self.resolution < 16:
-            problems.append(f"resolution={self.resolution}: must be at least 16 pixels")
-        if self.n_cameras < 1:
-            problems.append(f"n_cameras={self.n_cameras}: must be at least 1")
-        if self.n_frames < 2:
-            problems.append(f"n_frames={self.n_frames}: must be at least 2")
-        if not 1 <= self.observed_frames <= self.n_frames:
-            problems.append(
-                f"observed_frames={self.observed_frames}: must lie in 1..n_frames={self.n_frames}"
-            )
+        self.shapes = name_list(self.shapes, "shapes", SHAPE_NAMES, problems)
+        self.materials = name_list(self.materials, "materials", GENESIS_FAMILIES, problems)
+        check_clip(
+            n_objects=self.n_objects,
+            per_object={"shapes": self.shapes, "materials": self.materials},
+            resolution=self.resolution,
+            n_cameras=self.n_cameras,
+            n_frames=self.n_frames,
+            observed_frames=self.observed_frames,
+            problems=problems,
+        )
         if self.fps <= 0 or self.substeps < 1:
             problems.append(f"fps={self.fps}, substeps={self.substeps}: must be positive")
         if not 0.003 <= self.particle_size <= 0.03:

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mosiv_framework.scene.protocol import launch_velocity
+
 # the simulation box (m) as scene.json declares it; the table is the plane z = 0
 DOMAIN_LOWER = (-0.4, -0.4, 0.0)
 DOMAIN_UPPER = (0.4, 0.4, 0.6)
@@ -25,7 +27,6 @@ LAUNCH_GAP = (0.12, 0.2)
 LAUNCH_RISE = (-0.04, 0.1)
 MARGIN = 0.02  # clearance kept to the walls at launch (m)
 # cameras: Fibonacci spiral over elevations 12-70 deg, 1.15 m from the look-at point
-ELEVATION = (math.radians(12.0), math.radians(70.0))
 LOOK_AT = (0.0, 0.0, 0.15)
 CAMERA_DISTANCE = 1.15
 FOV_DEG = 45.0  # Genesis' fov is vertical; the images are square, so it is the horizontal one too
@@ -112,15 +113,6 @@ def scene_format_params(family: str, p: dict[str, float]) -> dict[str, float]:
     return {k: v for k, v in p.items() if k in keep}
 
 
-def hemisphere_directions(n: int, *, azimuth0: float) -> np.ndarray:
-    """[n, 3] unit vectors to the cameras: equal-area strips in z, golden-angle azimuths."""
-    z0, z1 = math.sin(ELEVATION[0]), math.sin(ELEVATION[1])
-    z = z1 - (z1 - z0) * (np.arange(n) + 0.5) / n
-    azimuth = azimuth0 + math.pi * (3.0 - math.sqrt(5.0)) * np.arange(n)
-    r = np.sqrt(1.0 - z * z)
-    return np.stack([r * np.cos(azimuth), r * np.sin(azimuth), z], axis=1)
-
-
 def support(points: np.ndarray, direction: np.ndarray) -> float:
     """How far a centred shape reaches along ``direction``: max over points of p . d (m)."""
     return float(np.max(points @ direction))
@@ -180,9 +172,3 @@ def plan_layout(
         if inside:
             return Layout(np.array(starts), np.array(targets), p)
     raise RuntimeError("no collision layout fits the domain; objects are too large")
-
-
-def launch_velocity(start, target, t: float, acceleration) -> np.ndarray:
-    """v0 with start + v0 t + a t^2 / 2 = target (m/s): ballistic aim under acceleration a."""
-    a = np.asarray(acceleration, dtype=np.float64)
-    return (np.asarray(target) - np.asarray(start) - 0.5 * a * t * t) / t

@@ -21,6 +21,7 @@ from mosiv_framework.errors import ConfigError
 from mosiv_framework.interfaces import SceneSource
 from mosiv_framework.scene.cameras import Camera
 from mosiv_framework.scene.io import SceneObject, SceneWriter
+from mosiv_framework.scene.protocol import hemisphere_directions, launch_velocity
 from mosiv_genesis import plan as P
 from mosiv_genesis.options import GENESIS_KINDS, GenesisOptions
 
@@ -183,7 +184,7 @@ class GenesisSource(SceneSource):
                     fov=P.FOV_DEG,
                     GUI=False,
                 )
-                for d in P.hemisphere_directions(opts.n_cameras, azimuth0=azimuth0)
+                for d in hemisphere_directions(opts.n_cameras, azimuth0=azimuth0)
             ]
             scene.build()
         cameras = [_camera_record(c, f"cam_{i:02d}", opts.resolution) for i, c in enumerate(gcams)]
@@ -191,7 +192,7 @@ class GenesisSource(SceneSource):
         t_c = frame_c / opts.fps
         starts = [_positions(e).mean(axis=0) for e in entities]
         velocities = [
-            P.launch_velocity(s, t, t_c, gravity + wind) for s, t in zip(starts, layout.targets)
+            launch_velocity(s, t, t_c, gravity + wind) for s, t in zip(starts, layout.targets)
         ]
         for entity, v in zip(entities, velocities):
             entity.set_velocity(np.broadcast_to(v, (entity.n_particles, 3)).astype(np.float32))

@@ -26,8 +26,8 @@ from mosiv_framework.laws import get_law
 from mosiv_framework.scene.cameras import Camera
 from mosiv_framework.scene.check import GT_PARAM_NAMES
 from mosiv_framework.scene.io import SceneObject, SceneWriter
+from mosiv_framework.scene.protocol import hemisphere_cameras
 from mosiv_framework.types import ObjectParams, ParticleSet, SimulationParams, World
-from mosiv_synth.cameras import hemisphere_cameras
 from mosiv_synth.layout import Layout, plan_collision
 from mosiv_synth.materials import GROUND_FRICTION_RANGE, MATERIAL_RANGES, draw, sample_params
 from mosiv_synth.options import SynthOptions

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from mosiv_framework.scene.protocol import launch_velocity
+
 # collision point: near the table centre, 0.22-0.32 m above it, so the fall after the collision
 # lasts ~0.2-0.3 s and the objects land and settle inside a 30-frame clip at 24 fps
 COLLISION_HEIGHT = (0.22, 0.32)
@@ -73,12 +75,6 @@ def first_contact_distance(
     if not np.isfinite(best):
         raise ValueError("the clouds never touch along this direction (empty cloud?)")
     return best
-
-
-def launch_velocity(start, target, t: float, acceleration) -> np.ndarray:
-    """v0 [3] (m/s) so that x0 + v0 t + a t^2 / 2 = target."""
-    a = np.asarray(acceleration, dtype=np.float64)
-    return (np.asarray(target) - np.asarray(start) - 0.5 * a * t * t) / t
 
 
 def plan_collision(

@@ -12,21 +12,9 @@ from typing import Any
 
 from mosiv_framework.conceal import parse_conceal
 from mosiv_framework.errors import ConfigError
+from mosiv_framework.scene.protocol import check_clip, name_list
 from mosiv_synth.materials import MATERIAL_RANGES
 from mosiv_synth.shapes import SHAPE_NAMES
-
-
-def _as_name_list(value: Any, what: str, valid: tuple[str, ...], problems: list[str]) -> list[str]:
-    """``"random"`` -> [], ``"a,b"`` or ``["a", "b"]`` -> ["a", "b"], each checked against
-    ``valid``."""
-    if value is None or value == "random":
-        return []
-    items = value.split(",") if isinstance(value, str) else list(value)
-    names = [str(v).strip() for v in items if str(v).strip()]
-    for name in names:
-        if name not in valid:
-            problems.append(f"{what}: unknown name {name!r}; valid: random or {', '.join(valid)}")
-    return names
 
 
 @dataclass
@@ -63,28 +51,17 @@ class SynthOptions:
 
     def __post_init__(self) -> None:
         problems: list[str] = []
-        if self.n_objects not in (2, 3):
-            problems.append(f"n_objects={self.n_objects!r}: the protocol uses 2 or 3 objects")
-        self.shapes = _as_name_list(self.shapes, "shapes", SHAPE_NAMES, problems)
-        self.materials = _as_name_list(
-            self.materials, "materials", tuple(MATERIAL_RANGES), problems
+        self.shapes = name_list(self.shapes, "shapes", SHAPE_NAMES, problems)
+        self.materials = name_list(self.materials, "materials", tuple(MATERIAL_RANGES), problems)
+        check_clip(
+            n_objects=self.n_objects,
+            per_object={"shapes": self.shapes, "materials": self.materials},
+            resolution=self.resolution,
+            n_cameras=self.n_cameras,
+            n_frames=self.n_frames,
+            observed_frames=self.observed_frames,
+            problems=problems,
         )
-        for what, names in (("shapes", self.shapes), ("materials", self.materials)):
-            if names and len(names) != self.n_objects:
-                problems.append(
-                    f"{what}: {len(names)} names given for n_objects={self.n_objects}; "
-                    "give one per object or 'random'"
-                )
-        if self.resolution < 16:
-            problems.append(f"resolution={self.resolution}: must be at least 16 pixels")
-        if self.n_cameras < 1:
-            problems.append(f"n_cameras={self.n_cameras}: must be at least 1")
-        if self.n_frames < 2:
-            problems.append(f"n_frames={self.n_frames}: must be at least 2")
-        if not 1 <= self.observed_frames <= self.n_frames:
-            problems.append(
-                f"observed_frames={self.observed_frames}: must lie in 1..n_frames={self.n_frames}"
-            )
         if self.fps <= 0:
             problems.append(f"fps={self.fps}: must be positive (frames per second)")
         if not 0.002 <= self.particle_spacing <= 0.03:

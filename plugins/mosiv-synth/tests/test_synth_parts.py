@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from mosiv_synth.cameras import ELEVATION_MAX, ELEVATION_MIN, LOOK_AT, hemisphere_cameras
 from mosiv_synth.layout import first_contact_distance, plan_collision
 from mosiv_synth.materials import MATERIAL_RANGES, sample_params
 from mosiv_synth.options import SynthOptions
@@ -21,6 +20,12 @@ from mosiv_framework.conceal import parse_conceal
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.laws import get_law
 from mosiv_framework.scene.cameras import Camera
+from mosiv_framework.scene.protocol import (
+    ELEVATION_MAX,
+    ELEVATION_MIN,
+    LOOK_AT,
+    hemisphere_cameras,
+)
 
 
 def _ball(radius: float, spacing: float, centre=(0.0, 0.0, 0.0)) -> np.ndarray:
