@@ -28,7 +28,7 @@ class SynthOptions:
     simulation particles (m); simulator: registered simulator name; simulator_options: its
     options (grid, substeps, device, ...); collision_frame: frame at which the objects first
     touch (0 = choose from the seed); conceal: "KIND[:param=value,...]" effects separated by
-    ";" or a list of them (see ``mosiv_synth.conceal``); seed: everything random derives from
+    ";" or a list of them (see ``mosiv_framework.conceal``); seed: everything random derives from
     it; scene_name: scene name (empty = derived from materials and seed); progress: show a bar.
     """
 
