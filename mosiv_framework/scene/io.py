@@ -170,8 +170,7 @@ class Scene:
         device: torch.device | str = "cpu",
     ) -> torch.Tensor:
         """Per-object masks as float32 [F, C, K, H, W] in {0, 1}; channel k-1 is object k."""
-        ids = self._stack(self.mask, frames, cameras)
-        ids_t = torch.from_numpy(ids.astype(np.int64)).to(device)
+        ids_t = self.load_mask_ids(frames=frames, cameras=cameras, device=device)
         object_ids = torch.arange(1, len(self.objects) + 1, device=device)
         return (ids_t[:, :, None] == object_ids[:, None, None]).to(torch.float32)
 
