@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -282,3 +283,25 @@ def test_linearised_bootstrap_reports_an_unidentifiable_coefficient_as_unbounded
     jac[:, 0] = jac[:, 1] + jac[:, 2]  # the coefficient is a sum of the velocity columns
     lo, hi = linearised_bootstrap(jac, residual, unit, n_coefficients=1, options=IntervalOptions())
     assert lo[0] == -math.inf and hi[0] == math.inf
+
+
+def test_suite_resumes_scored_entries_and_rejects_unknown_names(tmp_path):
+    """A suite stopped part-way picks up the scores already on disk instead of recomputing,
+    and ``only`` names that are not entries are refused with the valid ones."""
+    from dataclasses import asdict
+
+    from mosiv_framework.diagnose.suite import Score, run_suite, suite_entries
+    from mosiv_framework.errors import ConfigError
+
+    entry = suite_entries(small=True)[0]
+    stored = Score(
+        entry.name, entry.conceal, "missing physics", "wind", "wind", True, 9.0, 0.05, 0.9
+    )
+    (tmp_path / entry.name).mkdir()
+    (tmp_path / entry.name / "score.json").write_text(json.dumps(asdict(stored)))
+    summary = run_suite(tmp_path, small=True, only=[entry.name], say=lambda m: None)
+    assert summary["scores"] == [asdict(stored)]
+    assert summary["missing"] == []
+    assert summary["correct_first_rate"] == 1.0
+    with pytest.raises(ConfigError, match="valid"):
+        run_suite(tmp_path, small=True, only=["no-such-entry"], say=lambda m: None)

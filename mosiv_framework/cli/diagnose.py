@@ -27,6 +27,10 @@ def add_parsers(sub) -> None:
     suite.add_argument("--small", action="store_true", help="three tiny scenes (CPU, minutes)")
     suite.add_argument("--recipe", help="recipe the scenes run with (default: the suite's own)")
     suite.add_argument("--budget", choices=("small", "full"), help="diagnosis budget")
+    suite.add_argument("--only", help="comma-separated entry names to run (default: all)")
+    suite.add_argument(
+        "--jobs", type=int, default=1, help="entries run in parallel worker processes"
+    )
     suite.set_defaults(handler=diagnose_suite)
 
 
@@ -52,6 +56,8 @@ def diagnose_suite(args) -> int:
         small=args.small,
         recipe=args.recipe,
         budget=args.budget,
+        only=[name for name in args.only.split(",") if name] if args.only else None,
+        jobs=args.jobs,
         say=lambda m: print(m, flush=True),
     )
     return 0

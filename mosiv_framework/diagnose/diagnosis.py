@@ -99,6 +99,7 @@ def diagnose_run(
             budget, max_candidates=min(budget.max_candidates, int(section.max_candidates))
         )
     allowed_names = list(section.terms) if section is not None and section.terms else None
+    excluded_names = set(section.exclude) if section is not None else set()
     fit_frames, heldout = split_frames(ctx.observed_frames, ctx.n_frames, budget.heldout_fraction)
 
     say(f"locating the mismatch over {ctx.observed_frames} observed frames")
@@ -120,6 +121,12 @@ def diagnose_run(
                 if c.name not in allowed_names
             ]
             candidates = [c for c in candidates if c.name in allowed_names]
+        skipped += [
+            f"{c.name}: in the recipe's diagnose.exclude"
+            for c in candidates
+            if c.name in excluded_names
+        ]
+        candidates = [c for c in candidates if c.name not in excluded_names]
         say(f"screening {len(candidates)} candidate effects in regimes {location.flagged_regimes}")
         screens = screen(
             ctx,

@@ -128,7 +128,10 @@ class EvaluateSection:
 class DiagnoseSection:
     """Finding missing physics (DESIGN.md section 6)."""
 
+    #: screen only these candidates (empty: every candidate the simulator supports)
     terms: list[str] = field(default_factory=list)
+    #: never screen these (how the suite builds its out-of-library scenes)
+    exclude: list[str] = field(default_factory=list)
     max_candidates: int = 3
     bootstrap: int = 200
     starts: int = 2
