@@ -226,3 +226,28 @@ def test_recipe_change_loads_and_reproduces_the_term(tmp_path):
     snippet = recipe_change(_fit(drag, torch.tensor([1.75]), {}), None)
     recipe = _load(tmp_path, snippet)
     assert recipe.physics_terms.linear_drag.coefficient == pytest.approx(1.75)
+
+
+def test_damping_and_restitution_are_registered_terms_with_bounds(tmp_path):
+    """The two non-body-force terms: registered, no reference acceleration, recipe bounds
+    enforced (viscosity [0, 200] Pa s, restitution [0, 1]), and concealable by the generator."""
+    from mosiv_framework.conceal import TERM_KINDS, parse_conceal
+
+    names = set(get_registry().names("physics_term"))
+    assert {"material_damping", "ground_restitution"} <= names
+    for name, param in (("material_damping", "viscosity"), ("ground_restitution", "coefficient")):
+        term = get_registry().create("physics_term", name, {})
+        assert [s.name for s in term.params] == [param] and term.params[0].default == 0.0
+        assert term.reference_acceleration(torch.zeros(2, 3), {param: torch.tensor(1.0)}) is None
+        assert name in TERM_KINDS
+    recipe = _load(
+        tmp_path,
+        "physics_terms:\n  material_damping: {viscosity: 25.0}\n  ground_restitution: {}\n",
+    )
+    assert recipe.physics_terms.material_damping.viscosity == 25.0
+    assert recipe.physics_terms.ground_restitution.coefficient == 0.0
+    with pytest.raises(ConfigError, match=r"outside its valid range \[0, 1\]"):
+        _load(tmp_path, "physics_terms: {ground_restitution: {coefficient: 1.5}}\n")
+    with pytest.raises(ValueError, match="must be <= 1"):
+        parse_conceal("ground_restitution:coefficient=1.2")
+    assert parse_conceal("material_damping")[0].params == {"viscosity": 30.0}

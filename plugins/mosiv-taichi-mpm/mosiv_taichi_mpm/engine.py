@@ -80,9 +80,13 @@ class Engine:
         k.clear_grid(False)
         k.stress(s, self.n, self.dt)
         for i, j in STENCIL_ROWS:
-            k.p2g(s, self.n, i, j)
+            k.p2g(s, self.n, i, j, self._pm_level())
         k.grid_forces(self.dt)
         k.grid_contact(self.ground_z, self.has_ground)
+
+    def _pm_level(self) -> float:
+        """Height (m) up to which p2g records the arriving momentum: the ground's, or none."""
+        return self.ground_z if self.has_ground else -1.0e30
 
     def export(self, s: int, *, grads: bool) -> dict[str, torch.Tensor]:
         out = empty_state(self.n, self.device)
@@ -162,7 +166,7 @@ class Engine:
         k.grid_contact.grad(self.ground_z, self.has_ground)
         k.grid_forces.grad(self.dt)
         for i, j in STENCIL_ROWS:
-            k.p2g.grad(s, n, i, j)
+            k.p2g.grad(s, n, i, j, self._pm_level())
         k.stress.grad(s, n, dt)
 
     def initial_velocity_adjoint(self) -> None:

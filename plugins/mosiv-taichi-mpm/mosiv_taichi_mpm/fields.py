@@ -109,6 +109,9 @@ class SimFields:
         self.m = ti.field(f32, needs_grad=True)  # mass (kg)
         self.mv = ti.field(vec, needs_grad=True)  # momentum incl. stress impulse (kg m/s)
         self.gm = ti.field(vec, needs_grad=True)  # mass gradient (kg/m) for contact normals
+        # momentum without this substep's stress impulse (kg m/s), on ground-layer nodes only:
+        # the arriving velocity that ground_restitution reflects
+        self.pm = ti.field(vec, needs_grad=True)
         self.vf = ti.field(vec, needs_grad=True)  # velocity after body forces (m/s)
         self.vg = ti.field(vec, needs_grad=True)  # velocity after contact and boundaries (m/s)
 
@@ -124,6 +127,8 @@ class SimFields:
         self.wind = ti.field(vec, needs_grad=True)  # m/s^2
         self.lin_drag = ti.field(f32, needs_grad=True)  # 1/s
         self.quad_drag = ti.field(f32, needs_grad=True)  # 1/m
+        self.damping = ti.field(f32, needs_grad=True)  # material_damping viscosity (Pa s)
+        self.ground_e = ti.field(f32, needs_grad=True)  # ground_restitution coefficient
 
         # diagnostics (forward only): first flagged substep * 4 + reason, per object
         self.div_code = ti.field(ti.i32)
@@ -135,11 +140,12 @@ class SimFields:
         fb.dense(ti.ij, (S, N)).place(self.F_trial, self.sig_trial)
         fb.dense(ti.i, N).place(self.obj, self.vol, self.pmass, self.affine)
         grid_shape = (layout.n_fields, *layout.nodes)
-        fb.dense(ti.ijkl, grid_shape).place(self.m, self.mv, self.gm, self.vf, self.vg)
+        fb.dense(ti.ijkl, grid_shape).place(self.m, self.mv, self.gm, self.pm, self.vf, self.vg)
         fb.dense(ti.i, K).place(
             self.law_id, self.law_p, self.rho, self.friction, self.v0, self.div_code
         )
         fb.place(self.ground_mu, self.gravity, self.wind, self.lin_drag, self.quad_drag)
+        fb.place(self.damping, self.ground_e)
         fb.dense(ti.ij, (K, K + 1)).place(self.contact)
         fb.lazy_grad()
         self._tree = fb.finalize()
@@ -156,6 +162,8 @@ class SimFields:
             "wind": self.wind,
             "lin_drag": self.lin_drag,
             "quad_drag": self.quad_drag,
+            "damping": self.damping,
+            "ground_e": self.ground_e,
         }
 
     def nbytes(self) -> int:
@@ -165,7 +173,7 @@ class SimFields:
         trial = 9 + 3
         n_nodes = lay.n_fields * math.prod(lay.nodes)
         floats = lay.capacity * ((lay.substeps + 1) * per_particle_step + lay.substeps * trial)
-        floats += lay.capacity * 10 + n_nodes * (1 + 3 * 4)
+        floats += lay.capacity * 10 + n_nodes * (1 + 3 * 5)
         return 4 * (2 * floats + 2 * lay.capacity)
 
     def destroy(self) -> None:

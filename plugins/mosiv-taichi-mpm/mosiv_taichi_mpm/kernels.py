@@ -12,7 +12,7 @@ values survive until their adjoints run. ``check`` and ``detect_contact`` are fo
 import taichi as ti
 
 from mosiv_taichi_mpm.fields import SimFields
-from mosiv_taichi_mpm.laws import kirchhoff_stress, return_map
+from mosiv_taichi_mpm.laws import J_MIN, kirchhoff_stress, return_map
 from mosiv_taichi_mpm.svd_grad import svd_adjoint
 
 MASS_EPS = 1e-12  # kg; grid nodes lighter than this count as empty
@@ -51,6 +51,13 @@ def stencil(fx, offset):
     w1, g1 = spline_weight(d[1])
     w2, g2 = spline_weight(d[2])
     return w0 * w1 * w2, ti.Vector([g0 * w1 * w2, w0 * g1 * w2, w0 * w1 * g2]), -d
+
+
+@ti.func
+def kelvin_voigt_tau(eta, F, L):
+    """material_damping: tau_visc = eta J (L + L^T) (Pa), L = C, as the Newtonian law's."""
+    J = ti.max(F.determinant(), J_MIN)
+    return (eta * J) * (L + L.transpose())
 
 
 @ti.data_oriented
@@ -193,19 +200,22 @@ class MPMKernels:
                 self.m.grad[I] = 0.0
                 self.mv.grad[I] = ti.Vector.zero(ti.f32, 3)
                 self.gm.grad[I] = ti.Vector.zero(ti.f32, 3)
+                self.pm.grad[I] = ti.Vector.zero(ti.f32, 3)
                 self.vf.grad[I] = ti.Vector.zero(ti.f32, 3)
                 self.vg.grad[I] = ti.Vector.zero(ti.f32, 3)
             else:
                 self.m[I] = 0.0
                 self.mv[I] = ti.Vector.zero(ti.f32, 3)
                 self.gm[I] = ti.Vector.zero(ti.f32, 3)
+                self.pm[I] = ti.Vector.zero(ti.f32, 3)
 
     # ------------------------------------------------------------------------------------------
     # one substep
     # ------------------------------------------------------------------------------------------
     @ti.kernel
     def stress(self, s: ti.i32, n: ti.i32, dt: ti.f32):
-        """Per particle: mass m_p = rho V0 and MLS affine term A = -dt 4/dx^2 V0 tau + m_p C."""
+        """Per particle: mass m_p = rho V0 and MLS affine term A = -dt 4/dx^2 V0 tau + m_p C,
+        tau = the law's Kirchhoff stress + the ``material_damping`` viscous stress."""
         for p in range(n):
             k = self.obj[p]
             mass = self.rho[k] * self.vol[p]
@@ -213,15 +223,17 @@ class MPMKernels:
                 self.present, self.law_id[k], self.F[s, p], self.U[s, p], self.sig[s, p],
                 self.C[s, p], self.Jp[s, p], self.law_p[k],
             )  # fmt: skip
+            tau += kelvin_voigt_tau(self.damping[None], self.F[s, p], self.C[s, p])
             self.pmass[p] = mass
             self.affine[p] = -dt * 4.0 * self.inv_dx * self.inv_dx * self.vol[p] * tau + (
                 mass * self.C[s, p]
             )
 
     @ti.kernel
-    def p2g(self, s: ti.i32, n: ti.i32, i: ti.template(), j: ti.template()):
+    def p2g(self, s: ti.i32, n: ti.i32, i: ti.template(), j: ti.template(), ground_z: ti.f32):
         """MLS-MPM P2G over the 3 stencil nodes with offsets (i, j, 0..2):
-        m_i += w m_p; (m v)_i += w (m_p v_p + A dpos); (grad m)_i += m_p grad w.
+        m_i += w m_p; (m v)_i += w (m_p v_p + A dpos); (grad m)_i += m_p grad w; on nodes at or
+        below ground_z (m) also the arriving momentum (p m)_i += w m_p (v_p + C dpos).
 
         The stencil is unrolled (Taichi's adjoint of a dynamic inner loop is wrong here) and
         split in nine kernels because the adjoint's compile time grows faster than linearly
@@ -234,6 +246,7 @@ class MPMKernels:
             fx = xg - ti.cast(base, ti.f32)
             mom = mass * self.v[s, p]
             A = self.affine[p]
+            MC = mass * self.C[s, p]
             for l in ti.static(range(3)):
                 offset = ti.Vector([i, j, l])
                 weight, grad_w, dcell = stencil(fx, offset)
@@ -241,6 +254,8 @@ class MPMKernels:
                 self.m[g, node[0], node[1], node[2]] += weight * mass
                 self.mv[g, node[0], node[1], node[2]] += weight * (mom + A @ (dcell * self.dx))
                 self.gm[g, node[0], node[1], node[2]] += (mass * self.inv_dx) * grad_w
+                if self.origin[2] + node[2] * self.dx <= ground_z:  # for ground_restitution
+                    self.pm[g, node[0], node[1], node[2]] += weight * (mom + MC @ (dcell * self.dx))
 
     @ti.kernel
     def grid_forces(self, dt: ti.f32):
@@ -265,6 +280,23 @@ class MPMKernels:
             tangent = rel - vn * normal
             t_norm = ti.sqrt(tangent.dot(tangent) + NORMAL_EPS)
             out = tangent * ti.max(1.0 - mu * vn / t_norm, 0.0)
+        return out
+
+    @ti.func
+    def _ground(self, vel, v_in, mu, e):
+        """Table contact (outward normal -e_z), ``_coulomb`` at e = 0: moving down (v_z < 0),
+        v_z <- e max(-v_in, 0) and the tangential speed drops by mu (|v_z| + e max(-v_in, 0))
+        (full stop beyond). v_in (m/s) is the arriving normal velocity, before this substep's
+        stress and body-force impulse: only arriving material bounces, a body pressed onto the
+        table is stopped rather than re-launched every substep (which pumps energy)."""
+        vn = -vel[2]
+        out = vel
+        if vn > 0.0:
+            tangent = ti.Vector([vel[0], vel[1], 0.0])
+            t_norm = ti.sqrt(tangent.dot(tangent) + NORMAL_EPS)
+            bounce = e * ti.max(-v_in, 0.0)
+            scale = ti.max(1.0 - mu * (vn + bounce) / t_norm, 0.0)
+            out = ti.Vector([tangent[0] * scale, tangent[1] * scale, bounce])
         return out
 
     @ti.kernel
@@ -302,7 +334,8 @@ class MPMKernels:
                 if has_ground != 0:  # nested ifs: `and` confuses Taichi's adjoint of locals
                     if z <= ground_z:
                         # outward normal of the table is -e_z: moving down = approaching it
-                        vel = self._coulomb(vel, ti.Vector([0.0, 0.0, -1.0]), self.ground_mu[None])
+                        v_in = self.pm[g, i, j, l][2] / ti.max(m_g, MASS_EPS)
+                        vel = self._ground(vel, v_in, self.ground_mu[None], self.ground_e[None])
                 for d in ti.static(range(3)):
                     if (i, j, l)[d] < WALL_LAYERS:
                         vel[d] = ti.max(vel[d], 0.0)  # slip: no outward normal velocity

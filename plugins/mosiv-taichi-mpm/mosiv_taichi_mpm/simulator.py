@@ -27,6 +27,8 @@ TERMS: dict[str, dict[str, tuple[int, ...]]] = {
     "quadratic_drag": {"coefficient": ()},
     "wind": {"acceleration": (3,)},
     "gravity": {"acceleration": (3,)},
+    "material_damping": {"viscosity": ()},
+    "ground_restitution": {"coefficient": ()},
 }
 #: term parameter -> the field that carries it
 _TERM_FIELD = {
@@ -34,6 +36,8 @@ _TERM_FIELD = {
     ("quadratic_drag", "coefficient"): "quad_drag",
     ("wind", "acceleration"): "wind",
     ("gravity", "acceleration"): "gravity",
+    ("material_damping", "viscosity"): "damping",
+    ("ground_restitution", "coefficient"): "ground_e",
 }
 #: what to lower when an object of a family diverges
 _STIFFNESS_ADVICE = {
@@ -126,7 +130,7 @@ class TaichiMPMSimulator(Simulator):
             object_ids=object_ids,
             dt=1.0 / (world.fps * self.options.substeps),
             ground_z=world.ground_height,
-            advice_info={k: _STIFFNESS_ADVICE[params.objects[k].family] for k in object_ids},
+            advice_info={k: self._advice(params, k) for k in object_ids},
         )
         names, tensors = zip(*params.named_tensors())
         engine.set_params(self._pack(params, object_ids, world))
@@ -147,6 +151,15 @@ class TaichiMPMSimulator(Simulator):
             velocities=run.velocities.to(out_device),
             contact=None if run.contact is None else run.contact.to(out_device),
         )
+
+    def _advice(self, params: SimulationParams, k: int) -> str:
+        """What to lower when object k diverges: its stiffness, and the damping viscosity."""
+        advice = _STIFFNESS_ADVICE[params.objects[k].family]
+        if "material_damping" in params.terms:
+            eta = float(params.terms["material_damping"]["viscosity"].detach())
+            if eta > 0:  # explicit viscous stability: dt < rho dx^2 / (6 eta)
+                advice += f" or the material_damping viscosity ({eta:g} Pa s)"
+        return advice
 
     def _get_engine(self, layout, present, generation) -> Engine:
         key = (layout, present, generation)
@@ -234,6 +247,9 @@ class TaichiMPMSimulator(Simulator):
         out["wind"] = np.zeros(3, np.float32)
         out["lin_drag"] = np.array(0.0, np.float32)
         out["quad_drag"] = np.array(0.0, np.float32)
+        # absent material_damping / ground_restitution pack as 0, their "off" value
+        out["damping"] = np.array(0.0, np.float32)
+        out["ground_e"] = np.array(0.0, np.float32)
         for (term, pname), fld in _TERM_FIELD.items():
             if term in params.terms:
                 t = params.terms[term][pname].detach().cpu().numpy().astype(np.float32)

@@ -39,8 +39,9 @@ def _assert_close(name, ad, fd, loss_scale):
 
 
 def test_contact_friction_and_term_gradients(simulator_factory):
-    """Two blocks pressed together while sliding past each other (friction), with drag and
-    wind on: d loss / d (friction of each object, drag coefficients, wind) match differences."""
+    """Two blocks pressed together while sliding past each other (friction) and thrown onto the
+    table, with drag, wind, material damping and ground restitution on: d loss / d (friction of
+    each object, drag coefficients, wind, viscosity, restitution) match differences."""
     sim = simulator_factory(grid=16, substeps=30)
     world = World((0.0, 0.0, 0.0), (0.5, 0.5, 0.5), gravity=(0.0, 0.0, -9.8), ground_height=0.0)
     a = block((0.15, 0.2, 0.02), (0.25, 0.3, 0.1), spacing=1.0 / 48, object_id=1)
@@ -49,18 +50,22 @@ def test_contact_friction_and_term_gradients(simulator_factory):
     params = default_params(
         p,
         overrides={1: {"friction": 0.5}, 2: {"friction": 0.3}},
-        velocities={1: (0.8, 0.6, 0.0), 2: (-0.8, -0.6, 0.0)},
+        # thrown down so that they land and bounce: ground restitution acts on arriving speed
+        velocities={1: (0.8, 0.6, -0.8), 2: (-0.8, -0.6, -0.8)},
         ground_friction=0.2,
         terms={
             "linear_drag": {"coefficient": 0.5},
             "quadratic_drag": {"coefficient": 0.3},
             "wind": {"acceleration": [0.5, -0.3, 0.0]},
+            "material_damping": {"viscosity": 20.0},
+            "ground_restitution": {"coefficient": 0.5},
         },
     )
     weights = torch.randn(len(p), 3, generator=torch.Generator().manual_seed(1))
     names = [
         "obj1.friction", "obj2.friction", "term.linear_drag.coefficient",
         "term.quadratic_drag.coefficient", "term.wind.acceleration",
+        "term.material_damping.viscosity", "term.ground_restitution.coefficient",
     ]  # fmt: skip
     named = dict(params.named_tensors())
 
@@ -71,8 +76,14 @@ def test_contact_friction_and_term_gradients(simulator_factory):
     leaves = {n: named[n].detach().clone().requires_grad_(True) for n in names}
     loss = loss_with(leaves)
     grads = torch.autograd.grad(loss, [leaves[n] for n in names])
+    # steps: 2e-2 in general; the viscosity (20 Pa s) needs a larger one to lift the loss change
+    # above float32 round-off, the restitution a smaller one because the loss bends in e (which
+    # nodes bounce changes with it; at 5e-2 the difference is off by 9%)
+    steps = {"term.material_damping.viscosity": 0.5, "term.ground_restitution.coefficient": 5e-3}
     for n, g in zip(names, grads):
         with torch.no_grad():
-            fd = _central_difference(lambda t, n=n: loss_with({n: t}), named[n], h=2e-2)
+            h = steps.get(n, 2e-2)
+            fd = _central_difference(lambda t, n=n: loss_with({n: t}), named[n], h=h)
         _assert_close(n, g, fd, abs(loss.item()))
     assert grads[0].abs().item() > 0 and grads[1].abs().item() > 0, "contact friction inactive"
+    assert grads[-2].abs().item() > 0 and grads[-1].abs().item() > 0, "new terms inactive"

@@ -24,6 +24,8 @@ TERMS: dict[str, tuple[str, ...]] = {
     "quadratic_drag": ("coefficient",),
     "wind": ("acceleration",),
     "gravity": ("acceleration",),
+    "material_damping": ("viscosity",),
+    "ground_restitution": ("coefficient",),
 }
 
 _WARP_READY = False
@@ -98,9 +100,9 @@ class MPMRun:
             K.p2g,
             dim=self.n,
             inputs=[src.x, src.v, src.C, src.F, src.plastic_J, self.volume, self.obj]
-            + [t.law_of, t.field_of, t.params, t.rho, origin, lay.dx, self.dt, nodes]
-            + [int(lay.fields > 1)],
-            outputs=[grid.m, grid.mv, grid.gm],
+            + [t.law_of, t.field_of, t.params, t.rho, t.damping, origin, lay.dx, self.dt, nodes]
+            + [int(lay.fields > 1), self.ground_k if self.ground_on else -1.0],
+            outputs=[grid.m, grid.mv, grid.gm, grid.pm],
             device=dev,
         )
         wp.launch(
@@ -113,8 +115,8 @@ class MPMRun:
         wp.launch(
             K.grid_boundaries,
             dim=lay.nodes_per_field,
-            inputs=[grid.m, grid.vs, grid.gm, lay.fields, t.friction, nodes]
-            + [self.ground_on, self.ground_k, t.ground_friction],
+            inputs=[grid.m, grid.vs, grid.gm, grid.pm, lay.fields, t.friction, nodes]
+            + [self.ground_on, self.ground_k, t.ground_friction, t.ground_restitution],
             outputs=[grid.v],
             device=dev,
         )
@@ -178,6 +180,14 @@ class MPMRun:
                 f"Increase substeps (now {self.substeps}) or use a coarser grid; very soft or very "
                 f"stiff parameters of object {obj_id} can also cause it."
             )
+        eta = float(self.tables.damping.numpy()[0])
+        if eta > 0:  # explicit viscous stability: dt < rho dx^2 / (6 eta)
+            rho = float(self.tables.rho.numpy()[oi])
+            limit = rho * self.layout.dx**2 / (6.0 * eta)
+            advice += (
+                f" With material_damping viscosity={eta:g} Pa s the explicit step needs "
+                f"dt < rho dx^2 / (6 eta) = {limit:.3g} s (now {self.dt:.3g} s)."
+            )
         raise SimulationDiverged(
             object_id=obj_id, frame=frame, substep=substep, reason=why, advice=advice
         )
@@ -218,7 +228,8 @@ def pack_theta(
     """Flatten every differentiable parameter into ObjectTables' layout (float32, differentiable).
 
     Layout: per object N_SLOTS law parameters | rho per object | friction per object |
-    ground_friction | body acceleration (3) | drag (linear, quadratic).
+    ground_friction | body acceleration (3) | drag (linear, quadratic) | material_damping
+    viscosity (Pa s) | ground_restitution coefficient. An absent term packs as 0, its "off".
     """
     zero = torch.zeros((), dtype=torch.float32, device=device)
 
@@ -240,6 +251,8 @@ def pack_theta(
     lin = val(terms["linear_drag"]["coefficient"]) if "linear_drag" in terms else val(zero)
     quad = val(terms["quadratic_drag"]["coefficient"]) if "quadratic_drag" in terms else val(zero)
     parts += [lin, quad]
+    for term, name in (("material_damping", "viscosity"), ("ground_restitution", "coefficient")):
+        parts.append(val(terms[term][name]) if term in terms else val(zero))
     return torch.cat(parts)
 
 

@@ -134,16 +134,18 @@ class Grid:
         self.m = wp.zeros(layout.size, dtype=float, **kw)
         self.mv = wp.zeros(layout.size, dtype=wp.vec3, **kw)
         self.gm = wp.zeros(layout.size, dtype=wp.vec3, **kw)
+        self.pm = wp.zeros(layout.size, dtype=wp.vec3, **kw)
         self.vs = wp.zeros(layout.size, dtype=wp.vec3, **kw)
         self.v = wp.zeros(layout.size, dtype=wp.vec3, **kw)
 
     def arrays(self) -> list[wp.array]:
-        return [self.m, self.mv, self.gm, self.vs, self.v]
+        return [self.m, self.mv, self.gm, self.pm, self.vs, self.v]
 
     def clear(self) -> None:
         self.m.zero_()
         self.mv.zero_()
         self.gm.zero_()
+        self.pm.zero_()
 
     def zero_grad(self) -> None:
         for a in self.arrays():
@@ -156,8 +158,9 @@ class ObjectTables:
 
     ``params`` [K] vec5 law parameters, ``rho`` [K] kg/m^3, ``friction`` [K], ``ground_friction``
     [1], ``accel`` [1] body acceleration (gravity + wind, m/s^2), ``drag`` [2] (linear 1/s,
-    quadratic 1/m). The flat torch vector ``theta`` of the autograd function maps onto them in
-    this order.
+    quadratic 1/m), ``damping`` [1] Kelvin-Voigt viscosity of ``material_damping`` (Pa s),
+    ``ground_restitution`` [1] (dimensionless). The flat torch vector ``theta`` of the autograd
+    function maps onto them in this order.
     """
 
     def __init__(self, law_ids: list[int], fields: list[int], device):
@@ -172,6 +175,8 @@ class ObjectTables:
         self.ground_friction = wp.zeros(1, dtype=float, **kw)
         self.accel = wp.zeros(1, dtype=wp.vec3, **kw)
         self.drag = wp.zeros(2, dtype=float, **kw)
+        self.damping = wp.zeros(1, dtype=float, **kw)
+        self.ground_restitution = wp.zeros(1, dtype=float, **kw)
 
     def _parts(self) -> list[tuple[wp.array, int]]:
         k = self.k
@@ -182,11 +187,13 @@ class ObjectTables:
             (self.ground_friction, 1),
             (self.accel, 3),
             (self.drag, 2),
+            (self.damping, 1),
+            (self.ground_restitution, 1),
         ]
 
     @staticmethod
     def theta_size(k: int) -> int:
-        return k * N_SLOTS + 2 * k + 1 + 3 + 2
+        return k * N_SLOTS + 2 * k + 1 + 3 + 2 + 1 + 1
 
     def load(self, theta: torch.Tensor) -> None:
         """Copy the flat float32 parameter vector into the Warp tables."""
