@@ -8,8 +8,8 @@ if [ ! -d /root/site/warp ]; then
   (cd /root/stash && cat warp.part.* > "$(cat warp.name)")
   python3 -m pip install -q --no-index --no-deps --target /root/site /root/stash/*.whl .ti/*.whl
 fi
-export PYTHONPATH=/root/site:$PWD/.tideps:$PWD:$PWD/plugins/mosiv-warp-mpm:$PWD/plugins/mosiv-taichi-mpm:$PWD/plugins/mosiv-gauss:$PWD/plugins/mosiv-lift
-for d in . plugins/mosiv-warp-mpm plugins/mosiv-taichi-mpm plugins/mosiv-gauss plugins/mosiv-lift; do
+export PYTHONPATH=/root/site:$PWD/.tideps:$PWD:$PWD/plugins/mosiv-warp-mpm:$PWD/plugins/mosiv-taichi-mpm:$PWD/plugins/mosiv-gauss:$PWD/plugins/mosiv-lift:$PWD/plugins/mosiv-synth
+for d in . plugins/mosiv-warp-mpm plugins/mosiv-taichi-mpm plugins/mosiv-gauss plugins/mosiv-lift plugins/mosiv-synth; do
   python3 -m pip install -q --no-deps --no-build-isolation --no-index -e "$d" >/dev/null 2>&1 || true
 done
 export PATH=$PATH:/root/.local/bin

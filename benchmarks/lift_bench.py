@@ -56,7 +56,7 @@ def generate(scene_dir: Path) -> None:
 
 
 def lift_and_score(reconstruction, scene, options: dict) -> dict:
-    from mosiv_lift.quality import lift_geometry, min_foreign_distance, rest_state_psnr
+    from mosiv_lift.quality import score_lift
 
     from mosiv_framework.registry import get_registry
 
@@ -68,21 +68,12 @@ def lift_and_score(reconstruction, scene, options: dict) -> dict:
     peak = _peak_rss_gb()
     if torch.cuda.is_available():
         peak = max(peak, torch.cuda.max_memory_allocated() / 2**30)
-    gt = {k: pts[0] for k, pts in scene.gt_points().items()}
-    geometry = lift_geometry(
-        particles, gt, gt_spacing=SPACING, cell=options["cell_size"], origin=scene.domain_lower
-    )
     renderer = registry.create("renderer", "gauss-torch", {"tile_size": 8})
+    score = score_lift(particles, scene, renderer, gt_spacing=SPACING, cell=options["cell_size"])
     return {
         "lift_time_s": seconds,
-        "particles": len(particles),
         "peak_rss_gb": peak,
-        "min_gap_cells": min_foreign_distance(particles) / options["cell_size"],
-        "objects": {
-            str(k): {"volume_error": v["volume_error"], "iou": v["iou"]}
-            for k, v in geometry.items()
-        },
-        "psnr": rest_state_psnr(particles, scene, renderer),
+        **score,
         "report": particles.appearance.report,
     }
 

@@ -2,7 +2,7 @@
 
 Random samples are drawn uniformly in a box around the object's frame-0 Gaussians (the box is
 cut into cells of the shared emission grid, so every cell gets the same expected number of
-samples). A sample is kept when it is consistent with every view:
+samples). A sample is kept when it is consistent with the views:
 - recorded views (the scene's cameras at frame 0): the sample must project onto a pixel that
   the dilated foreground mask covers (its own object, or another object that may hide it), in
   all but ``mask_views_missed`` of the views that see it, and onto its own object's (dilated)
@@ -10,8 +10,11 @@ samples). A sample is kept when it is consistent with every view:
 - virtual views (cameras on a Fibonacci sphere around the object, paper section 3.3 "several
   views"): the object's Gaussians alone are rendered; the sample must fall on a pixel whose
   object alpha reaches ``alpha_threshold`` and must not lie in front of the rendered surface
-  depth ``depth / alpha`` by more than ``depth_tolerance`` (space in front of a visible surface
-  is empty).
+  by more than ``depth_tolerance`` (space in front of a visible surface is empty), in at least
+  the share ``agreement`` of these views (all of them for closed Gaussians; fewer lets the
+  others outvote a view that sees through a gap of a trained reconstruction). The surface is
+  where a set share of the pixel's opacity has accumulated along the ray (see
+  ``depth_consistent``), each Gaussian counted from its half-density front.
 Virtual views see the object from every side, below included, which the recorded cameras on the
 upper hemisphere cannot; the recorded masks guard against Gaussians that float off the object.
 """
@@ -159,6 +162,43 @@ def virtual_cameras(centre: Tensor, radius: float, *, n: int, resolution: int) -
     return cams
 
 
+#: most depth layers one virtual view is split into (bounds the renderer's channels)
+MAX_DEPTH_LAYERS = 64
+#: distance from a Gaussian's centre, in radii (standard deviations), at which its density
+#: falls to half: sqrt(2 ln 2). The rendered silhouette edge of an opaque Gaussian lies there,
+#: so along the ray its opacity is counted from there too, not from its centre.
+HALF_DENSITY_RADII = math.sqrt(2.0 * math.log(2.0))
+
+
+def opacity_in_front(
+    gaussians: GaussianFrames, renderer, camera: Camera, *, layer: float
+) -> tuple[Tensor, Tensor, float, float]:
+    """Opacity accumulated along each pixel's ray in front of a set of depths, in one render.
+
+    The Gaussians are cut into depth layers of ``layer`` m (at most ``MAX_DEPTH_LAYERS``) by
+    the camera depth of their half-density fronts (centre depth minus HALF_DENSITY_RADII
+    radii), and each layer is rendered as its own object channel;
+    front-to-back compositing makes a channel the opacity its layer adds (eq. w_g = T_g a_g),
+    so the cumulative sum over layers is the opacity accumulated in front of each layer edge.
+    Returns alpha [H, W] (total), cumulative [L + 1, H, W] (edge j, 0 at the front edge), the
+    front edge (m) and the layer thickness (m)."""
+    _, z = camera.project(gaussians.means[0].double())
+    z = z - HALF_DENSITY_RADII * gaussians.radii[0].double()
+    reach = 3.0 * float(gaussians.radii[0].max())
+    front, back = float(z.min()) - reach, float(z.max()) + reach
+    n_layers = max(1, min(MAX_DEPTH_LAYERS, math.ceil((back - front) / layer)))
+    thickness = (back - front) / n_layers
+    index = ((z - front) / thickness).floor().long().clamp(0, n_layers - 1)
+    layered = GaussianFrames(
+        gaussians.means, gaussians.radii, gaussians.colors, gaussians.opacities, index + 1
+    )
+    with torch.no_grad():
+        out = renderer.render(layered, camera, frame=0, n_objects=n_layers)
+    layers = out.object_alpha.double()
+    cumulative = torch.cat([torch.zeros_like(layers[:1]), layers.cumsum(dim=0)])
+    return out.alpha.double(), cumulative, front, thickness
+
+
 def depth_consistent(
     samples: Tensor,
     gaussians: GaussianFrames,
@@ -167,20 +207,33 @@ def depth_consistent(
     *,
     alpha_threshold: float,
     depth_tolerance: float,
+    layer: float,
+    surface_fraction: float,
 ) -> Tensor:
-    """[S] bool: samples inside the rendered silhouette and not in front of the rendered
-    surface in every view. ``gaussians`` hold one frame of a single object with id 1."""
-    keep = torch.ones(samples.shape[0], dtype=torch.bool)
+    """[S] int64: in how many of ``cameras`` each sample lies inside the rendered silhouette
+    and not in front of the rendered surface. ``gaussians`` hold one frame of one object.
+
+    The surface is where the accumulated opacity reaches ``surface_fraction`` of the pixel's
+    total (0.5: the median depth). Unlike the alpha-weighted mean depth it does not sink into
+    the object when the Gaussians behind the surface add opacity. A sample is in front of it
+    by more than ``depth_tolerance`` when, at the sample's depth plus that tolerance, less
+    than that share has been accumulated (linear in depth within a layer of ``layer`` m)."""
+    votes = torch.zeros(samples.shape[0], dtype=torch.int64)
     for camera in cameras:
-        with torch.no_grad():
-            out = renderer.render(gaussians, camera, frame=0, n_objects=1)
-        alpha = out.object_alpha[0].double()
-        surface = out.depth.double() / alpha.clamp_min(1e-6)  # expected depth of the surface
+        alpha, cumulative, front, thickness = opacity_in_front(
+            gaussians, renderer, camera, layer=layer
+        )
         row, col, z, inside = _pixel_lookup(camera, samples)
+        n_layers = cumulative.shape[0] - 1
+        t = ((z + depth_tolerance - front) / thickness).clamp(0.0, float(n_layers))
+        j = t.floor().long().clamp(max=n_layers - 1)
+        below = cumulative[j, row, col]
+        above = cumulative[j + 1, row, col]
+        accumulated = below + (t - j) * (above - below)
         covered = alpha[row, col] >= alpha_threshold
-        behind = z >= surface[row, col] - depth_tolerance
-        keep &= inside & covered & behind
-    return keep
+        behind = accumulated >= surface_fraction * alpha[row, col]
+        votes += (inside & covered & behind).long()
+    return votes
 
 
 @dataclass
@@ -204,9 +257,11 @@ def carve_object(
     renderer,
     options,
     generator: torch.Generator,
+    agreement: float = 1.0,
 ) -> CarveResult:
     """Carve one object from its frame-0 Gaussians (means [G, 3] m, radii [G] m, colors [G, 3],
-    opacities [G]) and the recorded masks; ``options`` is a GaussiansLifterOptions."""
+    opacities [G]) and the recorded masks; ``options`` is a GaussiansLifterOptions; a sample
+    must pass the virtual-view test in at least the fraction ``agreement`` of those views."""
     box = object_box(
         means,
         radii,
@@ -236,23 +291,33 @@ def carve_object(
             opacities.float(),
             torch.ones(means.shape[0], dtype=torch.int64),
         )
-        tolerance = (
-            (2.0 / 3.0) * options.cell_size
-            if options.depth_tolerance is None
-            else options.depth_tolerance
+        tolerance = 0.0 if options.depth_tolerance is None else options.depth_tolerance
+        # the surface is crossed half-way through the first layer of Gaussians, which stops
+        # about as much light as one typical Gaussian: half of the median opacity (0.5 for
+        # opaque Gaussians seeded from points; trained Gaussians that fill the volume with
+        # semi-transparent ones reach half the ray's opacity only a layer or more inside)
+        fraction = (
+            0.5 * float(opacities.float().median())
+            if options.surface_fraction is None
+            else options.surface_fraction
         )
         views = virtual_cameras(
             centre, reach, n=options.virtual_views, resolution=options.virtual_resolution
         )
         candidates = torch.nonzero(kept).squeeze(1)  # only test what the masks left
-        ok = depth_consistent(
+        votes = depth_consistent(
             samples[candidates],
             single,
             renderer,
             views,
             alpha_threshold=options.alpha_threshold,
             depth_tolerance=tolerance,
+            layer=0.5 * options.cell_size,
+            surface_fraction=fraction,
         )
+        # a view that sees into the object through a gap of the reconstruction (say its
+        # unobserved underside) is outvoted by the others
+        ok = votes >= math.ceil(agreement * len(views) - 1e-9)
         kept = torch.zeros_like(kept).index_fill(0, candidates[ok], True)
     return CarveResult(box, samples, kept)
 

@@ -20,7 +20,7 @@ from mosiv_lift.bind import GaussianBinding, bind_gaussians
 from mosiv_lift.carve import carve_object, recorded_masks
 from mosiv_lift.density import refine_density
 from mosiv_lift.emit import emit_particles
-from mosiv_lift.options import GaussiansLifterOptions
+from mosiv_lift.options import TRAINED_AGREEMENT, GaussiansLifterOptions
 from mosiv_lift.seed import default_point_radius, gaussians_from_points
 
 
@@ -84,6 +84,9 @@ class GaussiansLifter(Lifter):
             )
         renderer = self._renderer()
         gaussians = self.frame0_gaussians(reconstruction, scene, renderer)
+        agreement = opts.virtual_agreement
+        if agreement is None:
+            agreement = 1.0 if reconstruction.gaussians is None else TRAINED_AGREEMENT
         generator = torch.Generator().manual_seed(opts.seed)
         masks = recorded_masks(scene)
         grids, surfaces, report = {}, {}, {"objects": {}}
@@ -103,6 +106,7 @@ class GaussiansLifter(Lifter):
                 renderer=renderer,
                 options=opts,
                 generator=generator,
+                agreement=agreement,
             )
             if not carved.kept.any():
                 raise ValueError(

@@ -133,3 +133,74 @@ def test_box_type_is_plain_data():
     torch.testing.assert_close(
         box.world_lower, torch.tensor([0.01, 0.02, 0.03], dtype=torch.float64)
     )
+
+
+def _sheet(z: float, opacity: float) -> GaussianFrames:
+    """Gaussians of radius 2 mm every 2 mm over a 10 cm square in the plane at height z (m)."""
+    axis = torch.arange(-0.05, 0.0501, 0.002)
+    x, y = torch.meshgrid(axis, axis, indexing="ij")
+    means = torch.stack([x.reshape(-1), y.reshape(-1), torch.full((x.numel(),), z)], dim=-1)
+    g = means.shape[0]
+    return GaussianFrames(
+        means[None],
+        torch.full((1, g), 0.002),
+        torch.full((g, 3), 0.5),
+        torch.full((g,), opacity),
+        torch.ones(g, dtype=torch.int64),
+    )
+
+
+def test_depth_test_puts_the_surface_at_the_half_density_front_of_the_first_layer():
+    from mosiv_lift.carve import HALF_DENSITY_RADII, depth_consistent
+
+    from mosiv_framework.registry import get_registry
+    from mosiv_framework.scene.cameras import Camera
+
+    renderer = get_registry().create("renderer", "gauss-torch", {"tile_size": 8})
+    camera = Camera.look_at((0, 0, 0.5), (0, 0, 0), (0, 1, 0), width=48, height=48, fov_deg=20)
+    front = 0.002 * HALF_DENSITY_RADII  # m above the sheet's centre plane
+    heights = torch.tensor([0.02, front + 0.002, front - 0.001, 0.0, -0.01])
+    samples = torch.stack([torch.zeros(5), torch.zeros(5), heights], dim=-1).double()
+    opaque = _sheet(0.0, 1.0)
+    votes = depth_consistent(
+        samples,
+        opaque,
+        renderer,
+        [camera],
+        alpha_threshold=0.5,
+        depth_tolerance=0.0,
+        layer=0.0005,
+        surface_fraction=0.5,
+    )
+    assert votes.tolist() == [0, 0, 1, 1, 1]  # free space in front of the surface, solid behind
+    # a tolerance moves the surface towards the camera by that much
+    votes = depth_consistent(
+        samples,
+        opaque,
+        renderer,
+        [camera],
+        alpha_threshold=0.5,
+        depth_tolerance=0.004,
+        layer=0.0005,
+        surface_fraction=0.5,
+    )
+    assert votes.tolist() == [0, 1, 1, 1, 1]
+    # a faint sheet 2 cm above an opaque one: the median surface is the opaque sheet; asking
+    # for half the faint sheet's opacity finds the faint one
+    faint, solid = _sheet(0.0, 0.05), _sheet(-0.02, 1.0)
+    stack = GaussianFrames(
+        torch.cat([faint.means, solid.means], dim=1),
+        torch.cat([faint.radii, solid.radii], dim=1),
+        torch.cat([faint.colors, solid.colors]),
+        torch.cat([faint.opacities, solid.opacities]),
+        torch.cat([faint.object_ids, solid.object_ids]),
+    )
+    faint_alpha = float(renderer.render(faint, camera, frame=0, n_objects=1).alpha[24, 24])
+    assert 0.05 < faint_alpha < 0.5
+    mid = torch.tensor([[0.0, 0.0, -0.01]], dtype=torch.float64)  # between the sheets
+    kwargs = dict(alpha_threshold=0.3, depth_tolerance=0.0, layer=0.0005)
+    median = depth_consistent(mid, stack, renderer, [camera], surface_fraction=0.5, **kwargs)
+    first = depth_consistent(
+        mid, stack, renderer, [camera], surface_fraction=0.5 * faint_alpha, **kwargs
+    )
+    assert median.tolist() == [0] and first.tolist() == [1]
