@@ -305,3 +305,14 @@ def test_suite_resumes_scored_entries_and_rejects_unknown_names(tmp_path):
     assert summary["correct_first_rate"] == 1.0
     with pytest.raises(ConfigError, match="valid"):
         run_suite(tmp_path, small=True, only=["no-such-entry"], say=lambda m: None)
+
+
+def test_null_refit_starts_from_the_identified_state_too():
+    """The null model is refitted from the run's own state as well as from the regression's
+    velocity change, so it can never end worse than the run every candidate starts from."""
+    from mosiv_framework.diagnose.diagnosis import null_starts
+
+    assert [(t.numel(), dv) for t, dv in null_starts(None)] == [(0, None)]
+    change = {1: torch.tensor([0.1, 0.0, 0.0])}
+    starts = null_starts((torch.zeros(3), change))
+    assert starts[0][1] is None and starts[1][1] is change

@@ -37,6 +37,20 @@ def refit_starts(screen_result, count: int) -> list:
     return starts[:count]
 
 
+def null_starts(regression) -> list:
+    """Starts of the null refit: the run's identified state itself, and the initial-velocity
+    change the centroid regression implies (if any).
+
+    Every candidate's starts include the identified state (its probe start keeps the run's
+    velocities), so the null must too: a null begun only from the regression start can end
+    worse than the run it refits, and every candidate would then "win" against it (seen on a
+    control scene of the full suite, where a zero viscosity was accepted)."""
+    starts = [(torch.zeros(0), None)]
+    if regression is not None:
+        starts.append((torch.zeros(0), regression[1]))
+    return starts
+
+
 @dataclass(frozen=True)
 class Budget:
     """How much a diagnosis may compute: candidates refitted, refit iterations and starts,
@@ -146,7 +160,7 @@ def diagnose_run(
             ctx,
             None,
             fit_frames=fit_frames,
-            starts=[(torch.zeros(0), None if null_start is None else null_start[1])],
+            starts=null_starts(null_start),
             options=refit_options,
         )
         fits = [

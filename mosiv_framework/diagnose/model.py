@@ -74,13 +74,11 @@ def refit(
     default: zero and none) begins a fit. The coefficient is
     optimised as theta = scale * u with scale the larger of |start| and the candidate's natural
     step, so one learning rate suits coefficients of any unit. Returns the best start; a start
-    whose rollouts all diverge is skipped. A null model (no candidate) has one start.
+    whose rollouts all diverge is skipped.
     """
     horizon = max(fit_frames)
     if not starts:
         starts = [(torch.zeros(0) if candidate is None else candidate.zero(), None)]
-    if candidate is None:
-        starts = starts[:1]
     best: Fit | None = None
     tried: list[tuple[list[float], float]] = []
     for start, velocity_change in starts:
