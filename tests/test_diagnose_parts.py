@@ -316,3 +316,21 @@ def test_null_refit_starts_from_the_identified_state_too():
     change = {1: torch.tensor([0.1, 0.0, 0.0])}
     starts = null_starts((torch.zeros(3), change))
     assert starts[0][1] is None and starts[1][1] is change
+
+
+def test_accepted_candidates_are_ranked_by_information_criterion():
+    """Two accepted explanations whose held-out drops lie within each other's spread: the one
+    BIC prefers (fewer coefficients for the same fit) ranks first; rejected ones follow."""
+    from mosiv_framework.diagnose.decide import Evidence, rank_evidence
+
+    def ev(name, drop, spread, delta, n_new, accepted=True):
+        return Evidence(name, drop, spread, delta, accepted, accepted, 1.0, n_new)
+
+    ranked = rank_evidence(
+        [
+            ev("rejected", 0.9, 0.01, 5.0, 1, accepted=False),
+            ev("wind", 0.52, 0.2, -3.6, 3),
+            ev("gravity", 0.50, 0.2, -9.0, 1),
+        ]
+    )
+    assert [e.name for e in ranked] == ["gravity", "wind", "rejected"]
