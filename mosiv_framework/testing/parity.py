@@ -19,8 +19,12 @@ from dataclasses import asdict, dataclass, field
 import torch
 
 from mosiv_framework.laws import FAMILIES, get_law
+from mosiv_framework.testing.physics_cases import GRADIENT_SCENE_OVERRIDES
 from mosiv_framework.testing.shapes import combine, default_params, sphere
 from mosiv_framework.types import ParticleSet, World
+
+#: law parameters of the forward scenes that differ from the defaults (see check_forward)
+FORWARD_SCENE_OVERRIDES = GRADIENT_SCENE_OVERRIDES
 
 #: Tolerances of the parity checks, each with why it has that size.
 TOLERANCES = {
@@ -176,7 +180,12 @@ def standard_scenes() -> dict[str, tuple[ParticleSet, dict[int, tuple[float, flo
 def check_forward(sims: dict[str, object], scene: str, frames: int = 10) -> list[CheckResult]:
     """(b) positions (per particle, input order) and per-object centroids after 1 and ``frames``."""
     particles, velocities = standard_scenes()[scene]
-    params = default_params(particles, velocities=velocities)
+    # snow at its default hardening fractures and its rollout is chaotic: the round-off of
+    # float32 atomics, summed in a different order on every run, grows to 1.0-1.6e-3 of the
+    # domain by frame 10 between two runs of the same code, which tests the chaos, not the
+    # code. The well-posed scene of the gradient checks (hardening 2) still yields.
+    overrides = {k: FORWARD_SCENE_OVERRIDES.get(scene, {}) for k in particles.object_list}
+    params = default_params(particles, velocities=velocities, overrides=overrides)
     trajs = {}
     for name, sim in sims.items():
         with torch.no_grad():
