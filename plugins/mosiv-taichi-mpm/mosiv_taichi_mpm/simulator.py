@@ -104,20 +104,9 @@ class TaichiMPMSimulator(Simulator):
             raise ConfigError(f"rollout frames={frames!r} must be an integer >= 1")
         object_ids = particles.object_list
         self._validate(particles, params, object_ids)
-        generation = runtime.ensure(self.device_name)
         dev = self.torch_device
         families = [params.objects[k].family for k in object_ids]
-        present = tuple(sorted({LAW_IDS[f] for f in families}))
-        layout = make_layout(
-            n_particles=len(particles),
-            n_objects=len(object_ids),
-            single_field=self.options.contact == "single_field",
-            grid=self.options.grid,
-            substeps=self.options.substeps,
-            domain_lower=tuple(world.domain_lower),
-            domain_upper=tuple(world.domain_upper),
-        )
-        engine = self._get_engine(layout, present, generation)
+        engine = self.engine_for(len(particles), families, world)
 
         index_of = {k: i for i, k in enumerate(object_ids)}
         obj = particles.object_ids.detach().cpu().numpy()
@@ -160,6 +149,22 @@ class TaichiMPMSimulator(Simulator):
             if eta > 0:  # explicit viscous stability: dt < rho dx^2 / (6 eta)
                 advice += f" or the material_damping viscosity ({eta:g} Pa s)"
         return advice
+
+    def engine_for(self, n_particles: int, families: list[str], world: World) -> Engine:
+        """The compiled engine for ``n_particles`` particles of objects with ``families`` (one
+        per object, in object order) in ``world``'s domain; reused while the layout holds."""
+        generation = runtime.ensure(self.device_name)
+        layout = make_layout(
+            n_particles=n_particles,
+            n_objects=len(families),
+            single_field=self.options.contact == "single_field",
+            grid=self.options.grid,
+            substeps=self.options.substeps,
+            domain_lower=tuple(world.domain_lower),
+            domain_upper=tuple(world.domain_upper),
+        )
+        present = tuple(sorted({LAW_IDS[f] for f in families}))
+        return self._get_engine(layout, present, generation)
 
     def _get_engine(self, layout, present, generation) -> Engine:
         key = (layout, present, generation)
