@@ -334,3 +334,117 @@ def test_accepted_candidates_are_ranked_by_information_criterion():
         ]
     )
     assert [e.name for e in ranked] == ["gravity", "wind", "rejected"]
+
+
+# ------------------------------------------------------------------ plasticity candidate
+def _elastic_pair_params():
+    from mosiv_framework.types import ObjectParams, SimulationParams
+
+    elastic = {"E": torch.tensor(5e4), "nu": torch.tensor(0.25), "rho": torch.tensor(1e3)}
+    elastic["friction"] = torch.tensor(0.3)
+    sand = {**elastic, "friction_angle": torch.tensor(30.0)}
+    return SimulationParams(
+        {1: ObjectParams("elastic", elastic), 2: ObjectParams("sand", sand)},
+        {1: torch.zeros(3), 2: torch.zeros(3)},
+        torch.tensor(0.3),
+        {},
+    )
+
+
+def _plasticity_candidate(k=1):
+    from mosiv_framework.diagnose.candidates import PLASTIC_REGIMES, Candidate
+
+    return Candidate(
+        "plasticity",
+        "plasticity",
+        ["yield_decades_below_bound"],
+        ["decade"],
+        torch.tensor([0.0]),
+        torch.tensor([5.0]),
+        torch.tensor([0.25]),
+        PLASTIC_REGIMES,
+        "test",
+        base={"object": k},
+    )
+
+
+def test_plasticity_candidate_turns_the_elastic_body_into_plasticine_and_back():
+    """theta decades below the plasticine bound set the yield stress; ``without`` restores the
+    elastic body exactly, and the other body is never touched."""
+    from mosiv_framework.laws import get_law
+
+    params = _elastic_pair_params()
+    c = _plasticity_candidate()
+    theta = torch.tensor([2.5], requires_grad=True)
+    plastic = c.apply(params, theta)
+    assert plastic.objects[1].family == "plasticine"
+    bound = get_law("plasticine").param("yield_stress").upper
+    assert float(plastic.objects[1].values["yield_stress"]) == pytest.approx(bound * 10**-2.5)
+    assert float(plastic.objects[1].values["E"]) == 5e4
+    assert plastic.objects[2] is params.objects[2]
+    # differentiable in theta: d yield / d theta = -ln(10) yield
+    plastic.objects[1].values["yield_stress"].backward()
+    assert float(theta.grad) == pytest.approx(-math.log(10) * bound * 10**-2.5, rel=1e-5)
+    back = c.without(plastic, theta.detach())
+    assert back.objects[1].family == "elastic"
+    assert set(back.objects[1].values) == set(params.objects[1].values)
+    assert c.physical(torch.tensor([2.0])) == {"object": 1, "yield_stress": pytest.approx(1e4)}
+    get_law("plasticine").validate(
+        {n: float(v) for n, v in plastic.objects[1].values.items() if n not in ("rho", "friction")}
+    )
+
+
+def test_ladder_screen_picks_the_lowest_rung_and_scores_it():
+    """A candidate with a ladder is probed at each rung (no gradient): the rung with the lowest
+    loss is the predicted coefficient; a ladder that never beats the base predicts nothing."""
+    from mosiv_framework.diagnose.hypothesise import _screen_ladder
+
+    c = _plasticity_candidate()
+
+    class FakeContext:
+        identified = _elastic_pair_params()
+        object_ids = [1, 2]
+
+        def __init__(self, losses):
+            self.losses = losses  # yield stress (Pa) -> loss
+
+        def rollout(self, params, *, frames):
+            return float(params.objects[1].values["yield_stress"])
+
+        def loss(self, yield_stress, frames):
+            return torch.tensor(self.losses(yield_stress))
+
+    # the loss is lowest near 1e4 Pa (theta = 2)
+    ctx = FakeContext(lambda y: 1.0 + (math.log10(y) - 4.0) ** 2)
+    result = _screen_ladder(ctx, c, base=5.0, n=10, fit_frames=[1, 2])
+    assert result.allowed and result.theta.tolist() == [1.75]
+    assert result.drop_fraction == pytest.approx(1 - (1.0 + 0.25**2) / 5.0)
+    assert result.score == pytest.approx(bic_gain(result.drop_fraction, n=10, dim=1))
+    flat = _screen_ladder(FakeContext(lambda y: 6.0), c, base=5.0, n=10, fit_frames=[1, 2])
+    assert flat.drop_fraction == 0.0 and flat.theta.tolist() == [0.0]
+    assert flat.score == -math.inf
+
+
+def test_concealed_plasticity_and_object_friction_specs():
+    from mosiv_framework.conceal import YIELD_STRESS_RANGE, parse_conceal
+    from mosiv_framework.laws import get_law
+
+    spec = get_law("plasticine").param("yield_stress")
+    assert YIELD_STRESS_RANGE == (spec.lower, spec.upper)
+    assert parse_conceal("plasticity")[0].params == {"yield_stress": 3000.0}
+    assert parse_conceal("object_friction:coefficient=0")[0].params == {"coefficient": 0.0}
+    with pytest.raises(ValueError, match="yield_stress"):
+        parse_conceal("plasticity:yield_stress=1")
+    with pytest.raises(ValueError, match=">= 0"):
+        parse_conceal("object_friction:coefficient=-0.1")
+
+
+def test_suite_scores_a_per_object_plasticity_name_as_its_kind():
+    from mosiv_framework.diagnose.suite import candidate_kind, suite_entries
+
+    assert candidate_kind("plasticity@2") == "plasticity"
+    assert candidate_kind("wind") == "wind"
+    entries = {e.name: e for e in suite_entries(small=False)}
+    for name in ("plasticity-0", "plasticity-1"):
+        assert entries[name].materials.split(",").count("elastic") == 1
+    assert entries["object_friction-0"].overrides == ("identify.identify_friction=false",)

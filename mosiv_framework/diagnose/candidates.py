@@ -7,6 +7,15 @@ third-party term is screened exactly like the built-in ones, provided the run's 
 it in ``supported_terms``. A term parameter whose ParamSpec description begins with ``[3]`` is
 a 3-vector (the convention of ``mosiv_framework.terms``); others are scalars.
 
+Plasticity missing from an elastic fit is a candidate per body the run fitted as ``elastic``: it
+turns the body into ``plasticine`` with the same E and nu and a von Mises yield stress
+yield_stress = Y_max 10^(-theta) (theta in decades below the law's upper bound Y_max, which no
+collision of the generator's bodies reaches, so theta = 0 means "does not yield"). Unlike the
+others it is not zero-neutral to the bit (the plasticine law's elasticity is StVK-Hencky, the
+elastic law's neo-Hookean; they agree to first order in the strain) and its loss is flat at
+theta = 0 (nothing yields), so the screening probes it on a ladder instead of by its gradient
+(``ladder``).
+
 Two built-in terms get a narrower parametrisation, because their full form is indistinguishable
 from another candidate: ``gravity`` replaces the declared gravity vector, and a change of its
 direction is exactly a steady ``wind``; so the gravity candidate changes only the magnitude
@@ -21,6 +30,7 @@ import torch
 
 from mosiv_framework.diagnose.context import RunContext
 from mosiv_framework.interfaces import PhysicsTerm
+from mosiv_framework.laws import get_law
 from mosiv_framework.laws.base import OBJECT_PARAMS
 from mosiv_framework.pipeline.params import GROUND_FRICTION
 from mosiv_framework.recipes.terms import param_size
@@ -30,6 +40,11 @@ from mosiv_framework.types import ObjectParams, SimulationParams
 GROUND_REGIMES = frozenset({"ground_contact", "rest"})
 CONTACT_REGIMES = frozenset({"object_contact"})
 FRICTION = next(spec for spec in OBJECT_PARAMS if spec.name == "friction")
+YIELD_STRESS = get_law("plasticine").param("yield_stress")
+#: plasticity acts where bodies are stressed: contacts, landings and resting under weight
+PLASTIC_REGIMES = frozenset({"object_contact", "ground_contact", "rest"})
+#: theta (decades below the bound) at which the screening probes a plasticity candidate
+PLASTICITY_LADDER = (1.0, 1.75, 2.5, 3.25)
 
 
 @dataclass
@@ -41,7 +56,7 @@ class Candidate:
     """
 
     name: str
-    kind: str  # "term", "gravity", "ground_friction" or "object_friction"
+    kind: str  # "term", "gravity", "ground_friction", "object_friction" or "plasticity"
     coefficient_names: list[str]
     units: list[str]
     lower: torch.Tensor
@@ -55,6 +70,11 @@ class Candidate:
     @property
     def dim(self) -> int:
         return len(self.coefficient_names)
+
+    @property
+    def ladder(self) -> tuple[float, ...] | None:
+        """Coefficients to probe instead of a gradient at zero (None: screen by gradient)."""
+        return PLASTICITY_LADDER if self.kind == "plasticity" else None
 
     def zero(self) -> torch.Tensor:
         return torch.zeros(self.dim, dtype=torch.float32)
@@ -81,6 +101,10 @@ class Candidate:
                 k: ObjectParams(p.family, {**p.values, "friction": p.values["friction"] + theta[0]})
                 for k, p in params.objects.items()
             }
+        elif self.kind == "plasticity":
+            k = self.base["object"]
+            values = {**params.objects[k].values, "yield_stress": self.yield_stress(theta)}
+            objects = {**params.objects, k: ObjectParams("plasticine", values)}
         else:
             values, i = {}, 0
             for spec in self.term.params:
@@ -89,6 +113,26 @@ class Candidate:
                 i += size
             terms[self.name] = values
         return SimulationParams(objects, dict(params.initial_velocity), ground, terms)
+
+    def without(self, params: SimulationParams, theta: torch.Tensor) -> SimulationParams:
+        """``params`` (which include this effect at ``theta``) with the effect taken out."""
+        if self.kind in ("term", "gravity"):
+            terms = {k: v for k, v in params.terms.items() if k != self.term.name}
+            return SimulationParams(
+                params.objects, params.initial_velocity, params.ground_friction, terms
+            )
+        if self.kind == "plasticity":
+            k = self.base["object"]
+            values = {n: v for n, v in params.objects[k].values.items() if n != "yield_stress"}
+            objects = {**params.objects, k: ObjectParams("elastic", values)}
+            return SimulationParams(
+                objects, params.initial_velocity, params.ground_friction, params.terms
+            )
+        return self.apply(params, -theta)  # friction candidates shift a coefficient: undo it
+
+    def yield_stress(self, theta: torch.Tensor) -> torch.Tensor:
+        """Von Mises yield stress (Pa) of a plasticity candidate at ``theta`` (decades)."""
+        return YIELD_STRESS.upper * torch.pow(10.0, -theta[0])
 
     def acceleration(self, velocity: torch.Tensor, theta: torch.Tensor) -> torch.Tensor | None:
         """Extra acceleration [N, 3] (m/s^2) at ``velocity`` for body-force candidates."""
@@ -113,7 +157,13 @@ class Candidate:
         if self.kind == "ground_friction":
             return {"ground_friction": float(self.base["ground_friction"] + theta[0])}
         if self.kind == "object_friction":
-            return {"friction_change": float(theta[0])}
+            mus = self.base.get("friction", [])
+            out = {"friction_change": float(theta[0])}
+            if mus and max(mus) == min(mus):  # one assumed coefficient: the new one in full
+                out["coefficient"] = float(mus[0] + theta[0])
+            return out
+        if self.kind == "plasticity":
+            return {"object": self.base["object"], "yield_stress": float(self.yield_stress(theta))}
         out, i = {}, 0
         for spec in self.term.params:
             if _is_vector(spec):
@@ -228,6 +278,36 @@ def build_candidates(ctx: RunContext) -> tuple[list[Candidate], list[str]]:
                     torch.tensor([0.01 * (FRICTION.upper - FRICTION.lower)]),
                     CONTACT_REGIMES,
                     "object-object Coulomb friction other than assumed",
+                    base={"friction": mus},
                 )
             )
+    out += _plasticity_candidates(ctx, skipped)
     return out, skipped
+
+
+def _plasticity_candidates(ctx: RunContext, skipped: list[str]) -> list[Candidate]:
+    """One candidate per body the run fitted as elastic (named ``plasticity`` when there is
+    one such body, ``plasticity@K`` for body K when there are several)."""
+    supported = set(getattr(ctx.simulator, "supported_laws", ()))
+    elastic = sorted(k for k, p in ctx.identified.objects.items() if p.family == "elastic")
+    if not elastic:
+        return []
+    if "plasticine" not in supported:
+        skipped.append(f"plasticity: simulator {ctx.simulator_name!r} has no plasticine law")
+        return []
+    decades = float(torch.log10(torch.tensor(YIELD_STRESS.upper / YIELD_STRESS.lower)))
+    return [
+        Candidate(
+            "plasticity" if len(elastic) == 1 else f"plasticity@{k}",
+            "plasticity",
+            ["yield_decades_below_bound"],
+            ["decade"],
+            torch.tensor([0.0]),
+            torch.tensor([decades]),
+            torch.tensor([0.25]),
+            PLASTIC_REGIMES,
+            f"object {k} yields plastically (von Mises) though fitted as elastic",
+            base={"object": k},
+        )
+        for k in elastic
+    ]

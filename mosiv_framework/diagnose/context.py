@@ -8,7 +8,7 @@ the scene's ground truth (``gt/``), which only the suite's scoring may use.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -62,13 +62,27 @@ class RunContext:
     def fps(self) -> float:
         return self.scene.fps
 
+    def simulate(self, params: SimulationParams, *, frames: int) -> Trajectory:
+        """A differentiable rollout of ``params`` over ``frames`` frames.
+
+        The particles take each object's family from ``params``, so a candidate may change a
+        family (an elastic body that yields becomes plasticine)."""
+        return self.simulator.rollout(
+            self.particles_for(params), params, world=self.world, frames=frames
+        )
+
     def rollout(self, params: SimulationParams, *, frames: int | None = None) -> Trajectory:
         """A rollout of ``params`` (no gradient) over ``frames`` frames (default: all)."""
         frames = self.n_frames - 1 if frames is None else frames
         with torch.no_grad():
-            return self.simulator.rollout(
-                self.particles, params.detached(), world=self.world, frames=frames
-            )
+            return self.simulate(params.detached(), frames=frames)
+
+    def particles_for(self, params: SimulationParams) -> ParticleSet:
+        """The run's particles labelled with the families ``params`` simulate them as."""
+        families = {k: p.family for k, p in params.objects.items()}
+        if families == self.particles.materials:
+            return self.particles
+        return replace(self.particles, materials=families)
 
     def identified_rollout(self) -> Trajectory:
         """The run's own prediction over all frames (computed once)."""

@@ -10,6 +10,9 @@ Screening is first order plus one probe, through the differentiable simulator:
    n log(L0 / (L0 - drop)) - dim log n, with n the frame-object residual count, so a
    three-coefficient term must explain more than a one-coefficient term to rank above it.
 A candidate is allowed only if it acts in a regime the location flagged (``PhysicsTerm.regimes``).
+Candidates whose loss is flat at zero (plasticity: nothing yields at an unreachable yield
+stress) have no useful gradient there; they are probed on their ``ladder`` of coefficients
+instead, and the best rung gives the predicted drop and the refit's start.
 
 For body-force candidates a second, simulator-free estimate of the coefficient comes from the
 centroid paths: in free flight an extra acceleration a(v; theta) shifts an object's centroid by
@@ -141,6 +144,31 @@ def _max_step(candidate: Candidate, direction: torch.Tensor) -> float:
     return limit
 
 
+def _screen_ladder(
+    ctx: RunContext, c: Candidate, base: float, *, n: int, fit_frames: list[int]
+) -> Screen:
+    """Probe ``c`` at each rung of its ladder; the lowest loss is the predicted best."""
+    best_theta, best_loss, losses = c.zero(), base, []
+    for rung in c.ladder:
+        theta = c.clamp(torch.full((c.dim,), float(rung)))
+        try:
+            loss = float(
+                ctx.loss(
+                    ctx.rollout(c.apply(ctx.identified, theta), frames=max(fit_frames)), fit_frames
+                )
+            )
+        except SimulationDiverged:
+            loss = math.inf
+        losses.append(loss)
+        if loss < best_loss:
+            best_theta, best_loss = theta, loss
+    fraction = max(0.0, (base - best_loss) / base) if base > 0 else 0.0
+    note = "ladder " + ", ".join(f"{r:g}: {loss:.3g}" for r, loss in zip(c.ladder, losses))
+    if fraction == 0.0:
+        return Screen(c, True, [], c.zero(), 0.0, -math.inf, note + " (no rung lowers the loss)")
+    return Screen(c, True, [], best_theta, fraction, bic_gain(fraction, n=n, dim=c.dim), note)
+
+
 def screen(
     ctx: RunContext,
     candidates: list[Candidate],
@@ -160,15 +188,18 @@ def screen(
     if not allowed:
         return out
     horizon = max(fit_frames)
+    n = len(fit_frames) * len(ctx.object_ids)
+    laddered = [c for c in allowed if c.ladder is not None]
+    allowed = [c for c in allowed if c.ladder is None]
     thetas = [c.zero().requires_grad_(True) for c in allowed]
     params = ctx.identified.detached()
     for c, theta in zip(allowed, thetas):
         params = c.apply(params, theta)
-    traj = ctx.simulator.rollout(ctx.particles, params, world=ctx.world, frames=horizon)
-    loss0 = ctx.loss(traj, fit_frames)
-    loss0.backward()
+    loss0 = ctx.loss(ctx.simulate(params, frames=horizon), fit_frames)
+    if allowed:
+        loss0.backward()
     base = float(loss0.detach())
-    n = len(fit_frames) * len(ctx.object_ids)
+    out += [_screen_ladder(ctx, c, base, n=n, fit_frames=fit_frames) for c in laddered]
     for c, theta in zip(allowed, thetas):
         g = theta.grad.detach().clone()
         # descent direction preconditioned by each coefficient's natural size, then one

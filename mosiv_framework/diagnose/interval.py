@@ -212,12 +212,4 @@ def linearised_bootstrap(
 def _without(fit: Fit) -> SimulationParams:
     """The fit's parameters with the candidate's effect taken out again (it is re-applied
     at probed coefficients)."""
-    params = fit.params
-    candidate = fit.candidate
-    if candidate.kind in ("term", "gravity"):
-        terms = {k: v for k, v in params.terms.items() if k != candidate.term.name}
-        return SimulationParams(
-            params.objects, params.initial_velocity, params.ground_friction, terms
-        )
-    # friction candidates shift a coefficient: undo the shift
-    return candidate.apply(params, -fit.theta)
+    return fit.candidate.without(fit.params, fit.theta)

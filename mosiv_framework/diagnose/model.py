@@ -107,7 +107,7 @@ def refit(
             optimizer.zero_grad()
             params = _assemble(vector, candidate, u, scale)
             try:
-                traj = ctx.simulator.rollout(ctx.particles, params, world=ctx.world, frames=horizon)
+                traj = ctx.simulate(params, frames=horizon)
             except SimulationDiverged:
                 break
             loss = ctx.loss(traj, fit_frames)

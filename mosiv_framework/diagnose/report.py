@@ -70,6 +70,14 @@ def recipe_change(fit, run_terms: dict | None = None) -> str:
         snippet = {"identify": {"identify_ground_friction": True}}
     elif c.kind == "object_friction":
         snippet = {"identify": {"identify_friction": True}}
+    elif c.kind == "plasticity":
+        # a family is declared by the scene, not the recipe: say which declaration to change
+        value = c.physical(fit.theta)
+        k = value["object"]
+        return (
+            f"# in the scene's scene.json, declare object {k} as material: plasticine; the next "
+            f"run identifies its yield_stress (this fit: {_rounded(value['yield_stress'])} Pa)\n"
+        )
     else:
         section = {}
         for name, entry in (run_terms or {}).items():

@@ -101,6 +101,10 @@ def plan_scene(opts: SynthOptions) -> ScenePlan:
         clouds.append(points - points.mean(axis=0))
         params.append(sample_params(family, rng))
     effects = parse_conceal(opts.conceal)
+    for effect in effects:
+        if effect.kind == "object_friction":  # the truth, so gt/params.json records it
+            for p in params:
+                p["friction"] = float(effect.params["coefficient"])
     frame = opts.collision_frame or _auto_collision_frame(opts, rng)
     layout = plan_collision(
         clouds,
@@ -151,7 +155,7 @@ def simulate(plan: ScenePlan, opts: SynthOptions) -> np.ndarray:
     from mosiv_framework.registry import get_registry
 
     sim = get_registry().create("simulator", opts.simulator, dict(opts.simulator_options))
-    unsupported = sorted(set(plan.materials) - set(sim.supported_laws))
+    unsupported = sorted(set(simulated_materials(plan)[0]) - set(sim.supported_laws))
     if unsupported:
         raise ConfigError(
             f"simulator {opts.simulator!r} does not implement material(s) {unsupported}; "
@@ -161,7 +165,7 @@ def simulate(plan: ScenePlan, opts: SynthOptions) -> np.ndarray:
     terms: dict[str, dict[str, torch.Tensor]] = {}
     for effect in plan.effects:
         if effect.kind not in TERM_KINDS:
-            continue  # ground_friction acts through SimulationParams.ground_friction
+            continue  # friction and plasticity act through SimulationParams (see below)
         if effect.kind == "gravity" and "gravity" not in sim.supported_terms:
             # replacing the world's gravity is the same physics for a backend without the term
             world = dataclasses.replace(world, gravity=effect.params["acceleration"])
@@ -185,20 +189,35 @@ def simulate(plan: ScenePlan, opts: SynthOptions) -> np.ndarray:
     return traj.positions.detach().cpu().numpy().astype(np.float32)
 
 
+def simulated_materials(plan: ScenePlan) -> tuple[list[str], list[dict[str, float]]]:
+    """Family and parameters each object is simulated with: the declared ones, except that a
+    concealed ``plasticity`` turns every declared elastic body into plasticine (same E, nu)
+    yielding at the concealed stress."""
+    plastic = next((e for e in plan.effects if e.kind == "plasticity"), None)
+    families, values = [], []
+    for fam, p in zip(plan.materials, plan.params):
+        if plastic is not None and fam == "elastic":
+            fam, p = "plasticine", {**p, "yield_stress": float(plastic.params["yield_stress"])}
+        families.append(fam)
+        values.append(dict(p))
+    return families, values
+
+
 def _simulation_inputs(
     plan: ScenePlan, spacing: float, terms
 ) -> tuple[ParticleSet, SimulationParams]:
     ids = np.concatenate([np.full(len(p), k) for k, p in enumerate(plan.particles, start=1)])
     positions = torch.tensor(np.concatenate(plan.particles), dtype=torch.float32)
+    families, values = simulated_materials(plan)
     particles = ParticleSet(
         positions,
         torch.full((len(ids),), spacing**3, dtype=torch.float32),
         torch.tensor(ids, dtype=torch.long),
-        {k: m for k, m in enumerate(plan.materials, start=1)},
+        {k: m for k, m in enumerate(families, start=1)},
     )
     objects = {
         k: ObjectParams(fam, {n: torch.tensor(v, dtype=torch.float32) for n, v in p.items()})
-        for k, (fam, p) in enumerate(zip(plan.materials, plan.params), start=1)
+        for k, (fam, p) in enumerate(zip(families, values), start=1)
     }
     velocity = {
         k: torch.tensor(v, dtype=torch.float32)
