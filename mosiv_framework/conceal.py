@@ -148,7 +148,10 @@ def _check_range(kind: str, params: dict[str, Any]) -> None:
             raise ValueError(f"{kind}.{name}={params[name]} must be >= 0")
     if kind == "ground_restitution" and params["coefficient"] > 1:
         raise ValueError(f"{kind}.coefficient={params['coefficient']} must be <= 1")
-    if kind == "plasticity" and not YIELD_STRESS_RANGE[0] <= params["yield_stress"] <= YIELD_STRESS_RANGE[1]:
+    if (
+        kind == "plasticity"
+        and not YIELD_STRESS_RANGE[0] <= params["yield_stress"] <= YIELD_STRESS_RANGE[1]
+    ):
         raise ValueError(
             f"{kind}.yield_stress={params['yield_stress']} Pa must lie in "
             f"[{YIELD_STRESS_RANGE[0]:g}, {YIELD_STRESS_RANGE[1]:g}] (the plasticine law's bounds)"

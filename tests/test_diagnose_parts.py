@@ -91,6 +91,28 @@ def test_label_regimes_on_a_scripted_motion():
     assert labels[2] == ["free_flight", "free_flight", "object_contact"] + ["free_flight"] * 3
 
 
+def test_label_regimes_sees_an_impact_that_happened_between_frames():
+    """Two bodies approach (10 cm gap closing by 20 cm per frame), meet and bounce apart between
+    frames 1 and 2, and are never within the contact distance on a frame: frame 2, the first
+    that shows the impact's effect, is labelled object contact; the others are flight."""
+    frames = [
+        _two_blocks(0.3, 0.3, 0.00, 0.30),
+        _two_blocks(0.3, 0.3, 0.10, 0.20),
+        _two_blocks(0.3, 0.3, 0.05, 0.25),
+        _two_blocks(0.3, 0.3, 0.00, 0.30),
+    ]
+    labels = label_regimes(
+        torch.stack(frames),
+        torch.tensor([1] * 8 + [2] * 8),
+        fps=10.0,
+        ground_height=0.0,
+        contact_distance=0.008,
+        rest_speed=0.05,
+    )
+    expected = ["free_flight", "free_flight", "object_contact", "free_flight"]
+    assert labels[1] == expected and labels[2] == expected
+
+
 def test_label_regimes_without_ground_never_reports_ground_contact():
     positions = torch.stack([_two_blocks(-1.0, 0.3, 0.0, 0.5)] * 3)
     ids = torch.tensor([1] * 8 + [2] * 8)

@@ -49,9 +49,12 @@ def label_regimes(
     """Object id -> one regime per frame from simulated positions [T, N, 3] (m).
 
     ground_contact: the object's lowest particle is within ``contact_distance`` of the ground;
-    object_contact: a particle of another object lies within ``contact_distance``; rest: ground
-    contact and a centroid speed (central difference) below ``rest_speed`` (m/s); otherwise
-    free flight. Ground takes precedence over object contact (a resting stack is on the table).
+    object_contact: a particle of another object lies within ``contact_distance``, or the two
+    bodies met unseen since the previous frame: apart there, but by less than the distance their
+    centroids had closed over the interval before it (a 1-2 m/s impact of soft bodies can begin
+    and end between two frames, and its effect first shows on the frame after it); rest: ground contact and a
+    centroid speed (central difference) below ``rest_speed`` (m/s); otherwise free flight.
+    Ground takes precedence over object contact (a resting stack is on the table).
     """
     pos = positions.detach().cpu().double().numpy()
     ids = object_ids.cpu().numpy()
@@ -60,19 +63,31 @@ def label_regimes(
     n_frames = pos.shape[0]
     centroids = {k: pos[:, ids == k].mean(axis=1) for k in objects}
     labels: dict[int, list[str]] = {k: [] for k in objects}
+
+    gaps = []  # per frame: [k, j] smallest particle distance between objects k and j (m)
     for t in range(n_frames):
         trees = {k: cKDTree(pos[t, ids == k]) for k in objects}
+        gap = {}
+        for k in objects:
+            for j in objects:
+                if j != k:
+                    gap[k, j] = float(trees[j].query(pos[t, ids == k], k=1)[0].min())
+        gaps.append(gap)
+
+    def met_unseen(k: int, j: int, t: int) -> bool:
+        if t < 2 or gaps[t - 1][k, j] < contact_distance:
+            return False  # seen in contact at t - 1 (or too early to tell)
+        d = [float(np.linalg.norm(centroids[k][s] - centroids[j][s])) for s in (t - 2, t - 1)]
+        return gaps[t - 1][k, j] < contact_distance + max(0.0, d[0] - d[1])
+
+    for t in range(n_frames):
         for k in objects:
             pts = pos[t, ids == k]
             on_ground = False
             if ground_height is not None:
                 on_ground = float((pts @ up_v).min() - ground_height) < contact_distance
             touching = any(
-                np.isfinite(
-                    trees[j].query(pts, k=1, distance_upper_bound=contact_distance)[0]
-                ).any()
-                for j in objects
-                if j != k
+                gaps[t][k, j] < contact_distance or met_unseen(k, j, t) for j in objects if j != k
             )
             lo, hi = max(0, t - 1), min(n_frames - 1, t + 1)
             speed = np.linalg.norm(centroids[k][hi] - centroids[k][lo]) * fps / max(1, hi - lo)
@@ -368,9 +383,12 @@ def locate(
     snr = {k: per_object[str(k)]["signal_to_noise"] for k in residuals}
     flagged = max(snr, key=snr.get)
     significant = snr[flagged] > SIGNIFICANCE
+    # an effect acts in the interval before the frame where its residual first shows, so the
+    # regime of the frame before an onset counts too (an impact's friction or dent shows on the
+    # frames after it, when the bodies fly apart)
     flagged_regimes = sorted(
-        {r for k in residuals if snr[k] > SIGNIFICANCE for r in regimes[k][onsets[k] :]}
-    ) or sorted(set(regimes[flagged][onsets[flagged] :]))
+        {r for k in residuals if snr[k] > SIGNIFICANCE for r in regimes[k][max(onsets[k] - 1, 0) :]}
+    ) or sorted(set(regimes[flagged][max(onsets[flagged] - 1, 0) :]))
     silhouettes = silhouette_residuals(ctx, traj, frames)
     summary = {
         "frames": frames,
