@@ -374,7 +374,7 @@ def _elastic_pair_params():
 
 
 def _plasticity_candidate(k=1):
-    from mosiv_framework.diagnose.candidates import PLASTIC_REGIMES, Candidate
+    from mosiv_framework.diagnose.candidates import PLASTIC_REGIMES, PLASTICITY_LADDER, Candidate
 
     return Candidate(
         "plasticity",
@@ -387,6 +387,7 @@ def _plasticity_candidate(k=1):
         PLASTIC_REGIMES,
         "test",
         base={"object": k},
+        ladder=PLASTICITY_LADDER,
     )
 
 

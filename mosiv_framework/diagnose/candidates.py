@@ -66,15 +66,13 @@ class Candidate:
     description: str
     term: PhysicsTerm | None = None
     base: dict = field(default_factory=dict)
+    #: coefficients the screen probes instead of taking a gradient at zero, for effects whose
+    #: loss is flat there (None: screen by gradient)
+    ladder: tuple[float, ...] | None = None
 
     @property
     def dim(self) -> int:
         return len(self.coefficient_names)
-
-    @property
-    def ladder(self) -> tuple[float, ...] | None:
-        """Coefficients to probe instead of a gradient at zero (None: screen by gradient)."""
-        return PLASTICITY_LADDER if self.kind == "plasticity" else None
 
     def zero(self) -> torch.Tensor:
         return torch.zeros(self.dim, dtype=torch.float32)
@@ -308,6 +306,7 @@ def _plasticity_candidates(ctx: RunContext, skipped: list[str]) -> list[Candidat
             PLASTIC_REGIMES,
             f"object {k} yields plastically (von Mises) though fitted as elastic",
             base={"object": k},
+            ladder=PLASTICITY_LADDER,
         )
         for k in elastic
     ]

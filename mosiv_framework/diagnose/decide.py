@@ -10,9 +10,10 @@ Two tests, both required:
   excess error is the Chamfer above frame 0's, which no dynamics can remove). The margin of 2 is
   Kass and Raftery's (1995) "positive evidence" (2 log Bayes factor > 2): a BIC merely below the
   null's is "not worth more than a bare mention", and accepting on it let a control scene's
-  imperfect identification pass as linear drag (delta BIC -0.45, full suite, session 4). n counts independent observations: the
-  errors of consecutive frames of a smooth path are correlated, so n is the number of
-  (object, time block) units, the same units the bootstrap resamples, not of frames.
+  imperfect identification pass as linear drag (delta BIC -0.45, full suite, session 4).
+  n counts independent observations: the errors of consecutive frames of a smooth path are
+  correlated, so n is the number of (object, time block) units, the same units the bootstrap
+  resamples, not of frames.
 Verdicts: "missing physics" (a candidate passed both), "unexplained" (the residual is above the
 noise floor but no candidate passed), "no missing physics" (the residual is at noise level).
 """

@@ -190,17 +190,18 @@ def screen(
     horizon = max(fit_frames)
     n = len(fit_frames) * len(ctx.object_ids)
     laddered = [c for c in allowed if c.ladder is not None]
-    allowed = [c for c in allowed if c.ladder is None]
-    thetas = [c.zero().requires_grad_(True) for c in allowed]
+    by_gradient = [c for c in allowed if c.ladder is None]
+    thetas = [c.zero().requires_grad_(True) for c in by_gradient]
     params = ctx.identified.detached()
-    for c, theta in zip(allowed, thetas):
+    for c, theta in zip(by_gradient, thetas):
         params = c.apply(params, theta)
-    loss0 = ctx.loss(ctx.simulate(params, frames=horizon), fit_frames)
-    if allowed:
+    with torch.set_grad_enabled(bool(by_gradient)):
+        loss0 = ctx.loss(ctx.simulate(params, frames=horizon), fit_frames)
+    if by_gradient:
         loss0.backward()
     base = float(loss0.detach())
     out += [_screen_ladder(ctx, c, base, n=n, fit_frames=fit_frames) for c in laddered]
-    for c, theta in zip(allowed, thetas):
+    for c, theta in zip(by_gradient, thetas):
         g = theta.grad.detach().clone()
         # descent direction preconditioned by each coefficient's natural size, then one
         # natural step long

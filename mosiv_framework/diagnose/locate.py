@@ -52,9 +52,9 @@ def label_regimes(
     object_contact: a particle of another object lies within ``contact_distance``, or the two
     bodies met unseen since the previous frame: apart there, but by less than the distance their
     centroids had closed over the interval before it (a 1-2 m/s impact of soft bodies can begin
-    and end between two frames, and its effect first shows on the frame after it); rest: ground contact and a
-    centroid speed (central difference) below ``rest_speed`` (m/s); otherwise free flight.
-    Ground takes precedence over object contact (a resting stack is on the table).
+    and end between two frames, and its effect first shows on the frame after it); rest: ground
+    contact and a centroid speed (central difference) below ``rest_speed`` (m/s); otherwise free
+    flight. Ground takes precedence over object contact (a resting stack is on the table).
     """
     pos = positions.detach().cpu().double().numpy()
     ids = object_ids.cpu().numpy()
