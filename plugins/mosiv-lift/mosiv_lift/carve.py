@@ -14,7 +14,11 @@ samples). A sample is kept when it is consistent with the views:
   the share ``agreement`` of these views (all of them for closed Gaussians; fewer lets the
   others outvote a view that sees through a gap of a trained reconstruction). The surface is
   where a set share of the pixel's opacity has accumulated along the ray (see
-  ``depth_consistent``), each Gaussian counted from its half-density front.
+  ``depth_consistent``), each Gaussian counted from its half-density front. Trained Gaussians
+  are rendered widened (``widened_radii``): fitted to low-resolution images whose pixels are
+  sampled at their centres, they are small and sparse, and between the training rays they
+  leave gaps that the virtual views see through (the ray then meets the surface too deep, or
+  not at all, and interior samples are voted out, thin parts first).
 Virtual views see the object from every side, below included, which the recorded cameras on the
 upper hemisphere cannot; the recorded masks guard against Gaussians that float off the object.
 """
@@ -170,20 +174,34 @@ MAX_DEPTH_LAYERS = 64
 HALF_DENSITY_RADII = math.sqrt(2.0 * math.log(2.0))
 
 
+def widened_radii(radii: Tensor, widen: float) -> Tensor:
+    """Radii (m) of Gaussians blurred by an isotropic Gaussian of standard deviation ``widen``
+    (m): variances add under convolution, r' = sqrt(r^2 + widen^2)."""
+    return torch.sqrt(radii.double() ** 2 + widen**2).to(radii.dtype)
+
+
 def opacity_in_front(
-    gaussians: GaussianFrames, renderer, camera: Camera, *, layer: float
+    gaussians: GaussianFrames,
+    renderer,
+    camera: Camera,
+    *,
+    layer: float,
+    front_radii: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, float, float]:
     """Opacity accumulated along each pixel's ray in front of a set of depths, in one render.
 
     The Gaussians are cut into depth layers of ``layer`` m (at most ``MAX_DEPTH_LAYERS``) by
     the camera depth of their half-density fronts (centre depth minus HALF_DENSITY_RADII
-    radii), and each layer is rendered as its own object channel;
+    radii; ``front_radii`` [G] m when the rendered radii are widened, so the widening blurs
+    the silhouette but does not move the surface outwards), and each layer is rendered as its
+    own object channel;
     front-to-back compositing makes a channel the opacity its layer adds (eq. w_g = T_g a_g),
     so the cumulative sum over layers is the opacity accumulated in front of each layer edge.
     Returns alpha [H, W] (total), cumulative [L + 1, H, W] (edge j, 0 at the front edge), the
     front edge (m) and the layer thickness (m)."""
     _, z = camera.project(gaussians.means[0].double())
-    z = z - HALF_DENSITY_RADII * gaussians.radii[0].double()
+    own = gaussians.radii[0] if front_radii is None else front_radii
+    z = z - HALF_DENSITY_RADII * own.double()
     reach = 3.0 * float(gaussians.radii[0].max())
     front, back = float(z.min()) - reach, float(z.max()) + reach
     n_layers = max(1, min(MAX_DEPTH_LAYERS, math.ceil((back - front) / layer)))
@@ -209,6 +227,7 @@ def depth_consistent(
     depth_tolerance: float,
     layer: float,
     surface_fraction: float,
+    front_radii: Tensor | None = None,
 ) -> Tensor:
     """[S] int64: in how many of ``cameras`` each sample lies inside the rendered silhouette
     and not in front of the rendered surface. ``gaussians`` hold one frame of one object.
@@ -217,11 +236,12 @@ def depth_consistent(
     total (0.5: the median depth). Unlike the alpha-weighted mean depth it does not sink into
     the object when the Gaussians behind the surface add opacity. A sample is in front of it
     by more than ``depth_tolerance`` when, at the sample's depth plus that tolerance, less
-    than that share has been accumulated (linear in depth within a layer of ``layer`` m)."""
+    than that share has been accumulated (linear in depth within a layer of ``layer`` m).
+    ``front_radii``: see ``opacity_in_front``."""
     votes = torch.zeros(samples.shape[0], dtype=torch.int64)
     for camera in cameras:
         alpha, cumulative, front, thickness = opacity_in_front(
-            gaussians, renderer, camera, layer=layer
+            gaussians, renderer, camera, layer=layer, front_radii=front_radii
         )
         row, col, z, inside = _pixel_lookup(camera, samples)
         n_layers = cumulative.shape[0] - 1
@@ -258,10 +278,12 @@ def carve_object(
     options,
     generator: torch.Generator,
     agreement: float = 1.0,
+    widen: float = 0.0,
 ) -> CarveResult:
     """Carve one object from its frame-0 Gaussians (means [G, 3] m, radii [G] m, colors [G, 3],
     opacities [G]) and the recorded masks; ``options`` is a GaussiansLifterOptions; a sample
-    must pass the virtual-view test in at least the fraction ``agreement`` of those views."""
+    must pass the virtual-view test in at least the fraction ``agreement`` of those views, in
+    which the Gaussians are rendered with radii widened by ``widen`` m (``widened_radii``)."""
     box = object_box(
         means,
         radii,
@@ -282,11 +304,12 @@ def carve_object(
         views_missed=options.mask_views_missed,
     )
     if options.virtual_views:
+        drawn = widened_radii(radii.float(), widen) if widen > 0 else radii.float()
         centre = 0.5 * (means.min(dim=0).values + means.max(dim=0).values)
-        reach = float((means - centre).norm(dim=1).max()) + 3.0 * float(radii.max())
+        reach = float((means - centre).norm(dim=1).max()) + 3.0 * float(drawn.max())
         single = GaussianFrames(
             means[None].float(),
-            radii[None].float(),
+            drawn[None],
             colors.float(),
             opacities.float(),
             torch.ones(means.shape[0], dtype=torch.int64),
@@ -314,6 +337,7 @@ def carve_object(
             depth_tolerance=tolerance,
             layer=0.5 * options.cell_size,
             surface_fraction=fraction,
+            front_radii=radii.float() if widen > 0 else None,
         )
         # a view that sees into the object through a gap of the reconstruction (say its
         # unobserved underside) is outvoted by the others

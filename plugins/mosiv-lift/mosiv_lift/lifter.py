@@ -95,6 +95,10 @@ class GaussiansLifter(Lifter):
             if not mine.any():
                 raise ValueError(f"the reconstruction has no Gaussians of object {k}")
             means = gaussians.means[0][mine]
+            widen = opts.widen_radius
+            if widen is None:  # close the gaps between trained Gaussians (options.py)
+                trained = reconstruction.gaussians is not None
+                widen = default_point_radius({k: means}) if trained and len(means) > 1 else 0.0
             carved = carve_object(
                 means,
                 gaussians.radii[0][mine],
@@ -107,6 +111,7 @@ class GaussiansLifter(Lifter):
                 options=opts,
                 generator=generator,
                 agreement=agreement,
+                widen=widen,
             )
             if not carved.kept.any():
                 raise ValueError(
@@ -126,6 +131,7 @@ class GaussiansLifter(Lifter):
                 "samples": int(carved.samples.shape[0]),
                 "kept": int(carved.kept.sum()),
                 "cells": int(grids[k].occupied.sum()),
+                "widen_radius": float(widen),
             }
         emission = emit_particles(
             grids,

@@ -204,3 +204,68 @@ def test_depth_test_puts_the_surface_at_the_half_density_front_of_the_first_laye
         mid, stack, renderer, [camera], surface_fraction=0.5 * faint_alpha, **kwargs
     )
     assert median.tolist() == [0] and first.tolist() == [1]
+
+
+def test_widened_trained_gaussians_close_their_gaps_without_moving_the_surface():
+    # a trained-like sheet: tiny Gaussians (0.3 mm) every 4 mm, far sparser than the ~3.6 mm
+    # pixels of the view, so most pixel rays pass between them and the solid behind the sheet
+    # is voted out; widened by half their spacing they overlap into a closed sheet
+    from mosiv_lift.carve import depth_consistent, widened_radii
+    from mosiv_lift.seed import default_point_radius
+
+    from mosiv_framework.registry import get_registry
+    from mosiv_framework.scene.cameras import Camera
+
+    renderer = get_registry().create("renderer", "gauss-torch", {"tile_size": 8})
+    camera = Camera.look_at((0, 0, 0.5), (0, 0, 0), (0, 1, 0), width=48, height=48, fov_deg=20)
+    axis = torch.arange(-0.04, 0.0401, 0.004)
+    x, y = torch.meshgrid(axis, axis, indexing="ij")
+    means = torch.stack([x.reshape(-1), y.reshape(-1), torch.zeros(x.numel())], dim=-1)
+    g = means.shape[0]
+    radii = torch.full((g,), 0.0003)
+    widen = default_point_radius({1: means})
+    assert abs(widen - 0.002) < 1e-6  # half the 4 mm spacing
+    torch.testing.assert_close(
+        widened_radii(radii, widen), torch.full((g,), math.hypot(3e-4, widen))
+    )
+
+    def sheet(r):
+        return GaussianFrames(
+            means[None],
+            r[None],
+            torch.full((g, 3), 0.5),
+            torch.ones(g),
+            torch.ones(g, dtype=torch.int64),
+        )
+
+    grid = torch.linspace(-0.02, 0.02, 9)
+    gx, gy = torch.meshgrid(grid, grid, indexing="ij")
+    plane = torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=-1).double()
+
+    def at(z):
+        return torch.cat([plane, torch.full((plane.shape[0], 1), z, dtype=torch.float64)], 1)
+
+    kwargs = dict(alpha_threshold=0.5, depth_tolerance=0.0, layer=0.0005, surface_fraction=0.5)
+    behind = at(-0.003)  # 3 mm inside the solid below the sheet
+    sparse = depth_consistent(behind, sheet(radii), renderer, [camera], **kwargs)
+    closed = depth_consistent(
+        behind, sheet(widened_radii(radii, widen)), renderer, [camera], front_radii=radii, **kwargs
+    )
+    assert float(sparse.double().mean()) < 0.5  # the gaps vote most of the interior out
+    assert bool((closed == 1).all())
+    # the widening blurs but does not move the surface: 1.5 mm in front of it is still free
+    in_front = at(0.0015)
+    votes = depth_consistent(
+        in_front,
+        sheet(widened_radii(radii, widen)),
+        renderer,
+        [camera],
+        front_radii=radii,
+        **kwargs,
+    )
+    assert bool((votes == 0).all())
+    # counted from the widened radius instead, the front would move out by 1.18 * 2 mm
+    moved = depth_consistent(
+        in_front, sheet(widened_radii(radii, widen)), renderer, [camera], **kwargs
+    )
+    assert bool((moved == 1).all())
