@@ -166,8 +166,8 @@ def identify_stage(recipe, scene, particles, reconstruction, simulator, sim_opti
     plain = OmegaConf.to_container(recipe, resolve=True)
     objective = build_objective(plain["losses"], get_registry())
     if any(name in SILHOUETTE_LOSSES for name in objective.terms):
-        # compare at most 48 px (the recorded masks are area-averaged down to it)
-        size = min(48, max(max(c.width, c.height) for c in scene.cameras))
+        # the recorded masks are area-averaged down to the comparison size
+        size = min(section.silhouette_size, max(max(c.width, c.height) for c in scene.cameras))
         objective = SilhouetteObjective(objective, scene=scene, particles=particles, size=size)
     targets = reconstruction.points
     grid, substeps = sim_options.get("grid"), sim_options.get("substeps")
@@ -303,7 +303,7 @@ def evaluate_run(
         "params": rd.load_json("identified.json"),
         "param_error": parameter_errors(identified, scene.gt_params()) if scene.has_gt else None,
         "time_s": time.perf_counter() - t_start,
-        "peak_memory_gb": _peak_memory_gb(),
+        "peak_memory_gb": _peak_memory_gb(simulator),
     }
     rd.save_json("metrics.json", metrics)
     plot_centroids(
@@ -331,8 +331,12 @@ def evaluate_run(
     return metrics
 
 
-def _peak_memory_gb() -> float:
-    """Peak GPU memory if CUDA was used, else the process's peak resident memory."""
+def _peak_memory_gb(simulator=None) -> float:
+    """Peak GPU memory if CUDA was used, else the process's peak resident memory (GiB).
+
+    On CUDA the simulator's own count is included: a backend with its own allocator (Warp's
+    pool, Taichi's fields) holds memory that torch's peak does not see."""
     if torch.cuda.is_available() and torch.cuda.max_memory_allocated() > 0:
-        return torch.cuda.max_memory_allocated() / 2**30
+        backend = simulator.peak_memory_bytes() if simulator is not None else None
+        return max(torch.cuda.max_memory_allocated(), backend or 0) / 2**30
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # ru_maxrss is KiB on Linux

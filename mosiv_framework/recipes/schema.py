@@ -58,7 +58,9 @@ class IdentifySection:
     contact_gap (m): objects closer than this to each other or the ground are in contact
     (0: two cells of the simulator grid, or 2 cm when the simulator has no grid);
     stiffness_cfl: cap stiffnesses so the P-wave speed stays below this fraction of one grid
-    cell per substep (0: no cap; needs the simulator's ``grid`` and ``substeps`` options).
+    cell per substep (0: no cap; needs the simulator's ``grid`` and ``substeps`` options);
+    silhouette_size: side (pixels) of the square images the silhouette losses compare, the
+    recorded masks area-averaged down to it (capped at the cameras' own size).
     """
 
     method: str = "gradient"
@@ -80,6 +82,7 @@ class IdentifySection:
     velocity_window: str = "free"
     contact_gap: float = 0.0
     stiffness_cfl: float = 0.5
+    silhouette_size: int = 48
     #: library baseline: which prototypes are candidates, and how many coordinate sweeps over
     #: the objects (each sweep tries every candidate of one object with the others held fixed)
     library_scope: str = "family"
@@ -105,6 +108,10 @@ class IdentifySection:
         for key in ("contact_gap", "stiffness_cfl"):
             if values.get(key, 0.0) < 0:
                 out.append(f"identify.{key}={values[key]!r}: must be >= 0 (0 = automatic/off)")
+        if not 8 <= values.get("silhouette_size", 48) <= 1024:
+            out.append(
+                f"identify.silhouette_size={values['silhouette_size']!r}: must be 8..1024 pixels"
+            )
         if values.get("horizon_start", 1) < 1:
             out.append(f"identify.horizon_start={values['horizon_start']!r}: must be >= 1 frame")
         return out
