@@ -1,7 +1,8 @@
 """`mosiv eval` and `mosiv simulate` on a tiny finished run (example scene, ballistic simulator).
 
-The ballistic toy simulator moves every particle on x0 + v0 t + g t^2 / 2, so a novel initial
-velocity has an exact expected rollout to compare the written rollout.npz against.
+The ballistic toy simulator moves every particle on x0 + v0 t + (g + a) t^2 / 2 (a: the wind
+term's acceleration, when modelled), so a novel initial velocity or an added wind has an exact
+expected rollout to compare the written rollout.npz against.
 """
 
 from __future__ import annotations
@@ -22,12 +23,18 @@ from mosiv_framework.types import Trajectory
 
 
 class Ballistic(Simulator):
+    """Free fall under gravity plus the ``wind`` term's steady acceleration, if modelled."""
+
+    supported_terms = frozenset({"wind"})
+
     def __init__(self, **options):
         pass
 
     def rollout(self, particles, params, *, world, frames):
         t = torch.arange(frames + 1, dtype=torch.float32) / world.fps
         g = torch.tensor(world.gravity, dtype=torch.float32)
+        if "wind" in params.terms:
+            g = g + params.terms["wind"]["acceleration"].float()
         v0 = torch.stack([params.initial_velocity[int(k)] for k in particles.object_ids.tolist()])
         x = particles.positions[None] + t[:, None, None] * v0[None]
         return Trajectory(x + 0.5 * t[:, None, None] ** 2 * g, particles.object_ids, world.fps)
@@ -167,3 +174,37 @@ def test_simulate_rejects_bad_edits_by_name(registry_of_run, capsys):
     assert "outside its valid range" in capsys.readouterr().err
     assert main(["eval", str(registry_of_run) + "-missing"]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_simulate_set_adds_a_physics_term(registry_of_run, tmp_path):
+    run = registry_of_run
+    out = tmp_path / "windy"
+    args = ["simulate", str(run), "--set", "term.wind.acceleration=0,1.5,0", "--frames", "4"]
+    assert main([*args, "--out", str(out), "--size", "32"]) == 0
+    particles = torch.load(run / "particles.pt", weights_only=False)
+    x0 = particles.positions[particles.object_ids == 1].numpy()
+    v0 = np.array(
+        json.loads((run / "identified.json").read_text())["objects"]["1"]["initial_velocity"]
+    )
+    with np.load(out / "rollout.npz") as npz:
+        obj1, fps = npz["obj_1"], float(npz["fps"])
+    t = 4 / fps
+    expected = x0 + v0 * t + 0.5 * np.array([0.0, 1.5, -9.8]) * t**2
+    np.testing.assert_allclose(obj1[4], expected, atol=1e-5)
+    terms = json.loads((out / "params.json").read_text())["terms"]
+    assert terms == {"wind": {"acceleration": [0.0, 1.5, 0.0]}}
+
+
+def test_simulate_rejects_bad_term_edits_by_name(registry_of_run, capsys):
+    run = str(registry_of_run)
+    assert main(["simulate", run, "--set", "term.breeze.acceleration=1,0,0"]) == 2
+    assert "no physics term 'breeze'" in capsys.readouterr().err
+    assert main(["simulate", run, "--set", "term.wind.speed=1"]) == 2
+    assert "the parameters of wind are ['acceleration']" in capsys.readouterr().err
+    assert main(["simulate", run, "--set", "term.wind.acceleration=1,0"]) == 2
+    assert "expected 3 comma-separated numbers" in capsys.readouterr().err
+    assert main(["simulate", run, "--set", "term.wind.acceleration=0,0,99"]) == 2
+    assert "outside its valid range" in capsys.readouterr().err
+    # a term the run's simulator does not implement is refused before any rollout
+    assert main(["simulate", run, "--set", "term.linear_drag.coefficient=2"]) == 2
+    assert "not implemented by the run's simulator 'ballistic'" in capsys.readouterr().err

@@ -32,7 +32,8 @@ def add_parsers(sub) -> None:
         action="append",
         default=[],
         metavar="objK.NAME=VALUE",
-        help="set a parameter (SI units), e.g. obj1.E=1e5 or ground_friction=0.5; repeatable",
+        help="set a parameter (SI units), e.g. obj1.E=1e5, ground_friction=0.5 or "
+        "term.wind.acceleration=0,1.5,0 (adds the term if the run did not model it); repeatable",
     )
     sim.add_argument(
         "--velocity",

@@ -17,9 +17,15 @@ from omegaconf import DictConfig, OmegaConf
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.laws import get_law
-from mosiv_framework.pipeline.params import GROUND_FRICTION, ParameterVector, terms_json
+from mosiv_framework.pipeline.params import (
+    GROUND_FRICTION,
+    ParameterVector,
+    term_param_specs,
+    terms_json,
+)
 from mosiv_framework.pipeline.rundir import RunDir
 from mosiv_framework.pipeline.video import pick_camera, save_rollout_npz, write_rollout_video
+from mosiv_framework.recipes.terms import param_size
 from mosiv_framework.registry import get_registry
 from mosiv_framework.scene import read_scene
 from mosiv_framework.types import ObjectParams, SimulationParams
@@ -102,14 +108,19 @@ def edit_params(
     velocities: list[str] = (),
 ) -> SimulationParams:
     """A copy of ``params`` with materials swapped (``"1,2"``), values set (``"obj1.E=1e5"``,
-    ``"ground_friction=0.5"``; SI units, checked against the law's bounds) and initial
-    velocities replaced (``"obj1=0,0,1"`` in m/s)."""
+    ``"ground_friction=0.5"``, ``"term.wind.acceleration=0,1.5,0"``; SI units, checked against
+    the law's or the term's bounds) and initial velocities replaced (``"obj1=0,0,1"`` in m/s).
+    Setting a parameter of a physics term the run did not model adds that term, its other
+    parameters at their zero (absent) values."""
     objects = {
         k: ObjectParams(p.family, {n: v.detach().clone() for n, v in p.values.items()})
         for k, p in params.objects.items()
     }
     v0 = {k: v.detach().clone() for k, v in params.initial_velocity.items()}
     ground = params.ground_friction.detach().clone()
+    terms = {
+        t: {n: v.detach().clone() for n, v in vals.items()} for t, vals in params.terms.items()
+    }
     if swap:
         parts = swap.split(",")
         if len(parts) != 2:
@@ -120,6 +131,9 @@ def edit_params(
         if "=" not in item:
             raise ConfigError(f"--set {item!r}: expected NAME=VALUE, e.g. obj1.E=1e5")
         name, value_text = item.split("=", 1)
+        if name.startswith("term."):
+            _set_term(terms, item, name, value_text)
+            continue
         try:
             value = float(value_text)
         except ValueError:
@@ -129,7 +143,9 @@ def edit_params(
             ground = torch.tensor(value)
             continue
         if "." not in name:
-            raise ConfigError(f"--set {item!r}: name a parameter as objK.NAME or ground_friction")
+            raise ConfigError(
+                f"--set {item!r}: name a parameter as objK.NAME, ground_friction or term.TERM.NAME"
+            )
         obj_text, param = name.split(".", 1)
         k = _object_id(obj_text, params, "--set")
         law = get_law(objects[k].family)
@@ -149,7 +165,37 @@ def edit_params(
         obj_text, vec = item.split("=", 1)
         k = _object_id(obj_text, params, "--velocity")
         v0[k] = torch.tensor(_floats(vec, 3, f"--velocity {item!r}"), dtype=torch.float32)
-    return SimulationParams(objects, v0, ground, dict(params.terms))
+    return SimulationParams(objects, v0, ground, terms)
+
+
+def _set_term(terms: dict, item: str, name: str, value_text: str) -> None:
+    """Apply ``--set term.TERM.NAME=VALUE`` to ``terms`` (a vector as ``x,y,z``)."""
+    parts = name.split(".")
+    if len(parts) != 3:
+        raise ConfigError(f"--set {item!r}: name a term parameter as term.TERM.NAME")
+    _, term, param = parts
+    registered = get_registry().names("physics_term")
+    if term not in registered:
+        raise ConfigError(
+            f"--set {item!r}: no physics term {term!r} is registered; registered terms: "
+            f"{', '.join(registered) or 'none installed'}"
+        )
+    specs = term_param_specs(term)
+    if param not in specs:
+        raise ConfigError(f"--set {item!r}: the parameters of {term} are {sorted(specs)}")
+    spec = specs[param]
+    values = _floats(value_text, param_size(spec), f"--set {item!r}")
+    for v in values:
+        try:
+            spec.check(v, where=f"--set term {term}")
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+    if term not in terms:  # a newly added term starts from its zero (absent) values
+        terms[term] = {
+            n: torch.full((param_size(sp),) if param_size(sp) == 3 else (), float(sp.default))
+            for n, sp in specs.items()
+        }
+    terms[term][param] = torch.tensor(values if len(values) == 3 else values[0])
 
 
 def params_json(params: SimulationParams) -> dict:
@@ -183,8 +229,16 @@ def simulate_novel(
         raise ConfigError(f"--frames {frames}: simulate at least 1 frame")
     # swapped objects carry their family to the other body's particles
     particles = replace(run.particles, materials={k: p.family for k, p in params.objects.items()})
+    simulator = run.simulator()
+    unsupported = sorted(set(params.terms) - set(getattr(simulator, "supported_terms", ())))
+    if unsupported:
+        raise ConfigError(
+            f"physics terms {unsupported} are not implemented by the run's simulator "
+            f"{run.recipe.simulator.name!r}; it supports "
+            f"{sorted(getattr(simulator, 'supported_terms', ())) or 'no terms'}"
+        )
     with torch.no_grad():
-        traj = run.simulator().rollout(particles, params, world=run.scene.world, frames=frames)
+        traj = simulator.rollout(particles, params, world=run.scene.world, frames=frames)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = {
