@@ -39,6 +39,10 @@ class GaussiansLifterOptions:
     particles_per_cell: particles per occupied cell, a cube n^3 (1, 8, 27, 64), on an n x n x n
         sub-lattice; each carries cell_size^3 / n^3 of rest volume.
     samples_per_cell: random carving samples per finest cell of an object's box (expected).
+        A cell's measured occupancy is the kept share of its samples, with binomial standard
+        error sqrt(f (1 - f) / n); the default, 32, keeps a cell three quarters inside (or
+        outside) the object on the right side of the 1/2 threshold up to 0.25 / 0.077 = 3.3
+        standard errors (8 samples: 1.6, so about one such boundary cell in twenty flips).
     levels: coarse-to-fine levels of the density grid; the coarsest cell is
         cell_size * 2^(levels - 1).
     prior_weight: how many samples' worth of evidence the upsampled, filtered coarser level
@@ -89,7 +93,7 @@ class GaussiansLifterOptions:
 
     cell_size: float = 0.01
     particles_per_cell: int = 1
-    samples_per_cell: float = 8.0
+    samples_per_cell: float = 32.0
     levels: int = 3
     prior_weight: float = 2.0
     padding: float | None = None

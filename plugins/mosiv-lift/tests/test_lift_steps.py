@@ -269,3 +269,33 @@ def test_widened_trained_gaussians_close_their_gaps_without_moving_the_surface()
         in_front, sheet(widened_radii(radii, widen)), renderer, [camera], **kwargs
     )
     assert bool((moved == 1).all())
+
+
+def _share_inside(box: Box, centre, radius: float, sub: int = 4) -> torch.Tensor:
+    """Exact-enough fraction of each cell of ``box`` inside a ball (sub^3 regular points)."""
+    axes = [(torch.arange(n * sub, dtype=torch.float64) + 0.5) / sub * box.cell for n in box.shape]
+    points = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1) + box.world_lower
+    inside = (points - torch.tensor(centre, dtype=torch.float64)).norm(dim=-1) <= radius
+    x, y, z = box.shape
+    return inside.double().reshape(x, sub, y, sub, z, sub).mean(dim=(1, 3, 5))
+
+
+def test_default_sampling_classifies_boundary_cells_beyond_sampling_noise():
+    # a cell three quarters inside (or outside) must land on its side of the 1/2 threshold;
+    # with 8 samples per cell binomial noise flips some of them (options.py, samples_per_cell)
+    from mosiv_lift.options import GaussiansLifterOptions
+
+    centre, radius, cell = (0.2, 0.2, 0.2), 0.05, 0.005
+    default = GaussiansLifterOptions().samples_per_cell
+    wrong = {}
+    for per_cell in (8.0, default):
+        grid, _ = _sphere_grid(centre, radius, cell, per_cell=per_cell)
+        share = _share_inside(grid.box, centre, radius)
+        boundary = (share > 0) & (share < 1)
+        clear = boundary & ((share - 0.5).abs() >= 0.25)
+        flipped = grid.occupied != (share >= 0.5)
+        wrong[per_cell] = (int((flipped & clear).sum()), int(flipped.sum()), int(boundary.sum()))
+    clear_wrong, all_wrong, n_boundary = wrong[default]
+    assert clear_wrong == 0
+    assert all_wrong < 0.06 * n_boundary
+    assert wrong[8.0][0] > 0 and all_wrong < 0.7 * wrong[8.0][1]
