@@ -192,7 +192,7 @@ def _set_term(terms: dict, item: str, name: str, value_text: str) -> None:
             raise ConfigError(str(exc)) from None
     if term not in terms:  # a newly added term starts from its zero (absent) values
         terms[term] = {
-            n: torch.full((param_size(sp),) if param_size(sp) == 3 else (), float(sp.default))
+            n: torch.tensor([float(sp.default)] * 3 if param_size(sp) == 3 else float(sp.default))
             for n, sp in specs.items()
         }
     terms[term][param] = torch.tensor(values if len(values) == 3 else values[0])
