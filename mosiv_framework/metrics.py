@@ -81,6 +81,34 @@ def psnr(pred: ArrayLike, target: ArrayLike, *, max_value: float = 1.0) -> float
     return float(torch.stack(values).mean())
 
 
+def region_psnr(
+    pred: ArrayLike, target: ArrayLike, region: ArrayLike, *, max_value: float = 1.0
+) -> float | None:
+    """PSNR in dB over the pixels of ``region`` only: 10 log10(max_value^2 / MSE), the MSE
+    over the region's pixels and the 3 channels, averaged over the images of a batch that
+    have region pixels (None when none has).
+
+    Images as in :func:`psnr`; ``region`` [H, W] or [B, H, W] bool (say, the objects'
+    silhouettes). Where objects cover a small part of the frame, the full-image PSNR is mostly
+    the background's; this one is the objects'.
+    """
+    p, t = _image_pair(pred, target)
+    mask = torch.as_tensor(np.asarray(region)).bool().reshape(-1, *p.shape[-2:])
+    if mask.shape[0] != p.shape[0]:
+        raise ValueError(
+            f"region_psnr: {mask.shape[0]} region masks for {p.shape[0]} images; give one "
+            "[H, W] mask per image"
+        )
+    values = []
+    for i in range(len(p)):
+        inside = mask[i]
+        if not bool(inside.any()):
+            continue
+        mse = (p[i] - t[i]).square()[:, inside].mean()
+        values.append(float("inf") if mse == 0 else float(10 * torch.log10(max_value**2 / mse)))
+    return float(np.mean(values)) if values else None
+
+
 def ssim(pred: ArrayLike, target: ArrayLike, *, window: int = 11, max_value: float = 1.0) -> float:
     """Structural similarity (Wang et al. 2004), dimensionless, 1 for identical images.
 
@@ -266,6 +294,7 @@ def frame_metrics(
     *,
     predicted_images: Sequence[ArrayLike] | None = None,
     target_images: Sequence[ArrayLike] | None = None,
+    image_regions: Sequence[ArrayLike] | None = None,
     frames: Sequence[int] | None = None,
     n_samples: int = 2048,
     seed: int = 0,
@@ -274,8 +303,10 @@ def frame_metrics(
 
     Geometry as in :func:`geometry_metrics` (``frames`` selects point frames); when images are
     given (already restricted to the same frames by the caller), PSNR and SSIM as in
-    :func:`image_metrics`. Keys: ``cd_mm2`` (mm^2), ``emd_mm`` (mm), ``psnr`` (dB), ``ssim``,
-    ``per_object``; ``psnr``/``ssim`` are None without images.
+    :func:`image_metrics`, and with ``image_regions`` (one [B, H, W] bool per image batch) the
+    PSNR over those regions (:func:`region_psnr`, mean over frames). Keys: ``cd_mm2`` (mm^2),
+    ``emd_mm`` (mm), ``psnr`` (dB), ``ssim``, ``psnr_objects`` (dB), ``per_object``; the image
+    keys are None without images (``psnr_objects`` also without regions).
     """
     out = geometry_metrics(
         predicted_points, target_points, frames=frames, n_samples=n_samples, seed=seed
@@ -287,10 +318,23 @@ def frame_metrics(
         if predicted_images is not None
         else {"psnr": None, "ssim": None}
     )
+    objects_psnr = None
+    if image_regions is not None and predicted_images is not None:
+        if len(image_regions) != len(predicted_images):
+            raise ValueError(
+                f"{len(image_regions)} image_regions for {len(predicted_images)} images"
+            )
+        per_frame = [
+            region_psnr(p, t, r)
+            for p, t, r in zip(predicted_images, target_images, image_regions, strict=True)
+        ]
+        per_frame = [v for v in per_frame if v is not None]
+        objects_psnr = float(np.mean(per_frame)) if per_frame else None
     return {
         "cd_mm2": out["cd_mm2"],
         "emd_mm": out["emd_mm"],
         "psnr": images["psnr"],
         "ssim": images["ssim"],
+        "psnr_objects": objects_psnr,
         "per_object": out["per_object"],
     }

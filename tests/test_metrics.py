@@ -17,6 +17,7 @@ from mosiv_framework.metrics import (
     image_metrics,
     nearest_distances,
     psnr,
+    region_psnr,
     ssim,
 )
 from mosiv_framework.types import GeometryFrames
@@ -179,12 +180,35 @@ def test_frame_metrics_per_object_and_scene():
     img_t = [rng.random((8, 8, 3)) for _ in range(2)]
     img_p = [np.clip(i + 0.1, 0, 1) for i in img_t]
     full = frame_metrics(predicted, target, predicted_images=img_p, target_images=img_t)
-    assert set(full) == {"cd_mm2", "emd_mm", "psnr", "ssim", "per_object"}
+    assert set(full) == {"cd_mm2", "emd_mm", "psnr", "ssim", "psnr_objects", "per_object"}
+    assert full["psnr_objects"] is None  # no regions given
     assert full["psnr"] == pytest.approx(image_metrics(img_p, img_t)["psnr"])
     assert full["psnr"] == pytest.approx(
         np.mean([psnr(p, t) for p, t in zip(img_p, img_t, strict=True)])
     )
     assert frame_metrics(predicted, target)["psnr"] is None
+
+    # the region PSNR sees only its pixels: an error of 0.2 inside a 2x2 region and none
+    # outside gives 10 log10(1 / 0.04) there, whatever the rest of the image holds
+    clean = rng.random((8, 8, 3)) * 0.5
+    damaged = clean.copy()
+    damaged[2:4, 2:4] += 0.2
+    region = np.zeros((8, 8), dtype=bool)
+    region[2:4, 2:4] = True
+    expected = 10 * np.log10(1 / 0.04)
+    assert region_psnr(damaged, clean, region) == pytest.approx(expected, rel=1e-5)
+    assert psnr(damaged, clean) == pytest.approx(expected + 10 * np.log10(64 / 4), rel=1e-5)
+    assert region_psnr(damaged, clean, np.zeros((8, 8), dtype=bool)) is None
+    block = frame_metrics(
+        predicted,
+        target,
+        predicted_images=[damaged, damaged],
+        target_images=[clean, clean],
+        image_regions=[region, region],
+    )
+    assert block["psnr_objects"] == pytest.approx(expected, rel=1e-5)
+    with pytest.raises(ValueError, match="one \\[H, W\\] mask per image"):
+        region_psnr(damaged, clean, np.stack([region, region]))
 
     with pytest.raises(ValueError, match="differ from target objects"):
         geometry_metrics({1: predicted[1]}, target)

@@ -29,10 +29,12 @@ def can_render(particles: ParticleSet) -> bool:
     )
 
 
-def rollout_images(traj: Trajectory, particles: ParticleSet, scene) -> tuple[list, list]:
-    """(predicted, recorded): per frame of ``traj``, the images of every scene camera as one
-    batch [C, 3, H, W] in [0, 1] (sRGB; the layout of ``metrics.image_metrics``), predicted ones composited over the
-    reconstruction's background (black where it has none for a camera)."""
+def rollout_images(traj: Trajectory, particles: ParticleSet, scene) -> tuple[list, list, list]:
+    """(predicted, recorded, regions): per frame of ``traj``, the images of every scene camera
+    as one batch [C, 3, H, W] in [0, 1] (sRGB; the layout of ``metrics.image_metrics``),
+    predicted ones composited over the reconstruction's background (black where it has none
+    for a camera), and the object region [C, H, W] bool: pixels inside the recorded instance
+    mask or the rendered silhouette (alpha >= 1/2), where the objects' own PSNR is taken."""
     appearance = particles.appearance
     renderer = get_registry().create(
         "renderer", appearance.renderer, dict(getattr(appearance, "renderer_options", {}) or {})
@@ -41,17 +43,20 @@ def rollout_images(traj: Trajectory, particles: ParticleSet, scene) -> tuple[lis
     n_objects = max(scene.object_ids)
     positions = traj.positions.detach().float().cpu()
     n = min(traj.n_frames, scene.n_frames)
-    predicted, recorded = [], []
+    predicted, recorded, regions = [], [], []
     with torch.no_grad():
         for t in range(n):
             gaussians = appearance.binding.gaussian_frames(positions[t])
-            views, targets = [], []
+            views, targets, masks = [], [], []
             for cam in scene.cameras:
                 bg = backgrounds.get(cam.id)
                 bg = torch.zeros(cam.height, cam.width, 3) if bg is None else bg.float().cpu()
                 out = renderer.render(gaussians, cam, frame=0, n_objects=n_objects, background=bg)
                 views.append(out.rgb.clamp(0.0, 1.0).cpu())
                 targets.append(torch.from_numpy(scene.rgb(cam.id, t).astype(np.float32) / 255.0))
+                recorded_mask = torch.from_numpy(scene.mask(cam.id, t) > 0)
+                masks.append(recorded_mask | (out.alpha.cpu() >= 0.5))
             predicted.append(torch.stack(views).permute(0, 3, 1, 2))
             recorded.append(torch.stack(targets).permute(0, 3, 1, 2))
-    return predicted, recorded
+            regions.append(torch.stack(masks))
+    return predicted, recorded, regions

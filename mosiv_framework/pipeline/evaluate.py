@@ -86,12 +86,13 @@ def score(
     observed_frames: int,
     n_samples: int,
     seed: int,
-    images: tuple[list, list] | None = None,
+    images: tuple[list, list, list] | None = None,
 ) -> dict:
     """``observed`` and ``future`` metric blocks of a rollout against reference points.
 
-    ``images``: (predicted, recorded) per frame (``appearance.rollout_images``); when given,
-    each block also gets PSNR and SSIM over its frames, else they stay None."""
+    ``images``: (predicted, recorded, object regions) per frame
+    (``appearance.rollout_images``); when given, each block also gets PSNR and SSIM over its
+    frames and the PSNR over the object regions, else they stay None."""
     predicted = {k: traj.object_positions(k).detach().cpu() for k in reference}
     n = min(traj.n_frames, min(r.shape[0] for r in reference.values()))
     blocks = {}
@@ -111,6 +112,7 @@ def score(
             seed=seed,
             predicted_images=None if images is None else [images[0][f] for f in frames],
             target_images=None if images is None else [images[1][f] for f in frames],
+            image_regions=None if images is None else [images[2][f] for f in frames],
         )
     return blocks
 

@@ -43,7 +43,13 @@ class DynamicGaussOptions:
             tracks before the photometric training (0 disables it);
         lambda_ssim: weight of (1 - SSIM); lambda_radius: weight of the mean radius in voxel
             units (eq. 2's |r_t|_1 made dimensionless); lambda_mask: weight of the per-object
-            silhouette L1 against the instance masks;
+            silhouette L1 against the instance masks; lambda_track: weight of the squared
+            excess (voxels^2) over ``track_tolerance`` voxels of the distance between each
+            object's mean Gaussian centre and its visual-hull centroid at the trained frames,
+            where that hull is non-empty (a guard: an object a few pixels wide gives the
+            photometric loss almost no gradient, and Adam's scale-free steps then let the
+            deformation drift off every view, never to return); track_tolerance (voxels): the
+            distance left free, above the hull centroid's own bias;
         lr_position (m per step scale), lr_radius, lr_color, lr_opacity, lr_network,
             lr_background: Adam learning rates (log-radius, logits and weights are unitless);
         densify_every, densify_from, densify_until: densification/pruning schedule (steps);
@@ -72,6 +78,8 @@ class DynamicGaussOptions:
     lambda_ssim: float = 0.2
     lambda_radius: float = 0.01
     lambda_mask: float = 0.5
+    lambda_track: float = 0.01
+    track_tolerance: float = 5.0
     lr_position: float = 1e-3
     lr_radius: float = 5e-3
     lr_color: float = 2e-2
@@ -117,7 +125,8 @@ class DynamicGaussOptions:
             value = getattr(self, name)
             if not _is_int(value) or not lo <= value <= hi:
                 problems.append(f"{name}={value!r}: must be an integer in [{lo}, {hi}]")
-        non_negative = ("lambda_ssim", "lambda_radius", "lambda_mask", "densify_grad")
+        non_negative = ("lambda_ssim", "lambda_radius", "lambda_mask", "lambda_track")
+        non_negative += ("track_tolerance", "densify_grad")
         for name in non_negative:
             value = getattr(self, name)
             if not _is_number(value) or value < 0:

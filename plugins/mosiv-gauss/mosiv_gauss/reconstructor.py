@@ -121,6 +121,8 @@ class GaussDynamicReconstructor(Reconstructor):
             cameras=list(scene.cameras),
             background=estimate_background(rgb, mask_ids),
             voxel_size=seeds.voxel_size,
+            tracks=seeds.tracks,
+            track_valid=seeds.track_valid,
         )
         history = train_dynamic(model, data, opts, generator=generator)
         self.model = model

@@ -54,7 +54,9 @@ class TrainingData:
     """What training compares against, on the training device.
 
     rgb [T, C, H, W, 3] in [0, 1]; masks [T, C, K, H, W] in {0, 1}; cameras: C cameras in the
-    order of the image stacks; background [C, H, W, 3]; voxel_size (m) of the hull grid.
+    order of the image stacks; background [C, H, W, 3]; voxel_size (m) of the hull grid;
+    tracks [T, K, 3] (m) visual-hull centroids and track_valid [T, K] where the hull is
+    non-empty (``init.HullInit``), for the track anchor (None: no anchor).
     """
 
     rgb: Tensor
@@ -62,6 +64,8 @@ class TrainingData:
     cameras: list
     background: Tensor
     voxel_size: float
+    tracks: Tensor | None = None
+    track_valid: Tensor | None = None
 
     @property
     def n_frames(self) -> int:
@@ -116,6 +120,28 @@ def _hull_chamfer(points: Tensor, hull: Tensor) -> Tensor:
     """Symmetric Chamfer (squared distances, input units) between two point sets."""
     d = torch.cdist(points, hull).square()
     return d.min(dim=1).values.mean() + d.min(dim=0).values.mean()
+
+
+def track_loss(
+    means: Tensor, frames: list[int], object_ids: Tensor, data: TrainingData, *, tolerance: float
+) -> Tensor:
+    """Mean squared excess (voxels^2) of the distance between each object's mean Gaussian
+    centre and its visual-hull centroid over ``tolerance`` voxels, over the ``frames`` of
+    ``means`` [len(frames), G, 3] and the objects whose hull is non-empty there; 0 when there
+    is nothing to compare. The tolerance leaves the hull's own bias alone (a hull carved from
+    cameras above the object reaches further down than the object), so the term only acts on
+    an object drifting away."""
+    total = means.new_zeros(())
+    count = 0
+    for i, t in enumerate(frames):
+        for k in range(data.n_objects):
+            mine = object_ids == k + 1
+            if bool(data.track_valid[t, k]) and bool(mine.any()):
+                offset = (means[i, mine].mean(dim=0) - data.tracks[t, k]).norm()
+                excess = (offset / data.voxel_size - tolerance).clamp(min=0.0)
+                total = total + excess.square()
+                count += 1
+    return total / max(count, 1)
 
 
 def fit_motion_prior(
@@ -313,6 +339,11 @@ def train_dynamic(
             torch.stack(rendered), torch.stack(alphas), data.rgb[ts, cs], data.masks[ts, cs], opts
         )
         loss = loss + opts.lambda_radius * radii.mean() / data.voxel_size
+        if opts.lambda_track > 0 and data.tracks is not None:
+            anchor = track_loss(
+                means, frames, model.object_ids, data, tolerance=opts.track_tolerance
+            )
+            loss = loss + opts.lambda_track * anchor
         for o in optimizers:
             o.zero_grad(set_to_none=True)
         loss.backward()

@@ -16,7 +16,13 @@ from mosiv_gauss.reconstructor import (
     save_reconstruction,
     to_reconstruction,
 )
-from mosiv_gauss.train import densify_and_prune, estimate_background, view_loss
+from mosiv_gauss.train import (
+    TrainingData,
+    densify_and_prune,
+    estimate_background,
+    track_loss,
+    view_loss,
+)
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.registry import get_registry
@@ -219,9 +225,56 @@ def test_densify_clones_splits_and_prunes_keeping_adam_state():
     assert optimizer.param_groups[0]["params"][0] is model.means
 
 
+def test_track_anchor_is_the_squared_centroid_excess_in_voxels_where_the_hull_exists():
+    # two objects, two frames; object 2's hull is empty at frame 1, so it is left out there
+    ids = torch.tensor([1, 1, 2, 2])
+    means = torch.zeros(2, 4, 3)
+    means[:, :2] = torch.tensor([[0.1, 0.0, 0.3], [0.3, 0.0, 0.3]])  # object 1 centroid x=0.2
+    means[:, 2:] = torch.tensor([[0.0, 0.5, 0.2], [0.0, 0.7, 0.2]])  # object 2 centroid y=0.6
+    tracks = torch.tensor([[[0.2, 0.0, 0.3], [0.0, 0.6, 0.2]], [[0.23, 0.0, 0.3], [9.0, 9.0, 9.0]]])
+    valid = torch.tensor([[True, True], [True, False]])
+    voxel = 0.01
+    data = TrainingData(
+        rgb=torch.zeros(2, 1, 4, 4, 3),
+        masks=torch.zeros(2, 1, 2, 4, 4),
+        cameras=[],
+        background=torch.zeros(1, 4, 4, 3),
+        voxel_size=voxel,
+        tracks=tracks,
+        track_valid=valid,
+    )
+    assert float(track_loss(means[:1], [0], ids, data, tolerance=0.0)) == pytest.approx(
+        0.0, abs=1e-9
+    )
+    # frame 1: object 1 is 3 voxels off along x, object 2 is skipped -> mean over one term
+    assert float(track_loss(means[1:], [1], ids, data, tolerance=0.0)) == pytest.approx(
+        9.0, rel=1e-4
+    )
+    # within the tolerance nothing pulls; beyond it only the excess counts: (3 - 2)^2
+    assert float(track_loss(means[1:], [1], ids, data, tolerance=3.5)) == 0.0
+    assert float(track_loss(means[1:], [1], ids, data, tolerance=2.0)) == pytest.approx(
+        1.0, rel=1e-3
+    )
+    # both frames: (0 + 0 + 9) / 3 terms
+    assert float(track_loss(means, [0, 1], ids, data, tolerance=0.0)) == pytest.approx(
+        3.0, rel=1e-4
+    )
+    # the anchor's gradient moves every Gaussian of the object by the same amount
+    moved = means.clone().requires_grad_(True)
+    track_loss(moved[1:], [1], ids, data, tolerance=2.0).backward()
+    grad = moved.grad[1]
+    assert (
+        torch.allclose(grad[0], grad[1])
+        and float(grad[0, 0]) < 0
+        and float(grad[2:].abs().sum()) == 0
+    )
+
+
 def test_bad_options_name_the_option_and_its_range():
     with pytest.raises(ConfigError, match="lambda_mask"):
         get_registry().create("reconstructor", "gauss-dynamic", {"lambda_mask": -1.0})
+    with pytest.raises(ConfigError, match="lambda_track"):
+        get_registry().create("reconstructor", "gauss-dynamic", {"lambda_track": -0.1})
     with pytest.raises(ConfigError, match="background"):
         get_registry().create("reconstructor", "gauss-dynamic", {"background": "green"})
     with pytest.raises(ConfigError, match="valid options"):
