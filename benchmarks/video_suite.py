@@ -29,7 +29,7 @@ from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
 
-from identify_suite import LETTERS, PAIRS, errors_of, select_pairs
+from identify_suite import LETTERS, PAIRS, _fmt, errors_of, select_pairs
 
 #: (folder, label, granularity, loss terms): the object-wise Chamfer + silhouette is ours
 VARIANTS = (
@@ -246,14 +246,6 @@ def summarise(rows: list[dict]) -> dict:
     out["median_time_s"] = statistics.median([o["time_s"] for o in ours]) if ours else None
     out["max_peak_memory_gb"] = max((o["peak_memory_gb"] or 0.0 for o in ours), default=None)
     return out
-
-
-def _fmt(value) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, list):
-        return " / ".join(_fmt(v) for v in value) if value else "-"
-    return f"{value:.3g}"
 
 
 def markdown(rows: list[dict], summary: dict) -> str:
