@@ -29,7 +29,7 @@ from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
 
-from identify_suite import LETTERS, PAIRS, _fmt, errors_of, select_pairs
+from identify_suite import LETTERS, PAIRS, _fmt, _timed, errors_of, select_pairs
 
 #: (folder, label, granularity, loss terms): the object-wise Chamfer + silhouette is ours
 VARIANTS = (
@@ -117,19 +117,6 @@ def _run_one(job: dict) -> dict:
         "time_s": elapsed,
         "peak_memory_gb": metrics.get("peak_memory_gb"),
     }
-
-
-def _timed(run_dir: Path, marker_before: str | None, elapsed: float) -> float:
-    """Wall time (s) of the call that identified ``run_dir``: ``elapsed`` when this call ran
-    identification (kept in ``suite_time.json``), the kept time when the pipeline reused an
-    earlier identification and this call only re-evaluated."""
-    record = run_dir / "suite_time.json"
-    marker = run_dir / "stages" / "identify.json"
-    reused = marker_before is not None and marker.read_text() == marker_before
-    if reused and record.is_file():
-        return float(json.loads(record.read_text())["time_s"])
-    record.write_text(json.dumps({"time_s": elapsed}) + "\n")
-    return elapsed
 
 
 def _jobs_for(selected, *, recipe, out, seed, extra, threads, variants):
