@@ -79,6 +79,8 @@ class MPMRun:
         self.a = ParticleState(self.n, device)
         self.b = ParticleState(self.n, device)
         self.checkpoints: list[ParticleState] = []
+        self._checkpoint_pool: list[ParticleState] = []  # reused between rollouts
+        self._backward = None  # autograd.BackwardWorkspace, made on the first backward
         self._graph = None
         self.ground_on = int(world.ground_height is not None)
         z0 = layout.origin[2]
@@ -204,15 +206,40 @@ class MPMRun:
         vel = torch.empty(frames + 1, self.n, 3, device=dev)
         pos[0], vel[0] = wp.to_torch(self.a.x), wp.to_torch(self.a.v)
         self.checkpoints = []
+        try:
+            self._roll(pos, vel, frames, keep=keep)
+        except BaseException:
+            self.checkpoints = []  # no backward will come for this rollout
+            raise
+        return pos, vel
+
+    def _roll(self, pos: torch.Tensor, vel: torch.Tensor, frames: int, *, keep: bool) -> None:
         for f in range(1, frames + 1):
             if keep:
-                ckpt = ParticleState(self.n, self.device)
+                if len(self._checkpoint_pool) < f:
+                    self._checkpoint_pool.append(ParticleState(self.n, self.device))
+                ckpt = self._checkpoint_pool[f - 1]
                 ckpt.copy_from(self.a)
                 self.checkpoints.append(ckpt)
             self.advance_frame(f)
             pos[f], vel[f] = wp.to_torch(self.a.x), wp.to_torch(self.a.v)
             self._sample_memory()
-        return pos, vel
+
+    @property
+    def awaiting_backward(self) -> bool:
+        """True between a differentiable forward and its backward (the checkpoints are in use)."""
+        return bool(self.checkpoints)
+
+    def release_checkpoints(self) -> None:
+        self.checkpoints = []
+
+    def backward_workspace(self):
+        """The adjoint's buffers (and captured graph), made once per run."""
+        from mosiv_warp_mpm.autograd import BackwardWorkspace  # autograd imports this module
+
+        if self._backward is None:
+            self._backward = BackwardWorkspace(self)
+        return self._backward
 
     def _sample_memory(self) -> None:
         if self.peak_sampler is not None:
@@ -316,10 +343,13 @@ class WarpMPMSimulator(Simulator):
         #: backward's one-frame workspace; filled by autograd.py
         self.last_memory: dict[str, int] = {}
         self._peak = 0
-        # Forward-only rollouts of the same layout (evaluation, generation, benchmarks, line
-        # searches) reuse one run: its buffers and its captured CUDA graph
+        # Rollouts of the same layout reuse a run: its buffers and captured CUDA graphs. One
+        # for forward-only rollouts (evaluation, generation, benchmarks, line searches), one
+        # for differentiable ones (identification's iterations)
         self._forward_run: MPMRun | None = None
         self._forward_key: tuple | None = None
+        self._grad_run: MPMRun | None = None
+        self._grad_key: tuple | None = None
 
     # -- memory ----------------------------------------------------------------------------
     def reset_peak_memory(self) -> None:
@@ -417,12 +447,19 @@ class WarpMPMSimulator(Simulator):
         volumes = particles.volumes.to(dev)[order]
         x0s = x0[order]
         needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (x0s, v0, theta))
+        key = (layout, world, self.options.substeps, tuple(ids), tuple(families), len(order))
         if needs_grad:
-            # a differentiable rollout owns its run until its backward pass has finished
-            run = self._new_run(layout, world, ids, families, obj_index, volumes)
+            # A differentiable rollout owns its run until its backward pass has finished; a
+            # run still waiting for one (a second rollout before backward, or an abandoned
+            # graph) is left to its rollout and replaced.
+            run = self._grad_run
+            if run is None or self._grad_key != key or run.awaiting_backward:
+                run = self._new_run(layout, world, ids, families, obj_index, volumes)
+                self._grad_run, self._grad_key = run, key
+            else:
+                run.refresh(obj_index, volumes)
             pos, vel = WarpRollout.apply(run, self, frames, x0s, v0, theta)
         else:  # cheap path: no checkpoints, no tape, buffers and CUDA graph reused
-            key = (layout, world, self.options.substeps, tuple(ids), tuple(families), len(order))
             if self._forward_key != key:
                 self._forward_run = self._new_run(layout, world, ids, families, obj_index, volumes)
                 self._forward_key = key
