@@ -57,6 +57,7 @@ def main() -> None:
     if any(name in SILHOUETTE_LOSSES for name in objective.terms):
         size = min(recipe.identify.silhouette_size, max(c.width for c in scene.cameras))
         objective = SilhouetteObjective(objective, scene=scene, particles=particles, size=size)
+    particles = particles.to(simulator.torch_device)  # as identification does
     world = scene.world
     free = free_flight_frames(targets, world, gap=0.02)
     v0 = initial_velocity_from_points(targets, fps=scene.fps, gravity=scene.gravity, frames=free)

@@ -66,6 +66,13 @@ class Simulator(ABC):
     #: physics-term names this backend implements
     supported_terms: frozenset[str] = frozenset()
 
+    @property
+    def torch_device(self) -> torch.device:
+        """Where rollouts compute. Callers that evaluate losses on many rollouts (identification)
+        hand over particles on this device, so trajectories and losses stay there; the
+        default is the CPU, GPU backends override it."""
+        return torch.device("cpu")
+
     @abstractmethod
     def rollout(
         self,

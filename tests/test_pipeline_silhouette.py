@@ -27,6 +27,22 @@ def ball(radius=0.1, spacing=0.01):
     return pts[pts.norm(dim=1) <= radius]
 
 
+def test_batched_splat_equals_one_image_at_a_time(monkeypatch):
+    # the silhouette loss draws every frame of an object in one call; batches of one image
+    # (a tiny element budget) and one batch of all must both equal separate calls
+    import mosiv_framework.pipeline.silhouettes as silhouettes
+
+    cam = camera(32)
+    frames = torch.stack([ball(0.05) + torch.tensor([0.02 * i, -0.01 * i, 0.0]) for i in range(3)])
+    separate = torch.stack([splat_alpha(f, 0.006, cam, 32, supersample=3) for f in frames])
+    together = splat_alpha(frames, 0.006, cam, 32, supersample=3)
+    monkeypatch.setattr(silhouettes, "SPLAT_BATCH_ELEMENTS", 1)
+    chunked = splat_alpha(frames, 0.006, cam, 32, supersample=3)
+    assert separate.shape == (3, 32, 32) and separate.sum() > 10.0
+    assert torch.allclose(together, separate, atol=1e-6)
+    assert torch.allclose(chunked, separate, atol=1e-6)
+
+
 def test_splat_of_a_ball_covers_its_projected_disk():
     cam, r = camera(), 0.1
     pts = ball(r)

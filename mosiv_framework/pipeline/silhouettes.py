@@ -1,10 +1,10 @@
 """Silhouettes of simulated particles, so the silhouette losses (paper eq. 3) can run.
 
 Simulated states are point sets; the silhouette losses compare per-object alpha images with the
-recorded instance masks. ``splat_alpha`` draws each particle as an isotropic Gaussian footprint
-of its own size through a scene camera and turns the summed footprint density into a soft
-occupancy below pixel scale, area-averaged to the image like the masks, differentiable in the
-particle positions. ``SilhouetteObjective`` wraps the recipe's
+recorded instance masks. ``splat_alpha`` draws each particle as a smooth square footprint of its
+own size through a scene camera and turns the summed footprint density into a soft occupancy
+below pixel scale, area-averaged to the image like the masks, differentiable in the particle
+positions. ``SilhouetteObjective`` wraps the recipe's
 weighted losses and attaches simulated and recorded silhouettes to the geometry it compares.
 """
 
@@ -25,6 +25,8 @@ SILHOUETTE_LOSSES = ("silhouette", "scene-silhouette")
 
 #: most sub-pixels per pixel side when a splat is supersampled (bounds time and memory)
 MAX_SUPERSAMPLE = 8
+#: elements of the [images, N, sub-pixels] footprint profiles built at once (bounds memory)
+SPLAT_BATCH_ELEMENTS = 1 << 25
 #: width of a footprint's edge, in sub-pixels: sharp enough that the tails of a deep column of
 #: particles barely move the outline, soft enough to carry gradients
 EDGE_SUBPIXELS = 0.25
@@ -52,7 +54,8 @@ def splat_alpha(
     *,
     supersample: int | None = None,
 ) -> torch.Tensor:
-    """Soft silhouette [size, size] in [0, 1] of ``points`` [N, 3] (m) seen by ``camera``.
+    """Soft silhouette [..., size, size] in [0, 1] of ``points`` [..., N, 3] (m) seen by
+    ``camera``; leading dimensions (e.g. frames) are images drawn in one batch.
 
     Each point stands for a particle of radius ``radius`` (m) and is drawn as a smooth square
     of half-width f r / z (its projected radius; at least one sub-pixel); the occupancy is
@@ -66,25 +69,35 @@ def splat_alpha(
     outline of a lattice cell seen from a random direction. The image is the camera's,
     resampled to size x size.
     """
+    batch, n = points.shape[:-2], points.shape[-2]
+    pts = points.reshape(-1, n, 3)
     su, sv = size / camera.width, size / camera.height  # the image resampled to size x size
-    uv, z = camera.project(points)
-    front = z > 1e-6
-    uv, z = uv[front], z[front]
+    uv, z = camera.project(pts.reshape(-1, 3))
+    uv, z = uv.reshape(pts.shape[0], n, 2), z.reshape(pts.shape[0], n)
+    front = z > 1e-6  # points behind the camera draw nothing
+    z = torch.where(front, z, torch.ones_like(z))
     radius_px = camera.fx * su * radius / z  # projected radius in output pixels
     if supersample is None:
-        supersample = splat_supersample(float(radius_px.detach().median()) if len(z) else 1.0)
+        median = float(radius_px[front].detach().median()) if bool(front.any()) else 1.0
+        supersample = splat_supersample(median)
     s = int(supersample)
     fine = size * s
-    half_u = (radius_px * s).clamp(min=1.0)[:, None]  # in sub-pixels
-    half_v = (camera.fy * sv * s * radius / z).clamp(min=1.0)[:, None]
-    centres = torch.arange(fine, dtype=points.dtype, device=points.device)[None, :] + 0.5
-    # separable footprint B(du, dv) = b(du) b(dv): the image is one matrix product
-    bu = _box_profile(centres - uv[:, :1] * su * s, half_u)
-    bv = _box_profile(centres - uv[:, 1:] * sv * s, half_v)
-    alpha = 1.0 - torch.exp(-(bv.T @ bu))  # [rows v, columns u] at sub-pixel scale
-    if s == 1:
-        return alpha
-    return F.avg_pool2d(alpha[None, None], s)[0, 0]
+    half_u = (radius_px * s).clamp(min=1.0)[..., None]  # in sub-pixels
+    half_v = (camera.fy * sv * s * radius / z).clamp(min=1.0)[..., None]
+    centres = torch.arange(fine, dtype=points.dtype, device=points.device) + 0.5
+    images = []
+    step = max(1, SPLAT_BATCH_ELEMENTS // max(1, n * fine))  # images per batch
+    for i in range(0, pts.shape[0], step):
+        sl = slice(i, i + step)
+        keep = front[sl, :, None].to(points.dtype)
+        # separable footprint B(du, dv) = b(du) b(dv): each image is one matrix product
+        bu = _box_profile(centres - uv[sl, :, :1] * su * s, half_u[sl]) * keep
+        bv = _box_profile(centres - uv[sl, :, 1:] * sv * s, half_v[sl])
+        images.append(1.0 - torch.exp(-(bv.transpose(1, 2) @ bu)))  # [b, rows v, columns u]
+    alpha = torch.cat(images)
+    if s > 1:
+        alpha = F.avg_pool2d(alpha[:, None], s)[:, 0]
+    return alpha.reshape(*batch, size, size)
 
 
 def particle_radius(particles: ParticleSet, object_id: int) -> float:
@@ -129,16 +142,10 @@ class SilhouetteObjective:
         """Object id -> [F, C, size, size] simulated alpha for every frame and camera."""
         out = {}
         for k in geometry.object_list:
+            frames = torch.stack(list(geometry.points[k]))  # [F, N, 3]: all frames at once
             out[k] = torch.stack(
-                [
-                    torch.stack(
-                        [
-                            splat_alpha(pts, self.radius[k], cam, self.size)
-                            for cam in self.scene.cameras
-                        ]
-                    )
-                    for pts in geometry.points[k]
-                ]
+                [splat_alpha(frames, self.radius[k], cam, self.size) for cam in self.scene.cameras],
+                dim=1,
             )
         return out
 

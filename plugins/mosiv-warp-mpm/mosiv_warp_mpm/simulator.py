@@ -351,6 +351,10 @@ class WarpMPMSimulator(Simulator):
         self._grad_run: MPMRun | None = None
         self._grad_key: tuple | None = None
 
+    @property
+    def torch_device(self) -> torch.device:
+        return wp.device_to_torch(self.device)
+
     # -- memory ----------------------------------------------------------------------------
     def reset_peak_memory(self) -> None:
         if wp.get_device(self.device).is_cuda:
