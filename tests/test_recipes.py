@@ -126,16 +126,3 @@ def test_recipe_show_prints_resolved_recipe(capsys):
     assert main(["recipe", "show", str(RECIPES / "quickstart.yaml"), "identify.seed=3"]) == 0
     shown = OmegaConf.create(capsys.readouterr().out)
     assert shown.identify.seed == 3 and shown.simulator.name == "warp-mpm"
-
-
-def test_retired_key_is_refused_with_its_reason_but_dropped_from_stored_runs(tmp_path, registry):
-    from mosiv_framework.recipes import drop_retired, validate_recipe
-
-    path = write(tmp_path, "simulator: {name: toy-sim}\nidentify: {resync_every: 5}\n")
-    with pytest.raises(ConfigError, match="identify.resync_every was removed: it never had"):
-        load_recipe(path, registry=registry)
-    # a run folder written by an earlier version carries the key with its default
-    stored = {"simulator": {"name": "toy-sim"}, "identify": {"resync_every": 0, "seed": 3}}
-    resolved, problems = validate_recipe(drop_retired(stored), registry)
-    assert problems == [] and resolved["identify"]["seed"] == 3
-    assert "resync_every" in stored["identify"]  # the caller's mapping is left alone

@@ -60,12 +60,10 @@ def load_finished_run(run_dir: str | Path) -> FinishedRun:
             f"{rd.root} is not a finished run folder: it lacks {missing}; run "
             f"`mosiv run RECIPE output.dir={rd.root}` first"
         )
-    # re-validated, so options added since the run was made take their defaults (and options
-    # removed since are dropped)
-    from mosiv_framework.recipes import drop_retired, validate_recipe
+    # re-validated, so options added since the run was made take their defaults
+    from mosiv_framework.recipes import validate_recipe
 
     stored = OmegaConf.to_container(OmegaConf.load(rd.path("recipe.yaml")), resolve=True)
-    stored = drop_retired(stored)
     resolved, problems = validate_recipe(stored, get_registry())
     if problems:
         raise ConfigError([f"{rd.path('recipe.yaml')}: {p}" for p in problems])

@@ -20,23 +20,6 @@ from mosiv_framework.recipes.schema import COMPONENT_SECTIONS, MULTI_COMPONENT_S
 from mosiv_framework.recipes.terms import check_physics_terms
 from mosiv_framework.registry import Registry, get_registry, validate_options
 
-#: (section, key) that earlier versions accepted and wrote into run folders' recipe.yaml, and
-#: why they were removed: a recipe naming one is refused with the reason, a stored run recipe
-#: has them dropped (``drop_retired``) so old run folders still load
-RETIRED_KEYS = {
-    ("identify", "resync_every"): "it never had an effect: re-synchronisation of the particle "
-    "state during identification is not implemented",
-}
-
-
-def drop_retired(raw: Mapping[str, Any]) -> dict[str, Any]:
-    """A copy of a stored run recipe without RETIRED_KEYS (folders made by earlier versions)."""
-    out = {k: dict(v) if isinstance(v, Mapping) else v for k, v in raw.items()}
-    for section, key in RETIRED_KEYS:
-        if isinstance(out.get(section), dict):
-            out[section].pop(key, None)
-    return out
-
 
 def read_recipe_file(path: str | Path, overrides: Sequence[str] = ()) -> dict[str, Any]:
     """The recipe as written plus ``key=value`` overrides, as plain containers (no schema yet)."""
@@ -113,9 +96,6 @@ def _check_section(name: str, schema: type, value: Any, problems: list[str]) -> 
     valid = [f.name for f in dataclasses.fields(schema)]
     merged = OmegaConf.structured(schema)
     for key, item in value.items():
-        if (name, key) in RETIRED_KEYS:
-            problems.append(f"{name}.{key} was removed: {RETIRED_KEYS[(name, key)]}")
-            continue
         if key not in valid:
             problems.append(f"unknown key {name}.{key}; valid keys of {name}: {', '.join(valid)}")
             continue

@@ -73,6 +73,8 @@ class IdentifySection:
     #: fraction of each phase's iterations) on
     horizon_start: int = 3
     horizon_full_at: float = 0.5
+    #: re-synchronise the simulated particle state to the reconstruction every N frames (0 = off)
+    resync_every: int = 0
     identify_friction: bool = True
     identify_ground_friction: bool = True
     seed: int = 0
