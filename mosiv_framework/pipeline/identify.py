@@ -138,6 +138,28 @@ def identify(
                 full_at=section.horizon_full_at,
                 last=phase.last,
             )
+            if phase.name == "params" and _resync_due(it, section):
+                before, after = resync_velocities(
+                    simulator=simulator,
+                    particles=particles,
+                    vector=vector,
+                    world=world,
+                    targets=targets,
+                    last=h,
+                    objective=objective,
+                    iterations=section.resync_iterations,
+                    lr=section.velocity_lr,
+                )
+                history.append(
+                    {
+                        "phase": "resync",
+                        "iteration": it,
+                        "horizon": h,
+                        "resync_loss_before": before,
+                        "resync_loss_after": after,
+                        "values": vector.to_json(),
+                    }
+                )
             optimizer.zero_grad()
             try:
                 traj = simulator.rollout(particles, vector.physical(), world=world, frames=h)
@@ -220,6 +242,44 @@ def identify(
         _save_checkpoint(run_dir, config_hash, index + 1, 0, history, None, vector)
         opt_state = None
     return vector, history
+
+
+def _resync_due(iteration: int, section) -> bool:
+    every = int(getattr(section, "resync_every", 0) or 0)
+    return every > 0 and iteration > 0 and iteration % every == 0
+
+
+def resync_velocities(
+    *, simulator, particles, vector, world, targets, last, objective, iterations: int, lr: float
+) -> tuple[float, float]:
+    """Re-fit the initial velocities to frames 1..last with the parameters held: a few Adam
+    steps of their own (scale-free, as in ``identify``), keeping the best iterate, the start
+    included, so a re-synchronisation never raises the loss. Returns (loss before, after);
+    inf for both if the very first rollout diverges (nothing is changed then)."""
+    frames = list(range(1, last + 1))
+    best, start = _Best(), math.inf
+    leaves = list(vector.velocity.values())
+    optimizer = torch.optim.Adam(leaves, lr=lr)
+    for step in range(iterations + 1):  # the last pass only scores the last step's iterate
+        optimizer.zero_grad()
+        try:
+            traj = simulator.rollout(particles, vector.physical(), world=world, frames=last)
+        except SimulationDiverged:
+            break  # the best iterate so far stands
+        device = traj.positions.device
+        target = geometry({k: t.to(device) for k, t in targets.items()}, frames)
+        loss = objective(geometry(traj, frames), target)
+        value = float(loss.detach())
+        start = value if step == 0 else start
+        best.offer(value, vector)
+        if step == iterations:
+            break
+        (loss / max(value, 1e-30)).backward()
+        optimizer.step()
+    best.apply(vector)
+    for leaf in leaves:  # the parameter phase's next step starts from clean gradients
+        leaf.grad = None
+    return start, best.loss
 
 
 def _window_loss(simulator, particles, vector, world, targets, last, objective) -> float:

@@ -73,8 +73,12 @@ class IdentifySection:
     #: fraction of each phase's iterations) on
     horizon_start: int = 3
     horizon_full_at: float = 0.5
-    #: re-synchronise the simulated particle state to the reconstruction every N frames (0 = off)
+    #: alternating updates (paper section 3.5): every ``resync_every`` parameter iterations
+    #: (0 = off) the initial velocities, the particle state every rollout starts from, are
+    #: re-fitted to the current horizon under the current parameters for ``resync_iterations``
+    #: steps, so a velocity error does not drift the trajectory while the materials change
     resync_every: int = 0
+    resync_iterations: int = 5
     identify_friction: bool = True
     identify_ground_friction: bool = True
     seed: int = 0
@@ -99,7 +103,8 @@ class IdentifySection:
         ):
             if values.get(key) not in valid:
                 out.append(f"identify.{key}={values.get(key)!r}: valid values are {list(valid)}")
-        for key in ("velocity_iterations", "param_iterations", "library_sweeps"):
+        keys = ("velocity_iterations", "param_iterations", "library_sweeps", "resync_every")
+        for key in (*keys, "resync_iterations"):
             if values.get(key, 0) < 0:
                 out.append(f"identify.{key}={values[key]!r}: must be >= 0")
         for key in ("velocity_lr", "param_lr"):
@@ -111,6 +116,11 @@ class IdentifySection:
         if not 8 <= values.get("silhouette_size", 48) <= 1024:
             out.append(
                 f"identify.silhouette_size={values['silhouette_size']!r}: must be 8..1024 pixels"
+            )
+        if values.get("resync_every", 0) > 0 and values.get("resync_iterations", 1) < 1:
+            out.append(
+                f"identify.resync_iterations={values['resync_iterations']!r}: must be >= 1 "
+                "when resync_every > 0"
             )
         if values.get("horizon_start", 1) < 1:
             out.append(f"identify.horizon_start={values['horizon_start']!r}: must be >= 1 frame")
