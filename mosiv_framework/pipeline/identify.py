@@ -2,7 +2,10 @@
 
 Paper section 3.5: Adam on the initial velocity first, then on the continuous parameters of each
 object's known family, minimising the recipe's losses over the observed frames with a horizon
-curriculum. Checkpointed every few iterations so an interrupted run resumes where it stopped.
+curriculum, optionally interleaving the parameter steps with re-fits of the initial velocities
+(``identify.resync_every``: the paper's alternating updates with re-synchronisation of the
+particle state). Checkpointed every few iterations so an interrupted run resumes where it
+stopped.
 """
 
 from __future__ import annotations
