@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass
 
 from mosiv_framework.errors import ConfigError
+from mosiv_gauss.options import RASTER_BACKENDS
 
 #: how the static per-camera background is obtained (see ``train.estimate_background``)
 BACKGROUND_MODES = ("median", "learned")
@@ -60,6 +61,8 @@ class DynamicGaussOptions:
             "learned" (that median refined as a parameter);
         tile_size: tile side of the torch rasterizer (pixels); raster_checkpoint: let the
             rasterizer recompute per-pixel values in the backward pass (less memory, slower);
+            raster_backend: "torch" or "warp", where the rasterizer composites
+            (``TorchRasterizerOptions.backend``);
         device: torch device ("cpu", "cuda", "cuda:1"); seed: random seed; progress: tqdm bar;
         save_dir: sub-folder of the run folder the reconstruction is saved in ("" = no saving).
     """
@@ -95,6 +98,7 @@ class DynamicGaussOptions:
     background: str = "median"
     tile_size: int = 16
     raster_checkpoint: bool = False
+    raster_backend: str = "torch"
     device: str = "cpu"
     seed: int = 0
     progress: bool = True
@@ -138,6 +142,11 @@ class DynamicGaussOptions:
                 problems.append(f"{name}={value!r}: must be a learning rate in (0, 1]")
         if not _is_number(self.prune_opacity) or not 0 <= self.prune_opacity < 1:
             problems.append(f"prune_opacity={self.prune_opacity!r}: must be a number in [0, 1)")
+        if self.raster_backend not in RASTER_BACKENDS:
+            problems.append(
+                f"raster_backend={self.raster_backend!r}: must be one of "
+                f"{', '.join(RASTER_BACKENDS)}"
+            )
         if self.background not in BACKGROUND_MODES:
             problems.append(
                 f"background={self.background!r}: must be one of {', '.join(BACKGROUND_MODES)}"

@@ -16,6 +16,10 @@ def _is_number(value: object) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
+#: where the rasterizer composites (see TorchRasterizerOptions.backend)
+RASTER_BACKENDS = ("torch", "warp")
+
+
 @dataclass(frozen=True)
 class TorchRasterizerOptions:
     """How the torch rasterizer splits its work and where it cuts Gaussians off.
@@ -36,6 +40,10 @@ class TorchRasterizerOptions:
         (rgb then holds premultiplied colour).
     checkpoint: when gradients are needed, recompute each step's per-pixel values during the
         backward pass instead of storing them (memory grows with pixels, not with pairs).
+    backend: "torch" composites in torch slices (the reference); "warp" composites in Warp
+        kernels, one thread per pixel (``warp_composite.py``, CPU or CUDA, needs warp-lang);
+        projection and tile binning are torch in both. pixel_chunk, pair_chunk and
+        checkpoint only concern the torch backend.
     """
 
     tile_size: int = 16
@@ -46,6 +54,7 @@ class TorchRasterizerOptions:
     max_alpha: float = 0.99
     background: tuple[float, float, float] | None = None
     checkpoint: bool = True
+    backend: str = "torch"
 
     def __post_init__(self) -> None:
         problems = []
@@ -77,5 +86,9 @@ class TorchRasterizerOptions:
                 )
         if not isinstance(self.checkpoint, bool):
             problems.append(f"checkpoint={self.checkpoint!r}: must be true or false")
+        if self.backend not in RASTER_BACKENDS:
+            problems.append(
+                f"backend={self.backend!r}: must be one of {', '.join(RASTER_BACKENDS)}"
+            )
         if problems:
             raise ConfigError([f"renderer gauss-torch: {p}" for p in problems])

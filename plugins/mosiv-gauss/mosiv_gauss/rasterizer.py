@@ -290,9 +290,7 @@ def rasterize(
     means = gaussians.means[frame]
     dtype, device = means.dtype, means.device
     width, height, tile = camera.width, camera.height, opts.tile_size
-    tiles_x, tiles_y = (width + tile - 1) // tile, (height + tile - 1) // tile
-    n_feat = _OBJECTS + n_objects
-    px_per_tile = tile * tile
+    tiles_x = (width + tile - 1) // tile
 
     screen = project_isotropic(
         means,
@@ -308,6 +306,37 @@ def rasterize(
     stats = RasterStats(n_gaussians=int(means.shape[0]), n_tile_pairs=int(bins.gaussian.numel()))
     stats.n_visible = int(torch.unique(bins.gaussian).numel())
 
+    if opts.backend == "warp":
+        image = _composite_warp(screen, bins, width=width, height=height, opts=opts, stats=stats)
+    else:
+        image = _composite_torch(screen, bins, width=width, height=height, opts=opts, stats=stats)
+    alpha = image[..., _ALPHA]
+    rgb = image[..., _RGB]
+    bg = background if background is not None else opts.background
+    if bg is not None:
+        bg = torch.as_tensor(bg, dtype=dtype, device=device)
+        if bg.shape not in ((3,), (height, width, 3)):
+            raise ValueError(
+                f"background has shape {list(bg.shape)}; expected [3] (a colour) or "
+                f"[{height}, {width}, 3] (an image of camera {camera.id!r})"
+            )
+        rgb = rgb + (1.0 - alpha).unsqueeze(-1) * bg
+    output = RenderOutput(
+        rgb=rgb,
+        alpha=alpha,
+        depth=image[..., _DEPTH],
+        object_alpha=image[..., _OBJECTS:].permute(2, 0, 1),
+    )
+    return output, stats
+
+
+def _composite_torch(screen, bins, *, width, height, opts, stats) -> Tensor:
+    """Composited features [height, width, F] by torch slices (the reference backend)."""
+    dtype, device = screen.uv.dtype, screen.uv.device
+    tile = opts.tile_size
+    tiles_x, tiles_y = (width + tile - 1) // tile, (height + tile - 1) // tile
+    n_feat = screen.features.shape[1]
+    px_per_tile = tile * tile
     # busy tiles, fewest Gaussians first: tiles grouped together have similar counts, so little
     # work is wasted padding every tile of a group to the group's largest count
     active = torch.nonzero(bins.count).squeeze(1)
@@ -340,24 +369,29 @@ def rasterize(
     # [tiles_y, tiles_x, row, col, F] -> [rows, cols, F], cropped to the real image
     image = image.reshape(tiles_y, tiles_x, tile, tile, n_feat).permute(0, 2, 1, 3, 4)
     image = image.reshape(tiles_y * tile, tiles_x * tile, n_feat)[:height, :width]
-    alpha = image[..., _ALPHA]
-    rgb = image[..., _RGB]
-    bg = background if background is not None else opts.background
-    if bg is not None:
-        bg = torch.as_tensor(bg, dtype=dtype, device=device)
-        if bg.shape not in ((3,), (height, width, 3)):
-            raise ValueError(
-                f"background has shape {list(bg.shape)}; expected [3] (a colour) or "
-                f"[{height}, {width}, 3] (an image of camera {camera.id!r})"
-            )
-        rgb = rgb + (1.0 - alpha).unsqueeze(-1) * bg
-    output = RenderOutput(
-        rgb=rgb,
-        alpha=alpha,
-        depth=image[..., _DEPTH],
-        object_alpha=image[..., _OBJECTS:].permute(2, 0, 1),
+    return image
+
+
+def _composite_warp(screen, bins, *, width, height, opts, stats) -> Tensor:
+    """Composited features [height, width, F] by the Warp kernels (``warp_composite``)."""
+    from mosiv_gauss.warp_composite import composite  # warp-lang is needed only here
+
+    tile = opts.tile_size
+    if bins.gaussian.numel() == 0:  # nothing reaches the image: constant, no graph
+        return screen.uv.new_zeros(height, width, screen.features.shape[1])
+    stats.n_steps = 1
+    stats.n_evaluated = int((bins.count * tile * tile).sum())
+    stats.max_step_pairs = stats.n_evaluated
+    return composite(
+        screen,
+        bins,
+        width=width,
+        height=height,
+        tile=tile,
+        tiles_x=(width + tile - 1) // tile,
+        cutoff2=float(opts.cutoff_sigma) ** 2,
+        max_alpha=float(opts.max_alpha),
     )
-    return output, stats
 
 
 def _check_inputs(gaussians: GaussianFrames, *, frame: int, n_objects: int) -> None:

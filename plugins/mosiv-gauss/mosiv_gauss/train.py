@@ -288,7 +288,9 @@ def train_dynamic(
     """Optimise canonical Gaussians, networks (and a learned background) per eq. 2."""
     history = TrainingHistory()
     device = model.means.device
-    raster = TorchRasterizerOptions(tile_size=opts.tile_size, checkpoint=opts.raster_checkpoint)
+    raster = TorchRasterizerOptions(
+        tile_size=opts.tile_size, checkpoint=opts.raster_checkpoint, backend=opts.raster_backend
+    )
     canon_opt = _canonical_optimizer(model, opts)
     net_opt = torch.optim.Adam(model.network_parameters(), lr=opts.lr_network)
     background = data.background
