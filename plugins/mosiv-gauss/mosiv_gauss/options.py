@@ -17,7 +17,7 @@ def _is_number(value: object) -> bool:
 
 
 #: where the rasterizer composites (see TorchRasterizerOptions.backend)
-RASTER_BACKENDS = ("torch", "warp")
+RASTER_BACKENDS = ("torch", "warp", "auto")
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,8 @@ class TorchRasterizerOptions:
         backward pass instead of storing them (memory grows with pixels, not with pairs).
     backend: "torch" composites in torch slices (the reference); "warp" composites in Warp
         kernels, one thread per pixel (``warp_composite.py``, CPU or CUDA, needs warp-lang);
-        projection and tile binning are torch in both. pixel_chunk, pair_chunk and
+        "auto" picks warp for CUDA tensors when warp-lang is installed, torch otherwise.
+        Projection and tile binning are torch in every case. pixel_chunk, pair_chunk and
         checkpoint only concern the torch backend.
     """
 

@@ -306,7 +306,7 @@ def rasterize(
     stats = RasterStats(n_gaussians=int(means.shape[0]), n_tile_pairs=int(bins.gaussian.numel()))
     stats.n_visible = int(torch.unique(bins.gaussian).numel())
 
-    if opts.backend == "warp":
+    if _use_warp(opts.backend, device):
         image = _composite_warp(screen, bins, width=width, height=height, opts=opts, stats=stats)
     else:
         image = _composite_torch(screen, bins, width=width, height=height, opts=opts, stats=stats)
@@ -328,6 +328,17 @@ def rasterize(
         object_alpha=image[..., _OBJECTS:].permute(2, 0, 1),
     )
     return output, stats
+
+
+def _use_warp(backend: str, device: torch.device) -> bool:
+    """Whether to composite with the Warp kernels (see TorchRasterizerOptions.backend)."""
+    if backend != "auto":
+        return backend == "warp"
+    if device.type != "cuda":
+        return False
+    import importlib.util
+
+    return importlib.util.find_spec("warp") is not None
 
 
 def _composite_torch(screen, bins, *, width, height, opts, stats) -> Tensor:

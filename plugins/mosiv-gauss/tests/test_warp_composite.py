@@ -83,3 +83,11 @@ def test_warp_backend_draws_nothing_for_gaussians_behind_the_camera():
     out, stats = _render(behind, "warp")
     assert stats.n_visible == 0
     assert float(out.alpha.abs().max()) == 0.0
+
+
+def test_auto_backend_picks_warp_for_cuda_tensors_only():
+    from mosiv_gauss.rasterizer import _use_warp
+
+    assert not _use_warp("auto", torch.device("cpu"))  # the torch reference on the CPU
+    assert _use_warp("auto", torch.device("cuda"))  # warp-lang is installed (importorskip)
+    assert _use_warp("warp", torch.device("cpu")) and not _use_warp("torch", torch.device("cuda"))
