@@ -84,6 +84,8 @@ def identify(
         raise ConfigError(f"identification needs at least 2 observed frames, got {observed_frames}")
     last = observed_frames - 1
     v_last = last if velocity_frames is None else max(1, min(last, velocity_frames - 1))
+    # the targets move once to where the rollouts come back (the particles' device)
+    targets = {k: t.to(particles.positions.device) for k, t in targets.items()}
     phases = [
         Phase("velocity", section.velocity_iterations, section.velocity_lr, v_last),
         Phase("params", section.param_iterations, section.param_lr, last),

@@ -119,7 +119,7 @@ class SilhouetteObjective:
 
     Recorded masks (``scene.load_masks``) are the target silhouettes; simulated ones are splats
     of the simulated particles (``splat_alpha``) through the same cameras, at ``size`` pixels.
-    Masks are loaded once per frame and kept.
+    Masks are loaded once per frame and kept on the device of the rollouts.
     """
 
     def __init__(self, objective: WeightedSum, *, scene, particles: ParticleSet, size: int = 48):
@@ -131,10 +131,13 @@ class SilhouetteObjective:
         self.radius = {k: particle_radius(particles, k) for k in particles.object_list}
         self._masks: dict[int, torch.Tensor] = {}
 
-    def _target(self, frames: list[int], objects: list[int]) -> dict[int, torch.Tensor]:
+    def _target(self, frames: list[int], objects: list[int], device) -> dict[int, torch.Tensor]:
         for f in frames:
-            if f not in self._masks:  # [C, K, size, size]
-                self._masks[f] = mask_alpha(self.scene.load_masks(frames=[f])[0], self.size)
+            if f not in self._masks:  # [C, K, size, size], kept on the rollouts' device
+                alpha = mask_alpha(self.scene.load_masks(frames=[f])[0], self.size)
+                self._masks[f] = alpha.to(device)
+            elif self._masks[f].device != torch.device(device):
+                self._masks[f] = self._masks[f].to(device)
         index = {o.id: i for i, o in enumerate(self.scene.objects)}
         return {k: torch.stack([self._masks[f][:, index[k]] for f in frames]) for k in objects}
 
@@ -152,10 +155,8 @@ class SilhouetteObjective:
     def evaluate(self, predicted: GeometryFrames, target: GeometryFrames):
         predicted = GeometryFrames(predicted.frames, predicted.points, self.render(predicted))
         device = next(iter(predicted.silhouettes.values())).device
-        masks = self._target(target.frames, target.object_list)
-        target = GeometryFrames(
-            target.frames, target.points, {k: m.to(device) for k, m in masks.items()}
-        )
+        masks = self._target(target.frames, target.object_list, device)
+        target = GeometryFrames(target.frames, target.points, masks)
         return self.objective.evaluate(predicted, target)
 
     def __call__(self, predicted: GeometryFrames, target: GeometryFrames) -> torch.Tensor:
