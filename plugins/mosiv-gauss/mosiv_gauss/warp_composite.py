@@ -31,6 +31,18 @@ def _init() -> None:
         _READY = True
 
 
+@wp.func
+def pixel_centre(pid: int, width: int) -> wp.vec2:
+    """Centre (u, v) of the thread's pixel, row-major (pixel centres at integer + 0.5)."""
+    return wp.vec2(float(pid % width) + 0.5, float(pid // width) + 0.5)
+
+
+@wp.func
+def tile_of(pid: int, width: int, tile: int, tiles_x: int) -> int:
+    """Index of the tile holding the thread's pixel (as in ``bin_to_tiles``)."""
+    return ((pid // width) // tile) * tiles_x + (pid % width) // tile
+
+
 @wp.kernel
 def composite_forward(
     tile_start: wp.array(dtype=wp.int32),
@@ -49,17 +61,14 @@ def composite_forward(
     final_trans: wp.array(dtype=float),
 ):
     pid = wp.tid()
-    px = pid % width
-    py = pid // width
-    t = (py // tile) * tiles_x + px // tile
-    pu = float(px) + 0.5
-    pv = float(py) + 0.5
+    t = tile_of(pid, width, tile, tiles_x)
+    p = pixel_centre(pid, width)
     trans = float(1.0)  # noqa: UP018 (Warp: a variable the loop changes)
     n_feat = features.shape[1]
     for j in range(tile_start[t], tile_start[t] + tile_count[t]):
         g = pair_gaussian[j]
-        du = pu - uv[g, 0]
-        dv = pv - uv[g, 1]
+        du = p[0] - uv[g, 0]
+        dv = p[1] - uv[g, 1]
         q = du * du * inv_var[g, 0] + dv * dv * inv_var[g, 1]  # squared Mahalanobis distance
         if q <= cutoff2:
             alpha = wp.min(opacity[g] * wp.exp(-0.5 * q), max_alpha)
@@ -92,11 +101,8 @@ def composite_backward(
     grad_features: wp.array2d(dtype=float),
 ):
     pid = wp.tid()
-    px = pid % width
-    py = pid // width
-    t = (py // tile) * tiles_x + px // tile
-    pu = float(px) + 0.5
-    pv = float(py) + 0.5
+    t = tile_of(pid, width, tile, tiles_x)
+    p = pixel_centre(pid, width)
     trans = final_trans[pid]  # transmittance behind the last Gaussian, walked back to the front
     # S: sum_f dL/dout_f * (features composited behind the current one)
     behind = float(0.0)  # noqa: UP018 (Warp: a variable the loop changes)
@@ -105,8 +111,8 @@ def composite_backward(
     for k in range(tile_count[t]):
         j = first + tile_count[t] - 1 - k
         g = pair_gaussian[j]
-        du = pu - uv[g, 0]
-        dv = pv - uv[g, 1]
+        du = p[0] - uv[g, 0]
+        dv = p[1] - uv[g, 1]
         q = du * du * inv_var[g, 0] + dv * dv * inv_var[g, 1]
         if q <= cutoff2:
             raw = opacity[g] * wp.exp(-0.5 * q)
