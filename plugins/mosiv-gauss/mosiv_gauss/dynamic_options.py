@@ -61,8 +61,8 @@ class DynamicGaussOptions:
             "learned" (that median refined as a parameter);
         tile_size: tile side of the torch rasterizer (pixels); raster_checkpoint: let the
             rasterizer recompute per-pixel values in the backward pass (less memory, slower);
-            raster_backend: "torch" or "warp", where the rasterizer composites
-            (``TorchRasterizerOptions.backend``);
+            raster_backend: "auto" (default), "torch" or "warp", where the rasterizer
+            composites (``TorchRasterizerOptions.backend``);
         device: torch device ("cpu", "cuda", "cuda:1"); seed: random seed; progress: tqdm bar;
         save_dir: sub-folder of the run folder the reconstruction is saved in ("" = no saving).
     """
@@ -98,7 +98,7 @@ class DynamicGaussOptions:
     background: str = "median"
     tile_size: int = 16
     raster_checkpoint: bool = False
-    raster_backend: str = "torch"
+    raster_backend: str = "auto"
     device: str = "cpu"
     seed: int = 0
     progress: bool = True
