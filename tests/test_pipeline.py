@@ -9,6 +9,7 @@ resuming and metrics without depending on an MPM backend.
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
@@ -204,3 +205,71 @@ def test_resync_refits_a_wrong_initial_velocity_during_the_parameter_phase(
     assert errors[0] > 0.1  # nothing else touches the velocities
     # 20 Adam steps at the velocity rate over a 3-frame horizon: a tenfold reduction
     assert errors[4] < 0.05 and errors[4] < errors[0] / 5, errors
+
+
+def _with_extra_term(term_of):
+    """Ballistic rollouts with ``term_of(params, call)`` (a scalar tensor) added to every
+    position: a hook that makes chosen parameters matter, or poisons their gradients."""
+    original = Ballistic.rollout
+
+    def rollout(self, particles, params, *, world, frames):
+        traj = original(self, particles, params, world=world, frames=frames)
+        extra = term_of(params, Ballistic.calls)
+        return Trajectory(traj.positions + extra, traj.object_ids, traj.fps)
+
+    return rollout
+
+
+def test_a_non_finite_gradient_steps_back_like_a_divergence(tmp_path, registry, monkeypatch):
+    def poison(params, call):
+        # forward 0, but d/dv of 0 * sqrt(v - v) is 0 * inf = NaN: at calls 6 and 7, the rollouts
+        # of iterations 4 and 5 (call 1 scores the start)
+        v = sum(v.sum() for v in params.initial_velocity.values())
+        return 0.0 * torch.sqrt(v - v.detach()) if call in (6, 7) else 0.0
+
+    Ballistic.calls = 0
+    monkeypatch.setattr(Ballistic, "rollout", _with_extra_term(poison))
+    metrics = run_pipeline(make_recipe(tmp_path, registry), run_dir=tmp_path / "run")
+    history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
+    stepped_back = [h for h in history if "diverged" in h]
+    assert [h["iteration"] for h in stepped_back] == [4, 5]
+    assert all("non-finite gradient of v0.obj" in h["diverged"] for h in stepped_back)
+    finite = [
+        math.isfinite(x)
+        for h in history
+        for v in h["values"]["objects"].values()
+        for x in v["initial_velocity"]
+    ]
+    assert all(finite)
+    assert metrics["future"]["cd_mm2"] < 1.0
+
+
+def test_a_parameter_without_gradient_holds_still(tmp_path, registry, monkeypatch):
+    # E moves the positions during the first 3 parameter steps (calls 2-4), then stops mattering (as a
+    # yield stress does once above every stress reached): it must not coast on Adam's momentum
+    def stiffness_matters_early(params, call):
+        e = params.objects[1]["E"]
+        return (1e-2 if call <= 4 else 0.0) * e / e.detach()
+
+    Ballistic.calls = 0
+    monkeypatch.setattr(Ballistic, "rollout", _with_extra_term(stiffness_matters_early))
+    recipe = make_recipe(tmp_path, registry, velocity_iterations=0, param_iterations=12)
+    run_pipeline(recipe, run_dir=tmp_path / "run")
+    history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
+    e_values = [h["values"]["objects"]["1"]["params"]["E"] for h in history if "loss" in h]
+    assert e_values[0] != e_values[2]  # it did move while it mattered
+    assert len(set(e_values[2:])) == 1  # and holds still from then on
+
+
+def test_the_parameter_curriculum_starts_after_the_free_flight(tmp_path, registry, monkeypatch):
+    # the example's spheres never touch; declare contact from frame 3 on (free flight 0..2)
+    import mosiv_framework.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "free_flight_frames", lambda *a, **k: 3)
+    recipe = make_recipe(tmp_path, registry, param_iterations=6, horizon_start=1)
+    run_pipeline(recipe, run_dir=tmp_path / "run")
+    history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
+    velocity = [h["horizon"] for h in history if h["phase"] == "velocity"]
+    params = [h["horizon"] for h in history if h["phase"] == "params"]
+    assert (min(velocity), max(velocity)) == (1, 2)
+    assert min(params) == 3

@@ -11,6 +11,7 @@ stopped.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 import torch
@@ -29,12 +30,14 @@ MAX_BACKOFFS = 6
 
 @dataclass
 class Phase:
-    """One optimisation phase: its leaves' name, iterations, learning rate and ``last``, the
-    last frame it fits (the horizon its curriculum grows to)."""
+    """One optimisation phase: its leaves' name, iterations, learning rate, ``first``, the
+    horizon its curriculum starts from, and ``last``, the last frame it fits (the horizon the
+    curriculum grows to)."""
 
     name: str
     iterations: int
     lr: float
+    first: int
     last: int
 
 
@@ -73,7 +76,13 @@ def identify(
 
     The velocity phase fits frames ``1..velocity_frames - 1`` (the free flight before any
     contact, whose motion does not depend on the unknown materials; default: all observed
-    frames); the parameter phase fits every observed frame. Each phase minimises its loss
+    frames); the parameter phase fits every observed frame, its curriculum starting at the first
+    frame after that free flight (earlier frames do not depend on any material parameter, so
+    their gradients are round-off that Adam, being scale-free, would follow with full-size
+    steps). A parameter whose gradient is exactly zero in a step (friction before any contact,
+    a yield stress above every stress reached) holds still rather than coasting on Adam's
+    momentum, and a non-finite gradient is treated like a diverged rollout: the step is taken
+    back and the learning rate halved. Each phase minimises its loss
     divided by the phase's first loss, so Adam's step sizes are the recipe's learning rates
     whatever the loss's unit or magnitude (Adam is invariant to a constant factor except for
     its epsilon, which would otherwise swamp gradients of m^2-sized Chamfer losses).
@@ -86,9 +95,12 @@ def identify(
     v_last = last if velocity_frames is None else max(1, min(last, velocity_frames - 1))
     # the targets move once to where the rollouts come back (the particles' device)
     targets = {k: t.to(particles.positions.device) for k, t in targets.items()}
+    start = section.horizon_start
+    # after a free-flight velocity phase, frames 1..v_last carry no material information
+    param_start = max(start, v_last + 1) if velocity_frames is not None else start
     phases = [
-        Phase("velocity", section.velocity_iterations, section.velocity_lr, v_last),
-        Phase("params", section.param_iterations, section.param_lr, last),
+        Phase("velocity", section.velocity_iterations, section.velocity_lr, start, v_last),
+        Phase("params", section.param_iterations, section.param_lr, param_start, last),
     ]
     history: list[dict] = []
     start_phase, start_iter, opt_state = 0, 0, None
@@ -139,7 +151,7 @@ def identify(
             h = horizon(
                 it,
                 phase.iterations,
-                start=section.horizon_start,
+                start=phase.first,
                 full_at=section.horizon_full_at,
                 last=phase.last,
             )
@@ -168,9 +180,19 @@ def identify(
             optimizer.zero_grad()
             try:
                 traj = simulator.rollout(particles, vector.physical(), world=world, frames=h)
+                frames = list(range(1, h + 1))
+                device = traj.positions.device
+                target = geometry({k: t.to(device) for k, t in targets.items()}, frames)
+                loss, terms = objective.evaluate(geometry(traj, frames), target)
+                loss_value = float(loss.detach())
+                if scale is None:  # the phase's first loss sets its unit (see the docstring)
+                    scale = 1.0 / max(loss_value, 1e-30)
+                (loss * scale).backward()
+                _check_gradients(named, phase=phase.name, horizon=h)
             except SimulationDiverged as exc:
                 # the last step went somewhere the simulator cannot follow (too stiff or too
-                # soft for its substeps): step back and take smaller steps from there
+                # soft for its substeps, or a gradient that overflowed): step back and take
+                # smaller steps from there
                 backoffs += 1
                 if backoffs > MAX_BACKOFFS or previous is None:
                     raise SimulationDiverged(
@@ -181,6 +203,7 @@ def identify(
                         advice=f"{exc.advice} Or lower identify.{phase.name}_lr.",
                     ) from exc
                 previous.apply(vector)
+                optimizer.zero_grad()
                 # halve the schedule's base rate too, or its next step would undo the halving
                 schedule.base_lrs = [lr * 0.5 for lr in schedule.base_lrs]
                 for group in optimizer.param_groups:
@@ -197,14 +220,6 @@ def identify(
                 continue
             backoffs = 0
             previous = _Best.snapshot(vector)  # the leaves this step starts from
-            frames = list(range(1, h + 1))
-            device = traj.positions.device
-            target = geometry({k: t.to(device) for k, t in targets.items()}, frames)
-            loss, terms = objective.evaluate(geometry(traj, frames), target)
-            loss_value = float(loss.detach())
-            if scale is None:  # the phase's first loss sets its unit (see the docstring)
-                scale = 1.0 / max(loss_value, 1e-30)
-            (loss * scale).backward()
             # gradients of the unscaled loss, per leaf, for the log
             grads = {
                 n: float(leaf.grad.norm()) / scale
@@ -214,6 +229,9 @@ def identify(
             grad_norm = math.sqrt(sum(g * g for g in grads.values()))
             if h == phase.last:  # only losses over the phase's whole window are comparable
                 best.offer(loss_value, vector)
+            for leaf in leaves:  # no evidence this step: Adam skips a leaf without a gradient
+                if leaf.grad is not None and not bool(leaf.grad.any()):
+                    leaf.grad = None
             optimizer.step()
             schedule.step()
             with torch.no_grad():  # keep normalised coordinates inside their bounds
@@ -247,6 +265,26 @@ def identify(
         _save_checkpoint(run_dir, config_hash, index + 1, 0, history, None, vector)
         opt_state = None
     return vector, history
+
+
+def _check_gradients(named: dict[str, torch.Tensor], *, phase: str, horizon: int) -> None:
+    """Raise SimulationDiverged naming the leaves whose gradient is not finite (NaN or inf
+    would otherwise enter Adam's state and every later step)."""
+    bad = [
+        n
+        for n, g in ((n, leaf.grad) for n, leaf in named.items())
+        if g is not None and not bool(torch.isfinite(g).all())
+    ]
+    if bad:
+        owner = re.search(r"obj(\d+)", bad[0])
+        raise SimulationDiverged(
+            object_id=int(owner.group(1)) if owner else 0,
+            frame=horizon,
+            substep=0,
+            reason=f"non-finite gradient of {', '.join(bad)} in the backward pass over frames "
+            f"1..{horizon} ({phase})",
+            advice="",
+        )
 
 
 def _resync_due(iteration: int, section) -> bool:
