@@ -471,3 +471,56 @@ def test_suite_scores_a_per_object_plasticity_name_as_its_kind():
     for name in ("plasticity-0", "plasticity-1"):
         assert entries[name].materials.split(",").count("elastic") == 1
     assert entries["object_friction-0"].overrides == ("identify.identify_friction=false",)
+
+
+def test_regression_drop_scores_the_model_at_the_regression_estimate():
+    """The screen's second estimate of a candidate's worth: the loss at its regression estimate
+    (coefficients and velocity change together), relative to what the velocity change alone
+    reaches; a diverged rollout earns nothing."""
+    from types import SimpleNamespace
+
+    from mosiv_framework.diagnose.candidates import build_candidates
+    from mosiv_framework.diagnose.hypothesise import regression_drop
+    from mosiv_framework.errors import SimulationDiverged
+
+    wind_true = torch.tensor([0.0, 2.5, 0.0])
+    v_true = torch.tensor([0.3, 0.0, 0.0])
+
+    class FakeContext:
+        identified = _elastic_pair_params()
+        object_ids = [1, 2]
+        simulator = SimpleNamespace(supported_terms=frozenset({"wind"}))
+        simulator_name = "fake"
+        world = SimpleNamespace(gravity=(0.0, 0.0, -9.81), ground_height=None)
+        diverge = False
+
+        def parameter_vector(self):
+            return SimpleNamespace(normalized={"obj1.friction": None})  # no friction candidate
+
+        def rollout(self, params, *, frames):
+            if self.diverge:
+                raise SimulationDiverged(object_id=1, frame=1, substep=0, reason="", advice="")
+            return params
+
+        def loss(self, params, frames):
+            wind = params.terms.get("wind", {}).get("acceleration", torch.zeros(3))
+            v = params.initial_velocity[1]
+            return 0.1 + ((wind - wind_true) ** 2).sum() + ((v - v_true) ** 2).sum()
+
+    ctx = FakeContext()
+    wind = next(c for c in build_candidates(ctx)[0] if c.name == "wind")
+    exact = (wind_true, {1: v_true.clone()})
+    reference = float(ctx.loss(ctx.identified, [1]))  # 0.1 + 6.25 + 0.09
+    assert regression_drop(ctx, wind, exact, reference=reference, fit_frames=[1, 2]) == (
+        pytest.approx((reference - 0.1) / reference)
+    )
+    # credit is relative to the reference: a velocity change alone reaching 0.1 + 6.25 leaves
+    # the wind 6.25 / 6.35 of it
+    only_wind = reference - 0.09
+    assert regression_drop(ctx, wind, exact, reference=only_wind, fit_frames=[1, 2]) == (
+        pytest.approx((only_wind - 0.1) / only_wind)
+    )
+    worse = (torch.tensor([0.0, -5.0, 0.0]), None)  # farther than no wind at all
+    assert regression_drop(ctx, wind, worse, reference=reference, fit_frames=[1]) == 0.0
+    ctx.diverge = True
+    assert regression_drop(ctx, wind, exact, reference=reference, fit_frames=[1]) == 0.0

@@ -18,13 +18,17 @@ For body-force candidates a second, simulator-free estimate of the coefficient c
 centroid paths: in free flight an extra acceleration a(v; theta) shifts an object's centroid by
 its double time integral, and a changed initial velocity by dv0 t; least squares of the
 centroid residual on both (``regression_estimate``) gives theta net of what the initial
-velocity can absorb, which is where a refit should start.
+velocity can absorb, which is where a refit should start. The screen also rolls the model out
+at that estimate (``regression_drop``): the probe along the gradient at zero can undersell a
+3-vector effect (a sideways wind, whose gradient at zero mixes with what the velocities already
+absorbed), while the regression lands near its coefficient directly. A candidate's predicted
+drop is the better of the two.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -133,6 +137,43 @@ def regression_estimate(
     return theta, dv0
 
 
+def shifted_velocities(params, velocity_change: dict | None):
+    """``params`` with each object's initial velocity moved by ``velocity_change`` (m/s)."""
+    if not velocity_change:
+        return params
+    moved = {
+        k: v + velocity_change[k].to(v) if k in velocity_change else v
+        for k, v in params.initial_velocity.items()
+    }
+    return replace(params, initial_velocity=moved)
+
+
+def regression_drop(
+    ctx: RunContext,
+    candidate: Candidate,
+    regression: tuple[torch.Tensor, dict[int, torch.Tensor]],
+    *,
+    reference: float,
+    fit_frames: list[int],
+) -> float:
+    """Fraction of ``reference`` that the model with ``candidate`` at its regression estimate
+    (coefficients and initial-velocity change together) removes from the loss on
+    ``fit_frames``; 0 if it does not lower it or the rollout diverges.
+
+    ``reference`` should be the lower of the identified model's loss and the null model's at
+    the null regression's velocity change, so the velocity change alone earns no credit."""
+    theta, velocity_change = regression
+    params = candidate.apply(shifted_velocities(ctx.identified, velocity_change), theta)
+    try:
+        with torch.no_grad():
+            loss = float(ctx.loss(ctx.rollout(params, frames=max(fit_frames)), fit_frames))
+    except SimulationDiverged:
+        return 0.0
+    if not math.isfinite(loss) or reference <= 0:
+        return 0.0
+    return max(0.0, (reference - loss) / reference)
+
+
 def _max_step(candidate: Candidate, direction: torch.Tensor) -> float:
     """Largest a with a * direction inside the candidate's bounds (theta starts at 0)."""
     limit = math.inf
@@ -201,6 +242,17 @@ def screen(
         loss0.backward()
     base = float(loss0.detach())
     out += [_screen_ladder(ctx, c, base, n=n, fit_frames=fit_frames) for c in laddered]
+    reference = base  # what a velocity change alone reaches: candidates get no credit for it
+    if residuals is not None and regimes is not None:
+        null = regression_estimate(ctx, None, residuals, regimes, fit_frames)
+        if null is not None:
+            try:
+                with torch.no_grad():
+                    moved = shifted_velocities(ctx.identified, null[1])
+                    loss = float(ctx.loss(ctx.rollout(moved, frames=horizon), fit_frames))
+                reference = min(base, loss) if math.isfinite(loss) else base
+            except SimulationDiverged:
+                pass
     for c, theta in zip(by_gradient, thetas):
         g = theta.grad.detach().clone()
         # descent direction preconditioned by each coefficient's natural size, then one
@@ -234,9 +286,15 @@ def screen(
         if curvature <= 0:
             drop = base - float(probe)
         fraction = max(0.0, drop / base) if base > 0 else 0.0
-        regression = None
+        regression, note = None, ""
         if residuals is not None and regimes is not None:
             regression = regression_estimate(ctx, c, residuals, regimes, fit_frames)
+        if regression is not None:
+            by_regression = regression_drop(
+                ctx, c, regression, reference=reference, fit_frames=fit_frames
+            )
+            note = f"probe drop {fraction:.3g}, regression drop {by_regression:.3g}"
+            fraction = max(fraction, by_regression)
         out.append(
             Screen(
                 c,
@@ -245,6 +303,7 @@ def screen(
                 (step * direction).detach(),
                 fraction,
                 bic_gain(fraction, n=n, dim=c.dim),
+                note,
                 regression=regression,
             )
         )
