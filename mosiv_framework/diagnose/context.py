@@ -34,6 +34,11 @@ class RunContext:
 
     ``targets`` maps object id -> [T, N_k, 3] points (m) over every frame the reconstruction
     covers; frames ``< observed_frames`` were fitted by the run, the rest are its future.
+
+    Rollouts compute on the simulator's ``torch_device``: differentiable ones (``simulate``)
+    stay there, so the losses of screening and refits run beside the simulator, while
+    ``rollout`` (no gradient) brings its trajectory back to the CPU, where the location, the
+    regression and the reports read it with numpy.
     """
 
     run_dir: RunDir
@@ -62,8 +67,13 @@ class RunContext:
     def fps(self) -> float:
         return self.scene.fps
 
+    @property
+    def device(self) -> torch.device:
+        """Where the simulator computes (``Simulator.torch_device``)."""
+        return torch.device(getattr(self.simulator, "torch_device", "cpu"))
+
     def simulate(self, params: SimulationParams, *, frames: int) -> Trajectory:
-        """A differentiable rollout of ``params`` over ``frames`` frames.
+        """A differentiable rollout of ``params`` over ``frames`` frames, on ``device``.
 
         The particles take each object's family from ``params``, so a candidate may change a
         family (an elastic body that yields becomes plasticine)."""
@@ -75,14 +85,22 @@ class RunContext:
         """A rollout of ``params`` (no gradient) over ``frames`` frames (default: all)."""
         frames = self.n_frames - 1 if frames is None else frames
         with torch.no_grad():
-            return self.simulate(params.detached(), frames=frames)
+            traj = self.simulate(params.detached(), frames=frames)
+        if traj.positions.device.type == "cpu":
+            return traj
+        return Trajectory(traj.positions.cpu(), traj.object_ids.cpu(), traj.fps)
 
     def particles_for(self, params: SimulationParams) -> ParticleSet:
-        """The run's particles labelled with the families ``params`` simulate them as."""
+        """The run's particles on ``device``, labelled with the families ``params`` simulate
+        them as."""
+        key = ("particles", self.device)
+        if key not in self._rollout_cache:  # moved once, not per rollout
+            self._rollout_cache[key] = self.particles.to(self.device)
+        particles = self._rollout_cache[key]
         families = {k: p.family for k, p in params.objects.items()}
-        if families == self.particles.materials:
-            return self.particles
-        return replace(self.particles, materials=families)
+        if families == particles.materials:
+            return particles
+        return replace(particles, materials=families)
 
     def identified_rollout(self) -> Trajectory:
         """The run's own prediction over all frames (computed once)."""
@@ -103,13 +121,20 @@ class RunContext:
             total = 0.0
             for k in self.object_ids:
                 sim = traj.object_positions(k)[t]
-                tgt = self.targets[k][t].to(sim.device)
+                tgt = self._targets_on(k, sim.device)[t]
                 total = total + chamfer_m2(
                     sim[self._subset("sim", k, sim.shape[0])],
                     tgt[self._subset("tgt", k, tgt.shape[0])],
                 )
             per_frame.append(total)
         return torch.stack(per_frame).mean()
+
+    def _targets_on(self, k: int, device: torch.device) -> torch.Tensor:
+        """Object ``k``'s targets on ``device`` (moved once per device)."""
+        key = ("targets", k, device)
+        if key not in self._rollout_cache:
+            self._rollout_cache[key] = self.targets[k].to(device)
+        return self._rollout_cache[key]
 
     def _subset(self, side: str, k: int, n: int) -> torch.Tensor:
         key = ("subset", side, k, n)
