@@ -524,3 +524,39 @@ def test_regression_drop_scores_the_model_at_the_regression_estimate():
     assert regression_drop(ctx, wind, worse, reference=reference, fit_frames=[1]) == 0.0
     ctx.diverge = True
     assert regression_drop(ctx, wind, exact, reference=reference, fit_frames=[1]) == 0.0
+
+
+def test_refit_ends_a_start_at_a_non_finite_gradient():
+    """A NaN gradient (as from a degenerate backward pass) must not enter Adam's state: the
+    start stops there and returns its best finite iterate."""
+    from mosiv_framework.diagnose.model import RefitOptions, refit
+    from mosiv_framework.pipeline.params import ParameterVector
+
+    target = torch.tensor([1.0, 0.0, 0.0])
+
+    class FakeContext:
+        calls = 0
+
+        def parameter_vector(self):
+            return ParameterVector.create({1: "elastic"}, {1: torch.zeros(3)}, ground_friction=None)
+
+        def simulate(self, params, *, frames):
+            self.calls += 1
+            v = params.initial_velocity[1]
+            misfit = ((v - target) ** 2).sum()
+            if self.calls >= 4:  # forward unchanged, gradient 0 * inf = NaN
+                misfit = misfit + 0.0 * torch.sqrt(v.sum() - v.sum().detach())
+            return misfit
+
+        def loss(self, traj, frames):
+            return traj
+
+        def rollout(self, params, *, frames=None):
+            return None
+
+    ctx = FakeContext()
+    fit = refit(ctx, None, fit_frames=[1, 2], options=RefitOptions(iterations=10))
+    assert len(fit.history) == 4  # three clean steps, then the poisoned pass ends the start
+    v = fit.params.initial_velocity[1]
+    assert bool(torch.isfinite(v).all())
+    assert fit.loss == pytest.approx(min(fit.history)) and fit.loss < float((target**2).sum())

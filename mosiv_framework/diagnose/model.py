@@ -116,6 +116,8 @@ def refit(
             if value < best_start[0]:
                 best_start = (value, _snapshot(vector, u))
             loss.backward()
+            if not _finite_gradients(optimizer):
+                break  # a NaN step would poison every later one: this start ends at its best
             optimizer.step()
             with torch.no_grad():
                 for leaf in vector.normalized.values():
@@ -148,6 +150,16 @@ def refit(
     best.starts = tried
     best.trajectory = ctx.rollout(best.params)
     return best
+
+
+def _finite_gradients(optimizer: torch.optim.Optimizer) -> bool:
+    """Whether every gradient the optimizer would apply is finite."""
+    return all(
+        bool(torch.isfinite(leaf.grad).all())
+        for group in optimizer.param_groups
+        for leaf in group["params"]
+        if leaf.grad is not None
+    )
 
 
 def _assemble(vector, candidate, u, scale) -> SimulationParams:

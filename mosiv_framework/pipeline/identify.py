@@ -318,6 +318,8 @@ def resync_velocities(
         if step == iterations:
             break
         (loss / max(value, 1e-30)).backward()
+        if not all(bool(torch.isfinite(v.grad).all()) for v in leaves if v.grad is not None):
+            break  # a non-finite gradient: the best iterate so far stands
         optimizer.step()
     best.apply(vector)
     for leaf in leaves:  # the parameter phase's next step starts from clean gradients
