@@ -271,9 +271,9 @@ def _check_gradients(named: dict[str, torch.Tensor], *, phase: str, horizon: int
     """Raise SimulationDiverged naming the leaves whose gradient is not finite (NaN or inf
     would otherwise enter Adam's state and every later step)."""
     bad = [
-        n
-        for n, g in ((n, leaf.grad) for n, leaf in named.items())
-        if g is not None and not bool(torch.isfinite(g).all())
+        name
+        for name, leaf in named.items()
+        if leaf.grad is not None and not bool(torch.isfinite(leaf.grad).all())
     ]
     if bad:
         owner = re.search(r"obj(\d+)", bad[0])
