@@ -70,7 +70,8 @@ class IdentifySection:
     param_lr: float = 0.05
     #: horizon curriculum: fit the first ``horizon_start`` frames first, then lengthen the
     #: rollout linearly so the whole observed window is used from ``horizon_full_at`` (a
-    #: fraction of each phase's iterations) on
+    #: fraction of each phase's iterations) on; after a free-flight velocity phase the
+    #: parameter phase starts at the first frame after the free flight, if that is later
     horizon_start: int = 3
     horizon_full_at: float = 0.5
     #: alternating updates (paper section 3.5): every ``resync_every`` parameter iterations
