@@ -8,7 +8,10 @@ velocity %), the observed and future Chamfer of both methods and the future rati
 library / ours, against the targets of issue 8 (E within 15 %, yield within 25 %, friction angle
 within 5 deg, v0 within 5 %, ratio at least 5). Writes ``table.json`` and ``table.md`` into the
 output folder; a rerun into the same folder reuses finished stages and keeps the rows of pairs
-it does not run.
+it does not run. Each row records the code version it was computed with (``code_version``; on a
+copy of the tree without git history, e.g. the device machine, pass it as
+``MOSIV_CODE_VERSION=<commit>``), and table.md lists the versions, since a table built up over
+several runs can mix them.
 
     python benchmarks/identify_suite.py --recipe recipes/paper.yaml --out runs/suite
     python benchmarks/identify_suite.py --recipe recipes/quickstart.yaml --pairs E-P,E-S \
@@ -19,7 +22,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
+import subprocess
 import time
 import traceback
 from dataclasses import replace
@@ -103,7 +108,7 @@ def run_scene(*, recipe: Path, index: int, pair: str, out: Path, seed: int, extr
         f"scene.source.seed={seed + index}",
         *extra,
     ]
-    row: dict = {"scene": scene_dir.name, "pair": pair, "materials": [a, b]}
+    row: dict = {"scene": scene_dir.name, "pair": pair, "materials": [a, b], "code": code_version()}
     for method in ("gradient", "library"):
         cfg = load_recipe(
             recipe, [*common, f"identify.method={method}", f"output.dir={scene_dir / method}"]
@@ -181,6 +186,31 @@ def future_with_true_ground(run_dir: Path, *, n_samples: int) -> float | None:
         seed=recipe.evaluate.seed,
     )
     return blocks["future"]["cd_mm2"]
+
+
+def code_version() -> str:
+    """The code a row was computed with: ``$MOSIV_CODE_VERSION`` if set (a copy of the tree
+    without its git history, as on the device machine), else the checkout's short commit hash
+    (``+dirty`` with uncommitted changes), else "unknown". Rows accumulate across runs, so a
+    table can mix versions; the markdown lists them."""
+    if os.environ.get("MOSIV_CODE_VERSION"):
+        return os.environ["MOSIV_CODE_VERSION"]
+    here = Path(__file__).resolve().parent
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=here,
+            capture_output=True,
+            text=True,
+        )
+    except OSError:
+        return "unknown"
+    if head.returncode != 0:
+        return "unknown"
+    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
 
 
 def run_suite(
@@ -327,6 +357,13 @@ def markdown(rows: list[dict], summary: dict) -> str:
     )
     if summary["failed"]:
         lines.append(f"\nfailed scenes: {', '.join(summary['failed'])}")
+    versions: dict[str, list[str]] = {}
+    for row in rows:
+        versions.setdefault(row.get("code", "unknown"), []).append(row["pair"])
+    lines.append(
+        "\ncode version per row: "
+        + "; ".join(f"{v}: {', '.join(pairs)}" for v, pairs in sorted(versions.items()))
+    )
     return "\n".join(lines) + "\n"
 
 
