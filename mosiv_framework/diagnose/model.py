@@ -19,6 +19,7 @@ import torch
 from mosiv_framework.diagnose.candidates import Candidate
 from mosiv_framework.diagnose.context import RunContext
 from mosiv_framework.errors import SimulationDiverged
+from mosiv_framework.pipeline.identify import gradients_finite
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.types import SimulationParams, Trajectory
 
@@ -116,7 +117,7 @@ def refit(
             if value < best_start[0]:
                 best_start = (value, _snapshot(vector, u))
             loss.backward()
-            if not _finite_gradients(optimizer):
+            if not gradients_finite(p for g in optimizer.param_groups for p in g["params"]):
                 break  # a NaN step would poison every later one: this start ends at its best
             optimizer.step()
             with torch.no_grad():
@@ -150,16 +151,6 @@ def refit(
     best.starts = tried
     best.trajectory = ctx.rollout(best.params)
     return best
-
-
-def _finite_gradients(optimizer: torch.optim.Optimizer) -> bool:
-    """Whether every gradient the optimizer would apply is finite."""
-    return all(
-        bool(torch.isfinite(leaf.grad).all())
-        for group in optimizer.param_groups
-        for leaf in group["params"]
-        if leaf.grad is not None
-    )
 
 
 def _assemble(vector, candidate, u, scale) -> SimulationParams:

@@ -267,14 +267,15 @@ def identify(
     return vector, history
 
 
+def gradients_finite(leaves) -> bool:
+    """Whether every gradient the leaves hold is finite (leaves without one count as finite)."""
+    return all(bool(torch.isfinite(leaf.grad).all()) for leaf in leaves if leaf.grad is not None)
+
+
 def _check_gradients(named: dict[str, torch.Tensor], *, phase: str, horizon: int) -> None:
     """Raise SimulationDiverged naming the leaves whose gradient is not finite (NaN or inf
     would otherwise enter Adam's state and every later step)."""
-    bad = [
-        name
-        for name, leaf in named.items()
-        if leaf.grad is not None and not bool(torch.isfinite(leaf.grad).all())
-    ]
+    bad = [name for name, leaf in named.items() if not gradients_finite([leaf])]
     if bad:
         owner = re.search(r"obj(\d+)", bad[0])
         raise SimulationDiverged(
@@ -318,7 +319,7 @@ def resync_velocities(
         if step == iterations:
             break
         (loss / max(value, 1e-30)).backward()
-        if not all(bool(torch.isfinite(v.grad).all()) for v in leaves if v.grad is not None):
+        if not gradients_finite(leaves):
             break  # a non-finite gradient: the best iterate so far stands
         optimizer.step()
     best.apply(vector)
