@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# Long GPU work spread over several device calls (each call is limited to 10 minutes).
+# Jobs started here run in their own process session (setsid), so they outlive the call that
+# started them for as long as the machine stays warm: make the next call within its idle window.
+#
+#   source benchmarks/gpu_setup.sh
+#   bash benchmarks/device_batch.sh start NAME COMMAND...   # background; log /root/jobs/NAME.log
+#   bash benchmarks/device_batch.sh wait SECONDS [PATH...]  # until every job ends or SECONDS
+#                                                           # pass; then pack the logs, exit
+#                                                           # codes and PATHs into $OUT/batch.tgz
+jobs_dir=/root/jobs
+mkdir -p "$jobs_dir"
+verb=$1
+shift
+case "$verb" in
+start)
+  name=$1
+  shift
+  # the exit code lands in NAME.rc when the job ends, which is how `wait` knows it has
+  setsid bash -c '"$@" > '"$jobs_dir/$name.log"' 2>&1; echo $? > '"$jobs_dir/$name.rc" \
+    _ "$@" < /dev/null &
+  echo "started $name (pid $!)"
+  ;;
+wait)
+  seconds=$1
+  shift
+  start=$SECONDS
+  while ((SECONDS - start < seconds)); do
+    running=0
+    for log in "$jobs_dir"/*.log; do
+      [ -e "${log%.log}.rc" ] || running=$((running + 1))
+    done
+    ((running == 0)) && break
+    sleep 10
+  done
+  for log in "$jobs_dir"/*.log; do
+    name=$(basename "${log%.log}")
+    rc=$(cat "${log%.log}.rc" 2>/dev/null || echo running)
+    echo "== $name: $rc; $(tail -c 300 "$log" | tr '\n' ' ' | tail -c 200)"
+  done
+  nvidia-smi --query-gpu=name,utilization.gpu,memory.used --format=csv,noheader
+  tar czf "$OUT/batch.tgz" "$jobs_dir" "$@" 2>/dev/null
+  ls -la "$OUT"
+  ;;
+*)
+  echo "usage: device_batch.sh start NAME COMMAND... | wait SECONDS [PATH...]" >&2
+  exit 2
+  ;;
+esac
