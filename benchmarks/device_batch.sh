@@ -5,9 +5,11 @@
 #
 #   source benchmarks/gpu_setup.sh
 #   bash benchmarks/device_batch.sh start NAME COMMAND...   # background; log /root/jobs/NAME.log
-#   bash benchmarks/device_batch.sh wait SECONDS [PATH...]  # until every job ends or SECONDS
+#   bash benchmarks/device_batch.sh wait SECONDS ['GLOB'...]  # until every job ends or SECONDS
 #                                                           # pass; then pack the logs, exit
-#                                                           # codes and PATHs into $OUT/batch.tgz
+#                                                           # codes and GLOBs into $OUT/batch.tgz
+# Quote the GLOBs: they are expanded when the waiting ends, so files the jobs wrote meanwhile
+# are packed too (a glob the calling shell expands misses them).
 jobs_dir=/root/jobs
 mkdir -p "$jobs_dir"
 verb=$1
@@ -39,11 +41,15 @@ wait)
     echo "== $name: $rc; $(tail -c 300 "$log" | tr '\n' ' ' | tail -c 200)"
   done
   nvidia-smi --query-gpu=name,utilization.gpu,memory.used --format=csv,noheader
-  tar czf "$OUT/batch.tgz" "$jobs_dir" "$@" 2>/dev/null
+  files=()
+  for pattern in "$@"; do
+    while IFS= read -r match; do files+=("$match"); done < <(compgen -G "$pattern")
+  done
+  tar czf "$OUT/batch.tgz" "$jobs_dir" "${files[@]}" 2>/dev/null
   ls -la "$OUT"
   ;;
 *)
-  echo "usage: device_batch.sh start NAME COMMAND... | wait SECONDS [PATH...]" >&2
+  echo "usage: device_batch.sh start NAME COMMAND... | wait SECONDS ['GLOB'...]" >&2
   exit 2
   ;;
 esac
