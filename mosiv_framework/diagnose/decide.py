@@ -2,7 +2,7 @@
 
 Two tests, both required:
 - held-out: every model was fitted on the fit frames only; on the frames it did not see (a
-  held-out block at the end of the observed window and the future frames) the candidate's
+  held-out blocks spread over the observed window and the future frames) the candidate's
   Chamfer error must be lower than the equally refitted null model's by more than
   ``z`` bootstrap standard deviations, resampling (object, time block) units;
 - information criterion: on the fit frames, BIC = n log(mean excess error) + p log n must be

@@ -1,9 +1,9 @@
 """``mosiv diagnose RUN``: locate -> hypothesise -> model -> decide -> report (DESIGN.md §6).
 
-The frames of the run are split three ways: fit frames (1 .. the observed window minus a
-held-out block) on which every model is refitted, the held-out block (the last observed frames)
-and the future frames (after the observed window); the last two together are what the decision
-judges models on, frames none of the compared refits saw.
+The frames of the run are split three ways: fit frames (the observed window minus held-out
+blocks) on which every model is refitted, the held-out blocks (short runs of observed frames
+spread over the window) and the future frames (after the observed window); the last two
+together are what the decision judges models on, frames none of the compared refits saw.
 """
 
 from __future__ import annotations
@@ -71,20 +71,39 @@ BUDGETS = {
 }
 
 
-def split_frames(observed: int, n_frames: int, heldout_fraction: float) -> tuple[list, list]:
-    """(fit frames, held-out frames): the last ``heldout_fraction`` of the observed window plus
-    every future frame are held out; at least 2 frames are fitted and 2 held out."""
-    block = round(heldout_fraction * observed)
-    if n_frames - observed + block < 2:
-        block = 2 - (n_frames - observed)  # no future to speak of: hold out observed frames
-    last_fit = observed - 1 - block
-    if last_fit < 2:
+def split_frames(
+    observed: int, n_frames: int, heldout_fraction: float, *, block: int = 2
+) -> tuple[list, list]:
+    """(fit frames, held-out frames) of a run observing frames 0 .. ``observed`` - 1 of
+    ``n_frames``.
+
+    Held out: every future frame, plus about ``heldout_fraction`` of the observed window as
+    blocks of ``block`` frames spread evenly over it, so that flight, impact and landing each
+    keep fitted frames and are each tested. (A single block at the end of the window held out
+    exactly the frames where late effects such as ground friction act: their refit could not
+    improve the fitted frames, and the information criterion, computed on those, could never
+    favour them; full device suite, session 9.) Without 2 future frames, the last observed
+    frames make up the difference: a prediction is then tested on the only frames after the fit.
+    """
+    window = list(range(1, observed))
+    future = list(range(observed, n_frames))
+    tail = max(0, 2 - len(future))
+    tail_frames = window[len(window) - tail :] if tail else []
+    inner = window[: len(window) - tail]
+    held = set(tail_frames)
+    if heldout_fraction > 0 and inner:
+        n_blocks = max(1, round(heldout_fraction * len(inner) / block))
+        for i in range(n_blocks):
+            first = round((i + 1) * len(inner) / (n_blocks + 1)) - block // 2
+            held.update(inner[max(0, first) : max(0, first) + block])
+    fit = [t for t in window if t not in held]
+    if len(fit) < 2:
         raise ConfigError(
             f"the run observes {observed} of {n_frames} frames; a diagnosis needs 2 fitted "
-            f"and 2 held-out frames (it would hold out {block} observed frames): observe more "
-            f"frames or lower the held-out fraction"
+            f"and 2 held-out frames (it would hold out {len(held)} observed frames): observe "
+            f"more frames or lower the held-out fraction"
         )
-    return list(range(1, last_fit + 1)), list(range(last_fit + 1, n_frames))
+    return fit, sorted(held) + future
 
 
 def diagnose_run(

@@ -89,15 +89,16 @@ def regression_estimate(
 ) -> tuple[torch.Tensor, dict[int, torch.Tensor]] | None:
     """Least-squares (theta, initial-velocity change per object) from free-flight centroids.
 
-    Per object, the frames from 0 while the object is in free flight (within the fit frames)
-    give rows r_k(t) = sum_j theta_j X_kj(t) + dv0_k t dt per axis, X_kj the double integral of
-    the candidate's acceleration at unit coefficient j along the simulated centroid velocity.
-    With ``candidate`` None only dv0 is estimated (the null model's start). Returns None if the
-    candidate is not a body force or no object has 3 free-flight frames.
+    Per object, the fit frames of its free flight from frame 0 on give rows
+    r_k(t) = sum_j theta_j X_kj(t) + dv0_k t dt per axis, X_kj the double integral of the
+    candidate's acceleration at unit coefficient j along the simulated centroid velocity. With
+    ``candidate`` None only dv0 is estimated (the null model's start). Returns None if the
+    candidate is not a body force or no object has 3 free-flight frames (2 of them fitted).
     """
     dt = 1.0 / ctx.fps
     objects = sorted(residuals)
     dim = 0 if candidate is None else candidate.dim
+    fitted = set(fit_frames)  # held-out frames must not inform a refit's start either
     blocks, targets = [], []
     for index, k in enumerate(objects):
         m = 0
@@ -119,8 +120,11 @@ def regression_estimate(
             design[:, :, :dim] = np.stack(columns, axis=-1)
         for axis in range(3):
             design[:, axis, dim + 3 * index + axis] = np.arange(m) * dt
-        blocks.append(design[1:].reshape(-1, design.shape[-1]))
-        targets.append(residuals[k].centroid[1:m].reshape(-1))
+        rows = [t for t in range(1, m) if t in fitted]
+        if len(rows) < 2:
+            continue
+        blocks.append(design[rows].reshape(-1, design.shape[-1]))
+        targets.append(residuals[k].centroid[rows].reshape(-1))
     if not blocks:
         return None
     design, y = np.concatenate(blocks), np.concatenate(targets)
