@@ -16,6 +16,12 @@ several runs can mix them.
     python benchmarks/identify_suite.py --recipe recipes/paper.yaml --out runs/suite
     python benchmarks/identify_suite.py --recipe recipes/quickstart.yaml --pairs E-P,E-S \
         --out runs/suite-cpu    # a small run on CPU
+    python benchmarks/identify_suite.py --recipe recipes/paper.yaml --out runs/suite --jobs 10
+
+With ``--jobs N`` each pair runs in its own process, N at a time, and the parent merges their
+rows. On a GPU this pays: one paper-size identification leaves the device mostly idle between
+its small kernels, and ten pairs sharing an H200 finished (ours and the library) in 30 minutes
+(docs/RESULTS.md, session 9). Each pair's output goes to ``OUT/parts/PAIR.log``.
 """
 
 from __future__ import annotations
@@ -25,8 +31,10 @@ import json
 import os
 import statistics
 import subprocess
+import sys
 import time
 import traceback
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -214,9 +222,27 @@ def code_version() -> str:
 
 
 def run_suite(
-    *, recipe: Path, selected: list[tuple[int, str]], out: Path, seed: int, extra: list[str]
+    *,
+    recipe: Path,
+    selected: list[tuple[int, str]],
+    out: Path,
+    seed: int,
+    extra: list[str],
+    part: bool = False,
 ) -> dict:
-    """Run the selected pairs, merge their rows with earlier rows in ``out/table.json``."""
+    """Run the selected pairs, merge their rows with earlier rows in ``out/table.json``.
+
+    With ``part`` (one pair of a parallel run) the rows go to ``out/parts/PAIR.json`` instead,
+    for the parent to merge (``merge_parts``), so parallel pairs never write one file."""
+    if part:
+        rows = [
+            run_scene(recipe=recipe, index=index, pair=pair, out=out, seed=seed, extra=extra)
+            for index, pair in selected
+        ]
+        target = out / "parts" / f"{selected[0][1]}.json"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(json.dumps({"rows": rows}, indent=2) + "\n")
+        return {"rows": rows, "summary": summarise(rows)}
     table = out / "table.json"
     earlier = json.loads(table.read_text())["rows"] if table.is_file() else []
     rows = {r["scene"]: r for r in earlier if "pair" in r}  # rows in this version's format
@@ -225,12 +251,61 @@ def run_suite(
         rows[row["scene"]] = row
         ordered = [rows[k] for k in sorted(rows)]
         table.write_text(json.dumps({"rows": ordered}, indent=2) + "\n")
-    ordered = [rows[k] for k in sorted(rows)]
+    return write_table(out, recipe=recipe, extra=extra, rows=list(rows.values()))
+
+
+def write_table(out: Path, *, recipe: Path, extra: list[str], rows: list[dict]) -> dict:
+    """``out/table.json`` and ``out/table.md`` from ``rows`` (ordered by scene)."""
+    ordered = sorted(rows, key=lambda r: r["scene"])
     summary = summarise(ordered)
     result = {"recipe": str(recipe), "overrides": extra, "rows": ordered, "summary": summary}
-    table.write_text(json.dumps(result, indent=2) + "\n")
+    (out / "table.json").write_text(json.dumps(result, indent=2) + "\n")
     (out / "table.md").write_text(markdown(ordered, summary))
     return result
+
+
+def merge_parts(earlier: list[dict], parts: list[list[dict]]) -> list[dict]:
+    """Rows of an earlier table updated by the rows of parallel parts (a part's row replaces
+    the earlier row of its scene)."""
+    rows = {r["scene"]: r for r in earlier if "pair" in r}
+    for part in parts:
+        rows.update({r["scene"]: r for r in part})
+    return [rows[k] for k in sorted(rows)]
+
+
+def run_parallel(
+    *,
+    recipe: Path,
+    selected: list[tuple[int, str]],
+    out: Path,
+    seed: int,
+    extra: list[str],
+    jobs: int,
+) -> dict:
+    """Each selected pair in its own process (this script with ``--part``), ``jobs`` at a
+    time; their rows merged with the earlier ones into ``out/table.json``."""
+    (out / "parts").mkdir(parents=True, exist_ok=True)
+
+    def one(pair: str) -> int:
+        command = [sys.executable, __file__, "--recipe", str(recipe), "--pairs", pair]
+        command += ["--out", str(out), "--seed", str(seed), "--part", *extra]
+        with open(out / "parts" / f"{pair}.log", "w") as log:
+            code = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT).returncode
+        print(f"[suite] {pair}: {'done' if code == 0 else f'FAILED (exit {code})'}", flush=True)
+        return code
+
+    for pair in (pair for _, pair in selected):
+        (out / "parts" / f"{pair}.json").unlink(missing_ok=True)  # no stale rows of a crash
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        list(pool.map(one, [pair for _, pair in selected]))
+    table = out / "table.json"
+    earlier = json.loads(table.read_text())["rows"] if table.is_file() else []
+    parts = [
+        json.loads(f.read_text())["rows"]
+        for f in (out / "parts" / f"{pair}.json" for _, pair in selected)
+        if f.is_file()
+    ]
+    return write_table(out, recipe=recipe, extra=extra, rows=merge_parts(earlier, parts))
 
 
 def _ok(row: dict) -> bool:
@@ -388,13 +463,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pairs", default=None, help=f"comma-separated, of {','.join(PAIRS)}")
     parser.add_argument("--out", type=Path, default=Path("runs/identify_suite"))
     parser.add_argument("--seed", type=int, default=0, help="scene seed of the first pair")
+    parser.add_argument("--jobs", type=int, default=1, help="pairs run at once, one process each")
+    parser.add_argument("--part", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("overrides", nargs="*", help="key=value recipe overrides for every run")
     args = parser.parse_args(argv)
+    if args.jobs < 1:
+        parser.error(f"--jobs {args.jobs}: must be at least 1")
     selected = select_pairs(pairs=args.pairs, scenes=args.scenes)
     args.out.mkdir(parents=True, exist_ok=True)
-    result = run_suite(
-        recipe=args.recipe, selected=selected, out=args.out, seed=args.seed, extra=args.overrides
-    )
+    common = dict(recipe=args.recipe, selected=selected, out=args.out, seed=args.seed)
+    if args.jobs > 1 and len(selected) > 1 and not args.part:
+        result = run_parallel(**common, extra=args.overrides, jobs=args.jobs)
+    else:
+        result = run_suite(**common, extra=args.overrides, part=args.part)
     print(markdown(result["rows"], result["summary"]))
     return 0
 
