@@ -50,6 +50,8 @@ def commands(size: str, out: Path, jobs: int) -> list[tuple[str, list[str]]]:
                 ident,
                 "--out",
                 str(out / "identify"),
+                "--jobs",
+                str(jobs),
                 *overrides,
             ],
         ),

@@ -605,3 +605,43 @@ def test_regression_estimate_reads_only_the_fit_frames():
     assert np.allclose(dv0[1].numpy(), dv_true, atol=1e-4)
     theta_all, _ = regression_estimate(ctx, wind, residuals, regimes, list(range(1, 10)))
     assert np.abs(theta_all.numpy() - wind_true).max() > 0.1
+
+
+def test_a_candidate_flat_at_zero_is_probed_at_multiples_of_its_step():
+    """A bounce does nothing to the loss until the restitution is large enough, so the
+    gradient at zero is exactly 0; the screen then probes a few coefficients instead of
+    dropping the candidate (session 9: restitution was never refitted on its own scenes)."""
+    from types import SimpleNamespace
+
+    from mosiv_framework.diagnose.candidates import build_candidates
+    from mosiv_framework.diagnose.hypothesise import screen
+
+    class FakeContext:
+        identified = _elastic_pair_params()
+        object_ids = [1, 2]
+        simulator = SimpleNamespace(supported_terms=frozenset({"ground_restitution"}))
+        simulator_name = "fake"
+        world = SimpleNamespace(gravity=(0.0, 0.0, -9.81), ground_height=0.0)
+
+        def parameter_vector(self):
+            return SimpleNamespace(normalized={"obj1.friction": None})
+
+        def simulate(self, params, *, frames):
+            return params
+
+        rollout = simulate
+
+        def loss(self, params, frames):
+            e = params.terms.get("ground_restitution", {}).get("coefficient", torch.tensor(0.0))
+            # flat below 0.2, best at 0.6
+            return 1.0 - torch.relu(e - 0.2) * 2.0 + 4.0 * torch.relu(e - 0.6)
+
+    ctx = FakeContext()
+    bounce = next(c for c in build_candidates(ctx)[0] if c.name == "ground_restitution")
+    (result,) = screen(ctx, [bounce], flagged_regimes=["ground_contact"], fit_frames=[1, 2])
+    assert result.drop_fraction > 0 and "no descent direction at 0" in result.note
+    probed = float(result.theta[0])
+    assert 0.2 < probed <= 1.0
+    assert result.drop_fraction == pytest.approx(
+        1.0 - float(ctx.loss(bounce.apply(ctx.identified, result.theta), [1]))
+    )

@@ -189,12 +189,27 @@ def _max_step(candidate: Candidate, direction: torch.Tensor) -> float:
     return limit
 
 
+#: rungs probed, per allowed sign, when a scalar candidate's gradient at zero gives no descent
+#: direction (a contact effect such as a bounce can leave the loss flat at zero): evenly spaced
+#: in log from its natural step to its bound, or to FALLBACK_SPAN steps if the bound is further
+FALLBACK_RUNGS = 5
+FALLBACK_SPAN = 100.0
+
+
 def _screen_ladder(
-    ctx: RunContext, c: Candidate, base: float, *, n: int, fit_frames: list[int]
+    ctx: RunContext,
+    c: Candidate,
+    base: float,
+    *,
+    n: int,
+    fit_frames: list[int],
+    rungs: tuple[float, ...] | None = None,
 ) -> Screen:
-    """Probe ``c`` at each rung of its ladder; the lowest loss is the predicted best."""
+    """Probe ``c`` at each rung of ``rungs`` (default: its ladder); the lowest loss is the
+    predicted best."""
+    rungs = c.ladder if rungs is None else rungs
     best_theta, best_loss, losses = c.zero(), base, []
-    for rung in c.ladder:
+    for rung in rungs:
         theta = c.clamp(torch.full((c.dim,), float(rung)))
         try:
             loss = float(
@@ -208,10 +223,31 @@ def _screen_ladder(
         if loss < best_loss:
             best_theta, best_loss = theta, loss
     fraction = max(0.0, (base - best_loss) / base) if base > 0 else 0.0
-    note = "ladder " + ", ".join(f"{r:g}: {loss:.3g}" for r, loss in zip(c.ladder, losses))
+    note = "ladder " + ", ".join(f"{r:g}: {loss:.3g}" for r, loss in zip(rungs, losses))
     if fraction == 0.0:
         return Screen(c, True, [], c.zero(), 0.0, -math.inf, note + " (no rung lowers the loss)")
     return Screen(c, True, [], best_theta, fraction, bic_gain(fraction, n=n, dim=c.dim), note)
+
+
+def _screen_flat(
+    ctx: RunContext, c: Candidate, base: float, g: torch.Tensor, *, n: int, fit_frames: list[int]
+) -> Screen:
+    """A candidate whose gradient at zero gives no descent direction: a scalar one is probed on
+    a log ladder from its natural step towards each bound it has room for (the screening of
+    session 9's suite gave ground restitution "no descent direction" on both restitution
+    scenes, so it was never refitted)."""
+    flat = Screen(c, True, g.tolist(), c.zero(), 0.0, -math.inf, "no descent direction")
+    step = float(c.step[0]) if c.dim == 1 else 0.0
+    rungs = []
+    for sign, bound in ((1.0, float(c.upper[0])), (-1.0, -float(c.lower[0]))):
+        if step <= 0 or bound < step:
+            continue
+        ratio = min(bound, FALLBACK_SPAN * step) / step
+        rungs += [sign * step * ratio ** (i / (FALLBACK_RUNGS - 1)) for i in range(FALLBACK_RUNGS)]
+    if not rungs:
+        return flat
+    probed = _screen_ladder(ctx, c, base, n=n, fit_frames=fit_frames, rungs=tuple(rungs))
+    return replace(probed, gradient=g.tolist(), note="no descent direction at 0; " + probed.note)
 
 
 def screen(
@@ -267,9 +303,7 @@ def screen(
         direction[at_lower | at_upper] = 0.0
         size = float((direction / c.step).norm())
         if size == 0.0:
-            out.append(
-                Screen(c, True, g.tolist(), c.zero(), 0.0, -math.inf, "no descent direction")
-            )
+            out.append(_screen_flat(ctx, c, base, g, n=n, fit_frames=fit_frames))
             continue
         direction = direction / size
         slope = float(g @ direction)
