@@ -92,6 +92,10 @@ def test_report_files(wind):
     assert saved["accepted"]["name"] == "wind"
     text = (root / "diagnosis.md").read_text()
     assert "physics_terms:" in text and "wind:" in text and "Evidence" in text
+    # the reader is told which frames the evidence comes from (small budget: the future)
+    fit, held = saved["frames"]["fit"], saved["frames"]["heldout"]
+    assert f"refitted on frames {fit[0]}-{fit[-1]} and judged" in text
+    assert f"held-out frames {held[0]}-{held[-1]}." in text
     for plot in ("diagnose/residuals.png", "diagnose/paths.png"):
         assert (root / plot).stat().st_size > 1000
 

@@ -121,6 +121,17 @@ def plot_paths(ctx: RunContext, trajectories: dict, path) -> None:
     plt.close(fig)
 
 
+def _frame_ranges(frames: list[int]) -> str:
+    """[1, 2, 3, 6, 7, 9] -> "1-3, 6-7, 9"."""
+    runs: list[list[int]] = []
+    for t in frames:
+        if runs and t == runs[-1][-1] + 1:
+            runs[-1].append(t)
+        else:
+            runs.append([t])
+    return ", ".join(f"{r[0]}-{r[-1]}" if len(r) > 1 else f"{r[0]}" for r in runs)
+
+
 def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
     """Write diagnosis.json, diagnosis.md and the plots; returns the JSON-ready summary."""
     rd = ctx.run_dir
@@ -265,6 +276,9 @@ def _markdown(s: dict) -> str:
     if s["evidence"]:
         lines += [
             "## Evidence (against the null model refitted with the same budget)",
+            "",
+            f"Every model was refitted on frames {_frame_ranges(s['frames']['fit'])} and judged "
+            f"on the held-out frames {_frame_ranges(s['frames']['heldout'])}.",
             "",
             "| candidate | held-out drop | bootstrap sd | dBIC | held-out | BIC | accepted |",
             "|---|---|---|---|---|---|---|",
