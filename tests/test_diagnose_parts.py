@@ -383,6 +383,27 @@ def _elastic_pair_params():
     )
 
 
+class _FakeContext:
+    """The few RunContext members that candidate building and screening read, for an elastic
+    pair on a simulator supporting ``terms`` (subclasses add rollouts and a loss)."""
+
+    identified = _elastic_pair_params()
+    object_ids = [1, 2]
+    simulator_name = "fake"
+    fps = 24.0
+
+    def __init__(self, terms: frozenset[str], *, ground_height: float | None = None):
+        from types import SimpleNamespace
+
+        self.simulator = SimpleNamespace(supported_terms=terms)
+        self.world = SimpleNamespace(gravity=(0.0, 0.0, -9.81), ground_height=ground_height)
+
+    def parameter_vector(self):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(normalized={"obj1.friction": None})  # no friction candidate
+
+
 def _plasticity_candidate(k=1):
     from mosiv_framework.diagnose.candidates import PLASTIC_REGIMES, PLASTICITY_LADDER, Candidate
 
@@ -487,7 +508,6 @@ def test_regression_drop_scores_the_model_at_the_regression_estimate():
     """The screen's second estimate of a candidate's worth: the loss at its regression estimate
     (coefficients and velocity change together), relative to what the velocity change alone
     reaches; a diverged rollout earns nothing."""
-    from types import SimpleNamespace
 
     from mosiv_framework.diagnose.candidates import build_candidates
     from mosiv_framework.diagnose.hypothesise import regression_drop
@@ -496,16 +516,8 @@ def test_regression_drop_scores_the_model_at_the_regression_estimate():
     wind_true = torch.tensor([0.0, 2.5, 0.0])
     v_true = torch.tensor([0.3, 0.0, 0.0])
 
-    class FakeContext:
-        identified = _elastic_pair_params()
-        object_ids = [1, 2]
-        simulator = SimpleNamespace(supported_terms=frozenset({"wind"}))
-        simulator_name = "fake"
-        world = SimpleNamespace(gravity=(0.0, 0.0, -9.81), ground_height=None)
+    class FakeContext(_FakeContext):
         diverge = False
-
-        def parameter_vector(self):
-            return SimpleNamespace(normalized={"obj1.friction": None})  # no friction candidate
 
         def rollout(self, params, *, frames):
             if self.diverge:
@@ -517,7 +529,7 @@ def test_regression_drop_scores_the_model_at_the_regression_estimate():
             v = params.initial_velocity[1]
             return 0.1 + ((wind - wind_true) ** 2).sum() + ((v - v_true) ** 2).sum()
 
-    ctx = FakeContext()
+    ctx = FakeContext(frozenset({"wind"}))
     wind = next(c for c in build_candidates(ctx)[0] if c.name == "wind")
     exact = (wind_true, {1: v_true.clone()})
     reference = float(ctx.loss(ctx.identified, [1]))  # 0.1 + 6.25 + 0.09
@@ -580,18 +592,7 @@ def test_regression_estimate_reads_only_the_fit_frames():
     from mosiv_framework.diagnose.candidates import build_candidates
     from mosiv_framework.diagnose.hypothesise import regression_estimate
 
-    class FakeContext:
-        identified = _elastic_pair_params()
-        object_ids = [1, 2]
-        simulator = SimpleNamespace(supported_terms=frozenset({"wind"}))
-        simulator_name = "fake"
-        world = SimpleNamespace(gravity=(0.0, 0.0, -9.81), ground_height=None)
-        fps = 24.0
-
-        def parameter_vector(self):
-            return SimpleNamespace(normalized={"obj1.friction": None})
-
-    ctx = FakeContext()
+    ctx = _FakeContext(frozenset({"wind"}))
     wind = next(c for c in build_candidates(ctx)[0] if c.name == "wind")
     time_s = np.arange(10)[:, None] / ctx.fps
     wind_true, dv_true = np.array([0.0, 2.5, 0.0]), np.array([0.1, 0.0, -0.05])
@@ -611,21 +612,11 @@ def test_a_candidate_flat_at_zero_is_probed_at_multiples_of_its_step():
     """A bounce does nothing to the loss until the restitution is large enough, so the
     gradient at zero is exactly 0; the screen then probes a few coefficients instead of
     dropping the candidate (session 9: restitution was never refitted on its own scenes)."""
-    from types import SimpleNamespace
 
     from mosiv_framework.diagnose.candidates import build_candidates
     from mosiv_framework.diagnose.hypothesise import screen
 
-    class FakeContext:
-        identified = _elastic_pair_params()
-        object_ids = [1, 2]
-        simulator = SimpleNamespace(supported_terms=frozenset({"ground_restitution"}))
-        simulator_name = "fake"
-        world = SimpleNamespace(gravity=(0.0, 0.0, -9.81), ground_height=0.0)
-
-        def parameter_vector(self):
-            return SimpleNamespace(normalized={"obj1.friction": None})
-
+    class FakeContext(_FakeContext):
         def simulate(self, params, *, frames):
             return params
 
@@ -636,7 +627,7 @@ def test_a_candidate_flat_at_zero_is_probed_at_multiples_of_its_step():
             # flat below 0.2, best at 0.6
             return 1.0 - torch.relu(e - 0.2) * 2.0 + 4.0 * torch.relu(e - 0.6)
 
-    ctx = FakeContext()
+    ctx = FakeContext(frozenset({"ground_restitution"}), ground_height=0.0)
     bounce = next(c for c in build_candidates(ctx)[0] if c.name == "ground_restitution")
     (result,) = screen(ctx, [bounce], flagged_regimes=["ground_contact"], fit_frames=[1, 2])
     assert result.drop_fraction > 0 and "no descent direction at 0" in result.note
