@@ -243,15 +243,20 @@ def run_suite(
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_text(json.dumps({"rows": rows}, indent=2) + "\n")
         return {"rows": rows, "summary": summarise(rows)}
-    table = out / "table.json"
-    earlier = json.loads(table.read_text())["rows"] if table.is_file() else []
-    rows = {r["scene"]: r for r in earlier if "pair" in r}  # rows in this version's format
+    earlier, done = _earlier_rows(out), []
     for index, pair in selected:
-        row = run_scene(recipe=recipe, index=index, pair=pair, out=out, seed=seed, extra=extra)
-        rows[row["scene"]] = row
-        ordered = [rows[k] for k in sorted(rows)]
-        table.write_text(json.dumps({"rows": ordered}, indent=2) + "\n")
-    return write_table(out, recipe=recipe, extra=extra, rows=list(rows.values()))
+        done.append(
+            run_scene(recipe=recipe, index=index, pair=pair, out=out, seed=seed, extra=extra)
+        )
+        rows = merge_parts(earlier, [done])  # saved after every pair: a crash keeps the rows
+        (out / "table.json").write_text(json.dumps({"rows": rows}, indent=2) + "\n")
+    return write_table(out, recipe=recipe, extra=extra, rows=merge_parts(earlier, [done]))
+
+
+def _earlier_rows(out: Path) -> list[dict]:
+    """The rows of ``out/table.json`` from an earlier run ([] if none)."""
+    table = out / "table.json"
+    return json.loads(table.read_text())["rows"] if table.is_file() else []
 
 
 def write_table(out: Path, *, recipe: Path, extra: list[str], rows: list[dict]) -> dict:
@@ -266,7 +271,7 @@ def write_table(out: Path, *, recipe: Path, extra: list[str], rows: list[dict]) 
 
 def merge_parts(earlier: list[dict], parts: list[list[dict]]) -> list[dict]:
     """Rows of an earlier table updated by the rows of parallel parts (a part's row replaces
-    the earlier row of its scene)."""
+    the earlier row of its scene); earlier rows without a pair (an older format) are dropped."""
     rows = {r["scene"]: r for r in earlier if "pair" in r}
     for part in parts:
         rows.update({r["scene"]: r for r in part})
@@ -298,8 +303,7 @@ def run_parallel(
         (out / "parts" / f"{pair}.json").unlink(missing_ok=True)  # no stale rows of a crash
     with ThreadPoolExecutor(max_workers=jobs) as pool:
         list(pool.map(one, [pair for _, pair in selected]))
-    table = out / "table.json"
-    earlier = json.loads(table.read_text())["rows"] if table.is_file() else []
+    earlier = _earlier_rows(out)
     parts = [
         json.loads(f.read_text())["rows"]
         for f in (out / "parts" / f"{pair}.json" for _, pair in selected)
