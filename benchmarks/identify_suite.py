@@ -47,6 +47,7 @@ from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.registry import get_registry
 from mosiv_framework.scene import read_scene
+from mosiv_framework.workers import environment_for
 
 #: the paper's letters for the four material families of its benchmark
 LETTERS = {"E": "elastic", "P": "plasticine", "F": "newtonian", "S": "sand"}
@@ -286,23 +287,25 @@ def run_parallel(
     seed: int,
     extra: list[str],
     jobs: int,
+    gpus: str | None = None,
 ) -> dict:
     """Each selected pair in its own process (this script with ``--part``), ``jobs`` at a
     time; their rows merged with the earlier ones into ``out/table.json``."""
     (out / "parts").mkdir(parents=True, exist_ok=True)
 
-    def one(pair: str) -> int:
+    def one(index: int, pair: str) -> int:
         command = [sys.executable, __file__, "--recipe", str(recipe), "--pairs", pair]
         command += ["--out", str(out), "--seed", str(seed), "--part", *extra]
         with open(out / "parts" / f"{pair}.log", "w") as log:
-            code = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT).returncode
+            env = environment_for(index, gpus=gpus)  # pinned to a GPU in turn, if listed
+            code = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT, env=env).returncode
         print(f"[suite] {pair}: {'done' if code == 0 else f'FAILED (exit {code})'}", flush=True)
         return code
 
     for pair in (pair for _, pair in selected):
         (out / "parts" / f"{pair}.json").unlink(missing_ok=True)  # no stale rows of a crash
     with ThreadPoolExecutor(max_workers=jobs) as pool:
-        list(pool.map(one, [pair for _, pair in selected]))
+        list(pool.map(one, *zip(*enumerate(pair for _, pair in selected))))
     earlier = _earlier_rows(out)
     parts = [
         json.loads(f.read_text())["rows"]
@@ -468,6 +471,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("runs/identify_suite"))
     parser.add_argument("--seed", type=int, default=0, help="scene seed of the first pair")
     parser.add_argument("--jobs", type=int, default=1, help="pairs run at once, one process each")
+    parser.add_argument(
+        "--gpus", help="CUDA ordinals the pairs are spread over, e.g. 0,1 (default $MOSIV_GPUS)"
+    )
     parser.add_argument("--part", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("overrides", nargs="*", help="key=value recipe overrides for every run")
     args = parser.parse_args(argv)
@@ -477,7 +483,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     common = dict(recipe=args.recipe, selected=selected, out=args.out, seed=args.seed)
     if args.jobs > 1 and len(selected) > 1 and not args.part:
-        result = run_parallel(**common, extra=args.overrides, jobs=args.jobs)
+        result = run_parallel(**common, extra=args.overrides, jobs=args.jobs, gpus=args.gpus)
     else:
         result = run_suite(**common, extra=args.overrides, part=args.part)
     print(markdown(result["rows"], result["summary"]))

@@ -23,11 +23,11 @@ import json
 import statistics
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
 from pathlib import Path
 
 from identify_suite import _fmt, _timed, errors_of
+
+from mosiv_framework.workers import worker_pool
 
 #: the paper's noise levels (alpha, relative to each object's extent)
 LEVELS = (0.005, 0.02, 0.05)
@@ -91,14 +91,15 @@ def jobs_for(*, recipe: Path, out: Path, extra: list[str], threads: int, levels)
     return jobs
 
 
-def run_suite(*, recipe: Path, out: Path, extra: list[str], jobs: int, threads: int, levels):
+def run_suite(
+    *, recipe: Path, out: Path, extra: list[str], jobs: int, threads: int, levels, gpus=None
+):
     out.mkdir(parents=True, exist_ok=True)
     table = out / "table.json"
     rows = {r["name"]: r for r in json.loads(table.read_text())["rows"]} if table.is_file() else {}
     todo = jobs_for(recipe=recipe, out=out, extra=extra, threads=threads, levels=levels)
     # the reference runs alone first: it generates the scene every other setting reads
-    context = get_context("spawn")  # clean workers: no inherited torch or Warp state
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+    with worker_pool(jobs, gpus=gpus) as pool:  # spawned: no inherited torch or Warp state
         for phase in (todo[:1], todo[1:]):
             for job, result in zip(phase, pool.map(_run_one, phase)):
                 rows[job["name"]] = {
@@ -179,6 +180,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--recipe", type=Path, default=Path("recipes/paper.yaml"))
     parser.add_argument("--out", type=Path, default=Path("runs/noise_suite"))
     parser.add_argument("--jobs", type=int, default=1, help="settings run in parallel")
+    parser.add_argument(
+        "--gpus", help="CUDA ordinals the runs are spread over, e.g. 0,1 (default $MOSIV_GPUS)"
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument(
         "--levels", default=",".join(f"{a:g}" for a in LEVELS), help="comma-separated alphas"
@@ -196,6 +200,7 @@ def main(argv: list[str] | None = None) -> int:
         out=args.out,
         extra=args.overrides,
         jobs=args.jobs,
+        gpus=args.gpus,
         threads=args.threads,
         levels=levels,
     )

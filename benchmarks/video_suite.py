@@ -25,11 +25,11 @@ import shutil
 import statistics
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
 from pathlib import Path
 
 from identify_suite import LETTERS, PAIRS, _fmt, _timed, errors_of, select_pairs
+
+from mosiv_framework.workers import worker_pool
 
 #: (folder, label, granularity, loss terms): the object-wise Chamfer + silhouette is ours
 VARIANTS = (
@@ -147,7 +147,9 @@ def _jobs_for(selected, *, recipe, out, seed, extra, threads, variants):
     return first, rest
 
 
-def run_suite(*, recipe, selected, out: Path, seed: int, extra, jobs: int, threads: int, variants):
+def run_suite(
+    *, recipe, selected, out: Path, seed: int, extra, jobs: int, threads: int, variants, gpus=None
+):
     """Stage I-II and the first variant per scene, then every other variant; rows merged
     with earlier ones in ``out/table.json``."""
     table = out / "table.json"
@@ -155,8 +157,7 @@ def run_suite(*, recipe, selected, out: Path, seed: int, extra, jobs: int, threa
     first, rest = _jobs_for(
         selected, recipe=recipe, out=out, seed=seed, extra=extra, threads=threads, variants=variants
     )
-    context = get_context("spawn")  # clean workers: no inherited torch or Warp state
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+    with worker_pool(jobs, gpus=gpus) as pool:  # spawned: no inherited torch or Warp state
         for phase in (first, rest):
             for job, result in zip(phase, pool.map(_run_one, phase)):
                 row = rows.setdefault(job["scene"], {"scene": job["scene"], "pair": job["pair"]})
@@ -335,6 +336,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("runs/video_suite"))
     parser.add_argument("--seed", type=int, default=0, help="scene seed of the first pair")
     parser.add_argument("--jobs", type=int, default=1, help="runs in parallel (processes)")
+    parser.add_argument(
+        "--gpus", help="CUDA ordinals the runs are spread over, e.g. 0,1 (default $MOSIV_GPUS)"
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument(
         "--variants",
@@ -372,6 +376,7 @@ def main(argv: list[str] | None = None) -> int:
         seed=args.seed,
         extra=args.overrides,
         jobs=args.jobs,
+        gpus=args.gpus,
         threads=args.threads,
         variants=[known[n] for n in chosen],
     )

@@ -31,6 +31,11 @@ def add_parsers(sub) -> None:
     suite.add_argument(
         "--jobs", type=int, default=1, help="entries run in parallel worker processes"
     )
+    suite.add_argument(
+        "--gpus",
+        help="comma-separated CUDA ordinals the workers are spread over, e.g. 0,1,2,3 "
+        "(default: $MOSIV_GPUS, else as the environment says)",
+    )
     suite.set_defaults(handler=diagnose_suite)
 
 
@@ -58,6 +63,7 @@ def diagnose_suite(args) -> int:
         budget=args.budget,
         only=[name for name in args.only.split(",") if name] if args.only else None,
         jobs=args.jobs,
+        gpus=args.gpus,
         say=lambda m: print(m, flush=True),
     )
     return 0

@@ -12,10 +12,9 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing
 import os
 import statistics
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from mosiv_framework.errors import ConfigError
 from mosiv_framework.pipeline import run_pipeline
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.scene import read_scene
+from mosiv_framework.workers import worker_pool
 
 #: the recipe the suite's scenes run with unless another is given
 DEFAULT_RECIPES = {
@@ -229,12 +229,14 @@ def run_suite(
     entries: list[Entry] | None = None,
     only: list[str] | None = None,
     jobs: int = 1,
+    gpus: str | None = None,
     say=print,
 ) -> dict:
     """Generate, run, diagnose and score every entry into ``out``; returns the summary.
 
     ``only`` restricts the suite to the named entries; ``jobs`` > 1 runs entries in that many
-    worker processes (spawned, so each initialises its own simulator device). Entries already
+    worker processes (spawned, so each initialises its own simulator device), spread over the
+    GPUs ``gpus`` (e.g. ``"0,1"``; default ``$MOSIV_GPUS``, see :mod:`mosiv_framework.workers`). Entries already
     scored in ``out`` are not recomputed.
     """
     out = Path(out)
@@ -253,8 +255,7 @@ def run_suite(
         for entry in entries:
             scores[entry.name] = run_entry(entry, out, recipe_path, budget, say=say)
     else:
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+        with worker_pool(jobs, gpus=gpus) as pool:
             futures = {
                 pool.submit(_run_entry_quietly, entry, out, recipe_path, budget): entry
                 for entry in entries
