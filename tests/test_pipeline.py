@@ -166,7 +166,42 @@ def test_a_diverged_rollout_steps_back_and_continues(tmp_path, registry, monkeyp
     metrics = run_pipeline(make_recipe(tmp_path, registry), run_dir=tmp_path / "run")
     history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
     assert [h["iteration"] for h in history if "diverged" in h] == [5, 6]
+    # each consecutive failure steps one accepted iterate further back: to where iteration 4
+    # started (logged after iteration 3's step), then to where iteration 3 started
+    by_iteration = {h["iteration"]: h for h in history if "diverged" not in h}
+    stepped = [h["values"] for h in history if "diverged" in h]
+    assert stepped == [by_iteration[3]["values"], by_iteration[2]["values"]]
     assert metrics["future"]["cd_mm2"] < 1.0
+
+
+def test_a_phase_whose_every_step_back_diverges_stops_at_its_best_iterate(
+    tmp_path, registry, monkeypatch
+):
+    from mosiv_framework.errors import SimulationDiverged
+    from mosiv_framework.pipeline.identify import MAX_BACKOFFS
+
+    original = Ballistic.rollout
+    failing = range(11, 11 + MAX_BACKOFFS + 1)  # from iteration 10 on, until the phase gives up
+
+    def unstable(self, *args, **kwargs):
+        if Ballistic.calls in failing:
+            Ballistic.calls += 1
+            raise SimulationDiverged(
+                object_id=2, frame=3, substep=4, reason="non-finite", advice=""
+            )
+        return original(self, *args, **kwargs)
+
+    Ballistic.calls = 0
+    monkeypatch.setattr(Ballistic, "rollout", unstable)
+    metrics = run_pipeline(make_recipe(tmp_path, registry), run_dir=tmp_path / "run")
+    history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
+    assert [h["iteration"] for h in history if "diverged" in h] == list(range(10, 16))
+    stopped = [h for h in history if "stopped_early" in h]
+    assert [h["iteration"] for h in stopped] == [16] and "object 2" in stopped[0]["stopped_early"]
+    assert max(h["iteration"] for h in history) == 16  # the phase ended there, the run did not
+    # the run goes on from the best iterate: ten good steps from the ballistic estimate
+    losses = [h["loss"] for h in history if "loss" in h]
+    assert metrics["observed"]["cd_mm2"] <= 1e6 * min(losses) * 1.01
 
 
 def test_resync_refits_a_wrong_initial_velocity_during_the_parameter_phase(

@@ -11,6 +11,7 @@ stopped.
 from __future__ import annotations
 
 import math
+from collections import deque
 import re
 from dataclasses import dataclass
 
@@ -24,7 +25,8 @@ from mosiv_framework.pipeline.rundir import RunDir
 from mosiv_framework.types import GeometryFrames, ParticleSet, Trajectory, World
 
 CHECKPOINT = "identify/checkpoint.pt"
-#: consecutive diverged rollouts tolerated (each halves the step size) before giving up
+#: consecutive diverged rollouts tolerated, each stepping one accepted iterate further back and
+#: halving the step size, before the phase stops at its best iterate
 MAX_BACKOFFS = 6
 
 
@@ -82,7 +84,9 @@ def identify(
     steps). A parameter whose gradient is exactly zero in a step (friction before any contact,
     a yield stress above every stress reached) holds still rather than coasting on Adam's
     momentum, and a non-finite gradient is treated like a diverged rollout: the step is taken
-    back and the learning rate halved. Each phase minimises its loss
+    back (one more accepted iterate back for each consecutive failure) and the learning rate
+    halved; when ``MAX_BACKOFFS`` steps back all fail, the phase ends at its best iterate with a
+    ``stopped_early`` record in the history. Each phase minimises its loss
     divided by the phase's first loss, so Adam's step sizes are the recipe's learning rates
     whatever the loss's unit or magnitude (Adam is invariant to a constant factor except for
     its epsilon, which would otherwise swamp gradients of m^2-sized Chamfer losses).
@@ -146,7 +150,11 @@ def identify(
                 vector,
             )
         bar = tqdm(range(first, phase.iterations), desc=f"identify {phase.name}", unit="it")
-        backoffs, previous = 0, None
+        # the iterates whose rollouts last succeeded, newest last: a divergence steps back one
+        # of them per consecutive failure (the newest may itself diverge over the longer
+        # horizon the curriculum has grown to since; a smaller step would not change that)
+        trail: deque[_Best] = deque(maxlen=MAX_BACKOFFS)
+        backoffs = 0
         for it in bar:
             h = horizon(
                 it,
@@ -194,15 +202,33 @@ def identify(
                 # soft for its substeps, or a gradient that overflowed): step back and take
                 # smaller steps from there
                 backoffs += 1
-                if backoffs > MAX_BACKOFFS or previous is None:
+                where = f"{exc.reason} (identification, {phase.name} iteration {it})"
+                if not trail and best.leaves is None:  # not one rollout of this phase worked
                     raise SimulationDiverged(
                         object_id=exc.object_id,
                         frame=exc.frame,
                         substep=exc.substep,
-                        reason=f"{exc.reason} (identification, {phase.name} iteration {it})",
+                        reason=where,
                         advice=f"{exc.advice} Or lower identify.{phase.name}_lr.",
                     ) from exc
-                previous.apply(vector)
+                if not trail:
+                    # every recent iterate fails at this horizon: keep the best one found so
+                    # far and say so, rather than lose the run
+                    history.append(
+                        {
+                            "phase": phase.name,
+                            "iteration": it,
+                            "horizon": h,
+                            "stopped_early": f"{exc} after {backoffs - 1} steps back",
+                            "values": vector.to_json(),
+                        }
+                    )
+                    tqdm.write(
+                        f"[identify] {phase.name} phase stopped at iteration {it}: {where}; "
+                        f"{backoffs - 1} steps back did not help, keeping the best iterate"
+                    )
+                    break
+                trail.pop().apply(vector)
                 optimizer.zero_grad()
                 # halve the schedule's base rate too, or its next step would undo the halving
                 schedule.base_lrs = [lr * 0.5 for lr in schedule.base_lrs]
@@ -219,7 +245,7 @@ def identify(
                 )
                 continue
             backoffs = 0
-            previous = _Best.snapshot(vector)  # the leaves this step starts from
+            trail.append(_Best.snapshot(vector))  # the leaves this step starts from
             # gradients of the unscaled loss, per leaf, for the log
             grads = {
                 n: float(leaf.grad.norm()) / scale
