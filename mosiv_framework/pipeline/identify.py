@@ -11,8 +11,8 @@ stopped.
 from __future__ import annotations
 
 import math
-from collections import deque
 import re
+from collections import deque
 from dataclasses import dataclass
 
 import torch
