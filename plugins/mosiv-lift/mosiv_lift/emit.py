@@ -141,6 +141,7 @@ def emit_particles(
         k: torch.nonzero(g.occupied) + torch.tensor(g.box.lower, dtype=torch.int64)
         for k, g in grids.items()
     }
+    claimed = {k: len(c) for k, c in cells.items()}
     cells, n_contested = resolve_claims(cells, trees, origin=origin, cell=cell)
     offsets = _sub_lattice(sub_lattice)
     volume = cell**3 / len(offsets)
@@ -150,9 +151,15 @@ def emit_particles(
         inside = np.all((corner + 0.5 * cell >= origin) & (corner + 0.5 * cell <= upper), axis=1)
         corner = corner[inside]
         if not len(corner):
+            # say which step emptied it: no density, cells lost to another object's claims
+            # (its Gaussians overlap this object's), or cells outside the simulation domain
             raise ValueError(
-                f"object {k} has no occupied cell inside the domain after lifting; check its "
-                "Gaussians, masks and the lifter's cell_size"
+                f"object {k} has no occupied cell inside the domain after lifting: its density "
+                f"grid held {claimed[k]} cells, {claimed[k] - len(cells[k])} went to other "
+                f"objects that claimed the same cells, {len(cells[k])} were left of which "
+                f"{len(cells[k]) - len(corner)} lie outside the domain {origin.tolist()} - "
+                f"{upper.tolist()} m; check its Gaussians (object ids), masks and the lifter's "
+                "cell_size"
             )
         pts = (corner[:, None, :] + offsets[None] * cell).reshape(-1, 3)
         positions.append(pts)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 from mosiv_lift.bind import bind_gaussians
 from mosiv_lift.carve import Box, draw_samples, fibonacci_directions, object_box
@@ -97,6 +98,29 @@ def test_overlapping_claims_go_to_the_nearest_surface_and_sub_lattices_keep_apar
     torch.testing.assert_close(em.volumes, torch.full_like(em.volumes, cell**3 / 8))
     rho = torch.where(em.object_ids == 1, 1000.0, 500.0)
     torch.testing.assert_close(em.masses, rho * em.volumes)
+
+
+def test_an_object_emptied_by_another_objects_claims_is_named_with_the_counts():
+    cell = 0.005
+    big, surf_big = _sphere_grid((0.20, 0.2, 0.2), 0.05, cell)
+    small, surf_small = _sphere_grid((0.20, 0.2, 0.2), 0.02, cell, seed=1)
+    # object 1's Gaussians reach inside object 2 (as when Stage I mislabels some), so every
+    # cell of object 2 is contested and object 1's surface is as near as object 2's
+    with pytest.raises(ValueError) as error:
+        emit_particles(
+            {1: big, 2: small},
+            {1: torch.cat([surf_big, surf_small]).float(), 2: surf_small.float()},
+            domain_lower=(0, 0, 0),
+            domain_upper=(1, 1, 1),
+            cell=cell,
+            sub_lattice=1,
+            densities={1: 1000.0, 2: 1000.0},
+        )
+    n = int(small.occupied.sum())
+    assert (
+        f"object 2 has no occupied cell inside the domain after lifting: its density grid held {n} cells, {n} went to other objects"
+        in str(error.value)
+    )
 
 
 def test_binding_interpolates_displacements_with_weights_summing_to_one():
