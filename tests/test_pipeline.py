@@ -199,6 +199,8 @@ def test_a_phase_whose_every_step_back_diverges_stops_at_its_best_iterate(
     stopped = [h for h in history if "stopped_early" in h]
     assert [h["iteration"] for h in stopped] == [16] and "object 2" in stopped[0]["stopped_early"]
     assert max(h["iteration"] for h in history) == 16  # the phase ended there, the run did not
+    identified = json.loads((tmp_path / "run" / "identified.json").read_text())
+    assert [(s["phase"], s["iteration"]) for s in identified["stopped_early"]] == [("velocity", 16)]
     # the run goes on from the best iterate: ten good steps from the ballistic estimate
     losses = [h["loss"] for h in history if "loss" in h]
     assert metrics["observed"]["cd_mm2"] <= 1e6 * min(losses) * 1.01

@@ -235,6 +235,15 @@ def identify_stage(recipe, scene, particles, reconstruction, simulator, sim_opti
         velocity_frames=velocity_frames if section.velocity_window == "free" else None,
     )
     identified_json = vector.to_json()
+    stopped = [
+        {"phase": h["phase"], "iteration": h["iteration"], "reason": h["stopped_early"]}
+        for h in history
+        if "stopped_early" in h
+    ]
+    if stopped:  # the run goes on from the best iterate, but says the fit was cut short
+        identified_json["stopped_early"] = stopped
+        for s in stopped:
+            _say(f"identification {s['phase']} phase stopped early at iteration {s['iteration']}")
     if library:
         choice, tried = pick_prototypes(
             simulator=simulator,
