@@ -146,23 +146,28 @@ def test_interrupted_identification_resumes_from_checkpoint(tmp_path, registry, 
     assert [h["iteration"] for h in history] == list(range(30))
 
 
-def test_a_diverged_rollout_steps_back_and_continues(tmp_path, registry, monkeypatch):
+def _diverging_on_calls(calls, *, object_id: int):
+    """Ballistic rollouts that raise SimulationDiverged (of ``object_id``) on the listed call
+    numbers, as a too-stiff parameter step would."""
     from mosiv_framework.errors import SimulationDiverged
 
     original = Ballistic.rollout
 
     def unstable(self, *args, **kwargs):
-        # two consecutive blow-ups, as with a too-stiff step, at iterations 5 and 6 (call 0
-        # evaluates the starting point)
-        if Ballistic.calls in (6, 7):
+        if Ballistic.calls in calls:
             Ballistic.calls += 1
             raise SimulationDiverged(
-                object_id=1, frame=2, substep=3, reason="non-finite", advice=""
+                object_id=object_id, frame=2, substep=3, reason="non-finite", advice=""
             )
         return original(self, *args, **kwargs)
 
+    return unstable
+
+
+def test_a_diverged_rollout_steps_back_and_continues(tmp_path, registry, monkeypatch):
+    # two consecutive blow-ups at iterations 5 and 6 (call 0 evaluates the starting point)
     Ballistic.calls = 0
-    monkeypatch.setattr(Ballistic, "rollout", unstable)
+    monkeypatch.setattr(Ballistic, "rollout", _diverging_on_calls((6, 7), object_id=1))
     metrics = run_pipeline(make_recipe(tmp_path, registry), run_dir=tmp_path / "run")
     history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
     assert [h["iteration"] for h in history if "diverged" in h] == [5, 6]
@@ -177,22 +182,11 @@ def test_a_diverged_rollout_steps_back_and_continues(tmp_path, registry, monkeyp
 def test_a_phase_whose_every_step_back_diverges_stops_at_its_best_iterate(
     tmp_path, registry, monkeypatch
 ):
-    from mosiv_framework.errors import SimulationDiverged
     from mosiv_framework.pipeline.identify import MAX_BACKOFFS
 
-    original = Ballistic.rollout
     failing = range(11, 11 + MAX_BACKOFFS + 1)  # from iteration 10 on, until the phase gives up
-
-    def unstable(self, *args, **kwargs):
-        if Ballistic.calls in failing:
-            Ballistic.calls += 1
-            raise SimulationDiverged(
-                object_id=2, frame=3, substep=4, reason="non-finite", advice=""
-            )
-        return original(self, *args, **kwargs)
-
     Ballistic.calls = 0
-    monkeypatch.setattr(Ballistic, "rollout", unstable)
+    monkeypatch.setattr(Ballistic, "rollout", _diverging_on_calls(failing, object_id=2))
     metrics = run_pipeline(make_recipe(tmp_path, registry), run_dir=tmp_path / "run")
     history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
     assert [h["iteration"] for h in history if "diverged" in h] == list(range(10, 16))
