@@ -236,8 +236,8 @@ def run_suite(
 
     ``only`` restricts the suite to the named entries; ``jobs`` > 1 runs entries in that many
     worker processes (spawned, so each initialises its own simulator device), spread over the
-    GPUs ``gpus`` (e.g. ``"0,1"``; default ``$MOSIV_GPUS``, see :mod:`mosiv_framework.workers`). Entries already
-    scored in ``out`` are not recomputed.
+    GPUs ``gpus`` (e.g. ``"0,1"``; default ``$MOSIV_GPUS``, see :mod:`mosiv_framework.workers`).
+    Entries already scored in ``out`` are not recomputed.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
