@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 
 import pytest
 import torch
@@ -304,3 +305,48 @@ def test_the_parameter_curriculum_starts_after_the_free_flight(tmp_path, registr
     params = [h["horizon"] for h in history if h["phase"] == "params"]
     assert (min(velocity), max(velocity)) == (1, 2)
     assert min(params) == 3
+
+
+class CoarseStepBallistic(Ballistic):
+    """Ballistic, but a rollout past the observed window diverges below 200 substeps, as a
+    fluid hitting the table faster than the recipe's time step resolves would."""
+
+    def __init__(self, *, substeps: int | None = None, **options):
+        self.substeps = substeps or 100
+
+    def rollout(self, particles, params, *, world, frames):
+        from mosiv_framework.errors import SimulationDiverged
+
+        if frames > 5 and self.substeps < 200:
+            raise SimulationDiverged(
+                object_id=2, frame=6, substep=40, reason="a particle moved too far", advice=""
+            )
+        return super().rollout(particles, params, world=world, frames=frames)
+
+
+def test_an_evaluation_rollout_that_diverges_is_retried_with_more_substeps(tmp_path, registry):
+    registry.add_plugin(CoarseStepPlugin(), name="coarse-step-test")
+    recipe = make_recipe(tmp_path, registry, velocity_iterations=10)
+    recipe.simulator = {"name": "coarse-step", "substeps": 100}
+    metrics = run_pipeline(recipe, run_dir=tmp_path / "run")
+    note = metrics["evaluation_note"]
+    assert "object 2 at frame 6" in note and "200 substeps" in note
+    assert metrics["future"]["cd_mm2"] < 1.0  # the retried rollout was scored, every frame
+
+    # without a substeps option there is nothing to refine: the divergence is reported
+    recipe.simulator = {"name": "coarse-step"}
+    recipe.output.dir = str(tmp_path / "run2")
+    with pytest.raises(Exception, match="object 2 at frame 6"):
+        run_pipeline(recipe, run_dir=tmp_path / "run2")
+
+
+@dataclass
+class CoarseStepOptions:
+    substeps: int | None = None
+
+
+class CoarseStepPlugin:
+    @hookimpl
+    def mosiv_simulators(self, register):
+        factory = CoarseStepBallistic
+        register(Component("simulator", "coarse-step", factory=factory, options=CoarseStepOptions))

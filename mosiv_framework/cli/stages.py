@@ -59,7 +59,7 @@ def run_recipe(args) -> int:
 
 
 def run_eval(args) -> int:
-    from mosiv_framework.pipeline import evaluate_run
+    from mosiv_framework.pipeline import evaluate_run, simulator_refiner
     from mosiv_framework.pipeline.novel import load_finished_run
 
     run = load_finished_run(args.run_dir)
@@ -71,6 +71,7 @@ def run_eval(args) -> int:
         identified=run.identified,
         simulator=run.simulator(),
         run_dir=run.run_dir,
+        refine=simulator_refiner(run.recipe.simulator),
     )
     future = metrics["future"]
     print(

@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from mosiv_framework.errors import ConfigError
+from mosiv_framework.errors import ConfigError, SimulationDiverged
 from mosiv_framework.losses import WeightedSum
 from mosiv_framework.pipeline.appearance import can_render, rollout_images
 from mosiv_framework.pipeline.evaluate import (
@@ -126,6 +126,7 @@ def run_pipeline(recipe: DictConfig, *, run_dir: Path) -> dict:
         simulator=simulator,
         run_dir=rd,
         started=t_start,
+        refine=simulator_refiner(recipe.simulator),
     )
     _say(
         f"done: observed cd {metrics['observed']['cd_mm2']:.3g} mm^2"
@@ -285,17 +286,74 @@ def _velocity_only(section):
     return copy
 
 
+#: how many times evaluation may double the simulator's substeps after a divergence
+EVALUATION_REFINEMENTS = 2
+
+
+def simulator_refiner(section):
+    """A function ``factor -> (substeps, simulator)`` building the recipe's simulator with
+    ``factor`` times its substeps; None when its options name no integer ``substeps``."""
+    name, options = _component(section)
+    base = options.get("substeps")
+    if not isinstance(base, int) or isinstance(base, bool):
+        return None
+
+    def refined(factor: int):
+        substeps = base * factor
+        return substeps, get_registry().create("simulator", name, {**options, "substeps": substeps})
+
+    return refined
+
+
+def _evaluation_rollout(simulator, particles, identified, *, world, frames, refine):
+    """The identified model rolled over ``frames``; returns (trajectory, simulator, note).
+
+    Identification only ever rolled the observed window. A model that diverges after it (a
+    fluid hitting the table faster than the recipe's substeps resolve, session 11's E-F) is
+    a time-step problem, not a wrong model, so the rollout is retried with 2x, then 4x the
+    substeps, and the note in metrics.json says so; the run is not lost."""
+    factor, note = 1, None
+    while True:
+        try:
+            with torch.no_grad():
+                traj = simulator.rollout(particles, identified, world=world, frames=frames)
+            return traj, simulator, note
+        except SimulationDiverged as exc:
+            if refine is None or factor >= 2**EVALUATION_REFINEMENTS:
+                raise
+            factor *= 2
+            substeps, simulator = refine(factor)
+            note = (
+                f"the rollout diverged in object {exc.object_id} at frame {exc.frame}, substep "
+                f"{exc.substep} ({exc.reason}); evaluated with {substeps} substeps per frame"
+            )
+            _say(f"evaluation rollout diverged ({exc.reason}); retrying with {substeps} substeps")
+
+
 def evaluate_run(
-    *, recipe, scene, particles, reconstruction, identified, simulator, run_dir, started=None
+    *,
+    recipe,
+    scene,
+    particles,
+    reconstruction,
+    identified,
+    simulator,
+    run_dir,
+    started=None,
+    refine=None,
 ) -> dict:
-    """Roll ``identified`` over every frame, score it, write metrics.json, plots and videos."""
+    """Roll ``identified`` over every frame, score it, write metrics.json, plots and videos.
+
+    ``refine`` (see ``simulator_refiner``) lets a diverging rollout retry with more substeps.
+    """
     t_start = time.perf_counter() if started is None else started
     rd = run_dir
     world = scene.world
     # the identified families may differ from the lifted ones (library baseline, scope "all")
     particles = replace(particles, materials={k: p.family for k, p in identified.objects.items()})
-    with torch.no_grad():
-        traj = simulator.rollout(particles, identified, world=world, frames=scene.n_frames - 1)
+    traj, simulator, note = _evaluation_rollout(
+        simulator, particles, identified, world=world, frames=scene.n_frames - 1, refine=refine
+    )
     reference = scene.gt_points() if scene.has_gt else reconstruction.points
     # PSNR/SSIM need images of the prediction: only particles with bound Gaussians (the
     # gaussians lifter) can be rendered against the recorded videos
@@ -317,6 +375,8 @@ def evaluate_run(
         "time_s": time.perf_counter() - t_start,
         "peak_memory_gb": _peak_memory_gb(simulator),
     }
+    if note is not None:
+        metrics["evaluation_note"] = note
     rd.save_json("metrics.json", metrics)
     plot_centroids(
         traj,

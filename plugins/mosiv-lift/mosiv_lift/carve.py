@@ -134,6 +134,36 @@ def mask_consistent(
     return (misses <= views_missed) & (own_hits >= 1)
 
 
+def mask_hull_box(object_id: int, scene, masks: list[Tensor], *, options) -> Box | None:
+    """The grid block around object ``object_id``'s visual hull in the recorded ``masks``,
+    found on a lattice of twice ``options.cell_size`` over the whole scene domain (so Gaussians
+    in the wrong place cannot mislead it); None when no lattice point lies in the hull."""
+    step = 2.0 * options.cell_size
+    lower = torch.tensor(scene.domain_lower, dtype=torch.float64)
+    upper = torch.tensor(scene.domain_upper, dtype=torch.float64)
+    axes = [torch.arange(float(lower[d]) + step / 2, float(upper[d]), step) for d in range(3)]
+    lattice = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+    inside = mask_consistent(
+        lattice,
+        object_id,
+        scene.cameras,
+        masks,
+        dilation=options.mask_dilation_px,
+        views_missed=options.mask_views_missed,
+    )
+    if not inside.any():
+        return None
+    points = lattice[inside]
+    return object_box(
+        points,
+        torch.zeros(points.shape[0]),
+        origin=scene.domain_lower,
+        cell=options.cell_size,
+        levels=options.levels,
+        padding=step,
+    )
+
+
 def fibonacci_directions(n: int) -> Tensor:
     """``n`` unit vectors spread evenly over the sphere (golden-angle spiral), [n, 3] float64."""
     i = torch.arange(n, dtype=torch.float64) + 0.5
@@ -279,19 +309,22 @@ def carve_object(
     generator: torch.Generator,
     agreement: float = 1.0,
     widen: float = 0.0,
+    box: Box | None = None,
 ) -> CarveResult:
     """Carve one object from its frame-0 Gaussians (means [G, 3] m, radii [G] m, colors [G, 3],
     opacities [G]) and the recorded masks; ``options`` is a GaussiansLifterOptions; a sample
     must pass the virtual-view test in at least the fraction ``agreement`` of those views, in
-    which the Gaussians are rendered with radii widened by ``widen`` m (``widened_radii``)."""
-    box = object_box(
-        means,
-        radii,
-        origin=scene.domain_lower,
-        cell=options.cell_size,
-        levels=options.levels,
-        padding=options.padding,
-    )
+    which the Gaussians are rendered with radii widened by ``widen`` m (``widened_radii``).
+    Samples are drawn in ``box`` (default: around the Gaussians, ``object_box``)."""
+    if box is None:
+        box = object_box(
+            means,
+            radii,
+            origin=scene.domain_lower,
+            cell=options.cell_size,
+            levels=options.levels,
+            padding=options.padding,
+        )
     samples = draw_samples(
         box, per_cell=options.samples_per_cell, generator=generator, limit=options.max_samples
     )

@@ -9,7 +9,7 @@ seeded from its frame-0 points (``seed``). Renderers come from the registry, nev
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -17,7 +17,7 @@ from mosiv_framework.interfaces import Lifter
 from mosiv_framework.registry import get_registry
 from mosiv_framework.types import GaussianFrames, ParticleSet, Reconstruction
 from mosiv_lift.bind import GaussianBinding, bind_gaussians
-from mosiv_lift.carve import carve_object, recorded_masks
+from mosiv_lift.carve import carve_object, mask_hull_box, recorded_masks
 from mosiv_lift.density import refine_density
 from mosiv_lift.emit import emit_particles
 from mosiv_lift.options import TRAINED_AGREEMENT, GaussiansLifterOptions
@@ -53,6 +53,28 @@ class GaussiansLifter(Lifter):
     def _renderer(self):
         return get_registry().create(
             "renderer", self.options.renderer, dict(self.options.renderer_options)
+        )
+
+    def _carve_masks_only(self, k, scene, masks, generator, carved):
+        """(carving, density grid) of object ``k`` from the recorded masks alone, in the box of
+        its visual hull; ValueError naming the object if the masks hold nothing either.
+        The masks are not dilated here: dilation is slack for the depth test, and without one
+        it would inflate the hull (a 1-pixel dilation tripled a 64-pixel object's volume)."""
+        opts = replace(self.options, virtual_views=0, mask_dilation_px=0)
+        box = mask_hull_box(k, scene, masks, options=opts)
+        if box is not None:
+            none = torch.zeros(0)
+            carved = carve_object(
+                none, none, none, none, object_id=k, scene=scene, masks=masks,
+                renderer=None, options=opts, generator=generator, box=box,
+            )  # fmt: skip
+            grid = _refine(carved, opts)
+            if grid.occupied.any():
+                return carved, grid
+        raise ValueError(
+            f"object {k}: neither its Gaussians nor its recorded masks of frame 0 mark any cell "
+            f"({int(carved.kept.sum())} carving samples kept); check that the masks of frame 0 "
+            "show the object, or loosen mask_views_missed / depth_tolerance"
         )
 
     def frame0_gaussians(self, reconstruction: Reconstruction, scene, renderer) -> GaussianFrames:
@@ -113,26 +135,31 @@ class GaussiansLifter(Lifter):
                 agreement=agreement,
                 widen=widen,
             )
-            if not carved.kept.any():
-                raise ValueError(
-                    f"object {k}: no carving sample is consistent with the masks and rendered "
-                    "depth; check that the Gaussians and masks of frame 0 agree, or loosen "
-                    "mask_views_missed / depth_tolerance"
+            grid = _refine(carved, opts) if carved.kept.any() else None
+            fallback = None
+            if grid is None or not grid.occupied.any():
+                # the Gaussians' depth test left no cell more inside than outside (Gaussians
+                # of this object sitting elsewhere, or too few of them: session 11's paper-size
+                # sand-sand scene); the recorded masks of frame 0 still bound the object
+                fallback = (
+                    f"lifted from the recorded masks alone: the Gaussians' depth test kept "
+                    f"{int(carved.kept.sum())} of {carved.samples.shape[0]} samples, too few to fill "
+                    "any cell"
                 )
-            grids[k] = refine_density(
-                carved.samples,
-                carved.kept,
-                carved.box,
-                levels=opts.levels,
-                prior_weight=opts.prior_weight,
-            )
-            surfaces[k] = means
+                print(f"[lift] object {k}: {fallback}", flush=True)
+                carved, grid = self._carve_masks_only(k, scene, masks, generator, carved)
             report["objects"][k] = {
                 "samples": int(carved.samples.shape[0]),
                 "kept": int(carved.kept.sum()),
-                "cells": int(grids[k].occupied.sum()),
+                "cells": int(grid.occupied.sum()),
                 "widen_radius": float(widen),
             }
+            if fallback is not None:
+                report["objects"][k]["fallback"] = fallback
+            grids[k] = grid
+            # the surface that settles contested cells: the Gaussians, or when they could not
+            # be trusted, the centres of the cells the masks gave the object
+            surfaces[k] = means if fallback is None else _cell_centres(grid)
         emission = emit_particles(
             grids,
             surfaces,
@@ -166,3 +193,19 @@ class GaussiansLifter(Lifter):
             {k: materials[k] for k in reconstruction.object_list},
             appearance=appearance,
         )
+
+
+def _refine(carved, options):
+    return refine_density(
+        carved.samples,
+        carved.kept,
+        carved.box,
+        levels=options.levels,
+        prior_weight=options.prior_weight,
+    )
+
+
+def _cell_centres(grid) -> torch.Tensor:
+    """[M, 3] world positions (m) of the centres of ``grid``'s occupied cells."""
+    index = torch.nonzero(grid.occupied).double() + 0.5
+    return (grid.box.world_lower + index * grid.box.cell).float()
