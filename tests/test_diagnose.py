@@ -13,11 +13,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
 from mosiv_framework.cli.diagnose import add_parsers
 from mosiv_framework.diagnose import diagnose_run
+from mosiv_framework.diagnose.decide import bic
 from mosiv_framework.diagnose.suite import coefficient_error
 from mosiv_framework.pipeline import run_pipeline
 from mosiv_framework.recipes import load_recipe
@@ -98,6 +100,16 @@ def test_report_files(wind):
     assert f"held-out frames {held[0]}-{held[-1]}." in text
     for plot in ("diagnose/residuals.png", "diagnose/paths.png"):
         assert (root / plot).stat().st_size > 1000
+    # the saved [object, frame] tables replay the decision: the same delta BIC from the file
+    tables = {k: np.array(v) for k, v in saved["frame_errors_mm2"].items()}
+    assert tables["null"].shape[0] == 2 and tables["null"].shape[1] == max(held) + 1
+    top = saved["evidence"][0]
+    p_null = saved["null_parameters"]
+    floor = tables["null"][:, :1]
+    replayed = bic(tables["wind"][:, fit], floor, p_null + top["new_coefficients"], block=2) - bic(
+        tables["null"][:, fit], floor, p_null, block=2
+    )
+    assert replayed == pytest.approx(top["delta_bic"], abs=1e-6)
 
 
 def test_control_accepts_nothing(control):

@@ -166,6 +166,10 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
         "screening": result["screening"],
         "evidence": result["evidence"],
         "errors": {name: _block_means(e, observed) for name, e in errors.items()},
+        # the [object, frame] tables themselves, so another decision rule can be replayed on
+        # a finished diagnosis without refitting anything
+        "frame_errors_mm2": {name: (e * MM2).tolist() for name, e in errors.items()},
+        "null_parameters": result["null"].n_params if result.get("null") is not None else None,
         "accepted": None,
         "time_s": result["time_s"],
     }
