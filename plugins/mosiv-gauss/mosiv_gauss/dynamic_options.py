@@ -50,7 +50,12 @@ class DynamicGaussOptions:
             where that hull is non-empty (a guard: an object a few pixels wide gives the
             photometric loss almost no gradient, and Adam's scale-free steps then let the
             deformation drift off every view, never to return); track_tolerance (voxels): the
-            distance left free, above the hull centroid's own bias;
+            distance left free, above the hull centroid's own bias; lambda_hull: weight of
+            a symmetric Chamfer (voxels^2, the first voxel free) between each object's Gaussian
+            centres and its visual hull at the trained frames, the motion prior's hull term
+            kept through training (0, the default, switches it off; experimental: a shape
+            guide where the photometric and mask losses give the deformation no long-range
+            pull, e.g. a body flattening on the ground);
         lr_position (m per step scale), lr_radius, lr_color, lr_opacity, lr_network,
             lr_background: Adam learning rates (log-radius, logits and weights are unitless);
         densify_every, densify_from, densify_until: densification/pruning schedule (steps);
@@ -83,6 +88,7 @@ class DynamicGaussOptions:
     lambda_mask: float = 0.5
     lambda_track: float = 0.01
     track_tolerance: float = 5.0
+    lambda_hull: float = 0.0
     lr_position: float = 1e-3
     lr_radius: float = 5e-3
     lr_color: float = 2e-2
@@ -130,6 +136,7 @@ class DynamicGaussOptions:
             if not _is_int(value) or not lo <= value <= hi:
                 problems.append(f"{name}={value!r}: must be an integer in [{lo}, {hi}]")
         non_negative = ("lambda_ssim", "lambda_radius", "lambda_mask", "lambda_track")
+        non_negative += ("lambda_hull",)
         non_negative += ("track_tolerance", "densify_grad")
         for name in non_negative:
             value = getattr(self, name)

@@ -123,6 +123,7 @@ class GaussDynamicReconstructor(Reconstructor):
             voxel_size=seeds.voxel_size,
             tracks=seeds.tracks,
             track_valid=seeds.track_valid,
+            hulls=seeds.hulls,
         )
         history = train_dynamic(model, data, opts, generator=generator)
         self.model = model

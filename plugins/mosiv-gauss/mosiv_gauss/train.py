@@ -56,7 +56,9 @@ class TrainingData:
     rgb [T, C, H, W, 3] in [0, 1]; masks [T, C, K, H, W] in {0, 1}; cameras: C cameras in the
     order of the image stacks; background [C, H, W, 3]; voxel_size (m) of the hull grid;
     tracks [T, K, 3] (m) visual-hull centroids and track_valid [T, K] where the hull is
-    non-empty (``init.HullInit``), for the track anchor (None: no anchor).
+    non-empty (``init.HullInit``), for the track anchor (None: no anchor); hulls[t][k] [N, 3]
+    (m) voxel centres of object k+1's hull at frame t (``init.HullInit.hulls``), for the hull
+    term (None: no hull term).
     """
 
     rgb: Tensor
@@ -66,6 +68,7 @@ class TrainingData:
     voxel_size: float
     tracks: Tensor | None = None
     track_valid: Tensor | None = None
+    hulls: list[list[Tensor]] | None = None
 
     @property
     def n_frames(self) -> int:
@@ -141,6 +144,40 @@ def track_loss(
                 excess = (offset / data.voxel_size - tolerance).clamp(min=0.0)
                 total = total + excess.square()
                 count += 1
+    return total / max(count, 1)
+
+
+#: at most this many Gaussians per object and frame enter the hull term (random subset)
+HULL_TERM_POINTS = 2048
+
+
+def hull_loss(
+    means: Tensor,
+    frames: list[int],
+    object_ids: Tensor,
+    hulls: list[list[Tensor]],
+    *,
+    voxel_size: float,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Mean over (frame, object) pairs with a non-empty hull of the symmetric Chamfer
+    (voxels^2) between the object's Gaussian centres ``means`` [len(frames), G, 3] (m) and
+    its hull points, each distance less one voxel (a voxel-sized hull cannot place a point
+    closer than that); 0 when there is nothing to compare."""
+    total = means.new_zeros(())
+    count = 0
+    for i, t in enumerate(frames):
+        for k, hull in enumerate(hulls[t]):
+            mine = torch.nonzero(object_ids == k + 1).squeeze(1)
+            if not len(hull) or not len(mine):
+                continue
+            if len(mine) > HULL_TERM_POINTS:
+                pick = torch.randperm(len(mine), generator=generator)[:HULL_TERM_POINTS]
+                mine = mine[pick.to(mine.device)]
+            d = torch.cdist(means[i, mine] / voxel_size, hull.to(means) / voxel_size)
+            excess = (d - 1.0).clamp(min=0.0).square()
+            total = total + excess.min(dim=1).values.mean() + excess.min(dim=0).values.mean()
+            count += 1
     return total / max(count, 1)
 
 
@@ -346,6 +383,16 @@ def train_dynamic(
                 means, frames, model.object_ids, data, tolerance=opts.track_tolerance
             )
             loss = loss + opts.lambda_track * anchor
+        if opts.lambda_hull > 0 and data.hulls is not None:
+            shape = hull_loss(
+                means,
+                frames,
+                model.object_ids,
+                data.hulls,
+                voxel_size=data.voxel_size,
+                generator=generator,
+            )
+            loss = loss + opts.lambda_hull * shape
         for o in optimizers:
             o.zero_grad(set_to_none=True)
         loss.backward()

@@ -20,7 +20,9 @@ from mosiv_gauss.train import (
     TrainingData,
     densify_and_prune,
     estimate_background,
+    hull_loss,
     track_loss,
+    train_dynamic,
     view_loss,
 )
 
@@ -270,11 +272,69 @@ def test_track_anchor_is_the_squared_centroid_excess_in_voxels_where_the_hull_ex
     )
 
 
+def test_hull_term_is_a_chamfer_in_voxels_with_the_first_voxel_free():
+    voxel = 0.01
+    ids = torch.tensor([1, 1, 2])
+    hull1 = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    hulls = [[hull1, torch.zeros(0, 3)]]  # object 2's hull is empty: left out
+    on = torch.stack([hull1[0], hull1[1], torch.tensor([5.0, 5.0, 5.0])])[None]
+    assert float(hull_loss(on, [0], ids, hulls, voxel_size=voxel)) == 0.0
+    half = on + torch.tensor([0.005, 0.0, 0.0])  # half a voxel off: still free
+    assert float(hull_loss(half, [0], ids, hulls, voxel_size=voxel)) == 0.0
+    # both Gaussians 4 voxels up: each way every distance is 4, minus the free voxel -> 9 + 9
+    up = (on + torch.tensor([0.0, 0.0, 0.04])).requires_grad_(True)
+    value = hull_loss(up, [0], ids, hulls, voxel_size=voxel)
+    assert float(value.detach()) == pytest.approx(18.0, rel=1e-4)
+    value.backward()  # descent moves both down onto the hull; object 2 feels nothing
+    assert float(up.grad[0, :2, 2].min()) > 0 and float(up.grad[0, 2].abs().sum()) == 0
+
+
+def test_training_with_the_hull_term_pulls_each_object_onto_its_hull():
+    # no photometric signal (black images, no masks): only the hull term can move the
+    # Gaussians, and it moves each object's centres onto its hull, 5 cm away
+    def fit(lambda_hull: float):
+        model = small_model(n_frames=2)
+        hulls = []
+        for t in range(2):
+            means = model.at([t])[0][0].detach()
+            shift = torch.tensor([0.05, 0.0, 0.0])
+            hulls.append([means[model.object_ids == k] + shift for k in (1, 2)])
+        data = TrainingData(
+            rgb=torch.zeros(2, 1, 24, 24, 3),
+            masks=torch.zeros(2, 1, 2, 24, 24),
+            cameras=[camera()],
+            background=torch.zeros(1, 24, 24, 3),
+            voxel_size=0.01,
+            hulls=hulls,
+        )
+        options = DynamicGaussOptions(
+            iterations=60,
+            lambda_hull=lambda_hull,
+            lambda_radius=0.0,
+            densify_from=10**6,
+            progress=False,
+        )
+        before = float(
+            hull_loss(model.at([0, 1])[0], [0, 1], model.object_ids, hulls, voxel_size=0.01)
+        )
+        train_dynamic(model, data, options, generator=torch.Generator().manual_seed(0))
+        with torch.no_grad():
+            after = hull_loss(model.at([0, 1])[0], [0, 1], model.object_ids, hulls, voxel_size=0.01)
+        return before, float(after)
+
+    before, with_term = fit(1.0)
+    _, without = fit(0.0)
+    assert before > 5.0
+    assert with_term < 0.25 * before and without > 0.9 * before
+
+
 def test_bad_options_name_the_option_and_its_range():
     with pytest.raises(ConfigError, match="lambda_mask"):
         get_registry().create("reconstructor", "gauss-dynamic", {"lambda_mask": -1.0})
     with pytest.raises(ConfigError, match="lambda_track"):
         get_registry().create("reconstructor", "gauss-dynamic", {"lambda_track": -0.1})
+    with pytest.raises(ConfigError, match="lambda_hull"):
+        get_registry().create("reconstructor", "gauss-dynamic", {"lambda_hull": -1.0})
     with pytest.raises(ConfigError, match="background"):
         get_registry().create("reconstructor", "gauss-dynamic", {"background": "green"})
     with pytest.raises(ConfigError, match="valid options"):
