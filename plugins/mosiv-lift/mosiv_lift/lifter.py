@@ -63,7 +63,7 @@ class GaussiansLifter(Lifter):
         opts = replace(self.options, virtual_views=0, mask_dilation_px=0)
         box = mask_hull_box(k, scene, masks, options=opts)
         if box is not None:
-            none = torch.zeros(0)
+            none = torch.zeros(0)  # no Gaussians: with virtual_views=0 only the masks carve
             carved = carve_object(
                 none, none, none, none, object_id=k, scene=scene, masks=masks,
                 renderer=None, options=opts, generator=generator, box=box,
