@@ -153,6 +153,7 @@ def main(argv=None) -> dict:
         "psnr_db_min": training["psnr_min"],
         "iou_min": training["iou_min"],
         "iou_per_frame": training["iou"],
+        "area_ratio_per_frame": training["area_ratio"],
         "chamfer_mm2_max": max(o["chamfer_mm2_max"] for o in per_object.values()),
         "chamfer_floor_mm2": chamfer_floor(gt, spacing=spacing),
         "contact_frames": contact,

@@ -68,6 +68,17 @@ def mask_iou(object_alpha: Tensor, mask_ids: Tensor) -> Tensor:
     return torch.where(union > 0, inter / union.clamp(min=1), torch.full_like(union, math.nan))
 
 
+def drawn_area_ratio(object_alpha: Tensor, mask_ids: Tensor) -> Tensor:
+    """Per-object drawn / recorded silhouette area per frame [F, K], pooled over cameras (NaN
+    where the masks hold none of the object): above 1 the drawn silhouette is too fat, below 1
+    too thin, which IoU alone cannot tell apart."""
+    n_objects = object_alpha.shape[2]
+    ids = torch.arange(1, n_objects + 1, device=mask_ids.device)
+    truth = (mask_ids.unsqueeze(2) == ids[:, None, None]).sum(dim=(1, 3, 4)).double()
+    drawn = (object_alpha > IOU_ALPHA).sum(dim=(1, 3, 4)).double()
+    return torch.where(truth > 0, drawn / truth.clamp(min=1), torch.full_like(truth, math.nan))
+
+
 def image_psnr(rendered: Tensor, target: Tensor) -> Tensor:
     """PSNR (dB) of every image, [F, C]; inputs [F, C, H, W, 3] in [0, 1]."""
     out = torch.empty(rendered.shape[:2], dtype=torch.float64)
@@ -102,7 +113,8 @@ def training_metrics(
 
     rgb [T, C, H, W, 3] and mask_ids [T, C, H, W] of the scene; background [C, H, W, 3].
     Keys: psnr_mean, psnr_min (dB, over images), iou (object id as str -> IoU per frame, None
-    where undefined), iou_min (lowest defined IoU over objects and frames).
+    where undefined), iou_min (lowest defined IoU over objects and frames), area_ratio (object
+    id as str -> drawn / recorded silhouette area per frame, ``drawn_area_ratio``).
     """
     n_objects = int(gaussians.object_ids.max()) if len(gaussians.object_ids) else 1
     n_objects = max(n_objects, int(mask_ids.max()))
@@ -111,6 +123,7 @@ def training_metrics(
     )
     p = image_psnr(rendered.cpu(), rgb.cpu())
     iou = mask_iou(alpha.cpu(), mask_ids.cpu())
+    area = drawn_area_ratio(alpha.cpu(), mask_ids.cpu())
     defined = iou[~torch.isnan(iou)]
     return {
         "psnr_mean": float(p.mean()),
@@ -120,4 +133,8 @@ def training_metrics(
             for k in range(n_objects)
         },
         "iou_min": float(defined.min()) if len(defined) else None,
+        "area_ratio": {
+            str(k + 1): [None if math.isnan(v) else float(v) for v in area[:, k].tolist()]
+            for k in range(n_objects)
+        },
     }

@@ -328,6 +328,22 @@ def test_training_with_the_hull_term_pulls_each_object_onto_its_hull():
     assert with_term < 0.25 * before and without > 0.9 * before
 
 
+def test_area_ratio_tells_a_fat_silhouette_from_a_thin_one():
+    from mosiv_gauss.evaluate import drawn_area_ratio, mask_iou
+
+    # one frame, one camera, two objects: object 1 recorded as a 4x4 square, object 2 absent
+    masks = torch.zeros(1, 1, 8, 8, dtype=torch.int64)
+    masks[0, 0, 2:6, 2:6] = 1
+    fat = torch.zeros(1, 1, 2, 8, 8)
+    fat[0, 0, 0, 1:7, 1:7] = 1.0  # 6x6 drawn over the 4x4: IoU 16/36 and area 36/16
+    thin = torch.zeros(1, 1, 2, 8, 8)
+    thin[0, 0, 0, 3:5, 2:6] = 1.0  # 2x4 inside it: IoU 8/16 and area 8/16
+    assert float(mask_iou(fat, masks)[0, 0]) == pytest.approx(16 / 36)
+    assert float(drawn_area_ratio(fat, masks)[0, 0]) == pytest.approx(36 / 16)
+    assert float(drawn_area_ratio(thin, masks)[0, 0]) == pytest.approx(0.5)
+    assert torch.isnan(drawn_area_ratio(thin, masks)[0, 1])  # object 2 is in no mask
+
+
 def test_bad_options_name_the_option_and_its_range():
     with pytest.raises(ConfigError, match="lambda_mask"):
         get_registry().create("reconstructor", "gauss-dynamic", {"lambda_mask": -1.0})
