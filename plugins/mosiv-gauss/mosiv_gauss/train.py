@@ -119,9 +119,13 @@ def view_loss(rgb: Tensor, object_alpha: Tensor, target: Tensor, masks: Tensor, 
     return l1 + opts.lambda_ssim * structural + opts.lambda_mask * mask
 
 
-def _hull_chamfer(points: Tensor, hull: Tensor) -> Tensor:
-    """Symmetric Chamfer (squared distances, input units) between two point sets."""
-    d = torch.cdist(points, hull).square()
+def _hull_chamfer(points: Tensor, hull: Tensor, *, free: float = 0.0) -> Tensor:
+    """Symmetric Chamfer (squared distances, input units) between two point sets, each
+    distance less ``free`` (never below 0)."""
+    d = torch.cdist(points, hull)
+    if free > 0:
+        d = (d - free).clamp(min=0.0)
+    d = d.square()
     return d.min(dim=1).values.mean() + d.min(dim=0).values.mean()
 
 
@@ -174,9 +178,8 @@ def hull_loss(
             if len(mine) > HULL_TERM_POINTS:
                 pick = torch.randperm(len(mine), generator=generator)[:HULL_TERM_POINTS]
                 mine = mine[pick.to(mine.device)]
-            d = torch.cdist(means[i, mine] / voxel_size, hull.to(means) / voxel_size)
-            excess = (d - 1.0).clamp(min=0.0).square()
-            total = total + excess.min(dim=1).values.mean() + excess.min(dim=0).values.mean()
+            points = means[i, mine] / voxel_size
+            total = total + _hull_chamfer(points, hull.to(means) / voxel_size, free=1.0)
             count += 1
     return total / max(count, 1)
 
