@@ -37,7 +37,9 @@ class DynamicGaussOptions:
         n_bases: B, number of temporal bases; basis_width, basis_layers: hidden width and number
             of hidden layers of the basis network of time; coef_width, coef_layers: the same for
             the coefficient network of canonical position; pe_frequencies: octaves of the
-            positional encoding of canonical positions.
+            positional encoding of canonical positions; time_frequencies: octaves of the
+            encoding of normalised time fed to the basis network (the highest has a period of
+            2^(2-L) of the clip, so more octaves let the motion change faster, e.g. at impact).
     Training (paper eq. 2, ``train.py``):
         iterations: optimisation steps; views_per_step: (frame, camera) images per step;
         motion_init_iterations: steps fitting the deformation to per-object visual-hull centroid
@@ -53,9 +55,12 @@ class DynamicGaussOptions:
             distance left free, above the hull centroid's own bias; lambda_hull: weight of
             a symmetric Chamfer (voxels^2, the first voxel free) between each object's Gaussian
             centres and its visual hull at the trained frames, the motion prior's hull term
-            kept through training (0, the default, switches it off; experimental: a shape
-            guide where the photometric and mask losses give the deformation no long-range
-            pull, e.g. a body flattening on the ground);
+            kept through training: a shape guide where the photometric and mask losses give
+            the deformation no long-range pull, e.g. a body flattening on the ground. Off (0)
+            by default: the hull is larger than the body where few cameras carve it, and the
+            term pulls Gaussians out to fill it (a lift from 6 cameras grew by 30 %); with 11
+            cameras, 0.01 keeps a flattening body's Gaussians on it (docs/BENCHMARKS.md "The
+            hull term at the issue's settings", which also chose lambda_radius's default);
         lr_position (m per step scale), lr_radius, lr_color, lr_opacity, lr_network,
             lr_background: Adam learning rates (log-radius, logits and weights are unitless);
         densify_every, densify_from, densify_until: densification/pruning schedule (steps);
@@ -80,11 +85,12 @@ class DynamicGaussOptions:
     coef_width: int = 64
     coef_layers: int = 4
     pe_frequencies: int = 4
+    time_frequencies: int = 4
     iterations: int = 3000
     views_per_step: int = 2
     motion_init_iterations: int = 400
     lambda_ssim: float = 0.2
-    lambda_radius: float = 0.01
+    lambda_radius: float = 0.001
     lambda_mask: float = 0.5
     lambda_track: float = 0.01
     track_tolerance: float = 5.0
@@ -121,6 +127,7 @@ class DynamicGaussOptions:
             "coef_width": (4, 4096),
             "coef_layers": (1, 16),
             "pe_frequencies": (0, 16),
+            "time_frequencies": (0, 16),
             "iterations": (0, 10_000_000),
             "views_per_step": (1, 1024),
             "motion_init_iterations": (0, 1_000_000),

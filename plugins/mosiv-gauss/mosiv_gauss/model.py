@@ -49,10 +49,14 @@ def positional_encoding(x: Tensor, n_frequencies: int) -> Tensor:
 class BasisNetwork(nn.Module):
     """psi(t): normalised time [F] -> per-basis residuals [F, B, 4] (centre m, log-radius)."""
 
-    def __init__(self, *, n_bases: int, width: int, layers: int, scale: float) -> None:
+    def __init__(
+        self, *, n_bases: int, width: int, layers: int, scale: float, time_frequencies: int = 4
+    ) -> None:
         super().__init__()
         self.n_bases = n_bases
-        self.time_frequencies = 4
+        # the highest octave's period is 2 / 2^(L-1) of the clip: it bounds how abrupt a
+        # change of motion (an impact) the bases can follow
+        self.time_frequencies = time_frequencies
         self.net = _mlp(1 + 2 * self.time_frequencies, width, layers, 4 * n_bases)
         # centre residuals are produced in units of the scene extent, so the weights stay O(1)
         self.register_buffer("scale", torch.tensor([scale, scale, scale, 1.0]))
@@ -125,6 +129,7 @@ class DynamicGaussians(nn.Module):
         coef_width: int = 64,
         coef_layers: int = 4,
         pe_frequencies: int = 4,
+        time_frequencies: int = 4,
     ) -> None:
         super().__init__()
         if n_frames < 1:
@@ -140,7 +145,11 @@ class DynamicGaussians(nn.Module):
         lo = torch.as_tensor(lower, dtype=torch.float32, device=device)
         hi = torch.as_tensor(upper, dtype=torch.float32, device=device)
         self.basis = BasisNetwork(
-            n_bases=n_bases, width=basis_width, layers=basis_layers, scale=float((hi - lo).max())
+            n_bases=n_bases,
+            width=basis_width,
+            layers=basis_layers,
+            scale=float((hi - lo).max()),
+            time_frequencies=time_frequencies,
         ).to(device)
         self.coefficients = CoefficientNetwork(
             n_bases=n_bases,

@@ -105,6 +105,7 @@ class GaussDynamicReconstructor(Reconstructor):
                 coef_width=opts.coef_width,
                 coef_layers=opts.coef_layers,
                 pe_frequencies=opts.pe_frequencies,
+                time_frequencies=opts.time_frequencies,
             )
         motion = fit_motion_prior(
             model,
