@@ -319,8 +319,15 @@ def plot_ablation(summary: dict, path: Path) -> None:
         colors = ["tab:blue" if n.startswith("object") else "tab:orange" for n in names]
         ax.barh([labels[n] for n in names], values, color=colors)
         ax.set_xlabel(title)
-        if key == "cd_mm2":
+        positive = [v for v in values if v > 0]
+        # a log axis only where the variants span a decade; bars on a log axis have no zero,
+        # so a narrow span would make a 10 % gap look like a hundredfold one
+        if key == "cd_mm2" and positive and max(positive) > 10 * min(positive):
             ax.set_xscale("log")
+        else:
+            ax.set_xlim(0, 1.25 * max(values + [1e-9]))  # room for the value labels
+        for y, v in enumerate(values):
+            ax.annotate(f"{v:.3g}", (v, y), xytext=(3, 0), textcoords="offset points", va="center")
         ax.invert_yaxis()
     fig.suptitle(f"supervision ablation, means over {len(summary['ablation_scenes'])} scenes")
     fig.tight_layout()
