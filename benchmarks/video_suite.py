@@ -194,6 +194,19 @@ def _mean(values):
     return statistics.fmean(values) if values else None
 
 
+def paired_p_value(pairs: list[tuple[float, float]]) -> float | None:
+    """Two-sided Wilcoxon signed-rank p-value of the per-scene differences (object-wise minus
+    scene-wise), the scenes as paired units; None below 6 scenes with a difference, where even
+    a clean sweep cannot reach p < 0.05. Counting wins alone would treat a 0.01 dB lead like a
+    3 dB one; a run's own spread (RESULTS.md, session 12) is why a test is needed at all."""
+    differences = [a - b for a, b in pairs if a != b]
+    if len(differences) < 6:
+        return None
+    from scipy.stats import wilcoxon
+
+    return float(wilcoxon(differences).pvalue)
+
+
 def summarise(rows: list[dict]) -> dict:
     """Means over the scenes: ours against the PSNR targets; every variant on the scenes where
     all of them ran (the ablation table); scene by scene, object-wise against scene-wise."""
@@ -229,7 +242,7 @@ def summarise(rows: list[dict]) -> dict:
                     and r[rival][block].get(key) is not None
                 ]
                 won = sum(better(a, b) == a and a != b for a, b in pairs)
-                wins[f"{folder}|{block}|{key}"] = [won, len(pairs)]
+                wins[f"{folder}|{block}|{key}"] = [won, len(pairs), paired_p_value(pairs)]
     out["object_beats_scene"] = wins
     out["median_time_s"] = statistics.median([o["time_s"] for o in ours]) if ours else None
     out["max_peak_memory_gb"] = max((o["peak_memory_gb"] or 0.0 for o in ours), default=None)
@@ -289,10 +302,14 @@ def markdown(rows: list[dict], summary: dict) -> str:
         cells = [_fmt(blocks[b][k]) for b in ("observed", "future") for k, *_ in QUANTITIES]
         lines.append(f"| {labels[name]} | " + " | ".join(cells) + " |")
     if s["object_beats_scene"]:
-        lines += ["", "Scenes where object-wise beats scene-wise (same terms):", ""]
-        for key, (won, n) in s["object_beats_scene"].items():
+        title = "Scenes where object-wise beats scene-wise (same terms), with the two-sided"
+        title += " Wilcoxon signed-rank p-value of the per-scene differences:"
+        lines += ["", title, ""]
+        for key, (won, n, *test) in s["object_beats_scene"].items():
             folder, block, quantity = key.split("|")
-            lines.append(f"- {labels[folder]}, {block} {quantity}: {won} of {n}")
+            p = test[0] if test else None
+            p_text = "too few scenes for a test" if p is None else f"p = {p:.2g}"
+            lines.append(f"- {labels[folder]}, {block} {quantity}: {won} of {n} ({p_text})")
     return "\n".join(lines) + "\n"
 
 

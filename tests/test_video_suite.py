@@ -1,0 +1,64 @@
+"""benchmarks/video_suite.py: the object-wise against scene-wise comparison is a paired test."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "video_suite.py"
+
+
+def _suite():
+    # the script imports its sibling identify_suite, as it does when run from benchmarks/
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        spec = importlib.util.spec_from_file_location("video_suite", SCRIPT)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    return module
+
+
+def _metrics(psnr: float, cd: float) -> dict:
+    block = {"psnr": psnr, "psnr_objects": psnr - 15, "ssim": 0.9, "cd_mm2": cd, "emd_mm": 1.0}
+    errors = {"E_pct": None, "yield_pct": None, "friction_angle_deg": None, "v0_pct": None}
+    return {
+        "observed": block,
+        "future": dict(block),
+        "errors": errors,
+        "time_s": 1.0,
+        "peak_memory_gb": 1.0,
+    }
+
+
+def test_a_consistent_lead_is_significant_and_a_coin_flip_is_not():
+    suite = _suite()
+    # object-wise 0.5-1.4 dB ahead on all ten scenes; CD ahead on five, behind on five
+    rows = []
+    for i in range(10):
+        cd_object, cd_scene = (100.0, 120.0 + i) if i % 2 else (120.0 + i, 100.0)
+        rows.append(
+            {
+                "pair": f"S{i}",
+                "object-cd-sil": _metrics(30.0 + 0.5 + 0.1 * i, cd_object),
+                "scene-cd-sil": _metrics(30.0, cd_scene),
+            }
+        )
+    summary = suite.summarise(rows)
+    won, n, p = summary["object_beats_scene"]["object-cd-sil|future|psnr"]
+    assert (won, n) == (10, 10)
+    assert p == pytest.approx(2 / 2**10)  # exact signed-rank test: only the all-positive ranking
+    won, n, p = summary["object_beats_scene"]["object-cd-sil|future|cd_mm2"]
+    assert (won, n) == (5, 10) and p > 0.5
+    text = suite.markdown(rows, summary)
+    assert "future psnr: 10 of 10 (p = 0.002)" in text
+
+
+def test_too_few_scenes_give_no_p_value():
+    suite = _suite()
+    assert suite.paired_p_value([(1.0, 0.0)] * 5) is None
+    assert suite.paired_p_value([(1.0, 1.0)] * 10) is None  # no scene differs
