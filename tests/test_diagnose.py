@@ -112,6 +112,42 @@ def test_report_files(wind):
     assert replayed == pytest.approx(top["delta_bic"], abs=1e-6)
 
 
+def test_replaying_the_saved_tables_reproduces_the_decision(wind):
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.replay import replay_diagnosis
+
+    root, _ = wind
+    saved = json.loads((root / "diagnosis.json").read_text())
+    same = replay_diagnosis(saved)  # the rule it ran with: every number comes back
+    assert same["verdict"] == saved["verdict"] and same["accepted"] == saved["accepted"]
+    for new, old in zip(same["evidence"], saved["evidence"], strict=True):
+        assert new["name"] == old["name"] and new["accepted"] == old["accepted"]
+        for key in ("heldout_drop", "heldout_spread", "delta_bic"):
+            assert new[key] == pytest.approx(old[key], rel=1e-9, abs=1e-12)
+    # a rule no candidate can meet: the significant residual stays unexplained
+    strict = replay_diagnosis(saved, DecideOptions(bic_margin=1e9))
+    assert strict["accepted"] is None and strict["verdict"] == "unexplained"
+    assert not any(e["accepted"] for e in strict["evidence"])
+
+
+def test_a_suite_folder_is_rescored_under_another_rule(wind, control, tmp_path):
+    from mosiv_framework.cli.main import main
+
+    # a small-suite folder holding two finished entries (the fixtures' runs), one missing
+    (tmp_path / "wind").symlink_to(wind[0], target_is_directory=True)
+    (tmp_path / "control").symlink_to(control[0], target_is_directory=True)
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.replay import replay_suite
+
+    as_run = replay_suite(tmp_path, DecideOptions(), small=True)
+    assert as_run["missing"] == ["linear_drag"]
+    assert as_run["correct_first_rate"] == 1.0  # wind named first, as in its own diagnosis
+    assert as_run["control_false_discovery_rate"] == 0.0
+    strict = replay_suite(tmp_path, DecideOptions(bic_margin=1e9), small=True)
+    assert strict["correct_first_rate"] == 0.0 and strict["control_false_discovery_rate"] == 0.0
+    assert main(["diagnose-suite", str(tmp_path), "--small", "--replay", "--z", "3"]) == 0
+
+
 def test_control_accepts_nothing(control):
     root, diagnosis = control
     assert diagnosis["accepted"] is None

@@ -36,6 +36,15 @@ def add_parsers(sub) -> None:
         help="comma-separated CUDA ordinals the workers are spread over, e.g. 0,1,2,3 "
         "(default: $MOSIV_GPUS, else as the environment says)",
     )
+    suite.add_argument(
+        "--replay",
+        action="store_true",
+        help="run nothing: re-decide the finished entries in OUT from their saved error tables "
+        "under the rule given by --z, --bic-margin and --block, and print the table",
+    )
+    suite.add_argument("--z", type=float, help="held-out drop over its bootstrap spread (2)")
+    suite.add_argument("--bic-margin", type=float, help="delta BIC a candidate must beat (2)")
+    suite.add_argument("--block", type=int, help="frames per time block (2)")
     suite.set_defaults(handler=diagnose_suite)
 
 
@@ -56,6 +65,9 @@ def diagnose(args) -> int:
 def diagnose_suite(args) -> int:
     from mosiv_framework.diagnose.suite import run_suite
 
+    if args.replay:
+        return _replay(args)
+
     run_suite(
         args.out,
         small=args.small,
@@ -66,4 +78,17 @@ def diagnose_suite(args) -> int:
         gpus=args.gpus,
         say=lambda m: print(m, flush=True),
     )
+    return 0
+
+
+def _replay(args) -> int:
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.replay import replay_suite
+    from mosiv_framework.diagnose.suite import table
+
+    given = {"z": args.z, "bic_margin": args.bic_margin, "block": args.block}
+    options = DecideOptions(**{k: v for k, v in given.items() if v is not None})
+    summary = replay_suite(args.out, options, small=args.small)
+    print(f"replayed under {summary['rule']}")
+    print(table(summary))
     return 0

@@ -1,0 +1,116 @@
+"""Replaying the decision step on finished diagnoses, under another decision rule.
+
+A diagnosis.json keeps every refitted model's [object, frame] Chamfer table
+(``frame_errors_mm2``), the fit and held-out frames and the null model's parameter count, so the
+last step of a diagnosis (``decide.py``: held-out drop against its bootstrap spread, and the
+BIC margin) can be re-run with other ``DecideOptions`` without refitting anything. On a whole
+``mosiv diagnose-suite`` folder this scores a candidate rule in seconds, where the suite itself
+takes GPU-hours; a rule chosen this way is chosen on that suite, which a report must say.
+
+Replayed scores lack the coefficient error of a candidate the original run did not accept (its
+fitted coefficients are not in the file); everything else is recomputed.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from mosiv_framework.diagnose.decide import (
+    DecideOptions,
+    Evidence,
+    bic,
+    bootstrap_drop,
+    rank_evidence,
+    verdict,
+)
+from mosiv_framework.diagnose.report import MM2
+
+
+def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> dict:
+    """The decision of one diagnosis.json under ``options`` (default: the rule it ran with,
+    with its budget's bootstrap count): a copy of ``diagnosis`` with ``verdict``, ``evidence``
+    and ``accepted`` replaced. ``accepted`` keeps the original record when the same candidate
+    is accepted again, else holds only ``{"name": ...}``."""
+    if options is None:
+        options = DecideOptions(bootstrap=diagnosis.get("budget", {}).get("bootstrap", 200))
+    out = dict(diagnosis)
+    tables = {name: np.asarray(t, dtype=float) / MM2 for name, t in _tables(diagnosis).items()}
+    evidence: list[Evidence] = []
+    if diagnosis["evidence"] and "null" in tables:
+        fit, held = diagnosis["frames"]["fit"], diagnosis["frames"]["heldout"]
+        null, p_null = tables["null"], diagnosis["null_parameters"]
+        floor = null[:, :1]  # frame 0, the lifted state, is the same for every model
+        bic_null = bic(null[:, fit], floor, p_null, block=options.block)
+        for old in diagnosis["evidence"]:
+            errors = tables[old["name"]]
+            drop, spread = bootstrap_drop(
+                null[:, held],
+                errors[:, held],
+                block=options.block,
+                resamples=options.bootstrap,
+                seed=options.seed,
+            )
+            n_params = p_null + old["new_coefficients"]
+            delta = bic(errors[:, fit], floor, n_params, block=options.block) - bic_null
+            evidence.append(
+                Evidence(
+                    old["name"],
+                    drop,
+                    spread,
+                    delta,
+                    passes_heldout=drop > 0 and drop > options.z * spread,
+                    passes_bic=delta < -options.bic_margin,
+                    fit_loss=old["fit_loss_m2"],
+                    n_new=old["new_coefficients"],
+                )
+            )
+    ranked = rank_evidence(evidence)
+    out["verdict"] = verdict(bool(diagnosis["where"]["significant"]), ranked)
+    out["evidence"] = [e.to_json() for e in ranked]
+    winner = ranked[0].name if ranked and ranked[0].accepted else None
+    before = diagnosis.get("accepted")
+    if winner is None:
+        out["accepted"] = None
+    elif before is not None and before["name"] == winner:
+        out["accepted"] = before
+    else:
+        out["accepted"] = {"name": winner}
+    return out
+
+
+def _tables(diagnosis: dict) -> dict:
+    if "frame_errors_mm2" not in diagnosis:
+        raise ValueError(
+            "diagnosis.json has no 'frame_errors_mm2': it was written before session 11's "
+            "report format and cannot be replayed; run the diagnosis again"
+        )
+    return diagnosis["frame_errors_mm2"]
+
+
+def replay_suite(out: Path, options: DecideOptions, *, small: bool = False) -> dict:
+    """Re-score every finished entry of a ``mosiv diagnose-suite`` folder under ``options``;
+    returns the suite summary (``suite.summarise``) of the replayed scores. Entries without a
+    diagnosis.json (not finished, or failed) are left out and listed under ``missing``."""
+    from mosiv_framework.diagnose.suite import score_entry, suite_entries, summarise
+    from mosiv_framework.scene import read_scene
+
+    out = Path(out)
+    scores, missing = [], []
+    for entry in suite_entries(small):
+        path = out / entry.name / "diagnosis.json"
+        if not path.exists():
+            missing.append(entry.name)
+            continue
+        diagnosis = replay_diagnosis(json.loads(path.read_text()), options)
+        accepted = diagnosis["accepted"]
+        # a newly accepted candidate's coefficients are not in the file: no coefficient error
+        known = accepted is None or "value" in accepted
+        effects = read_scene(out / entry.name / "scene").gt_effects() if known else []
+        scores.append(score_entry(entry, diagnosis, effects))
+    summary = summarise(scores)
+    summary["missing"] = missing
+    summary["rule"] = dict(options.__dict__)
+    return summary
