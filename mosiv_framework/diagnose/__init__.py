@@ -4,8 +4,9 @@ One module per step: ``context`` (the loaded run), ``locate`` with ``changepoint
 model misses, against a noise floor estimated from the data), ``candidates`` and
 ``hypothesise`` (which registered effects could explain it), ``model`` (refit with each),
 ``interval`` (the accepted coefficient's uncertainty), ``decide`` (held-out and
-information-criterion evidence), ``report`` (diagnosis.json / diagnosis.md), and ``suite``
-(scores the whole chain on generated scenes with concealed effects).
+information-criterion evidence), ``report`` (diagnosis.json / diagnosis.md), ``suite``
+(scores the whole chain on generated scenes with concealed effects) and ``replay`` (re-decides
+a finished suite under another acceptance rule, from the saved error tables).
 """
 
 from mosiv_framework.diagnose.diagnosis import BUDGETS, Budget, diagnose_run, split_frames
