@@ -123,35 +123,58 @@ def decide(
     """Evidence per candidate fit, best first (see ``rank_evidence``); also returns the
     [K, T] error tables by model name (``null`` included)."""
     errors = {"null": frame_errors(ctx, null)}
-    floor = errors["null"][:, :1]  # frame 0 is the lifted state: identical for every model
-    bic_null = bic(errors["null"][:, fit_frames], floor, null.n_params, block=options.block)
-    evidence = []
     for fit in fits:
         errors[fit.name] = frame_errors(ctx, fit)
+    evidence = weigh(
+        errors,
+        null_parameters=null.n_params,
+        candidates=[(fit.name, fit.n_params - null.n_params, fit.loss) for fit in fits],
+        fit_frames=fit_frames,
+        heldout_frames=heldout_frames,
+        options=options,
+    )
+    return evidence, errors
+
+
+def weigh(
+    errors: dict[str, np.ndarray],
+    *,
+    null_parameters: int,
+    candidates: list[tuple[str, int, float]],
+    fit_frames: list[int],
+    heldout_frames: list[int],
+    options: DecideOptions,
+) -> list[Evidence]:
+    """The two tests on [K, T] error tables (m^2) by model name, ``null`` among them, for each
+    candidate (name, new coefficients, fit loss m^2); best first. Also what a replay of a saved
+    diagnosis runs (``replay.py``)."""
+    null = errors["null"]
+    floor = null[:, :1]  # frame 0 is the lifted state: identical for every model
+    bic_null = bic(null[:, fit_frames], floor, null_parameters, block=options.block)
+    evidence = []
+    for name, n_new, fit_loss in candidates:
         drop, spread = bootstrap_drop(
-            errors["null"][:, heldout_frames],
-            errors[fit.name][:, heldout_frames],
+            null[:, heldout_frames],
+            errors[name][:, heldout_frames],
             block=options.block,
             resamples=options.bootstrap,
             seed=options.seed,
         )
-        delta = (
-            bic(errors[fit.name][:, fit_frames], floor, fit.n_params, block=options.block)
-            - bic_null
-        )
+        n_params = null_parameters + n_new
+        delta = bic(errors[name][:, fit_frames], floor, n_params, block=options.block) - bic_null
         evidence.append(
             Evidence(
-                fit.name,
+                name,
                 drop,
                 spread,
                 delta,
                 passes_heldout=drop > 0 and drop > options.z * spread,
                 passes_bic=delta < -options.bic_margin,
-                fit_loss=fit.loss,
-                n_new=fit.n_params - null.n_params,
+                fit_loss=fit_loss,
+                n_new=n_new,
             )
         )
-    return rank_evidence(evidence), errors
+    return rank_evidence(evidence)
 
 
 def rank_evidence(evidence: list[Evidence]) -> list[Evidence]:

@@ -18,14 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mosiv_framework.diagnose.decide import (
-    DecideOptions,
-    Evidence,
-    bic,
-    bootstrap_drop,
-    rank_evidence,
-    verdict,
-)
+from mosiv_framework.diagnose.decide import DecideOptions, Evidence, verdict, weigh
 from mosiv_framework.diagnose.report import MM2
 
 
@@ -38,36 +31,18 @@ def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> d
         options = DecideOptions(bootstrap=diagnosis.get("budget", {}).get("bootstrap", 200))
     out = dict(diagnosis)
     tables = {name: np.asarray(t, dtype=float) / MM2 for name, t in _tables(diagnosis).items()}
-    evidence: list[Evidence] = []
+    ranked: list[Evidence] = []
     if diagnosis["evidence"] and "null" in tables:
-        fit, held = diagnosis["frames"]["fit"], diagnosis["frames"]["heldout"]
-        null, p_null = tables["null"], diagnosis["null_parameters"]
-        floor = null[:, :1]  # frame 0, the lifted state, is the same for every model
-        bic_null = bic(null[:, fit], floor, p_null, block=options.block)
-        for old in diagnosis["evidence"]:
-            errors = tables[old["name"]]
-            drop, spread = bootstrap_drop(
-                null[:, held],
-                errors[:, held],
-                block=options.block,
-                resamples=options.bootstrap,
-                seed=options.seed,
-            )
-            n_params = p_null + old["new_coefficients"]
-            delta = bic(errors[:, fit], floor, n_params, block=options.block) - bic_null
-            evidence.append(
-                Evidence(
-                    old["name"],
-                    drop,
-                    spread,
-                    delta,
-                    passes_heldout=drop > 0 and drop > options.z * spread,
-                    passes_bic=delta < -options.bic_margin,
-                    fit_loss=old["fit_loss_m2"],
-                    n_new=old["new_coefficients"],
-                )
-            )
-    ranked = rank_evidence(evidence)
+        ranked = weigh(
+            tables,
+            null_parameters=diagnosis["null_parameters"],
+            candidates=[
+                (e["name"], e["new_coefficients"], e["fit_loss_m2"]) for e in diagnosis["evidence"]
+            ],
+            fit_frames=diagnosis["frames"]["fit"],
+            heldout_frames=diagnosis["frames"]["heldout"],
+            options=options,
+        )
     out["verdict"] = verdict(bool(diagnosis["where"]["significant"]), ranked)
     out["evidence"] = [e.to_json() for e in ranked]
     winner = ranked[0].name if ranked and ranked[0].accepted else None
