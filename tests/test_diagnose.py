@@ -132,12 +132,12 @@ def test_replaying_the_saved_tables_reproduces_the_decision(wind):
 
 def test_a_suite_folder_is_rescored_under_another_rule(wind, control, tmp_path):
     from mosiv_framework.cli.main import main
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.replay import replay_suite
 
     # a small-suite folder holding two finished entries (the fixtures' runs), one missing
     (tmp_path / "wind").symlink_to(wind[0], target_is_directory=True)
     (tmp_path / "control").symlink_to(control[0], target_is_directory=True)
-    from mosiv_framework.diagnose.decide import DecideOptions
-    from mosiv_framework.diagnose.replay import replay_suite
 
     as_run = replay_suite(tmp_path, DecideOptions(), small=True)
     assert as_run["missing"] == ["linear_drag"]
