@@ -559,7 +559,7 @@ def test_refit_ends_a_start_at_a_non_finite_gradient():
     class FakeContext:
         calls = 0
 
-        def parameter_vector(self):
+        def parameter_vector(self, params=None):
             return ParameterVector.create({1: "elastic"}, {1: torch.zeros(3)}, ground_friction=None)
 
         def simulate(self, params, *, frames):
@@ -584,6 +584,57 @@ def test_refit_ends_a_start_at_a_non_finite_gradient():
     assert fit.loss == pytest.approx(min(fit.history)) and fit.loss < float((target**2).sum())
 
 
+class _QuadraticContext:
+    """A run whose only free parameter is object 1's initial velocity, and whose fit loss is
+    its squared distance (m^2/s^2) to ``target``."""
+
+    def __init__(self, target):
+        self.target = torch.tensor(target)
+
+    def parameter_vector(self, params=None):
+        from mosiv_framework.pipeline.params import ParameterVector
+
+        v = torch.zeros(3) if params is None else params.initial_velocity[1]
+        return ParameterVector.create({1: "elastic"}, {1: v.clone()}, ground_friction=None)
+
+    def simulate(self, params, *, frames):
+        return ((params.initial_velocity[1] - self.target) ** 2).sum()
+
+    def loss(self, traj, frames):
+        return traj
+
+    def rollout(self, params, *, frames=None):
+        with torch.no_grad():
+            return self.simulate(params, frames=frames)
+
+
+def test_the_null_continues_from_a_candidate_refit_that_found_better_shared_values():
+    """A candidate's refit that moved the shared parameters closer than the null's own refit
+    did: the null, refitted again from there, must fit at least as well as those values, so a
+    candidate cannot win merely by having been optimised further."""
+    from mosiv_framework.diagnose.model import Fit, RefitOptions, converge_null, refit
+
+    ctx = _QuadraticContext([2.0, 0.0, 0.0])
+    options = RefitOptions(iterations=3, velocity_lr=0.1)
+    null = refit(ctx, None, fit_frames=[1], options=options)  # 3 steps of 0.1 from 0: still far
+    assert null.loss > 2.0
+    closer = ctx.parameter_vector().physical()
+    closer.initial_velocity[1] = torch.tensor([1.8, 0.0, 0.0])
+    far = ctx.parameter_vector().physical()
+    far.initial_velocity[1] = torch.tensor([-3.0, 0.0, 0.0])
+    fits = [
+        Fit(name, None, p, torch.zeros(1), 0.0, 1, shared=p)
+        for name, p in (("far", far), ("closer", closer))
+    ]
+    warm = converge_null(ctx, null, fits, fit_frames=[1], options=options)
+    assert warm.started_from == "closer" and warm.name == "null"
+    assert warm.loss <= 0.2**2 + 1e-6  # no worse than where it started
+    assert warm.n_params == null.n_params
+
+    # no candidate found better shared values: the null stays as it was
+    assert converge_null(ctx, null, fits[:1], fit_frames=[1], options=options) is null
+
+
 def test_regression_estimate_reads_only_the_fit_frames():
     """The centroid regression that starts a refit must not see held-out frames: a held-out
     block carrying something else (here a 5 cm jump) leaves the estimate exact."""
@@ -606,6 +657,56 @@ def test_regression_estimate_reads_only_the_fit_frames():
     assert np.allclose(dv0[1].numpy(), dv_true, atol=1e-4)
     theta_all, _ = regression_estimate(ctx, wind, residuals, regimes, list(range(1, 10)))
     assert np.abs(theta_all.numpy() - wind_true).max() > 0.1
+
+
+def test_regression_gain_is_strong_for_the_true_body_force_only():
+    """A steady sideways wind in the flight paths: the wind's columns explain them where a
+    velocity change cannot (large BIC gain); on a path a velocity change explains, with a
+    little noise, the wind buys nothing beyond its parameter cost."""
+    from types import SimpleNamespace
+
+    from mosiv_framework.diagnose.candidates import build_candidates
+    from mosiv_framework.diagnose.hypothesise import REGRESSION_SLOT_GAIN, regression_gain
+
+    ctx = _FakeContext(frozenset({"wind"}))
+    wind = next(c for c in build_candidates(ctx)[0] if c.name == "wind")
+    time_s = np.arange(8)[:, None] / ctx.fps
+    rng = np.random.default_rng(0)
+    noise = 1e-4 * rng.standard_normal((8, 3))
+    regimes = {1: ["free_flight"] * 8}
+    fit = [1, 2, 3, 4, 5, 6, 7]
+
+    def gain(centroid):
+        residuals = {1: SimpleNamespace(centroid=centroid, sim_velocity=np.zeros((8, 3)))}
+        return regression_gain(ctx, wind, residuals, regimes, fit)
+
+    windy = 0.5 * np.array([0.0, 2.5, 0.0]) * time_s**2 + 0.1 * time_s + noise
+    drifting = np.array([0.1, 0.0, -0.05]) * time_s + noise
+    assert gain(windy) > 10 * REGRESSION_SLOT_GAIN
+    assert gain(drifting) < REGRESSION_SLOT_GAIN
+
+
+def test_a_strong_regression_left_out_by_the_score_gets_one_extra_refit():
+    from types import SimpleNamespace
+
+    from mosiv_framework.diagnose.hypothesise import Screen, choose_refits
+
+    def screen_(name, score, gain=None, drop=0.1):
+        return Screen(
+            SimpleNamespace(name=name), True, [], torch.zeros(1), drop, score, regression_gain=gain
+        )
+
+    ranked = [
+        screen_("a", 3.0),
+        screen_("b", 2.0, gain=4.0),
+        screen_("c", 1.0, gain=50.0),
+        screen_("d", 0.5, gain=80.0),
+    ]
+    assert [s.candidate.name for s in choose_refits(ranked, 2)] == ["a", "b", "d"]
+    # already among the best-scored: no extra refit
+    assert [s.candidate.name for s in choose_refits(ranked, 4)] == ["a", "b", "c", "d"]
+    # weak regressions earn nothing
+    assert [s.candidate.name for s in choose_refits(ranked[:2], 1)] == ["a"]
 
 
 def test_a_candidate_flat_at_zero_is_probed_at_multiples_of_its_step():

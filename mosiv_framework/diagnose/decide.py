@@ -92,6 +92,8 @@ class Evidence:
     passes_bic: bool
     fit_loss: float
     n_new: int
+    #: the candidate's refitted coefficients (None in a replay, which refits nothing)
+    theta: list[float] | None = None
 
     @property
     def accepted(self) -> bool:
@@ -108,6 +110,7 @@ class Evidence:
             "accepted": self.accepted,
             "fit_loss_m2": self.fit_loss,
             "new_coefficients": self.n_new,
+            "theta": self.theta,
         }
 
 
@@ -133,6 +136,9 @@ def decide(
         heldout_frames=heldout_frames,
         options=options,
     )
+    thetas = {fit.name: fit.theta.tolist() for fit in fits}
+    for e in evidence:
+        e.theta = thetas.get(e.name)
     return evidence, errors
 
 

@@ -17,10 +17,10 @@ import torch
 from mosiv_framework.diagnose.candidates import build_candidates
 from mosiv_framework.diagnose.context import load_run
 from mosiv_framework.diagnose.decide import DecideOptions, decide, frame_errors, verdict
-from mosiv_framework.diagnose.hypothesise import regression_estimate, screen
+from mosiv_framework.diagnose.hypothesise import choose_refits, regression_estimate, screen
 from mosiv_framework.diagnose.interval import coefficient_interval
 from mosiv_framework.diagnose.locate import locate
-from mosiv_framework.diagnose.model import RefitOptions, refit
+from mosiv_framework.diagnose.model import RefitOptions, converge_null, refit
 from mosiv_framework.diagnose.report import write_report
 from mosiv_framework.errors import ConfigError
 
@@ -129,9 +129,14 @@ def diagnose_run(
         budget = BUDGETS[budget]
     ctx = load_run(run_dir, simulator_overrides=simulator_overrides)
     section = ctx.recipe.get("diagnose", None)
-    if section is not None:  # the recipe may narrow the screened terms and the budget
+    if section is not None:  # the recipe may narrow the screened terms and set the budget
         budget = replace(
-            budget, max_candidates=min(budget.max_candidates, int(section.max_candidates))
+            budget,
+            **{
+                name: int(section[name])
+                for name in ("max_candidates", "bootstrap", "starts")
+                if section.get(name) is not None
+            },
         )
     allowed_names = list(section.terms) if section is not None and section.terms else None
     excluded_names = set(section.exclude) if section is not None else set()
@@ -171,7 +176,7 @@ def diagnose_run(
             residuals=location.residuals,
             regimes=location.regimes,
         )
-        kept = [s for s in screens if s.allowed and s.drop_fraction > 0][: budget.max_candidates]
+        kept = choose_refits(screens, budget.max_candidates)
         refit_options = RefitOptions(iterations=budget.iterations)
         say(f"refitting the null model and {[s.candidate.name for s in kept]}")
         null_start = regression_estimate(
@@ -194,6 +199,9 @@ def diagnose_run(
             )
             for s in kept
         ]
+        null = converge_null(ctx, null, fits, fit_frames=fit_frames, options=refit_options)
+        if null.started_from is not None:
+            say(f"the null model refitted again from {null.started_from}'s shared parameters")
         evidence, model_errors = decide(
             ctx,
             null,

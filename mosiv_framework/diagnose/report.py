@@ -170,6 +170,10 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
         # a finished diagnosis without refitting anything
         "frame_errors_mm2": {name: (e * MM2).tolist() for name, e in errors.items()},
         "null_parameters": result["null"].n_params if result.get("null") is not None else None,
+        # a candidate's name where the null was refitted again from its switched-off parameters
+        "null_started_from": (
+            result["null"].started_from if result.get("null") is not None else None
+        ),
         "accepted": None,
         "time_s": result["time_s"],
     }
@@ -282,14 +286,22 @@ def _markdown(s: dict) -> str:
             "## Evidence (against the null model refitted with the same budget)",
             "",
             f"Every model was refitted on frames {_frame_ranges(s['frames']['fit'])} and judged "
-            f"on the held-out frames {_frame_ranges(s['frames']['heldout'])}.",
+            f"on the held-out frames {_frame_ranges(s['frames']['heldout'])}."
+            + (
+                f" The null model was refitted again from {s['null_started_from']}'s refit "
+                "with its effect switched off, which fitted better than the null's own refit."
+                if s.get("null_started_from")
+                else ""
+            ),
             "",
-            "| candidate | held-out drop | bootstrap sd | dBIC | held-out | BIC | accepted |",
-            "|---|---|---|---|---|---|---|",
+            "| candidate | refitted coefficients | held-out drop | bootstrap sd | dBIC | held-out "
+            "| BIC | accepted |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for e in s["evidence"]:
+            theta = ", ".join(f"{x:.3g}" for x in e["theta"]) if e.get("theta") else "-"
             lines.append(
-                f"| {e['name']} | {e['heldout_drop']:.2%} | {e['heldout_spread']:.2%} | "
+                f"| {e['name']} | {theta} | {e['heldout_drop']:.2%} | {e['heldout_spread']:.2%} | "
                 f"{e['delta_bic']:.3g} | {'pass' if e['passes_heldout'] else 'fail'} | "
                 f"{'pass' if e['passes_bic'] else 'fail'} | {'yes' if e['accepted'] else 'no'} |"
             )

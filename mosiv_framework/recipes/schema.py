@@ -150,9 +150,11 @@ class DiagnoseSection:
     terms: list[str] = field(default_factory=list)
     #: never screen these (how the suite builds its out-of-library scenes)
     exclude: list[str] = field(default_factory=list)
-    max_candidates: int = 3
-    bootstrap: int = 200
-    starts: int = 2
+    #: the budget's candidates, refit starts and bootstrap resamples, unless set here (the
+    #: full budget refits 4 candidates: a default of 3 here once capped it, session 13)
+    max_candidates: int | None = None
+    bootstrap: int | None = None
+    starts: int | None = None
 
 
 @dataclass
