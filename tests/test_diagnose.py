@@ -124,6 +124,11 @@ def test_replaying_the_saved_tables_reproduces_the_decision(wind):
         assert new["name"] == old["name"] and new["accepted"] == old["accepted"]
         for key in ("heldout_drop", "heldout_spread", "delta_bic"):
             assert new[key] == pytest.approx(old[key], rel=1e-9, abs=1e-12)
+    assert saved["rule"]["min_drop"] == DecideOptions().min_drop
+    # a file from before the rule was saved is replayed under the rule of its time
+    legacy = {k: v for k, v in saved.items() if k != "rule"}
+    for e in replay_diagnosis(legacy)["evidence"]:
+        assert e["passes_bic"] == (e["delta_bic"] < -2.0)
     # a rule no candidate can meet: the significant residual stays unexplained
     strict = replay_diagnosis(saved, DecideOptions(bic_margin=1e9))
     assert strict["accepted"] is None and strict["verdict"] == "unexplained"

@@ -162,6 +162,45 @@ def test_bic_penalises_a_parameter_that_buys_nothing():
     assert bic_gain(0.5, n=n, dim=1) == pytest.approx(n * math.log(2) - math.log(n))
 
 
+def test_a_small_consistent_held_out_gain_is_not_worth_naming():
+    """Two candidates against the null on [2 objects, 20 frames] error tables: one removes 7 %
+    of every held-out frame's error (significant against its spread, as a control's gravity
+    change was in session 13), the other 40 %. Only the second passes the effect-size test."""
+    from mosiv_framework.diagnose.decide import DecideOptions, weigh
+
+    rng = np.random.default_rng(1)
+    null = 1e-4 * (1.0 + 0.1 * rng.random((2, 20)))
+    null[:, 0] = 1e-6  # frame 0: the floor every model shares
+    fit, held = list(range(1, 12)), list(range(12, 20))
+    small, large = null.copy(), null.copy()
+    small[:, 1:] *= 0.93
+    large[:, 1:] *= 0.60
+    errors = {"null": null, "small": small, "large": large}
+    candidates = [("small", 1, 0.0), ("large", 1, 0.0)]
+    evidence = weigh(
+        errors,
+        null_parameters=6,
+        candidates=candidates,
+        fit_frames=fit,
+        heldout_frames=held,
+        options=DecideOptions(),
+    )
+    by_name = {e.name: e for e in evidence}
+    assert by_name["small"].heldout_drop > 10 * by_name["small"].heldout_spread
+    assert not by_name["small"].accepted and by_name["large"].accepted
+    assert evidence[0].name == "large"
+    # without the effect-size test the small gain would pass the held-out test too
+    loose = weigh(
+        errors,
+        null_parameters=6,
+        candidates=candidates,
+        fit_frames=fit,
+        heldout_frames=held,
+        options=DecideOptions(min_drop=0.0),
+    )
+    assert all(e.passes_heldout for e in loose)
+
+
 def test_verdicts():
     class E:
         def __init__(self, accepted):

@@ -40,10 +40,13 @@ def add_parsers(sub) -> None:
         "--replay",
         action="store_true",
         help="run nothing: re-decide the finished entries in OUT from their saved error tables "
-        "under the rule given by --z, --bic-margin and --block, and print the table",
+        "under the rule given by --z, --min-drop, --bic-margin and --block, and print the table",
     )
     suite.add_argument("--z", type=float, help="held-out drop over its bootstrap spread (2)")
-    suite.add_argument("--bic-margin", type=float, help="delta BIC a candidate must beat (2)")
+    suite.add_argument(
+        "--min-drop", type=float, help="smallest held-out drop worth naming, a fraction (0.2)"
+    )
+    suite.add_argument("--bic-margin", type=float, help="delta BIC a candidate must beat (0)")
     suite.add_argument("--block", type=int, help="frames per time block (2)")
     suite.set_defaults(handler=diagnose_suite)
 
@@ -86,7 +89,12 @@ def _replay(args) -> int:
     from mosiv_framework.diagnose.replay import replay_suite
     from mosiv_framework.diagnose.suite import table
 
-    given = {"z": args.z, "bic_margin": args.bic_margin, "block": args.block}
+    given = {
+        "z": args.z,
+        "min_drop": args.min_drop,
+        "bic_margin": args.bic_margin,
+        "block": args.block,
+    }
     options = DecideOptions(**{k: v for k, v in given.items() if v is not None})
     summary = replay_suite(args.out, options, small=args.small)
     print(f"replayed under {summary['rule']}")

@@ -1,21 +1,31 @@
 """Step 4 of a diagnosis: accept a candidate only on evidence that extra parameters cannot game.
 
-Two tests, both required:
+Three tests, all required:
 - held-out: every model was fitted on the fit frames only; on the frames it did not see (a
   held-out blocks spread over the observed window and the future frames) the candidate's
   Chamfer error must be lower than the equally refitted null model's by more than
   ``z`` bootstrap standard deviations, resampling (object, time block) units;
+- effect size: that drop must also be at least ``min_drop`` of the null's held-out error. A
+  model that is not exactly the generator's (the oracle's points against a lifted body, a
+  coarser identification) leaves a small systematic residual that any extra coefficient
+  absorbs a little of, consistently across views and blocks: a control scene's gravity change
+  won 6.9 % +- 1.0 % (full suite, session 13). Missing physics worth naming explains a large
+  share of the error (issue 9 asks modelling to halve the future error);
 - information criterion: on the fit frames, BIC = n log(mean excess error) + p log n must be
-  lower with the candidate than without by at least ``bic_margin`` (p free parameters; the
-  excess error is the Chamfer above frame 0's, which no dynamics can remove). The margin of 2 is
-  Kass and Raftery's (1995) "positive evidence" (2 log Bayes factor > 2): a BIC merely below the
-  null's is "not worth more than a bare mention", and accepting on it let a control scene's
-  imperfect identification pass as linear drag (delta BIC -0.45, full suite, session 4).
-  n counts independent observations: the errors of consecutive frames of a smooth path are
+  lower with the candidate than without by more than ``bic_margin`` (p free parameters; the
+  excess error is the Chamfer above frame 0's, which no dynamics can remove). n counts
+  independent observations: the errors of consecutive frames of a smooth path are
   correlated, so n is the number of (object, time block) units, the same units the bootstrap
   resamples, not of frames.
-Verdicts: "missing physics" (a candidate passed both), "unexplained" (the residual is above the
-noise floor but no candidate passed), "no missing physics" (the residual is at noise level).
+The margin was 2 (Kass and Raftery's "positive evidence") until session 13, when the null
+refit began to continue from the candidates' refits (``model.converge_null``): against a
+better-fitted null, true terms that won the held-out test by 53 % +- 1.5 % (a wind) and
+90 % +- 5 % (a table friction) had delta BIC -1.8 and -0.06. The margin is now 0 ("the BIC
+favours the term", as issue 9 words it), with the effect-size test in its place. Both values
+were chosen on the session-13 suite entries (``mosiv diagnose-suite OUT --replay``); a fresh
+suite has to confirm them.
+Verdicts: "missing physics" (a candidate passed all three), "unexplained" (the residual is above
+the noise floor but no candidate passed), "no missing physics" (the residual is at noise level).
 """
 
 from __future__ import annotations
@@ -35,13 +45,15 @@ VERDICTS = ("missing physics", "unexplained", "no missing physics")
 @dataclass(frozen=True)
 class DecideOptions:
     """bootstrap: resamples; block: frames per time block; z: bootstrap standard deviations
-    the held-out drop must exceed; bic_margin: how far below the null's a candidate's BIC must
+    the held-out drop must exceed; min_drop: the smallest held-out drop (fraction of the
+    null's error) worth naming; bic_margin: how far below the null's a candidate's BIC must
     lie; seed: resampling seed."""
 
     bootstrap: int = 200
     block: int = 2
     z: float = 2.0
-    bic_margin: float = 2.0
+    min_drop: float = 0.2
+    bic_margin: float = 0.0
     seed: int = 0
 
 
@@ -174,7 +186,7 @@ def weigh(
                 drop,
                 spread,
                 delta,
-                passes_heldout=drop > 0 and drop > options.z * spread,
+                passes_heldout=drop > 0 and drop > options.z * spread and drop >= options.min_drop,
                 passes_bic=delta < -options.bic_margin,
                 fit_loss=fit_loss,
                 n_new=n_new,

@@ -152,6 +152,8 @@ def diagnose_run(
         "budget": budget.__dict__,
     }
     screens, fits, evidence, errors, accepted = [], [], [], {"identified": before}, None
+    rule = DecideOptions(bootstrap=budget.bootstrap)
+    result["rule"] = dict(rule.__dict__)
     if location.significant:
         candidates, skipped = build_candidates(ctx)
         if allowed_names is not None:
@@ -208,7 +210,7 @@ def diagnose_run(
             fits,
             fit_frames=fit_frames,
             heldout_frames=heldout,
-            options=DecideOptions(bootstrap=budget.bootstrap),
+            options=rule,
         )
         errors.update(model_errors)
         if evidence and evidence[0].accepted:

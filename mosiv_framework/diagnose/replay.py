@@ -24,11 +24,21 @@ from mosiv_framework.diagnose.report import MM2
 
 def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> dict:
     """The decision of one diagnosis.json under ``options`` (default: the rule it ran with,
-    with its budget's bootstrap count): a copy of ``diagnosis`` with ``verdict``, ``evidence``
+    its ``rule``; files from before session 13 lack it and ran the rule of then, z 2, BIC
+    margin 2 and no effect-size test, with their budget's bootstrap count): a copy of ``diagnosis`` with ``verdict``, ``evidence``
     and ``accepted`` replaced. ``accepted`` keeps the original record when the same candidate
     is accepted again, else holds only ``{"name": ...}``."""
     if options is None:
-        options = DecideOptions(bootstrap=diagnosis.get("budget", {}).get("bootstrap", 200))
+        options = DecideOptions(
+            **(
+                diagnosis.get("rule")
+                or {
+                    "bootstrap": diagnosis.get("budget", {}).get("bootstrap", 200),
+                    "bic_margin": 2.0,
+                    "min_drop": 0.0,
+                }
+            )
+        )
     out = dict(diagnosis)
     tables = {name: np.asarray(t, dtype=float) / MM2 for name, t in _tables(diagnosis).items()}
     ranked: list[Evidence] = []

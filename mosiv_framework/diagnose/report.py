@@ -170,6 +170,8 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
         # a finished diagnosis without refitting anything
         "frame_errors_mm2": {name: (e * MM2).tolist() for name, e in errors.items()},
         "null_parameters": result["null"].n_params if result.get("null") is not None else None,
+        # the decision rule (``DecideOptions``) the evidence was judged by, for a replay
+        "rule": result.get("rule"),
         # a candidate's name where the null was refitted again from its switched-off parameters
         "null_started_from": (
             result["null"].started_from if result.get("null") is not None else None
