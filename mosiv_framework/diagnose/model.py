@@ -19,7 +19,7 @@ import torch
 from mosiv_framework.diagnose.candidates import Candidate
 from mosiv_framework.diagnose.context import RunContext
 from mosiv_framework.errors import SimulationDiverged
-from mosiv_framework.pipeline.identify import gradients_finite, horizon
+from mosiv_framework.pipeline.identify import gradients_finite
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.types import SimulationParams, Trajectory
 
@@ -28,15 +28,12 @@ from mosiv_framework.types import SimulationParams, Trajectory
 class RefitOptions:
     """iterations: Adam steps per start; velocity_lr (m/s per step), param_lr (normalised
     units per step) and coefficient_lr (in units of the coefficient's scale, see ``refit``):
-    step sizes; curriculum: the first half of the steps descend the loss over the fit frames
-    up to a horizon growing from the first two (as identification does), the rest over all of
-    them. Off by default."""
+    step sizes."""
 
     iterations: int = 8
     velocity_lr: float = 0.02
     param_lr: float = 0.01
     coefficient_lr: float = 0.15
-    curriculum: bool = False
 
     def __post_init__(self) -> None:
         if self.iterations < 1:
@@ -113,7 +110,7 @@ def refit(
         optimizer = torch.optim.Adam([g for g in groups if g["params"]])
         best_start = (math.inf, None)
         history = []
-        for step in range(options.iterations + 1):  # the last pass only scores the last step
+        for _ in range(options.iterations + 1):  # the last pass only scores the last step
             optimizer.zero_grad()
             params = _assemble(vector, candidate, u, scale)
             try:
@@ -121,13 +118,10 @@ def refit(
             except SimulationDiverged:
                 break
             loss = ctx.loss(traj, fit_frames)
-            value = float(loss.detach())  # every iterate is judged on all the fit frames
+            value = float(loss.detach())
             history.append(value)
             if value < best_start[0]:
                 best_start = (value, _snapshot(vector, u))
-            descended = _curriculum_frames(fit_frames, step, options)
-            if descended != fit_frames:
-                loss = ctx.loss(traj, descended)
             loss.backward()
             if not gradients_finite(p for g in optimizer.param_groups for p in g["params"]):
                 break  # a NaN step would poison every later one: this start ends at its best
@@ -164,22 +158,6 @@ def refit(
     best.starts = tried
     best.trajectory = ctx.rollout(best.params)
     return best
-
-
-def _curriculum_frames(fit_frames: list[int], step: int, options: RefitOptions) -> list[int]:
-    """The fit frames whose loss step ``step`` descends (see ``RefitOptions.curriculum``).
-
-    A start from a good estimate of a body force (a wind regressed from the flight paths) next
-    to shared parameters that the identification biased to make up for it can fit worse than
-    the run did: the collision frames pull the coefficient away before the velocities and
-    materials have adapted (wind-1 of the full suite, session 13: 0.0186 m^2 at the exact wind
-    against 0.0017 for the run). Growing the horizon keeps the early frames, where the
-    estimate is right, in charge while the rest adapts."""
-    if not options.curriculum:
-        return fit_frames
-    ramp = max(1, options.iterations // 2)
-    last = horizon(step, ramp, start=min(fit_frames) + 1, full_at=1.0, last=max(fit_frames))
-    return [t for t in fit_frames if t <= last] or fit_frames[:1]
 
 
 def _assemble(vector, candidate, u, scale) -> SimulationParams:
