@@ -674,6 +674,53 @@ def test_the_null_continues_from_a_candidate_refit_that_found_better_shared_valu
     assert converge_null(ctx, null, fits[:1], fit_frames=[1], options=options) is null
 
 
+def test_a_regression_start_holds_its_coefficient_while_the_shared_parameters_settle():
+    """The first start that brings a velocity change keeps the wind it was given for
+    ``settle`` steps while the velocities move; a start without one, and the later regression
+    multiples, move the wind from their first step."""
+    from mosiv_framework.diagnose.candidates import build_candidates
+    from mosiv_framework.diagnose.model import RefitOptions, refit
+    from mosiv_framework.pipeline.params import ParameterVector
+
+    class Context(_FakeContext):
+        seen: list = []
+
+        def parameter_vector(self, params=None):
+            return ParameterVector.create({1: "elastic"}, {1: torch.zeros(3)}, ground_friction=None)
+
+        def simulate(self, params, *, frames):
+            wind = params.terms["wind"]["acceleration"]
+            self.seen.append(wind.detach().clone())
+            v = params.initial_velocity[1]
+            return ((v - 1.0) ** 2).sum() + ((wind - torch.tensor([0.0, 2.0, 0.0])) ** 2).sum()
+
+        def loss(self, traj, frames):
+            return traj
+
+        def rollout(self, params, *, frames=None):
+            with torch.no_grad():
+                return self.simulate(params, frames=frames)
+
+    ctx = Context(frozenset({"wind"}))
+    wind = next(c for c in build_candidates(ctx)[0] if c.name == "wind")
+    start = torch.tensor([0.0, 2.5, 0.0])
+    dv = {1: torch.full((3,), 0.1)}
+    options = RefitOptions(iterations=3, settle=4)
+
+    ctx.seen = []
+    fit = refit(ctx, wind, fit_frames=[1], starts=[(start, dv), (0.5 * start, dv)], options=options)
+    first, second = ctx.seen[:8], ctx.seen[8:12]  # 4 settle + 3 joint + 1 scoring, then 3 + 1
+    assert all(torch.equal(w, start) for w in first[:5])  # the settle steps and the first joint
+    assert not torch.equal(first[5], start)
+    # ... and one rollout of the best fit
+    assert len(ctx.seen) == 8 + 4 + 1 and not torch.equal(second[1], second[0])
+    assert len(fit.starts) == 2
+
+    ctx.seen = []
+    refit(ctx, wind, fit_frames=[1], starts=[(start, None)], options=options)
+    assert len(ctx.seen) == 4 + 1 and not torch.equal(ctx.seen[1], start)
+
+
 def test_regression_estimate_reads_only_the_fit_frames():
     """The centroid regression that starts a refit must not see held-out frames: a held-out
     block carrying something else (here a 5 cm jump) leaves the estimate exact."""

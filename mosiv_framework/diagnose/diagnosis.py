@@ -54,13 +54,15 @@ def null_starts(regression) -> list:
 @dataclass(frozen=True)
 class Budget:
     """How much a diagnosis may compute: candidates refitted, refit iterations and starts,
-    bootstrap resamples, and the fraction of the observed window held out."""
+    bootstrap resamples, the fraction of the observed window held out, and the steps a
+    regression start settles the shared parameters first (``RefitOptions.settle``)."""
 
     max_candidates: int
     iterations: int
     starts: int
     bootstrap: int
     heldout_fraction: float = 0.25
+    settle: int = 0
 
 
 BUDGETS = {
@@ -69,7 +71,7 @@ BUDGETS = {
     "small": Budget(max_candidates=3, iterations=6, starts=2, bootstrap=200, heldout_fraction=0.0),
     # four candidates: wind ranked fourth in the screen of wind-1 and was never refitted with
     # three (full suite, session 10)
-    "full": Budget(max_candidates=4, iterations=20, starts=3, bootstrap=1000),
+    "full": Budget(max_candidates=4, iterations=20, starts=3, bootstrap=1000, settle=20),
 }
 
 
@@ -179,7 +181,7 @@ def diagnose_run(
             regimes=location.regimes,
         )
         kept = choose_refits(screens, budget.max_candidates)
-        refit_options = RefitOptions(iterations=budget.iterations)
+        refit_options = RefitOptions(iterations=budget.iterations, settle=budget.settle)
         say(f"refitting the null model and {[s.candidate.name for s in kept]}")
         null_start = regression_estimate(
             ctx, None, location.residuals, location.regimes, fit_frames

@@ -28,16 +28,30 @@ from mosiv_framework.types import SimulationParams, Trajectory
 class RefitOptions:
     """iterations: Adam steps per start; velocity_lr (m/s per step), param_lr (normalised
     units per step) and coefficient_lr (in units of the coefficient's scale, see ``refit``):
-    step sizes."""
+    step sizes; settle: extra steps, before those, in which the first start that brings its
+    own velocity change (a flight-path regression's estimate, which ``refit_starts`` puts
+    first; its multiples follow unsettled) moves only the shared parameters, its coefficient
+    held.
+
+    Why settle: the regression reads a body force off the free flight, but the identified
+    materials were biased to make up for its absence. At the exact wind of wind-1 (full suite,
+    session 13) the collision went so wrong that the window fitted 11x worse than the run
+    (0.0186 against 0.0017 m^2), and a joint refit pulled the wind from 2.5 down to 1.5 m/s^2
+    before the materials could follow. With the wind held, 20 steps moved the second body's
+    density from 332 to 651 kg/m^3 and reached 0.0015 m^2 (CPU check, docs/RESULTS.md)."""
 
     iterations: int = 8
     velocity_lr: float = 0.02
     param_lr: float = 0.01
     coefficient_lr: float = 0.15
+    settle: int = 0
 
     def __post_init__(self) -> None:
         if self.iterations < 1:
             raise ValueError(f"refit iterations={self.iterations}: must be >= 1")
+        if self.settle < 0:
+            raise ValueError(f"refit settle={self.settle}: must be >= 0")
+
 
 
 @dataclass
@@ -88,6 +102,7 @@ def refit(
         starts = [(torch.zeros(0) if candidate is None else candidate.zero(), None)]
     best: Fit | None = None
     tried: list[tuple[list[float], float]] = []
+    settled = False
     for start, velocity_change in starts:
         vector = ctx.parameter_vector(base)
         if velocity_change is not None:
@@ -110,7 +125,11 @@ def refit(
         optimizer = torch.optim.Adam([g for g in groups if g["params"]])
         best_start = (math.inf, None)
         history = []
-        for _ in range(options.iterations + 1):  # the last pass only scores the last step
+        # the regression start (it brings a velocity change) first settles the shared parameters
+        settle = 0
+        if candidate is not None and velocity_change is not None and not settled:
+            settle, settled = options.settle, True
+        for step in range(settle + options.iterations + 1):  # the last pass only scores
             optimizer.zero_grad()
             params = _assemble(vector, candidate, u, scale)
             try:
@@ -123,6 +142,8 @@ def refit(
             if value < best_start[0]:
                 best_start = (value, _snapshot(vector, u))
             loss.backward()
+            if step < settle:
+                u.grad = None  # Adam skips a leaf without a gradient: the coefficient holds
             if not gradients_finite(p for g in optimizer.param_groups for p in g["params"]):
                 break  # a NaN step would poison every later one: this start ends at its best
             optimizer.step()
