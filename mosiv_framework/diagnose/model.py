@@ -53,7 +53,6 @@ class RefitOptions:
             raise ValueError(f"refit settle={self.settle}: must be >= 0")
 
 
-
 @dataclass
 class Fit:
     """A refitted model: ``params`` with ``theta`` applied; ``loss`` over the fit frames (m^2);
