@@ -25,9 +25,10 @@ from mosiv_framework.diagnose.report import MM2
 def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> dict:
     """The decision of one diagnosis.json under ``options`` (default: the rule it ran with,
     its ``rule``; files from before session 13 lack it and ran the rule of then, z 2, BIC
-    margin 2 and no effect-size test, with their budget's bootstrap count): a copy of ``diagnosis`` with ``verdict``, ``evidence``
-    and ``accepted`` replaced. ``accepted`` keeps the original record when the same candidate
-    is accepted again, else holds only ``{"name": ...}``."""
+    margin 2 and no effect-size test, with their budget's bootstrap count): a copy of
+    ``diagnosis`` with ``verdict``, ``evidence`` and ``accepted`` replaced. ``accepted`` keeps
+    the original record when the same candidate is accepted again, else holds only
+    ``{"name": ...}``."""
     if options is None:
         options = DecideOptions(
             **(
@@ -93,7 +94,9 @@ def replay_suite(out: Path, options: DecideOptions, *, small: bool = False) -> d
         accepted = diagnosis["accepted"]
         # a newly accepted candidate's coefficients are not in the file: no coefficient error
         known = accepted is None or "value" in accepted
-        effects = read_scene(out / entry.name / "scene").gt_effects() if known else []
+        # a folder kept without its scenes (benchmarks/data/) scores without coefficient errors
+        scene = out / entry.name / "scene"
+        effects = read_scene(scene).gt_effects() if known and scene.is_dir() else []
         scores.append(score_entry(entry, diagnosis, effects))
     summary = summarise(scores)
     summary["missing"] = missing
