@@ -721,6 +721,63 @@ def test_a_regression_start_holds_its_coefficient_while_the_shared_parameters_se
     assert len(ctx.seen) == 4 + 1 and not torch.equal(ctx.seen[1], start)
 
 
+def test_a_candidate_that_fits_worse_than_the_null_continues_from_the_nulls_state():
+    """A candidate contains the null, so a candidate refit fitting worse than the null's is
+    under-converged: it restarts at the null's shared values with its own coefficients (held
+    while those settle) and must end below the null; a candidate already better is kept."""
+    from mosiv_framework.diagnose.candidates import build_candidates
+    from mosiv_framework.diagnose.model import Fit, RefitOptions, converge_candidates, refit
+    from mosiv_framework.pipeline.params import ParameterVector
+
+    wind_true, v_true = torch.tensor([0.0, 2.0, 0.0]), torch.ones(3)
+
+    class Context(_FakeContext):
+        seen: list = []
+
+        def parameter_vector(self, params=None):
+            v = torch.zeros(3) if params is None else params.initial_velocity[1]
+            return ParameterVector.create({1: "elastic"}, {1: v.clone()}, ground_friction=None)
+
+        def simulate(self, params, *, frames):
+            wind = params.terms.get("wind", {}).get("acceleration", torch.zeros(3))
+            self.seen.append((params.initial_velocity[1].detach().clone(), wind.detach().clone()))
+            v = params.initial_velocity[1]
+            return ((v - v_true) ** 2).sum() + ((wind - wind_true) ** 2).sum()
+
+        def loss(self, traj, frames):
+            return traj
+
+        def rollout(self, params, *, frames=None):
+            with torch.no_grad():
+                return self.simulate(params, frames=frames)
+
+    ctx = Context(frozenset({"wind"}))
+    wind = next(c for c in build_candidates(ctx)[0] if c.name == "wind")
+    options = RefitOptions(iterations=3, settle=2, velocity_lr=0.3)
+    null = refit(ctx, None, fit_frames=[1], options=RefitOptions(iterations=30, velocity_lr=0.3))
+    assert null.loss == pytest.approx(4.0, abs=0.05)  # the velocity is right; no wind
+    # a wind refit that read the wind well but left the velocity far off: worse than the null
+    stuck = ParameterVector.create(
+        {1: "elastic"}, {1: torch.full((3,), -2.0)}, ground_friction=None
+    )
+    stuck = stuck.physical()
+    theta = torch.tensor([0.0, 1.8, 0.0])
+    bad = Fit(
+        "wind", wind, wind.apply(stuck, theta), theta, 27.04, 4, starts=[([0, 1.8, 0], 27.04)]
+    )
+    ctx.seen = []
+    (continued,) = converge_candidates(ctx, null, [bad], fit_frames=[1], options=options)
+    assert continued.started_from == "null" and continued.name == "wind"
+    v0, w0 = ctx.seen[0]
+    assert torch.allclose(v0, null.params.initial_velocity[1])  # the null's state ...
+    assert torch.equal(w0, theta) and torch.equal(ctx.seen[2][1], theta)  # ... wind held, settling
+    assert continued.loss < 0.05 < null.loss  # now far below the null, as a nested model must be
+    assert len(continued.starts) == 2  # the first refit's start is kept for the interval
+
+    good = Fit("wind", wind, wind.apply(null.params, wind_true), wind_true, 0.01, 4)
+    assert converge_candidates(ctx, null, [good], fit_frames=[1], options=options)[0] is good
+
+
 def test_regression_estimate_reads_only_the_fit_frames():
     """The centroid regression that starts a refit must not see held-out frames: a held-out
     block carrying something else (here a 5 cm jump) leaves the estimate exact."""

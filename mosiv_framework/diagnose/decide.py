@@ -106,6 +106,8 @@ class Evidence:
     n_new: int
     #: the candidate's refitted coefficients (None in a replay, which refits nothing)
     theta: list[float] | None = None
+    #: "null" where the candidate's refit was continued from the null's shared parameters
+    started_from: str | None = None
 
     @property
     def accepted(self) -> bool:
@@ -123,6 +125,7 @@ class Evidence:
             "fit_loss_m2": self.fit_loss,
             "new_coefficients": self.n_new,
             "theta": self.theta,
+            "started_from": self.started_from,
         }
 
 
@@ -148,9 +151,10 @@ def decide(
         heldout_frames=heldout_frames,
         options=options,
     )
-    thetas = {fit.name: fit.theta.tolist() for fit in fits}
+    by_name = {fit.name: fit for fit in fits}
     for e in evidence:
-        e.theta = thetas.get(e.name)
+        e.theta = by_name[e.name].theta.tolist()
+        e.started_from = by_name[e.name].started_from
     return evidence, errors
 
 

@@ -20,7 +20,12 @@ from mosiv_framework.diagnose.decide import DecideOptions, decide, frame_errors,
 from mosiv_framework.diagnose.hypothesise import choose_refits, regression_estimate, screen
 from mosiv_framework.diagnose.interval import coefficient_interval
 from mosiv_framework.diagnose.locate import locate
-from mosiv_framework.diagnose.model import RefitOptions, converge_null, refit
+from mosiv_framework.diagnose.model import (
+    RefitOptions,
+    converge_candidates,
+    converge_null,
+    refit,
+)
 from mosiv_framework.diagnose.report import write_report
 from mosiv_framework.errors import ConfigError
 
@@ -203,7 +208,15 @@ def diagnose_run(
             )
             for s in kept
         ]
+        # every model may start from the best state any model found: the null from the
+        # candidates' shared parameters, then a candidate that still fits worse from the null's,
+        # then the null once more if one of those moved the shared parameters further
         null = converge_null(ctx, null, fits, fit_frames=fit_frames, options=refit_options)
+        fits = converge_candidates(ctx, null, fits, fit_frames=fit_frames, options=refit_options)
+        continued = [f.name for f in fits if f.started_from == "null"]
+        if continued:
+            say(f"{continued} refitted again from the null model's shared parameters")
+            null = converge_null(ctx, null, fits, fit_frames=fit_frames, options=refit_options)
         if null.started_from is not None:
             say(f"the null model refitted again from {null.started_from}'s shared parameters")
         evidence, model_errors = decide(

@@ -302,8 +302,11 @@ def _markdown(s: dict) -> str:
         ]
         for e in s["evidence"]:
             theta = ", ".join(f"{x:.3g}" for x in e["theta"]) if e.get("theta") else "-"
+            # a candidate refitted again from the null's shared parameters (its own refit fitted
+            # worse than the null, see ``model.converge_candidates``)
+            mark = " (from the null)" if e.get("started_from") == "null" else ""
             lines.append(
-                f"| {e['name']} | {theta} | {e['heldout_drop']:.2%} | {e['heldout_spread']:.2%} | "
+                f"| {e['name']}{mark} | {theta} | {e['heldout_drop']:.2%} | {e['heldout_spread']:.2%} | "
                 f"{e['delta_bic']:.3g} | {'pass' if e['passes_heldout'] else 'fail'} | "
                 f"{'pass' if e['passes_bic'] else 'fail'} | {'yes' if e['accepted'] else 'no'} |"
             )
