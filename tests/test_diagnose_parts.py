@@ -721,10 +721,11 @@ def test_a_regression_start_holds_its_coefficient_while_the_shared_parameters_se
     assert len(ctx.seen) == 4 + 1 and not torch.equal(ctx.seen[1], start)
 
 
-def test_a_candidate_that_fits_worse_than_the_null_continues_from_the_nulls_state():
+def test_a_candidate_that_fits_worse_continues_from_the_best_models_state():
     """A candidate contains the null, so a candidate refit fitting worse than the null's is
-    under-converged: it restarts at the null's shared values with its own coefficients (held
-    while those settle) and must end below the null; a candidate already better is kept."""
+    under-converged: it restarts at the best model's shared values (here the null's, then
+    another candidate's) with its own coefficients (held while those settle) and must end
+    below it; a candidate already the best is kept."""
     from mosiv_framework.diagnose.candidates import build_candidates
     from mosiv_framework.diagnose.model import Fit, RefitOptions, converge_candidates, refit
     from mosiv_framework.pipeline.params import ParameterVector
@@ -776,6 +777,18 @@ def test_a_candidate_that_fits_worse_than_the_null_continues_from_the_nulls_stat
 
     good = Fit("wind", wind, wind.apply(null.params, wind_true), wind_true, 0.01, 4)
     assert converge_candidates(ctx, null, [good], fit_frames=[1], options=options)[0] is good
+
+    # the best model found is another candidate: the laggard continues from its shared values
+    leader_shared = ParameterVector.create(
+        {1: "elastic"}, {1: torch.full((3,), 0.9)}, ground_friction=None
+    ).physical()
+    leader = Fit("leader", wind, wind.apply(leader_shared, theta), theta, 0.05, 4)
+    leader.shared = leader_shared
+    ctx.seen = []
+    kept, continued = converge_candidates(ctx, null, [leader, bad], fit_frames=[1], options=options)
+    assert kept is leader and continued.started_from == "leader"
+    assert torch.allclose(ctx.seen[0][0], leader_shared.initial_velocity[1])
+    assert continued.loss < 0.05
 
 
 def test_regression_estimate_reads_only_the_fit_frames():

@@ -106,7 +106,7 @@ class Evidence:
     n_new: int
     #: the candidate's refitted coefficients (None in a replay, which refits nothing)
     theta: list[float] | None = None
-    #: "null" where the candidate's refit was continued from the null's shared parameters
+    #: the model ("null" or a candidate) whose shared parameters the refit was continued from
     started_from: str | None = None
 
     @property

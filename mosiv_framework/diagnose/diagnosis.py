@@ -209,13 +209,13 @@ def diagnose_run(
             for s in kept
         ]
         # every model may start from the best state any model found: the null from the
-        # candidates' shared parameters, then a candidate that still fits worse from the null's,
-        # then the null once more if one of those moved the shared parameters further
+        # candidates' shared parameters, then each candidate that still fits worse from the
+        # best model's, then the null once more if those moved the shared parameters further
         null = converge_null(ctx, null, fits, fit_frames=fit_frames, options=refit_options)
         fits = converge_candidates(ctx, null, fits, fit_frames=fit_frames, options=refit_options)
-        continued = [f.name for f in fits if f.started_from == "null"]
+        continued = [f"{f.name} from {f.started_from}" for f in fits if f.started_from]
         if continued:
-            say(f"{continued} refitted again from the null model's shared parameters")
+            say(f"refitted again from the best model's shared parameters: {continued}")
             null = converge_null(ctx, null, fits, fit_frames=fit_frames, options=refit_options)
         if null.started_from is not None:
             say(f"the null model refitted again from {null.started_from}'s shared parameters")

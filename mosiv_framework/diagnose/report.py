@@ -302,9 +302,9 @@ def _markdown(s: dict) -> str:
         ]
         for e in s["evidence"]:
             theta = ", ".join(f"{x:.3g}" for x in e["theta"]) if e.get("theta") else "-"
-            # a candidate refitted again from the null's shared parameters (its own refit fitted
-            # worse than the null, see ``model.converge_candidates``)
-            mark = " (from the null)" if e.get("started_from") == "null" else ""
+            # a candidate refitted again from the best model's shared parameters (its own refit
+            # fitted worse, see ``model.converge_candidates``)
+            mark = f" (from {e['started_from']})" if e.get("started_from") else ""
             lines.append(
                 f"| {e['name']}{mark} | {theta} | {e['heldout_drop']:.2%} | {e['heldout_spread']:.2%} | "
                 f"{e['delta_bic']:.3g} | {'pass' if e['passes_heldout'] else 'fail'} | "
