@@ -623,7 +623,18 @@ def test_refit_ends_a_start_at_a_non_finite_gradient():
     assert fit.loss == pytest.approx(min(fit.history)) and fit.loss < float((target**2).sum())
 
 
-class _QuadraticContext:
+class _ScalarLoss:
+    """For fake contexts whose ``simulate`` returns the fit loss itself (m^2)."""
+
+    def loss(self, traj, frames):
+        return traj
+
+    def rollout(self, params, *, frames=None):
+        with torch.no_grad():
+            return self.simulate(params, frames=frames)
+
+
+class _QuadraticContext(_ScalarLoss):
     """A run whose only free parameter is object 1's initial velocity, and whose fit loss is
     its squared distance (m^2/s^2) to ``target``."""
 
@@ -638,13 +649,6 @@ class _QuadraticContext:
 
     def simulate(self, params, *, frames):
         return ((params.initial_velocity[1] - self.target) ** 2).sum()
-
-    def loss(self, traj, frames):
-        return traj
-
-    def rollout(self, params, *, frames=None):
-        with torch.no_grad():
-            return self.simulate(params, frames=frames)
 
 
 def test_the_null_continues_from_a_candidate_refit_that_found_better_shared_values():
@@ -682,7 +686,7 @@ def test_a_regression_start_holds_its_coefficient_while_the_shared_parameters_se
     from mosiv_framework.diagnose.model import RefitOptions, refit
     from mosiv_framework.pipeline.params import ParameterVector
 
-    class Context(_FakeContext):
+    class Context(_ScalarLoss, _FakeContext):
         seen: list = []
 
         def parameter_vector(self, params=None):
@@ -693,13 +697,6 @@ def test_a_regression_start_holds_its_coefficient_while_the_shared_parameters_se
             self.seen.append(wind.detach().clone())
             v = params.initial_velocity[1]
             return ((v - 1.0) ** 2).sum() + ((wind - torch.tensor([0.0, 2.0, 0.0])) ** 2).sum()
-
-        def loss(self, traj, frames):
-            return traj
-
-        def rollout(self, params, *, frames=None):
-            with torch.no_grad():
-                return self.simulate(params, frames=frames)
 
     ctx = Context(frozenset({"wind"}))
     wind = next(c for c in build_candidates(ctx)[0] if c.name == "wind")
@@ -732,7 +729,7 @@ def test_a_candidate_that_fits_worse_continues_from_the_best_models_state():
 
     wind_true, v_true = torch.tensor([0.0, 2.0, 0.0]), torch.ones(3)
 
-    class Context(_FakeContext):
+    class Context(_ScalarLoss, _FakeContext):
         seen: list = []
 
         def parameter_vector(self, params=None):
@@ -744,13 +741,6 @@ def test_a_candidate_that_fits_worse_continues_from_the_best_models_state():
             self.seen.append((params.initial_velocity[1].detach().clone(), wind.detach().clone()))
             v = params.initial_velocity[1]
             return ((v - v_true) ** 2).sum() + ((wind - wind_true) ** 2).sum()
-
-        def loss(self, traj, frames):
-            return traj
-
-        def rollout(self, params, *, frames=None):
-            with torch.no_grad():
-                return self.simulate(params, frames=frames)
 
     ctx = Context(frozenset({"wind"}))
     wind = next(c for c in build_candidates(ctx)[0] if c.name == "wind")
