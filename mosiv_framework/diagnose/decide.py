@@ -168,7 +168,7 @@ def weigh(
     heldout_frames: list[int],
     options: DecideOptions,
 ) -> list[Evidence]:
-    """The two tests on [K, T] error tables (m^2) by model name, ``null`` among them, for each
+    """The three tests on [K, T] error tables (m^2) by model name, ``null`` among them, for each
     candidate (name, new coefficients, fit loss m^2); best first. Also what a replay of a saved
     diagnosis runs (``replay.py``)."""
     null = errors["null"]

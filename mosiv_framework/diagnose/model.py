@@ -262,7 +262,7 @@ def converge_candidates(
         return fits
     converged = []
     for fit in fits:
-        if fit is source or fit.candidate is None or fit.loss <= source.loss:
+        if fit.candidate is None or fit.loss <= source.loss:  # the source itself too
             converged.append(fit)
             continue
         try:
