@@ -109,6 +109,8 @@ class Evidence:
     theta: list[float] | None = None
     #: the model ("null" or a candidate) whose shared parameters the refit was continued from
     started_from: str | None = None
+    #: whether the model was identified afresh rather than refitted (``reidentify``)
+    reidentified: bool = False
 
     @property
     def accepted(self) -> bool:
@@ -127,6 +129,7 @@ class Evidence:
             "new_coefficients": self.n_new,
             "theta": self.theta,
             "started_from": self.started_from,
+            "reidentified": self.reidentified,
         }
 
 
@@ -156,6 +159,7 @@ def decide(
     for e in evidence:
         e.theta = by_name[e.name].theta.tolist()
         e.started_from = by_name[e.name].started_from
+        e.reidentified = by_name[e.name].reidentified
     return evidence, errors
 
 

@@ -26,8 +26,9 @@ from mosiv_framework.diagnose.model import (
     converge_null,
     refit,
 )
+from mosiv_framework.diagnose.reidentify import ReidentifyOptions, reidentify
 from mosiv_framework.diagnose.report import write_report
-from mosiv_framework.errors import ConfigError
+from mosiv_framework.errors import ConfigError, SimulationDiverged
 
 #: multiples of the screening's estimates that further refit starts begin at
 START_FACTORS = (1.0, 0.5, 1.5, 2.0, 0.25)
@@ -59,8 +60,10 @@ def null_starts(regression) -> list:
 @dataclass(frozen=True)
 class Budget:
     """How much a diagnosis may compute: candidates refitted, refit iterations and starts,
-    bootstrap resamples, the fraction of the observed window held out, and the steps a
-    regression start settles the shared parameters first (``RefitOptions.settle``)."""
+    bootstrap resamples, the fraction of the observed window held out, the steps a
+    regression start settles the shared parameters first (``RefitOptions.settle``), and
+    whether every model is also identified afresh with the run's schedule (``reidentify``;
+    the better of that and its refit is kept)."""
 
     max_candidates: int
     iterations: int
@@ -68,6 +71,7 @@ class Budget:
     bootstrap: int
     heldout_fraction: float = 0.25
     settle: int = 0
+    reidentify: bool = False
 
 
 BUDGETS = {
@@ -76,7 +80,9 @@ BUDGETS = {
     "small": Budget(max_candidates=3, iterations=6, starts=2, bootstrap=200, heldout_fraction=0.0),
     # four candidates: wind ranked fourth in the screen of wind-1 and was never refitted with
     # three (full suite, session 10)
-    "full": Budget(max_candidates=4, iterations=20, starts=3, bootstrap=1000, settle=20),
+    "full": Budget(
+        max_candidates=4, iterations=20, starts=3, bootstrap=1000, settle=20, reidentify=True
+    ),
 }
 
 
@@ -113,6 +119,18 @@ def split_frames(
             f"more frames or lower the held-out fraction"
         )
     return fit, sorted(held) + future
+
+
+def _better(fit, ctx, candidate, start, fit_frames, schedule):
+    """``fit`` or the model re-identified afresh, whichever fits the fit frames better."""
+    try:
+        fresh = reidentify(ctx, candidate, fit_frames=fit_frames, start=start, options=schedule)
+    except SimulationDiverged:
+        return fit
+    if fresh.loss < fit.loss:
+        fresh.starts = fit.starts + fresh.starts
+        return fresh
+    return fit
 
 
 def diagnose_run(
@@ -208,6 +226,16 @@ def diagnose_run(
             )
             for s in kept
         ]
+        if budget.reidentify:
+            say("identifying the null model and each candidate afresh on the fit frames")
+            schedule = ReidentifyOptions.from_recipe(ctx.recipe.identify)
+            null = _better(null, ctx, None, None, fit_frames, schedule)
+            fits = [
+                _better(fit, ctx, s.candidate, refit_starts(s, 1)[0][0], fit_frames, schedule)
+                for fit, s in zip(fits, kept)
+            ]
+            fresh = [f.name for f in [null, *fits] if f.reidentified]
+            say(f"identified afresh, better than refitted: {fresh or 'none'}")
         # every model may start from the best state any model found: the null from the
         # candidates' shared parameters, then each candidate that still fits worse from the
         # best model's, then the null once more if those moved the shared parameters further

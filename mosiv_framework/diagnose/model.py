@@ -73,9 +73,13 @@ class Fit:
     #: name, or "null") whose shared parameters it continued from (``converge_null``,
     #: ``converge_candidates``)
     started_from: str | None = None
+    #: whether the fit came from identifying the model afresh (``reidentify``) rather than
+    #: from a refit of the run's identified state
+    reidentified: bool = False
 
 
-def _count(vector: ParameterVector) -> int:
+def count_free(vector: ParameterVector) -> int:
+    """Free scalars of ``vector`` (the parameter count of the information criterion)."""
     leaves = [*vector.velocity.values(), *vector.normalized.values()]
     return sum(v.numel() for v in leaves)  # a vector term parameter counts as 3
 
@@ -133,7 +137,7 @@ def refit(
             settle, settled = options.settle, True
         for step in range(settle + options.iterations + 1):  # the last pass only scores
             optimizer.zero_grad()
-            params = _assemble(vector, candidate, u, scale)
+            params = assemble(vector, candidate, u, scale)
             try:
                 traj = ctx.simulate(params, frames=horizon)
             except SimulationDiverged:
@@ -142,7 +146,7 @@ def refit(
             value = float(loss.detach())
             history.append(value)
             if value < best_start[0]:
-                best_start = (value, _snapshot(vector, u))
+                best_start = (value, snapshot(vector, u))
             loss.backward()
             if step < settle:
                 u.grad = None  # Adam skips a leaf without a gradient: the coefficient holds
@@ -156,17 +160,17 @@ def refit(
                     u.copy_(candidate.clamp(u * scale) / scale)
         if best_start[1] is None:
             continue
-        _restore(vector, u, best_start[1])
+        restore(vector, u, best_start[1])
         theta = (u * scale).detach() if candidate is not None else torch.zeros(0)
         tried.append((theta.tolist(), best_start[0]))
         if best is None or best_start[0] < best.loss:
             best = Fit(
                 "null" if candidate is None else candidate.name,
                 candidate,
-                _assemble(vector, candidate, u, scale).detached(),
+                assemble(vector, candidate, u, scale).detached(),
                 theta,
                 best_start[0],
-                _count(vector) + (candidate.dim if candidate is not None else 0),
+                count_free(vector) + (candidate.dim if candidate is not None else 0),
                 history=history,
                 shared=vector.physical().detached(),
             )
@@ -183,12 +187,14 @@ def refit(
     return best
 
 
-def _assemble(vector, candidate, u, scale) -> SimulationParams:
+def assemble(vector, candidate, u, scale) -> SimulationParams:
+    """The parameters ``vector`` stands for with ``candidate`` on at theta = u * scale."""
     params = vector.physical()
     return params if candidate is None else candidate.apply(params, u * scale)
 
 
-def _snapshot(vector: ParameterVector, u: torch.Tensor) -> dict:
+def snapshot(vector: ParameterVector, u: torch.Tensor) -> dict:
+    """A copy of the leaves (velocities, normalised parameters, scaled coefficients)."""
     return {
         "velocity": {k: v.detach().clone() for k, v in vector.velocity.items()},
         "normalized": {k: v.detach().clone() for k, v in vector.normalized.items()},
@@ -196,7 +202,8 @@ def _snapshot(vector: ParameterVector, u: torch.Tensor) -> dict:
     }
 
 
-def _restore(vector: ParameterVector, u: torch.Tensor, snap: dict) -> None:
+def restore(vector: ParameterVector, u: torch.Tensor, snap: dict) -> None:
+    """Put a ``snapshot`` back into the leaves."""
     with torch.no_grad():
         for k, v in snap["velocity"].items():
             vector.velocity[k].copy_(v)

@@ -176,6 +176,10 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
         "null_started_from": (
             result["null"].started_from if result.get("null") is not None else None
         ),
+        # whether the null kept was identified afresh (``reidentify``) rather than refitted
+        "null_reidentified": (
+            result["null"].reidentified if result.get("null") is not None else False
+        ),
         "accepted": None,
         "time_s": result["time_s"],
     }
@@ -294,6 +298,12 @@ def _markdown(s: dict) -> str:
                 "with its effect switched off, which fitted better than the null's own refit."
                 if s.get("null_started_from")
                 else ""
+            )
+            + (
+                " The null model kept is the one identified afresh on the fit frames, which "
+                "fitted better than its refit."
+                if s.get("null_reidentified") and not s.get("null_started_from")
+                else ""
             ),
             "",
             "| candidate | refitted coefficients | held-out drop | bootstrap sd | dBIC | held-out "
@@ -305,6 +315,8 @@ def _markdown(s: dict) -> str:
             # a candidate refitted again from the best model's shared parameters (its own refit
             # fitted worse, see ``model.converge_candidates``)
             mark = f" (from {e['started_from']})" if e.get("started_from") else ""
+            if e.get("reidentified") and not e.get("started_from"):
+                mark = " (identified afresh)"  # see ``reidentify``
             lines.append(
                 f"| {e['name']}{mark} | {theta} | {e['heldout_drop']:.2%} | {e['heldout_spread']:.2%} | "
                 f"{e['delta_bic']:.3g} | {'pass' if e['passes_heldout'] else 'fail'} | "

@@ -174,31 +174,8 @@ def identify_stage(recipe, scene, particles, reconstruction, simulator, sim_opti
     # roll out where the simulator computes, so trajectories and every loss stay on its
     # device (on a GPU the losses on CPU copies took three quarters of an iteration)
     sim_particles = particles.to(simulator.torch_device)
-    grid, substeps = sim_options.get("grid"), sim_options.get("substeps")
-    dx = world.extent / grid if isinstance(grid, int) and grid > 0 else None
-    gap = section.contact_gap or (2.0 * dx if dx else 0.02)
-    free = free_flight_frames(targets, world, gap=gap)
-    v0 = initial_velocity_from_points(targets, fps=scene.fps, gravity=scene.gravity, frames=free)
-    ceilings = None
-    if section.stiffness_cfl > 0 and dx and isinstance(substeps, int) and substeps > 0:
-        ceilings = stiffness_ceilings(
-            particles.materials,
-            {},
-            dx=dx,
-            dt=1.0 / (scene.fps * substeps),
-            cfl=section.stiffness_cfl,
-        )
     physics_terms = plain.get("physics_terms") or {}
-    vector = ParameterVector.create(
-        particles.materials,
-        v0,
-        ground_friction=None if world.ground_height is None else GROUND_FRICTION.default,
-        identify_friction=section.identify_friction,
-        identify_ground_friction=section.identify_ground_friction,
-        ceilings=ceilings,
-        terms=term_tensors(physics_terms),
-        identify_terms=identified_terms(physics_terms),
-    )
+    vector, free = start_vector(recipe, scene, particles.materials, targets, sim_options)
     if physics_terms:
         _say(
             "physics terms on: "
@@ -214,7 +191,7 @@ def identify_stage(recipe, scene, particles, reconstruction, simulator, sim_opti
     )
     library = section.method == "library"
     _say(
-        f"identifying {len(v0)} initial velocities and "
+        f"identifying {len(vector.velocity)} initial velocities and "
         + (
             "a prototype per object (library baseline)"
             if library
@@ -277,6 +254,44 @@ def identify_stage(recipe, scene, particles, reconstruction, simulator, sim_opti
     plot_history(history, rd.path("identify/loss.png"))
     plot_parameters(history, rd.path("identify/parameters.png"))
     return ParameterVector.from_json(identified_json)
+
+
+def start_vector(
+    recipe, scene, families: dict[int, str], targets: dict[int, torch.Tensor], sim_options: dict
+) -> tuple[ParameterVector, int]:
+    """Where identification starts: initial velocities from a ballistic fit of the targets'
+    centroids over the frames before any contact, every law parameter at its default (capped by
+    ``identify.stiffness_cfl``), the recipe's physics terms on. Returns the vector and the
+    number of leading free-flight frames. ``mosiv diagnose`` re-identifies from here too."""
+    section = recipe.identify
+    world = scene.world
+    grid, substeps = sim_options.get("grid"), sim_options.get("substeps")
+    dx = world.extent / grid if isinstance(grid, int) and grid > 0 else None
+    gap = section.contact_gap or (2.0 * dx if dx else 0.02)
+    free = free_flight_frames(targets, world, gap=gap)
+    v0 = initial_velocity_from_points(targets, fps=scene.fps, gravity=scene.gravity, frames=free)
+    ceilings = None
+    if section.stiffness_cfl > 0 and dx and isinstance(substeps, int) and substeps > 0:
+        ceilings = stiffness_ceilings(
+            families,
+            {},
+            dx=dx,
+            dt=1.0 / (scene.fps * substeps),
+            cfl=section.stiffness_cfl,
+        )
+    plain = OmegaConf.to_container(recipe, resolve=True)
+    physics_terms = plain.get("physics_terms") or {}
+    vector = ParameterVector.create(
+        families,
+        v0,
+        ground_friction=None if world.ground_height is None else GROUND_FRICTION.default,
+        identify_friction=section.identify_friction,
+        identify_ground_friction=section.identify_ground_friction,
+        ceilings=ceilings,
+        terms=term_tensors(physics_terms),
+        identify_terms=identified_terms(physics_terms),
+    )
+    return vector, free
 
 
 def _velocity_only(section):
