@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable, Hashable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 
 GPUS_VARIABLE = "MOSIV_GPUS"
 
@@ -55,6 +56,57 @@ def worker_pool(jobs: int, *, gpus: str | Sequence[str] | None = None) -> Proces
     return ProcessPoolExecutor(
         max_workers=jobs, mp_context=context, initializer=_pin_worker, initargs=(counter, listed)
     )
+
+
+def run_jobs(
+    fn: Callable,
+    jobs_by_key: dict[Hashable, tuple],
+    *,
+    workers: int,
+    gpus: str | Sequence[str] | None = None,
+    retries: int = 2,
+    on_result: Callable = lambda key, result: None,
+    on_error: Callable = lambda key, error: None,
+    on_retry: Callable = lambda keys: None,
+) -> dict:
+    """``fn(*args)`` for every ``key: args`` of ``jobs_by_key`` in a :func:`worker_pool`;
+    returns ``{key: result}`` for the jobs that finished, calling ``on_result`` for each as it
+    does, ``on_error`` for each job that raised, and ``on_retry`` with the keys of the jobs a
+    dead worker cut short before they run again.
+
+    A worker process that dies (a crash in native code, the out-of-memory killer) breaks the
+    whole pool: every job still in it fails with ``BrokenProcessPool``, not only the one that
+    crashed (13 diagnosis entries were lost that way at once, session 15). Those jobs are
+    submitted again to a fresh pool, up to ``retries`` more rounds, so the work a suite's
+    entries had saved (their finished stages) is picked up where it stopped; a job that
+    raised an ordinary exception is not retried.
+    """
+    results: dict = {}
+    pending = dict(jobs_by_key)
+    for round_ in range(retries + 1):
+        if not pending:
+            break
+        cut_short: dict = {}
+        with worker_pool(min(workers, len(pending)), gpus=gpus) as pool:
+            futures = {pool.submit(fn, *args): key for key, args in pending.items()}
+            for future in as_completed(futures):
+                key = futures[future]
+                try:
+                    results[key] = future.result()
+                except BrokenProcessPool as error:
+                    if round_ < retries:
+                        cut_short[key] = pending[key]
+                    else:
+                        on_error(key, error)
+                    continue
+                except Exception as error:  # one broken job must not lose the others
+                    on_error(key, error)
+                    continue
+                on_result(key, results[key])
+        pending = cut_short
+        if pending:
+            on_retry(sorted(pending, key=str))
+    return results
 
 
 def environment_for(index: int, *, gpus: str | Sequence[str] | None = None) -> dict[str, str]:

@@ -14,7 +14,6 @@ import json
 import math
 import os
 import statistics
-from concurrent.futures import as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -23,7 +22,7 @@ from mosiv_framework.errors import ConfigError
 from mosiv_framework.pipeline import run_pipeline
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.scene import read_scene
-from mosiv_framework.workers import worker_pool
+from mosiv_framework.workers import run_jobs
 
 #: the recipe the suite's scenes run with unless another is given
 DEFAULT_RECIPES = {
@@ -255,21 +254,27 @@ def run_suite(
         for entry in entries:
             scores[entry.name] = run_entry(entry, out, recipe_path, budget, say=say)
     else:
-        with worker_pool(jobs, gpus=gpus) as pool:
-            futures = {
-                pool.submit(_run_entry_quietly, entry, out, recipe_path, budget): entry
-                for entry in entries
-            }
-            for future in as_completed(futures):
-                entry = futures[future]
-                try:
-                    scores[entry.name] = future.result()
-                except Exception as error:  # one broken scene must not lose the others
-                    say(
-                        f"[suite] {entry.name} FAILED: {error!r} (log: {out / entry.name}/suite.log)"
-                    )
-                    continue
-                say(f"[suite] {entry.name} done ({len(scores)}/{len(entries)})")
+        by_name = {e.name: e for e in entries}
+
+        def done(name: str, score: Score) -> None:
+            say(f"[suite] {name} done ({len(scores) + 1}/{len(entries)})")
+            scores[name] = score
+
+        def failed(name: str, error: Exception) -> None:
+            say(f"[suite] {name} FAILED: {error!r} (log: {out / name}/suite.log)")
+
+        run_jobs(
+            _run_entry_quietly,
+            {name: (entry, out, recipe_path, budget) for name, entry in by_name.items()},
+            workers=jobs,
+            gpus=gpus,
+            on_result=done,
+            on_error=failed,
+            on_retry=lambda names: say(
+                f"[suite] a worker process died; running {', '.join(names)} again from their "
+                "finished stages"
+            ),
+        )
     ordered = [scores[e.name] for e in entries if e.name in scores]
     summary = summarise(ordered)
     summary["missing"] = [e.name for e in entries if e.name not in scores]
