@@ -168,6 +168,21 @@ def test_control_accepts_nothing(control):
     assert json.loads((root / "diagnosis.json").read_text())["accepted"] is None
 
 
+def test_the_resolution_floor_is_recorded_and_small_beside_a_real_effect(wind, control):
+    """The null's prediction on resampled particles (``diagnose/floor.py``) is written beside
+    the evidence; on the wind scene, the wind's held-out improvement is far above it."""
+    for root, diagnosis in (wind, control):
+        floor = diagnosis["resolution_floor_mm2"]
+        assert floor is not None and 0.0 <= floor["fit"] < np.inf and 0.0 <= floor["heldout"]
+        assert floor["per_frame"][0] > 0  # the resampling itself shows at frame 0
+        assert "Resolution floor" in (root / "diagnosis.md").read_text()
+    _, diagnosis = wind
+    held = diagnosis["frames"]["heldout"]
+    null = np.asarray(diagnosis["frame_errors_mm2"]["null"]).sum(axis=0)[held].mean()
+    best = np.asarray(diagnosis["frame_errors_mm2"]["wind"]).sum(axis=0)[held].mean()
+    assert null - best > 5 * diagnosis["resolution_floor_mm2"]["heldout"]
+
+
 def test_cli_parsers_accept_both_commands():
     import argparse
 

@@ -948,3 +948,60 @@ def test_reidentification_replays_the_runs_schedule_on_the_fit_frames_only(monke
     assert torch.allclose(fit.theta, wind_true, atol=0.1)
     assert fit.params.objects[1].values["E"] == pytest.approx(e_true, rel=0.1)
     assert fit.loss < 0.01
+
+
+def test_resampled_particles_move_within_the_stated_fraction_of_their_spacing():
+    from mosiv_framework.diagnose.floor import resampled
+    from mosiv_framework.types import ParticleSet
+
+    n = 2000
+    particles = ParticleSet(
+        torch.rand(n, 3), torch.full((n,), 0.01**3), torch.ones(n, dtype=torch.long), {1: "elastic"}
+    )
+    moved = resampled(particles, fraction=0.5, seed=3)
+    offset = moved.positions - particles.positions
+    assert offset.abs().max() <= 0.25 * 0.01 + 1e-7  # half of the fraction, per axis
+    # uniform on [-s/4, s/4]: variance s^2 / 48 per axis
+    assert float(offset.var()) == pytest.approx(0.01**2 / 48, rel=0.1)
+    assert torch.equal(resampled(particles, fraction=0.5, seed=3).positions, moved.positions)
+    assert torch.equal(moved.volumes, particles.volumes)
+    with pytest.raises(ValueError, match="fraction"):
+        resampled(particles, fraction=0.0)
+
+
+def test_resolution_floor_of_a_rigid_motion_is_the_resampling_itself():
+    """Under a motion that ignores how the body is sampled (a rigid translation), the two
+    rollouts differ only by the offsets: the floor is the same every frame, and is the
+    Chamfer of the resampled cloud against the original."""
+    from types import SimpleNamespace
+
+    from mosiv_framework.diagnose.floor import resampled, resolution_floor
+    from mosiv_framework.losses import chamfer_m2
+    from mosiv_framework.types import ParticleSet, Trajectory
+
+    n = 600
+    ids = torch.cat([torch.ones(n // 2), 2 * torch.ones(n // 2)]).long()
+    particles = ParticleSet(
+        torch.rand(n, 3) * 0.1, torch.full((n,), 0.01**3), ids, {1: "elastic", 2: "elastic"}
+    )
+
+    def translate(parts, params, *, world, frames):
+        shift = torch.arange(frames + 1, dtype=torch.float32)[:, None, None] * 0.02
+        return Trajectory(parts.positions[None] + shift, parts.object_ids, 24.0)
+
+    ctx = SimpleNamespace(
+        simulator=SimpleNamespace(rollout=translate),
+        world=None,
+        n_frames=5,
+        object_ids=[1, 2],
+        particles_for=lambda params: particles,
+        rollout=lambda params: translate(particles, params, world=None, frames=4),
+    )
+    params = _elastic_pair_params()
+    table = resolution_floor(ctx, params, fraction=0.5, seed=1)
+    moved = resampled(particles, fraction=0.5, seed=1)
+    for i, k in enumerate((1, 2)):
+        mask = ids == k
+        expected = float(chamfer_m2(particles.positions[mask], moved.positions[mask]))
+        assert expected > 0
+        assert np.allclose(table[i], expected, rtol=1e-4)

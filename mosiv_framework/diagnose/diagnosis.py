@@ -17,6 +17,7 @@ import torch
 from mosiv_framework.diagnose.candidates import build_candidates
 from mosiv_framework.diagnose.context import load_run
 from mosiv_framework.diagnose.decide import DecideOptions, decide, frame_errors, verdict
+from mosiv_framework.diagnose.floor import resolution_floor
 from mosiv_framework.diagnose.hypothesise import choose_refits, regression_estimate, screen
 from mosiv_framework.diagnose.interval import coefficient_interval
 from mosiv_framework.diagnose.locate import locate
@@ -256,6 +257,7 @@ def diagnose_run(
             options=rule,
         )
         errors.update(model_errors)
+        result["resolution_floor"] = resolution_floor(ctx, null.params)
         if evidence and evidence[0].accepted:
             accepted = next(f for f in fits if f.name == evidence[0].name)
             accepted_interval = coefficient_interval(ctx, accepted, fit_frames=fit_frames)
