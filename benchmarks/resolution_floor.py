@@ -1,0 +1,134 @@
+"""The resolution floor of diagnosis-suite entries, beside their candidates' held-out drops.
+
+For each named entry of the full diagnosis suite, the scene is generated and identified exactly
+as ``mosiv diagnose-suite`` does it (a rerun reuses finished stages), and the identified
+model's resolution floor is measured (``mosiv_framework.diagnose.floor``: the prediction on
+resampled particles against the original, in excess of frame 0, mean over the diagnosis's
+fit and held-out frames, mm^2). Then, for every candidate that a saved diagnosis of the entry
+evaluated (``--diagnoses DIR/ENTRY/diagnosis.json``), the absolute held-out drop against the
+null (mm^2) is printed next to the floor. This shows whether the rule "a held-out drop must
+exceed the floor" would keep the true effects and reject the false acceptances. It refits
+nothing.
+
+    python benchmarks/resolution_floor.py --out /root/floor --jobs 5 --gpus 0 \\
+        --diagnoses benchmarks/data/dsuite_s15_reidentify \\
+        control-1 outside-quadratic_drag material_damping-0 ground_friction-0 quadratic_drag-0
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from mosiv_framework.diagnose.suite import DEFAULT_RECIPES, suite_entries
+from mosiv_framework.workers import run_jobs
+
+MM2 = 1e6
+
+
+def measure(entry, out: Path, recipe_path: Path, fractions: tuple[float, ...]) -> dict:
+    """Generate and identify ``entry`` (resumable), then its floors at each fraction."""
+    from mosiv_framework.diagnose.context import load_run
+    from mosiv_framework.diagnose.diagnosis import BUDGETS, split_frames
+    from mosiv_framework.diagnose.floor import resolution_floor
+    from mosiv_framework.pipeline import run_pipeline
+    from mosiv_framework.recipes import load_recipe
+
+    run_dir = out / entry.name
+    overrides = [
+        f"scene.path={run_dir / 'scene'}",
+        f"output.dir={run_dir}",
+        f"scene.source.materials={entry.materials}",
+        f"scene.source.seed={entry.seed}",
+        *([f"scene.source.conceal='{entry.conceal}'"] if entry.conceal else []),
+        *entry.overrides,
+    ]
+    run_pipeline(load_recipe(recipe_path, overrides), run_dir=run_dir)
+    ctx = load_run(run_dir)
+    fit, held = split_frames(ctx.observed_frames, ctx.n_frames, BUDGETS["full"].heldout_fraction)
+    floors = {}
+    for fraction in fractions:
+        table = resolution_floor(ctx, ctx.identified, fraction=fraction)
+        if table is None:
+            floors[str(fraction)] = None
+            continue
+        per_frame = table.sum(axis=0) * MM2
+        excess = np.clip(per_frame - per_frame[0], 0.0, None)
+        floors[str(fraction)] = {
+            "fit": float(excess[fit].mean()),
+            "heldout": float(excess[held].mean()),
+            "per_frame": per_frame.tolist(),
+        }
+    return {"entry": entry.name, "fit_frames": fit, "heldout_frames": held, "floors": floors}
+
+
+def heldout_drops(diagnosis: dict) -> dict[str, tuple[float, bool]]:
+    """Candidate -> (null's held-out mean minus the candidate's, mm^2; accepted) of a saved
+    diagnosis."""
+    held = diagnosis["frames"]["heldout"]
+    tables = {
+        k: np.asarray(v).sum(axis=0)[held].mean() for k, v in diagnosis["frame_errors_mm2"].items()
+    }
+    return {
+        e["name"]: (float(tables["null"] - tables[e["name"]]), bool(e["accepted"]))
+        for e in diagnosis["evidence"]
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("entries", nargs="+", help="names of full-suite entries")
+    parser.add_argument("--out", required=True, type=Path)
+    parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--gpus", default=None)
+    parser.add_argument("--diagnoses", type=Path, default=None)
+    parser.add_argument("--fractions", default="0.25,0.5")
+    args = parser.parse_args()
+    fractions = tuple(float(x) for x in args.fractions.split(","))
+    known = {e.name: e for e in suite_entries(False)}
+    unknown = sorted(set(args.entries) - set(known))
+    if unknown:
+        raise SystemExit(f"unknown entries {unknown}; valid: {sorted(known)}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = run_jobs(
+        measure,
+        {n: (known[n], args.out, DEFAULT_RECIPES[False], fractions) for n in args.entries},
+        workers=args.jobs,
+        gpus=args.gpus,
+        on_result=lambda name, r: print(f"{name}: floors {r['floors']}", flush=True),
+        on_error=lambda name, error: print(f"{name} FAILED: {error!r}", flush=True),
+    )
+    lines = [
+        "| entry | floor fit (mm^2) | floor held-out (mm^2) | candidate | held-out drop (mm^2) | accepted |",
+        "|---|---|---|---|---:|---|",
+    ]
+    for name in args.entries:
+        if name not in results:
+            continue
+        r = results[name]
+        floor_fit = ", ".join(
+            f"{f}: {v['fit']:.3g}" if v else f"{f}: diverged" for f, v in r["floors"].items()
+        )
+        floor_held = ", ".join(
+            f"{f}: {v['heldout']:.3g}" if v else f"{f}: diverged" for f, v in r["floors"].items()
+        )
+        saved = args.diagnoses / name / "diagnosis.json" if args.diagnoses else None
+        drops = heldout_drops(json.loads(saved.read_text())) if saved and saved.exists() else {}
+        if not drops:
+            lines.append(f"| {name} | {floor_fit} | {floor_held} | - | - | - |")
+        for cand, (drop, accepted) in drops.items():
+            lines.append(
+                f"| {name} | {floor_fit} | {floor_held} | {cand} | {drop:.4g} | "
+                f"{'yes' if accepted else 'no'} |"
+            )
+    table = "\n".join(lines)
+    (args.out / "floors.json").write_text(json.dumps(results, indent=2) + "\n")
+    (args.out / "floors.md").write_text(table + "\n")
+    print(table)
+
+
+if __name__ == "__main__":
+    main()
