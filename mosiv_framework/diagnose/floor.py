@@ -29,8 +29,16 @@ from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.losses import chamfer_m2
 from mosiv_framework.types import ParticleSet, SimulationParams
 
+#: how far particles move, as a fraction of their spacing (the offset is up to half of it per
+#: axis). Measured on five full-suite entries (session 15, benchmarks/resolution_floor.py): at
+#: 0.5 the collision after the move went so differently that control-1's floor on the held-out
+#: frames was 4,840 mm^2 while its null predicts them to 3.4 mm^2; 0.25 gave 882 mm^2
+DEFAULT_FRACTION = 0.25
 
-def resampled(particles: ParticleSet, *, fraction: float = 0.5, seed: int = 0) -> ParticleSet:
+
+def resampled(
+    particles: ParticleSet, *, fraction: float = DEFAULT_FRACTION, seed: int = 0
+) -> ParticleSet:
     """``particles`` each moved by a uniform offset of up to ``fraction`` / 2 of its spacing
     (the cube root of its volume, m) per axis; volumes and ids unchanged."""
     if not 0.0 < fraction <= 1.0:
@@ -44,7 +52,7 @@ def resampled(particles: ParticleSet, *, fraction: float = 0.5, seed: int = 0) -
 
 
 def resolution_floor(
-    ctx: RunContext, params: SimulationParams, *, fraction: float = 0.5, seed: int = 0
+    ctx: RunContext, params: SimulationParams, *, fraction: float = DEFAULT_FRACTION, seed: int = 0
 ) -> np.ndarray | None:
     """[K, T] Chamfer (m^2) per object and frame between the rollout of ``params`` on the run's
     particles and on ``resampled`` ones; None if the resampled rollout diverges."""

@@ -15,6 +15,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.diagnose.floor import DEFAULT_FRACTION
 from mosiv_framework.diagnose.locate import Location, plot_location
 from mosiv_framework.recipes.terms import IDENTIFY_KEY
 
@@ -361,6 +362,7 @@ def _floor_summary(table, frames: dict) -> dict | None:
     per_frame = table.sum(axis=0) * MM2
     excess = np.clip(per_frame - per_frame[0], 0.0, None)
     return {
+        "fraction": DEFAULT_FRACTION,
         "fit": float(excess[frames["fit"]].mean()),
         "heldout": float(excess[frames["heldout"]].mean()),
         "per_frame": per_frame.tolist(),
