@@ -4,6 +4,12 @@ The frames of the run are split three ways: fit frames (the observed window minu
 blocks) on which every model is refitted, the held-out blocks (short runs of observed frames
 spread over the window) and the future frames (after the observed window); the last two
 together are what the decision judges models on, frames none of the compared refits saw.
+
+"Model" has two routes per model (the null and each kept candidate): a refit from the run's
+identified state (``model.refit``) and, in the full budget, an identification from scratch
+with the run's schedule (``reidentify``); the better fit of the two is kept, then every model
+may continue from the best state any model found (``model.converge_*``). The evidence is
+recorded beside the model's resolution floor (``floor``).
 """
 
 from __future__ import annotations
