@@ -1005,3 +1005,44 @@ def test_resolution_floor_of_a_rigid_motion_is_the_resampling_itself():
         expected = float(chamfer_m2(particles.positions[mask], moved.positions[mask]))
         assert expected > 0
         assert np.allclose(table[i], expected, rtol=1e-4)
+
+
+def test_a_model_keeps_the_better_of_its_refit_and_its_fresh_identification(monkeypatch):
+    """``_better``: the fresh identification replaces the refit only where it fits the fit
+    frames better (keeping both fits' starts for the interval), and a fresh identification
+    whose every rollout diverged leaves the refit as it was."""
+    from mosiv_framework.diagnose import diagnosis
+    from mosiv_framework.diagnose.model import Fit
+    from mosiv_framework.errors import SimulationDiverged
+
+    params = _elastic_pair_params()
+    refitted = Fit("wind", None, params, torch.zeros(3), 2.0, 4, starts=[([0, 0, 0], 2.0)])
+
+    def fresh_with(loss):
+        def fake(ctx, candidate, *, fit_frames, start, options):
+            return Fit(
+                "wind",
+                None,
+                params,
+                torch.ones(3),
+                loss,
+                4,
+                starts=[([1, 1, 1], loss)],
+                reidentified=True,
+            )
+
+        return fake
+
+    monkeypatch.setattr(diagnosis, "reidentify", fresh_with(1.0))
+    kept = diagnosis._better(refitted, None, None, None, [1, 2], None)
+    assert kept.reidentified and kept.loss == 1.0
+    assert kept.starts == [([0, 0, 0], 2.0), ([1, 1, 1], 1.0)]
+
+    monkeypatch.setattr(diagnosis, "reidentify", fresh_with(3.0))
+    assert diagnosis._better(refitted, None, None, None, [1, 2], None) is refitted
+
+    def diverges(*args, **kwargs):
+        raise SimulationDiverged(object_id=1, frame=2, substep=3, reason="test", advice="")
+
+    monkeypatch.setattr(diagnosis, "reidentify", diverges)
+    assert diagnosis._better(refitted, None, None, None, [1, 2], None) is refitted
