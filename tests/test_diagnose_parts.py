@@ -1046,3 +1046,54 @@ def test_a_model_keeps_the_better_of_its_refit_and_its_fresh_identification(monk
 
     monkeypatch.setattr(diagnosis, "reidentify", diverges)
     assert diagnosis._better(refitted, None, None, None, [1, 2], None) is refitted
+
+
+def test_the_interval_test_fails_a_term_whose_interval_includes_absent():
+    """Intervals are recorded for every candidate that has one; only under
+    ``require_nonzero`` does a candidate whose interval box holds zero fail, and the next
+    accepted candidate takes its place."""
+    from mosiv_framework.diagnose.decide import (
+        DecideOptions,
+        Evidence,
+        apply_interval_test,
+        excludes_zero,
+    )
+
+    assert excludes_zero([[0.5, 1.0]]) and excludes_zero([[-0.1, 0.1], [-2.0, -1.0]])
+    assert not excludes_zero([[0.0, 18.9]]) and not excludes_zero([[-0.1, 0.1], [-1.0, 2.0]])
+
+    def evidence():
+        return [
+            Evidence("damping", 0.56, 0.05, -6.0, True, True, 1.0, 1),
+            Evidence("drag", 0.40, 0.05, -3.0, True, True, 1.0, 1),
+            Evidence("wind", 0.05, 0.05, 2.0, False, False, 1.0, 3),
+        ]
+
+    intervals = {"damping": [[0.0, 18.9]], "drag": [[0.8, 1.1]]}
+    kept = apply_interval_test(evidence(), intervals, DecideOptions())
+    assert [e.name for e in kept][:2] == ["damping", "drag"] and kept[0].accepted
+    assert kept[0].interval == [[0.0, 18.9]] and kept[2].interval is None
+
+    strict = apply_interval_test(evidence(), intervals, DecideOptions(require_nonzero=True))
+    assert [e.name for e in strict] == ["drag", "damping", "wind"]
+    assert strict[0].accepted and not strict[1].accepted and not strict[1].passes_interval
+
+
+def test_replaying_with_the_interval_test_reports_the_out_of_library_entry_unexplained():
+    """Session 15's out-of-library entry (a concealed drag with drag out of the library)
+    accepted material damping with a viscosity interval of [0, 18.9] Pa s; replayed with the
+    interval test it is unexplained, and a true effect's diagnosis (its interval clear of
+    zero) is unchanged."""
+    from pathlib import Path
+
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.replay import replay_diagnosis
+
+    data = Path(__file__).resolve().parents[1] / "benchmarks" / "data" / "dsuite_s15_reidentify"
+    outside = json.loads((data / "outside-quadratic_drag" / "diagnosis.json").read_text())
+    true = json.loads((data / "material_damping-0" / "diagnosis.json").read_text())
+    strict = DecideOptions(**{**outside["rule"], "require_nonzero": True})
+    assert replay_diagnosis(outside)["accepted"]["name"] == "material_damping"
+    replayed = replay_diagnosis(outside, strict)
+    assert replayed["verdict"] == "unexplained" and replayed["accepted"] is None
+    assert replay_diagnosis(true, strict)["accepted"]["name"] == "material_damping"

@@ -48,6 +48,12 @@ def add_parsers(sub) -> None:
     )
     suite.add_argument("--bic-margin", type=float, help="delta BIC a candidate must beat (0)")
     suite.add_argument("--block", type=int, help="frames per time block (2)")
+    suite.add_argument(
+        "--require-nonzero",
+        action="store_true",
+        default=None,
+        help="accept only a term whose 95 %% coefficient interval excludes zero",
+    )
     suite.set_defaults(handler=diagnose_suite)
 
 
@@ -94,6 +100,7 @@ def _replay(args) -> int:
         "min_drop": args.min_drop,
         "bic_margin": args.bic_margin,
         "block": args.block,
+        "require_nonzero": args.require_nonzero,
     }
     options = DecideOptions(**{k: v for k, v in given.items() if v is not None})
     summary = replay_suite(args.out, options, small=args.small)

@@ -25,7 +25,12 @@ favours the term", as issue 9 words it), with the effect-size test in its place.
 were chosen on the session-13 suite entries (``mosiv diagnose-suite OUT --replay``). The whole
 suite of session 14 (benchmarks/data/dsuite_s14) kept them: 8 of 18 named against 6 under the
 old rule, and still no term accepted on any of the six controls.
-Verdicts: "missing physics" (a candidate passed all three), "unexplained" (the residual is above
+An optional fourth test (``require_nonzero``, off by default until the whole suite has been
+replayed with it): the accepted term's 95 % coefficient interval must exclude "absent" (zero)
+on some coefficient. On the out-of-library entry of session 15, material damping took up part
+of a concealed drag with a viscosity interval of [0, 18.9] Pa s, while every true effect's
+interval excluded zero.
+Verdicts: "missing physics" (a candidate passed every test), "unexplained" (the residual is above
 the noise floor but no candidate passed), "no missing physics" (the residual is at noise level).
 """
 
@@ -48,7 +53,7 @@ class DecideOptions:
     """bootstrap: resamples; block: frames per time block; z: bootstrap standard deviations
     the held-out drop must exceed; min_drop: the smallest held-out drop (fraction of the
     null's error) worth naming; bic_margin: how far below the null's a candidate's BIC must
-    lie; seed: resampling seed."""
+    lie; seed: resampling seed; require_nonzero: see the module docstring."""
 
     bootstrap: int = 200
     block: int = 2
@@ -56,6 +61,8 @@ class DecideOptions:
     min_drop: float = 0.2
     bic_margin: float = 0.0
     seed: int = 0
+    #: accept only a term whose 95 % coefficient interval excludes zero on some coefficient
+    require_nonzero: bool = False
 
 
 def frame_errors(ctx: RunContext, fit_or_traj) -> np.ndarray:
@@ -109,12 +116,16 @@ class Evidence:
     theta: list[float] | None = None
     #: the model ("null" or a candidate) whose shared parameters the refit was continued from
     started_from: str | None = None
+    #: [lower, upper] per coefficient (95 %), computed for candidates passing the first tests
+    interval: list[list[float]] | None = None
+    #: the interval test (``require_nonzero``); True where not required or not computed
+    passes_interval: bool = True
     #: whether the model was identified afresh rather than refitted (``reidentify``)
     reidentified: bool = False
 
     @property
     def accepted(self) -> bool:
-        return self.passes_heldout and self.passes_bic
+        return self.passes_heldout and self.passes_bic and self.passes_interval
 
     def to_json(self) -> dict:
         return {
@@ -129,6 +140,8 @@ class Evidence:
             "new_coefficients": self.n_new,
             "theta": self.theta,
             "started_from": self.started_from,
+            "interval": self.interval,
+            "passes_interval": self.passes_interval,
             "reidentified": self.reidentified,
         }
 
@@ -201,6 +214,25 @@ def weigh(
                 n_new=n_new,
             )
         )
+    return rank_evidence(evidence)
+
+
+def excludes_zero(interval: list[list[float]]) -> bool:
+    """Whether a [lower, upper]-per-coefficient box leaves out the zero vector ("absent")."""
+    return any(lower > 0.0 or upper < 0.0 for lower, upper in interval)
+
+
+def apply_interval_test(
+    evidence: list[Evidence], intervals: dict[str, list[list[float]]], options: DecideOptions
+) -> list[Evidence]:
+    """Record each candidate's interval (name -> [lower, upper] per coefficient) and, under
+    ``require_nonzero``, fail the candidates whose interval includes zero; re-ranked. A
+    candidate without an interval (it failed an earlier test, or a replayed file did not
+    record one) is left as it was."""
+    for e in evidence:
+        if e.name in intervals:
+            e.interval = [list(map(float, pair)) for pair in intervals[e.name]]
+            e.passes_interval = not options.require_nonzero or excludes_zero(e.interval)
     return rank_evidence(evidence)
 
 

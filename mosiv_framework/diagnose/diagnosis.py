@@ -22,7 +22,13 @@ import torch
 
 from mosiv_framework.diagnose.candidates import build_candidates
 from mosiv_framework.diagnose.context import load_run
-from mosiv_framework.diagnose.decide import DecideOptions, decide, frame_errors, verdict
+from mosiv_framework.diagnose.decide import (
+    DecideOptions,
+    apply_interval_test,
+    decide,
+    frame_errors,
+    verdict,
+)
 from mosiv_framework.diagnose.floor import resolution_floor
 from mosiv_framework.diagnose.hypothesise import choose_refits, regression_estimate, screen
 from mosiv_framework.diagnose.interval import coefficient_interval
@@ -264,9 +270,20 @@ def diagnose_run(
         )
         errors.update(model_errors)
         result["resolution_floor"] = resolution_floor(ctx, null.params)
+        # every candidate that passed the held-out and BIC tests gets its interval (recorded,
+        # and tested where the rule requires it to exclude zero)
+        by_name = {f.name: f for f in fits}
+        bounds = {
+            e.name: coefficient_interval(ctx, by_name[e.name], fit_frames=fit_frames)
+            for e in evidence
+            if e.passes_heldout and e.passes_bic
+        }
+        evidence = apply_interval_test(
+            evidence, {n: [list(p) for p in zip(*b)] for n, b in bounds.items()}, rule
+        )
         if evidence and evidence[0].accepted:
-            accepted = next(f for f in fits if f.name == evidence[0].name)
-            accepted_interval = coefficient_interval(ctx, accepted, fit_frames=fit_frames)
+            accepted = by_name[evidence[0].name]
+            accepted_interval = bounds[accepted.name]
         result["skipped_candidates"] = skipped
         result["null"] = null
     result["verdict"] = verdict(location.significant, evidence)

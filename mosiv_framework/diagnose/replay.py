@@ -7,6 +7,10 @@ BIC margin) can be re-run with other ``DecideOptions`` without refitting anythin
 ``mosiv diagnose-suite`` folder this scores a candidate rule in seconds, where the suite itself
 takes GPU-hours; a rule chosen this way is chosen on that suite, which a report must say.
 
+The interval test (``DecideOptions.require_nonzero``) uses the intervals a diagnosis recorded;
+files from before session 15 hold only the accepted candidate's, so there a candidate accepted
+only after the replay has none and is not tested.
+
 Replayed scores lack the coefficient error of a candidate the original run did not accept (its
 fitted coefficients are not in the file); everything else is recomputed.
 """
@@ -18,7 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from mosiv_framework.diagnose.decide import DecideOptions, Evidence, verdict, weigh
+from mosiv_framework.diagnose.decide import (
+    DecideOptions,
+    Evidence,
+    apply_interval_test,
+    verdict,
+    weigh,
+)
 from mosiv_framework.diagnose.report import MM2
 
 
@@ -54,6 +64,7 @@ def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> d
             heldout_frames=diagnosis["frames"]["heldout"],
             options=options,
         )
+        ranked = apply_interval_test(ranked, saved_intervals(diagnosis), options)
     out["verdict"] = verdict(bool(diagnosis["where"]["significant"]), ranked)
     out["evidence"] = [e.to_json() for e in ranked]
     winner = ranked[0].name if ranked and ranked[0].accepted else None
@@ -64,6 +75,16 @@ def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> d
         out["accepted"] = before
     else:
         out["accepted"] = {"name": winner}
+    return out
+
+
+def saved_intervals(diagnosis: dict) -> dict[str, list[list[float]]]:
+    """Candidate -> [lower, upper] per coefficient, as a diagnosis recorded them: in its
+    evidence (since session 15), or only the accepted candidate's (``interval_95``, before)."""
+    out = {e["name"]: e["interval"] for e in diagnosis["evidence"] if e.get("interval")}
+    accepted = diagnosis.get("accepted")
+    if accepted and accepted.get("interval_95") and accepted["name"] not in out:
+        out[accepted["name"]] = [list(v) for v in accepted["interval_95"].values()]
     return out
 
 

@@ -320,9 +320,9 @@ def _markdown(s: dict) -> str:
                 else ""
             ),
             "",
-            "| candidate | refitted coefficients | held-out drop | bootstrap sd | dBIC | held-out "
-            "| BIC | accepted |",
-            "|---|---|---|---|---|---|---|---|",
+            "| candidate | refitted coefficients | 95 % interval | held-out drop | bootstrap sd "
+            "| dBIC | held-out | BIC | accepted |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
         for e in s["evidence"]:
             theta = ", ".join(f"{x:.3g}" for x in e["theta"]) if e.get("theta") else "-"
@@ -331,8 +331,16 @@ def _markdown(s: dict) -> str:
             mark = f" (from {e['started_from']})" if e.get("started_from") else ""
             if e.get("reidentified") and not e.get("started_from"):
                 mark = " (identified afresh)"  # see ``reidentify``
+            interval = (
+                ", ".join(f"[{lo:.3g}, {hi:.3g}]" for lo, hi in e["interval"])
+                if e.get("interval")
+                else "-"
+            )
+            if not e.get("passes_interval", True):
+                interval += " (includes zero)"
             lines.append(
-                f"| {e['name']}{mark} | {theta} | {e['heldout_drop']:.2%} | {e['heldout_spread']:.2%} | "
+                f"| {e['name']}{mark} | {theta} | {interval} | {e['heldout_drop']:.2%} | "
+                f"{e['heldout_spread']:.2%} | "
                 f"{e['delta_bic']:.3g} | {'pass' if e['passes_heldout'] else 'fail'} | "
                 f"{'pass' if e['passes_bic'] else 'fail'} | {'yes' if e['accepted'] else 'no'} |"
             )
