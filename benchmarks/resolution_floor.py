@@ -26,14 +26,12 @@ import numpy as np
 from mosiv_framework.diagnose.suite import DEFAULT_RECIPES, suite_entries
 from mosiv_framework.workers import run_jobs
 
-MM2 = 1e6
-
 
 def measure(entry, out: Path, recipe_path: Path, fractions: tuple[float, ...]) -> dict:
     """Generate and identify ``entry`` (resumable), then its floors at each fraction."""
     from mosiv_framework.diagnose.context import load_run
     from mosiv_framework.diagnose.diagnosis import BUDGETS, split_frames
-    from mosiv_framework.diagnose.floor import resolution_floor
+    from mosiv_framework.diagnose.floor import resolution_floor, summarise_floor
     from mosiv_framework.pipeline import run_pipeline
     from mosiv_framework.recipes import load_recipe
 
@@ -52,16 +50,9 @@ def measure(entry, out: Path, recipe_path: Path, fractions: tuple[float, ...]) -
     floors = {}
     for fraction in fractions:
         table = resolution_floor(ctx, ctx.identified, fraction=fraction)
-        if table is None:
-            floors[str(fraction)] = None
-            continue
-        per_frame = table.sum(axis=0) * MM2
-        excess = np.clip(per_frame - per_frame[0], 0.0, None)
-        floors[str(fraction)] = {
-            "fit": float(excess[fit].mean()),
-            "heldout": float(excess[held].mean()),
-            "per_frame": per_frame.tolist(),
-        }
+        floors[str(fraction)] = summarise_floor(
+            table, {"fit": fit, "heldout": held}, fraction=fraction
+        )
     return {"entry": entry.name, "fit_frames": fit, "heldout_frames": held, "floors": floors}
 
 

@@ -15,7 +15,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from mosiv_framework.diagnose.context import RunContext
-from mosiv_framework.diagnose.floor import DEFAULT_FRACTION
+from mosiv_framework.diagnose.floor import summarise_floor
 from mosiv_framework.diagnose.locate import Location, plot_location
 from mosiv_framework.recipes.terms import IDENTIFY_KEY
 
@@ -183,7 +183,7 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
         ),
         # how far the null's prediction moves on resampled particles (``floor.py``): recorded,
         # not yet part of the rule, so that a replay can weigh the held-out drops against it
-        "resolution_floor_mm2": _floor_summary(result.get("resolution_floor"), result["frames"]),
+        "resolution_floor_mm2": summarise_floor(result.get("resolution_floor"), result["frames"]),
         "accepted": None,
         "time_s": result["time_s"],
     }
@@ -359,19 +359,3 @@ def _markdown(s: dict) -> str:
             )
         lines.append("")
     return "\n".join(lines)
-
-
-def _floor_summary(table, frames: dict) -> dict | None:
-    """The [K, T] floor (m^2) summed over objects, in mm^2, less its frame-0 value (the static
-    offset of the resampling itself; the evidence tests likewise count errors in excess of
-    frame 0): means over the fit and held-out frames, and the per-frame sums (raw)."""
-    if table is None:
-        return None
-    per_frame = table.sum(axis=0) * MM2
-    excess = np.clip(per_frame - per_frame[0], 0.0, None)
-    return {
-        "fraction": DEFAULT_FRACTION,
-        "fit": float(excess[frames["fit"]].mean()),
-        "heldout": float(excess[frames["heldout"]].mean()),
-        "per_frame": per_frame.tolist(),
-    }
