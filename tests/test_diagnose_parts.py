@@ -1070,11 +1070,12 @@ def test_the_interval_test_fails_a_term_whose_interval_includes_absent():
         ]
 
     intervals = {"damping": [[0.0, 18.9]], "drag": [[0.8, 1.1]]}
-    kept = apply_interval_test(evidence(), intervals, DecideOptions())
+    kept = apply_interval_test(evidence(), intervals, DecideOptions(require_nonzero=False))
     assert [e.name for e in kept][:2] == ["damping", "drag"] and kept[0].accepted
     assert kept[0].interval == [[0.0, 18.9]] and kept[2].interval is None
 
-    strict = apply_interval_test(evidence(), intervals, DecideOptions(require_nonzero=True))
+    strict = apply_interval_test(evidence(), intervals, DecideOptions())
+    assert DecideOptions().require_nonzero  # on by default since session 16
     assert [e.name for e in strict] == ["drag", "damping", "wind"]
     assert strict[0].accepted and not strict[1].accepted and not strict[1].passes_interval
 
@@ -1097,3 +1098,72 @@ def test_replaying_with_the_interval_test_reports_the_out_of_library_entry_unexp
     replayed = replay_diagnosis(outside, strict)
     assert replayed["verdict"] == "unexplained" and replayed["accepted"] is None
     assert replay_diagnosis(true, strict)["accepted"]["name"] == "material_damping"
+
+
+def test_a_special_case_is_preferred_unless_the_general_term_adds_a_real_drop():
+    """A gravity change is a wind along g. Of the two, both accepted, the wind ranks first by
+    BIC but is named only if its extra coefficients add at least ``min_drop`` of the null's
+    held-out error to the drop; a candidate that is not a special case keeps its BIC rank."""
+    from mosiv_framework.diagnose.decide import Evidence, prefer_special_cases, rank_evidence
+
+    def ev(name, drop, delta, n_new, within=()):
+        return Evidence(name, drop, 0.01, delta, True, True, 1.0, n_new, special_case_of=within)
+
+    # session 16, gravity-1: wind -29.5 BIC with drop 0.976, gravity -23.5 with 0.937
+    ranked = rank_evidence(
+        [ev("wind", 0.976, -29.5, 3), ev("gravity", 0.937, -23.5, 1, ("wind",))], min_drop=0.2
+    )
+    assert [e.name for e in ranked] == ["gravity", "wind"]
+    # a wind that explains much more than the gravity change keeps its place
+    ranked = rank_evidence(
+        [ev("wind", 0.95, -29.5, 3), ev("gravity", 0.60, -12.0, 1, ("wind",))], min_drop=0.2
+    )
+    assert [e.name for e in ranked] == ["wind", "gravity"]
+    # unrelated candidates are left in BIC order
+    order = [ev("drag", 0.9, -20.0, 1), ev("gravity", 0.89, -10.0, 1, ("wind",))]
+    assert prefer_special_cases(order, min_drop=0.2) == order
+
+
+def test_replaying_the_gravity_entry_names_gravity_not_a_vertical_wind():
+    """gravity-1 of session 16 (gravity 7.5 m/s^2 instead of 9.81) accepted a nearly vertical
+    wind; the decision with the special-case preference names the gravity change, from the
+    saved error tables alone. Files without a recorded ``special_case_of`` use the built-in
+    declaration."""
+    from pathlib import Path
+
+    from mosiv_framework.diagnose.candidates import SPECIAL_CASES
+    from mosiv_framework.diagnose.replay import replay_diagnosis, saved_special_cases
+
+    data = Path(__file__).resolve().parents[1] / "benchmarks" / "data" / "dsuite_s16_rest"
+    diagnosis = json.loads((data / "gravity-1" / "diagnosis.json").read_text())
+    assert diagnosis["accepted"]["name"] == "wind"  # as it ran, before the preference
+    assert saved_special_cases(diagnosis)["gravity"] == SPECIAL_CASES["gravity"] == ("wind",)
+    replayed = replay_diagnosis(diagnosis)
+    assert replayed["verdict"] == "missing physics" and replayed["accepted"]["name"] == "gravity"
+    assert replayed["evidence"][0]["special_case_of"] == ["wind"]
+    assert replayed["evidence"][1]["name"] == "wind" and replayed["evidence"][1]["accepted"]
+    assert replayed["evidence"][0]["theta"] == pytest.approx([-2.19], abs=0.01)  # kept from file
+    # files since session 16 record each fit's physical value: a newly accepted term carries it
+    for e in diagnosis["evidence"]:
+        if e["name"] == "gravity":
+            e["value"] = {"acceleration": [0.0, 0.0, -7.62]}
+    assert replay_diagnosis(diagnosis)["accepted"]["value"] == {"acceleration": [0.0, 0.0, -7.62]}
+
+
+def test_a_replayed_suite_folder_without_scenes_scores_coefficients_from_the_entries(tmp_path):
+    """benchmarks/data keeps diagnoses without their scenes; a replay scores the coefficient
+    error against the entry's conceal spec (what the generator wrote to gt/effects.json)."""
+    import shutil
+    from pathlib import Path
+
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.replay import replay_suite
+
+    data = Path(__file__).resolve().parents[1] / "benchmarks" / "data" / "dsuite_s15_reidentify"
+    shutil.copytree(data / "wind-0", tmp_path / "wind-0")
+    summary = replay_suite(tmp_path, DecideOptions())
+    (score,) = summary["scores"]
+    saved = json.loads((data / "wind-0" / "score.json").read_text())
+    assert score["correct"] and score["accepted"] == "wind"
+    assert score["coefficient_error"] == pytest.approx(saved["coefficient_error"], rel=1e-9)
+    assert "control-0" in summary["missing"]

@@ -7,6 +7,8 @@ the score table (DESIGN.md section 6).
 
 from __future__ import annotations
 
+import argparse
+
 
 def add_parsers(sub) -> None:
     diag = sub.add_parser("diagnose", help="locate and explain what the fitted model misses")
@@ -50,9 +52,9 @@ def add_parsers(sub) -> None:
     suite.add_argument("--block", type=int, help="frames per time block (2)")
     suite.add_argument(
         "--require-nonzero",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
         default=None,
-        help="accept only a term whose 95 %% coefficient interval excludes zero",
+        help="accept only a term whose 95 %% coefficient interval excludes zero (on)",
     )
     suite.set_defaults(handler=diagnose_suite)
 

@@ -19,7 +19,9 @@ theta = 0 (nothing yields), so the screening probes it on a ladder instead of by
 Two built-in terms get a narrower parametrisation, because their full form is indistinguishable
 from another candidate: ``gravity`` replaces the declared gravity vector, and a change of its
 direction is exactly a steady ``wind``; so the gravity candidate changes only the magnitude
-along the declared direction (one coefficient, m/s^2), and ``wind`` covers the rest.
+along the declared direction (one coefficient, m/s^2), and ``wind`` covers the rest. That
+magnitude change is still a wind along g, a special case the decision step prefers when the
+wind's extra coefficients add little (``SPECIAL_CASES``, ``decide.prefer_special_cases``).
 """
 
 from __future__ import annotations
@@ -45,6 +47,9 @@ YIELD_STRESS = get_law("plasticine").param("yield_stress")
 PLASTIC_REGIMES = frozenset({"object_contact", "ground_contact", "rest"})
 #: theta (decades below the bound) at which the screening probes a plasticity candidate
 PLASTICITY_LADDER = (1.0, 1.75, 2.5, 3.25)
+#: candidate -> the candidates that contain it as a special case (same predictions at some of
+#: their coefficients): a gravity magnitude change d is the wind d g/|g|
+SPECIAL_CASES: dict[str, tuple[str, ...]] = {"gravity": ("wind",)}
 
 
 @dataclass
@@ -69,6 +74,11 @@ class Candidate:
     #: coefficients the screen probes instead of taking a gradient at zero, for effects whose
     #: loss is flat there (None: screen by gradient)
     ladder: tuple[float, ...] | None = None
+
+    @property
+    def special_case_of(self) -> tuple[str, ...]:
+        """The candidates that contain this one as a special case (``SPECIAL_CASES``)."""
+        return SPECIAL_CASES.get(self.name, ())
 
     @property
     def dim(self) -> int:

@@ -25,11 +25,20 @@ favours the term", as issue 9 words it), with the effect-size test in its place.
 were chosen on the session-13 suite entries (``mosiv diagnose-suite OUT --replay``). The whole
 suite of session 14 (benchmarks/data/dsuite_s14) kept them: 8 of 18 named against 6 under the
 old rule, and still no term accepted on any of the six controls.
-An optional fourth test (``require_nonzero``, off by default until the whole suite has been
-replayed with it): the accepted term's 95 % coefficient interval must exclude "absent" (zero)
-on some coefficient. On the out-of-library entry of session 15, material damping took up part
-of a concealed drag with a viscosity interval of [0, 18.9] Pa s, while every true effect's
-interval excluded zero.
+Among accepted candidates, one that contains another accepted one as a special case (a wind
+along g is a change of gravity's magnitude: ``candidates.SPECIAL_CASES``) is named only if it
+explains at least ``min_drop`` of the null's held-out error beyond the special case; otherwise
+the special case, with fewer coefficients, ranks first (``prefer_special_cases``). The BIC alone
+let a wind's two extra coefficients win by absorbing a small systematic residual: on gravity-1
+of session 16 wind (0.07 m/s^2 sideways, 2.18 m/s^2 up) beat the gravity change (2.19 m/s^2)
+by 6 BIC units while adding 3.9 % of the null's held-out error to its drop.
+A fourth test (``require_nonzero``, on since session 16): the accepted term's 95 % coefficient
+interval must exclude "absent" (zero) on some coefficient. On the out-of-library entry of
+session 15, material damping took up part of a concealed drag with a viscosity interval of
+[0, 18.9] Pa s. Replayed on all 27 suite entries (sessions 15 and 16, benchmarks/data/), the
+test changed only that entry, and a BIC margin of 2 would have done the same; the interval was
+kept because it asks the physical question (is the effect there at all) rather than moving a
+threshold the true terms of session 13 had come within 2 of.
 Verdicts: "missing physics" (a candidate passed every test), "unexplained" (the residual is above
 the noise floor but no candidate passed), "no missing physics" (the residual is at noise level).
 """
@@ -62,7 +71,7 @@ class DecideOptions:
     bic_margin: float = 0.0
     seed: int = 0
     #: accept only a term whose 95 % coefficient interval excludes zero on some coefficient
-    require_nonzero: bool = False
+    require_nonzero: bool = True
 
 
 def frame_errors(ctx: RunContext, fit_or_traj) -> np.ndarray:
@@ -122,6 +131,10 @@ class Evidence:
     passes_interval: bool = True
     #: whether the model was identified afresh rather than refitted (``reidentify``)
     reidentified: bool = False
+    #: candidates that contain this one as a special case (``candidates.SPECIAL_CASES``)
+    special_case_of: tuple[str, ...] = ()
+    #: theta as the recipe would write it (``Candidate.physical``); None in a replay
+    value: dict | None = None
 
     @property
     def accepted(self) -> bool:
@@ -143,6 +156,8 @@ class Evidence:
             "interval": self.interval,
             "passes_interval": self.passes_interval,
             "reidentified": self.reidentified,
+            "special_case_of": list(self.special_case_of),
+            "value": self.value,
         }
 
 
@@ -167,12 +182,17 @@ def decide(
         fit_frames=fit_frames,
         heldout_frames=heldout_frames,
         options=options,
+        special_cases={
+            fit.name: fit.candidate.special_case_of for fit in fits if fit.candidate is not None
+        },
     )
     by_name = {fit.name: fit for fit in fits}
     for e in evidence:
         e.theta = by_name[e.name].theta.tolist()
         e.started_from = by_name[e.name].started_from
         e.reidentified = by_name[e.name].reidentified
+        candidate = by_name[e.name].candidate
+        e.value = candidate.physical(by_name[e.name].theta) if candidate is not None else None
     return evidence, errors
 
 
@@ -184,10 +204,13 @@ def weigh(
     fit_frames: list[int],
     heldout_frames: list[int],
     options: DecideOptions,
+    special_cases: dict[str, tuple[str, ...]] | None = None,
 ) -> list[Evidence]:
     """The three tests on [K, T] error tables (m^2) by model name, ``null`` among them, for each
-    candidate (name, new coefficients, fit loss m^2); best first. Also what a replay of a saved
-    diagnosis runs (``replay.py``)."""
+    candidate (name, new coefficients, fit loss m^2); best first. ``special_cases`` maps a
+    candidate to the candidates containing it (see ``prefer_special_cases``). Also what a
+    replay of a saved diagnosis runs (``replay.py``)."""
+    special_cases = special_cases or {}
     null = errors["null"]
     floor = null[:, :1]  # frame 0 is the lifted state: identical for every model
     bic_null = bic(null[:, fit_frames], floor, null_parameters, block=options.block)
@@ -212,9 +235,10 @@ def weigh(
                 passes_bic=delta < -options.bic_margin,
                 fit_loss=fit_loss,
                 n_new=n_new,
+                special_case_of=tuple(special_cases.get(name, ())),
             )
         )
-    return rank_evidence(evidence)
+    return rank_evidence(evidence, min_drop=options.min_drop)
 
 
 def excludes_zero(interval: list[list[float]]) -> bool:
@@ -233,22 +257,47 @@ def apply_interval_test(
         if e.name in intervals:
             e.interval = [list(map(float, pair)) for pair in intervals[e.name]]
             e.passes_interval = not options.require_nonzero or excludes_zero(e.interval)
-    return rank_evidence(evidence)
+    return rank_evidence(evidence, min_drop=options.min_drop)
 
 
-def rank_evidence(evidence: list[Evidence]) -> list[Evidence]:
+def rank_evidence(evidence: list[Evidence], *, min_drop: float = 0.0) -> list[Evidence]:
     """Accepted candidates first, ordered by the information criterion (lowest delta BIC), then
     the rejected ones by held-out drop.
 
     Among candidates that all pass both tests, held-out drops often differ by less than their
     bootstrap spread (e.g. quadratic drag vs material damping on a drag scene), so ranking by
     drop picks at random; BIC charges each extra coefficient, so of two equally good
-    explanations the one with fewer parameters wins."""
+    explanations the one with fewer parameters wins. Then ``prefer_special_cases``."""
     accepted = sorted((e for e in evidence if e.accepted), key=lambda e: e.delta_bic)
     rejected = sorted(
         (e for e in evidence if not e.accepted), key=lambda e: e.heldout_drop, reverse=True
     )
-    return accepted + rejected
+    return prefer_special_cases(accepted, min_drop=min_drop) + rejected
+
+
+def prefer_special_cases(accepted: list[Evidence], *, min_drop: float) -> list[Evidence]:
+    """``accepted`` (best first) with each special case moved ahead of an accepted candidate
+    that contains it, unless the general one's held-out drop exceeds the special case's by at
+    least ``min_drop`` (the effect-size test, applied to what the extra coefficients add)."""
+    order = list(accepted)
+    # each move puts a special case ahead of a more general model; the relation has no cycles,
+    # so a pass without moves comes after at most len(order)^2 moves
+    for _ in range(len(order) ** 2 + 1):
+        move = next(
+            (
+                (i, j)
+                for i, general in enumerate(order)
+                for j in range(i + 1, len(order))
+                if general.name in order[j].special_case_of
+                and general.heldout_drop - order[j].heldout_drop < min_drop
+            ),
+            None,
+        )
+        if move is None:
+            break
+        i, j = move
+        order.insert(i, order.pop(j))
+    return order
 
 
 def verdict(significant: bool, evidence: list[Evidence]) -> str:

@@ -11,8 +11,10 @@ The interval test (``DecideOptions.require_nonzero``) uses the intervals a diagn
 files from before session 15 hold only the accepted candidate's, so there a candidate accepted
 only after the replay has none and is not tested.
 
-Replayed scores lack the coefficient error of a candidate the original run did not accept (its
-fitted coefficients are not in the file); everything else is recomputed.
+Replayed scores lack the coefficient error of a candidate the original run did not accept when
+the file predates session 16 (only then is its physical value missing); everything else is
+recomputed. A folder kept without its
+scenes is scored against the suite entry's conceal spec, the truth the generator was given.
 """
 
 from __future__ import annotations
@@ -37,16 +39,19 @@ def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> d
     its ``rule``; files from before session 13 lack it and ran the rule of then, z 2, BIC
     margin 2 and no effect-size test, with their budget's bootstrap count): a copy of
     ``diagnosis`` with ``verdict``, ``evidence`` and ``accepted`` replaced. ``accepted`` keeps
-    the original record when the same candidate is accepted again, else holds only
-    ``{"name": ...}``."""
+    the original record when the same candidate is accepted again, else holds its name and,
+    where the file recorded it (since session 16), the physical ``value`` of its fit."""
     if options is None:
+        # files from before session 15 lack require_nonzero and ran without the interval test
         options = DecideOptions(
             **(
-                diagnosis.get("rule")
-                or {
+                {"require_nonzero": False, **diagnosis["rule"]}
+                if diagnosis.get("rule")
+                else {
                     "bootstrap": diagnosis.get("budget", {}).get("bootstrap", 200),
                     "bic_margin": 2.0,
                     "min_drop": 0.0,
+                    "require_nonzero": False,
                 }
             )
         )
@@ -63,8 +68,15 @@ def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> d
             fit_frames=diagnosis["frames"]["fit"],
             heldout_frames=diagnosis["frames"]["heldout"],
             options=options,
+            special_cases=saved_special_cases(diagnosis),
         )
         ranked = apply_interval_test(ranked, saved_intervals(diagnosis), options)
+        saved = {e["name"]: e for e in diagnosis["evidence"]}
+        for e in ranked:  # what the fits were: unchanged by a new rule
+            e.theta = saved[e.name].get("theta")
+            e.started_from = saved[e.name].get("started_from")
+            e.reidentified = bool(saved[e.name].get("reidentified", False))
+            e.value = saved[e.name].get("value")
     out["verdict"] = verdict(bool(diagnosis["where"]["significant"]), ranked)
     out["evidence"] = [e.to_json() for e in ranked]
     winner = ranked[0].name if ranked and ranked[0].accepted else None
@@ -75,6 +87,8 @@ def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> d
         out["accepted"] = before
     else:
         out["accepted"] = {"name": winner}
+        if ranked[0].value is not None:
+            out["accepted"]["value"] = ranked[0].value
     return out
 
 
@@ -85,6 +99,18 @@ def saved_intervals(diagnosis: dict) -> dict[str, list[list[float]]]:
     accepted = diagnosis.get("accepted")
     if accepted and accepted.get("interval_95") and accepted["name"] not in out:
         out[accepted["name"]] = [list(v) for v in accepted["interval_95"].values()]
+    return out
+
+
+def saved_special_cases(diagnosis: dict) -> dict[str, tuple[str, ...]]:
+    """Candidate -> the candidates containing it, as recorded (since session 16), else as the
+    built-in candidates declare it (``candidates.SPECIAL_CASES``)."""
+    from mosiv_framework.diagnose.candidates import SPECIAL_CASES
+
+    out = {}
+    for e in diagnosis["evidence"]:
+        saved = e.get("special_case_of")
+        out[e["name"]] = tuple(saved) if saved is not None else SPECIAL_CASES.get(e["name"], ())
     return out
 
 
@@ -101,6 +127,7 @@ def replay_suite(out: Path, options: DecideOptions, *, small: bool = False) -> d
     """Re-score every finished entry of a ``mosiv diagnose-suite`` folder under ``options``;
     returns the suite summary (``suite.summarise``) of the replayed scores. Entries without a
     diagnosis.json (not finished, or failed) are left out and listed under ``missing``."""
+    from mosiv_framework.conceal import parse_conceal
     from mosiv_framework.diagnose.suite import score_entry, suite_entries, summarise
     from mosiv_framework.scene import read_scene
 
@@ -115,9 +142,15 @@ def replay_suite(out: Path, options: DecideOptions, *, small: bool = False) -> d
         accepted = diagnosis["accepted"]
         # a newly accepted candidate's coefficients are not in the file: no coefficient error
         known = accepted is None or "value" in accepted
-        # a folder kept without its scenes (benchmarks/data/) scores without coefficient errors
+        # a folder kept without its scenes (benchmarks/data/) takes the truth from the entry's
+        # conceal spec, which is what the generator wrote to gt/effects.json
         scene = out / entry.name / "scene"
-        effects = read_scene(scene).gt_effects() if known and scene.is_dir() else []
+        if not known:
+            effects = []
+        elif scene.is_dir():
+            effects = read_scene(scene).gt_effects()
+        else:
+            effects = [effect.to_json() for effect in parse_conceal(entry.conceal or None)]
         scores.append(score_entry(entry, diagnosis, effects))
     summary = summarise(scores)
     summary["missing"] = missing
