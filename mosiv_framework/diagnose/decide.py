@@ -133,7 +133,8 @@ class Evidence:
     reidentified: bool = False
     #: candidates that contain this one as a special case (``candidates.SPECIAL_CASES``)
     special_case_of: tuple[str, ...] = ()
-    #: theta as the recipe would write it (``Candidate.physical``); None in a replay
+    #: theta as the recipe would write it (``Candidate.physical``); a replay copies it from the
+    #: file (None in files from before session 16)
     value: dict | None = None
 
     @property
