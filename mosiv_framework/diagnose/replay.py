@@ -13,8 +13,8 @@ only after the replay has none and is not tested.
 
 Replayed scores lack the coefficient error of a candidate the original run did not accept when
 the file predates session 16 (only then is its physical value missing); everything else is
-recomputed. A folder kept without its
-scenes is scored against the suite entry's conceal spec, the truth the generator was given.
+recomputed. A folder kept without its scenes is scored against the suite entry's conceal
+spec, the truth the generator was given.
 """
 
 from __future__ import annotations
@@ -140,7 +140,7 @@ def replay_suite(out: Path, options: DecideOptions, *, small: bool = False) -> d
             continue
         diagnosis = replay_diagnosis(json.loads(path.read_text()), options)
         accepted = diagnosis["accepted"]
-        # a newly accepted candidate's coefficients are not in the file: no coefficient error
+        # a newly accepted candidate of a file from before session 16 has no recorded value
         known = accepted is None or "value" in accepted
         # a folder kept without its scenes (benchmarks/data/) takes the truth from the entry's
         # conceal spec, which is what the generator wrote to gt/effects.json
