@@ -42,7 +42,8 @@ def add_parsers(sub) -> None:
         "--replay",
         action="store_true",
         help="run nothing: re-decide the finished entries in OUT from their saved error tables "
-        "under the rule given by --z, --min-drop, --bic-margin and --block, and print the table",
+        "under the rule given by --z, --min-drop, --bic-margin, --block, --require-nonzero and "
+        "--min-effect, and print the table",
     )
     suite.add_argument("--z", type=float, help="held-out drop over its bootstrap spread (2)")
     suite.add_argument(
@@ -55,6 +56,11 @@ def add_parsers(sub) -> None:
         action=argparse.BooleanOptionalAction,
         default=None,
         help="accept only a term whose 95 %% coefficient interval excludes zero (on)",
+    )
+    suite.add_argument(
+        "--min-effect",
+        type=float,
+        help="resolution floors a term's own effect on the fit frames must reach (0: off, the default)",
     )
     suite.set_defaults(handler=diagnose_suite)
 
@@ -103,6 +109,7 @@ def _replay(args) -> int:
         "bic_margin": args.bic_margin,
         "block": args.block,
         "require_nonzero": args.require_nonzero,
+        "min_effect": args.min_effect,
     }
     options = DecideOptions(**{k: v for k, v in given.items() if v is not None})
     summary = replay_suite(args.out, options, small=args.small)

@@ -39,6 +39,12 @@ session 15, material damping took up part of a concealed drag with a viscosity i
 test changed only that entry, and a BIC margin of 2 would have done the same; the interval was
 kept because it asks the physical question (is the effect there at all) rather than moving a
 threshold the true terms of session 13 had come within 2 of.
+Each standing candidate's own effect (``effect``: its model against the same parameters with
+the effect off) is recorded beside the null's resolution floor, and ``min_effect`` > 0 fails an
+effect smaller than that many floors. It is off by default: on the 27 saved suite entries of
+sessions 15-16 (benchmarks/term_effect.py, session 17) no threshold separates the false
+discoveries from the true: control-4's wind moved the fit frames by 67 mm^2 against a floor of
+53 (up to 11 mm), ground_restitution-1's restitution by 9.6 mm^2 against 269 (up to 4 mm).
 Verdicts: "missing physics" (a candidate passed every test), "unexplained" (the residual is above
 the noise floor but no candidate passed), "no missing physics" (the residual is at noise level).
 """
@@ -51,6 +57,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.diagnose.effect import resolved
 from mosiv_framework.diagnose.locate import object_residuals
 from mosiv_framework.diagnose.model import Fit
 
@@ -72,6 +79,9 @@ class DecideOptions:
     seed: int = 0
     #: accept only a term whose 95 % coefficient interval excludes zero on some coefficient
     require_nonzero: bool = True
+    #: accept only a term whose own effect on the fit frames reaches this many resolution
+    #: floors (``effect.resolved``); 0, the default, records the effect without testing it
+    min_effect: float = 0.0
 
 
 def frame_errors(ctx: RunContext, fit_or_traj) -> np.ndarray:
@@ -136,10 +146,17 @@ class Evidence:
     #: theta as the recipe would write it (``Candidate.physical``); a replay copies it from the
     #: file (None in files from before session 16)
     value: dict | None = None
+    #: the effect's own size (``effect.summarise_effect``), measured for candidates passing
+    #: the first tests
+    effect: dict | None = None
+    #: the effect test (``min_effect``); True where not required or not measured
+    passes_effect: bool = True
 
     @property
     def accepted(self) -> bool:
-        return self.passes_heldout and self.passes_bic and self.passes_interval
+        return (
+            self.passes_heldout and self.passes_bic and self.passes_interval and self.passes_effect
+        )
 
     def to_json(self) -> dict:
         return {
@@ -159,6 +176,8 @@ class Evidence:
             "reidentified": self.reidentified,
             "special_case_of": list(self.special_case_of),
             "value": self.value,
+            "effect": self.effect,
+            "passes_effect": self.passes_effect,
         }
 
 
@@ -258,6 +277,25 @@ def apply_interval_test(
         if e.name in intervals:
             e.interval = [list(map(float, pair)) for pair in intervals[e.name]]
             e.passes_interval = not options.require_nonzero or excludes_zero(e.interval)
+    return rank_evidence(evidence, min_drop=options.min_drop)
+
+
+def apply_effect_test(
+    evidence: list[Evidence],
+    effects: dict[str, dict],
+    floor: dict | None,
+    options: DecideOptions,
+) -> list[Evidence]:
+    """Record each candidate's own effect (name -> ``effect.summarise_effect``) and, where
+    ``min_effect`` > 0, fail those whose effect on the fit frames is below ``min_effect``
+    resolution floors (``floor``: ``floor.summarise_floor``); re-ranked. A candidate without a
+    measured effect, or a diagnosis without a floor, is left as it was."""
+    for e in evidence:
+        if e.name in effects:
+            e.effect = effects[e.name]
+            e.passes_effect = options.min_effect <= 0 or resolved(
+                e.effect, floor, factor=options.min_effect
+            )
     return rank_evidence(evidence, min_drop=options.min_drop)
 
 

@@ -9,7 +9,8 @@ takes GPU-hours; a rule chosen this way is chosen on that suite, which a report 
 
 The interval test (``DecideOptions.require_nonzero``) uses the intervals a diagnosis recorded;
 files from before session 15 hold only the accepted candidate's, so there a candidate accepted
-only after the replay has none and is not tested.
+only after the replay has none and is not tested. Likewise the effect test (``min_effect``) uses
+the recorded own effects and resolution floor: a candidate without a recorded effect passes.
 
 Replayed scores lack the coefficient error of a candidate the original run did not accept when
 the file predates session 16 (only then is its physical value missing); everything else is
@@ -27,6 +28,7 @@ import numpy as np
 from mosiv_framework.diagnose.decide import (
     DecideOptions,
     Evidence,
+    apply_effect_test,
     apply_interval_test,
     verdict,
     weigh,
@@ -42,16 +44,18 @@ def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> d
     the original record when the same candidate is accepted again, else holds its name and,
     where the file recorded it (since session 16), the physical ``value`` of its fit."""
     if options is None:
-        # files from before session 15 lack require_nonzero and ran without the interval test
+        # files from before session 15 lack require_nonzero and ran without the interval test,
+        # files from before session 17 lack min_effect and ran without the effect test
         options = DecideOptions(
             **(
-                {"require_nonzero": False, **diagnosis["rule"]}
+                {"require_nonzero": False, "min_effect": 0.0, **diagnosis["rule"]}
                 if diagnosis.get("rule")
                 else {
                     "bootstrap": diagnosis.get("budget", {}).get("bootstrap", 200),
                     "bic_margin": 2.0,
                     "min_drop": 0.0,
                     "require_nonzero": False,
+                    "min_effect": 0.0,
                 }
             )
         )
@@ -71,6 +75,9 @@ def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> d
             special_cases=saved_special_cases(diagnosis),
         )
         ranked = apply_interval_test(ranked, saved_intervals(diagnosis), options)
+        ranked = apply_effect_test(
+            ranked, saved_effects(diagnosis), diagnosis.get("resolution_floor_mm2"), options
+        )
         saved = {e["name"]: e for e in diagnosis["evidence"]}
         for e in ranked:  # what the fits were: unchanged by a new rule
             e.theta = saved[e.name].get("theta")
@@ -100,6 +107,12 @@ def saved_intervals(diagnosis: dict) -> dict[str, list[list[float]]]:
     if accepted and accepted.get("interval_95") and accepted["name"] not in out:
         out[accepted["name"]] = [list(v) for v in accepted["interval_95"].values()]
     return out
+
+
+def saved_effects(diagnosis: dict) -> dict[str, dict]:
+    """Candidate -> its own effect (``effect.summarise_effect``), where the diagnosis measured
+    one (since session 17; or added to a copy by benchmarks/term_effect.py)."""
+    return {e["name"]: e["effect"] for e in diagnosis["evidence"] if e.get("effect")}
 
 
 def saved_special_cases(diagnosis: dict) -> dict[str, tuple[str, ...]]:

@@ -31,6 +31,15 @@ def _block_means(errors: np.ndarray, observed: int) -> dict:
     }
 
 
+def _effect_cell(evidence: dict) -> str:
+    """An evidence row's own effect (``effect.summarise_effect``) for the report's table."""
+    effect = evidence.get("effect")
+    if not effect:
+        return "-"
+    cell = f"{_fmt(effect['fit'])} (moves up to {effect['max_displacement_mm']:.3g} mm)"
+    return cell if evidence.get("passes_effect", True) else cell + ", below the floor"
+
+
 def _param_shift(before, after) -> dict:
     """Per object: each parameter and initial velocity before and after, with relative change."""
     out = {}
@@ -321,8 +330,8 @@ def _markdown(s: dict) -> str:
             ),
             "",
             "| candidate | refitted coefficients | 95 % interval | held-out drop | bootstrap sd "
-            "| dBIC | held-out | BIC | accepted |",
-            "|---|---|---|---|---|---|---|---|---|",
+            "| dBIC | held-out | BIC | own effect, fit frames (mm^2) | accepted |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for e in s["evidence"]:
             theta = ", ".join(f"{x:.3g}" for x in e["theta"]) if e.get("theta") else "-"
@@ -342,7 +351,8 @@ def _markdown(s: dict) -> str:
                 f"| {e['name']}{mark} | {theta} | {interval} | {e['heldout_drop']:.2%} | "
                 f"{e['heldout_spread']:.2%} | "
                 f"{e['delta_bic']:.3g} | {'pass' if e['passes_heldout'] else 'fail'} | "
-                f"{'pass' if e['passes_bic'] else 'fail'} | {'yes' if e['accepted'] else 'no'} |"
+                f"{'pass' if e['passes_bic'] else 'fail'} | {_effect_cell(e)} | "
+                f"{'yes' if e['accepted'] else 'no'} |"
             )
         lines.append("")
     if s["screening"]:

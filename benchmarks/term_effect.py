@@ -1,0 +1,201 @@
+"""Measure each saved diagnosis's candidates' own effects (``diagnose.effect``) and resolution
+floors (``diagnose.floor``), and write copies of the diagnosis files that carry them.
+
+The suite's saved entries (benchmarks/data/dsuite_*) hold every candidate's refitted
+coefficients, and the accepted candidate's refitted shared parameters (``param_shift``), but not
+the run's particles. This script regenerates each entry's scene from its suite definition (same
+seed and conceal spec), reconstructs and lifts it as the suite's recipe does (no
+identification), and rolls out:
+- for each candidate that passed the held-out, BIC and interval tests: its refitted model with
+  and without its effect. The accepted candidate uses its own refitted shared parameters; the
+  others (whose shared parameters the files do not hold) use the accepted candidate's, marked
+  ``"at": "accepted shared parameters"``;
+- the resolution floor at the same shared parameters.
+
+Output: OUT/NAME/diagnosis.json (the input with ``effect`` on those evidence rows and
+``resolution_floor_mm2`` measured here, the file's own floor kept as ``resolution_floor_saved``),
+plus diagnosis.md and score.json copied, so ``mosiv diagnose-suite OUT --replay`` scores them.
+
+    python benchmarks/term_effect.py benchmarks/data/dsuite_s15_reidentify/*/ \
+        benchmarks/data/dsuite_s16_rest/*/ --out runs/term_effect --jobs 8 --gpus 0,1,2,3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from mosiv_framework.diagnose.candidates import build_candidates
+from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.diagnose.effect import effect_tables, summarise_effect
+from mosiv_framework.diagnose.floor import resolution_floor, summarise_floor
+from mosiv_framework.diagnose.suite import DEFAULT_RECIPES, suite_entries
+from mosiv_framework.pipeline import _component, ensure_scene
+from mosiv_framework.pipeline.rundir import RunDir
+from mosiv_framework.recipes import load_recipe
+from mosiv_framework.registry import get_registry
+from mosiv_framework.types import ObjectParams, SimulationParams
+from mosiv_framework.workers import run_jobs
+
+
+def prepare(entry, run_dir: Path) -> RunContext:
+    """The entry's scene, reconstruction and particles (made once, then reloaded)."""
+    overrides = [
+        f"scene.path={run_dir / 'scene'}",
+        f"output.dir={run_dir}",
+        f"scene.source.materials={entry.materials}",
+        f"scene.source.seed={entry.seed}",
+        *entry.overrides,
+    ]
+    if entry.conceal:
+        overrides.append(f"scene.source.conceal='{entry.conceal}'")
+    recipe = load_recipe(DEFAULT_RECIPES[False], overrides)
+    rd = RunDir(run_dir)
+    scene = ensure_scene(recipe.scene, rd)
+    registry = get_registry()
+    if rd.path("particles.pt").is_file():
+        reconstruction = rd.load_torch("reconstruction.pt")
+        particles = rd.load_torch("particles.pt")
+    else:
+        name, options = _component(recipe.reconstructor)
+        reconstruction = registry.create("reconstructor", name, options).fit(scene, run_dir=rd.root)
+        name, options = _component(recipe.lifter)
+        particles = registry.create("lifter", name, options).lift(reconstruction, scene)
+        rd.save_torch("reconstruction.pt", reconstruction)
+        rd.save_torch("particles.pt", particles)
+    sim_options = dict(OmegaConf.to_container(recipe.simulator, resolve=True))
+    sim_name = sim_options.pop("name")
+    simulator = registry.create("simulator", sim_name, sim_options)
+    targets = {int(k): v.detach().float().cpu() for k, v in reconstruction.points.items()}
+    n_frames = min(scene.n_frames, min(t.shape[0] for t in targets.values()))
+    return RunContext(
+        run_dir=rd,
+        recipe=recipe,
+        scene=scene,
+        particles=particles,
+        targets=targets,
+        identified=None,  # set from the diagnosis file
+        identified_json={},
+        simulator=simulator,
+        simulator_name=sim_name,
+        observed_frames=min(scene.observed_frames, n_frames),
+        n_frames=n_frames,
+    )
+
+
+def params_from_shift(ctx: RunContext, shift: dict, side: str) -> SimulationParams:
+    """The parameters a file's ``param_shift`` holds on ``side`` ("before": the run's
+    identified model; "after": the accepted refit, its effect included), in the scene's
+    declared families (a plasticity candidate's yield stress is left to the candidate)."""
+    families = {obj.id: obj.material for obj in ctx.scene.objects}
+    objects, velocity = {}, {}
+    for key, rows in shift.items():
+        if key == "ground_friction":
+            continue
+        k = int(key)
+        values = {
+            n: torch.tensor(float(r[side]))
+            for n, r in rows.items()
+            if n != "initial_velocity" and not (n == "yield_stress" and families[k] == "elastic")
+        }
+        objects[k] = ObjectParams(families[k], values)
+        velocity[k] = torch.tensor(rows["initial_velocity"][side], dtype=torch.float32)
+    ground = torch.tensor(float(shift["ground_friction"][side]))
+    return SimulationParams(objects, velocity, ground, {})
+
+
+def shared_of_accepted(ctx: RunContext, shift: dict, candidate, theta) -> SimulationParams:
+    """The accepted candidate's refitted shared parameters, without its effect."""
+    after = params_from_shift(ctx, shift, "after")
+    if candidate.kind in ("ground_friction", "object_friction"):  # "after" holds mu + theta
+        return candidate.without(after, torch.tensor(theta, dtype=torch.float32))
+    return after  # terms and gravity live in params.terms; plasticity's yield stress dropped
+
+
+def measure(entry_dir: str, out: str) -> str:
+    """One saved entry: its effects and floor, written to OUT/NAME; returns a summary line."""
+    src = Path(entry_dir)
+    name = src.name
+    entry = {e.name: e for e in suite_entries(False)}[name]
+    diagnosis = json.loads((src / "diagnosis.json").read_text())
+    dst = Path(out) / name
+    dst.mkdir(parents=True, exist_ok=True)
+    for extra in ("diagnosis.md", "score.json"):
+        if (src / extra).is_file():
+            shutil.copy(src / extra, dst / extra)
+    accepted = diagnosis.get("accepted")
+    passing = [
+        e
+        for e in diagnosis["evidence"]
+        if e["passes_heldout"] and e["passes_bic"] and e.get("passes_interval", True)
+    ]
+    line = f"{name}: nothing accepted"
+    if accepted is not None and passing:
+        ctx = prepare(entry, dst / "run")
+        # the candidates' bases (assumed frictions, free parameters) are the run's identified
+        # model's, as in the diagnosis
+        ctx.identified = params_from_shift(ctx, accepted["param_shift"], "before")
+        candidates = {c.name: c for c in build_candidates(ctx)[0]}
+        first = candidates[accepted["name"]]
+        theta_first = next(e["theta"] for e in passing if e["name"] == accepted["name"])
+        shared = shared_of_accepted(ctx, accepted["param_shift"], first, theta_first)
+        frames = dict(diagnosis["frames"])
+        floor = summarise_floor(resolution_floor(ctx, shared), frames)
+        if "resolution_floor_mm2" in diagnosis:
+            diagnosis["resolution_floor_saved"] = diagnosis["resolution_floor_mm2"]
+        diagnosis["resolution_floor_mm2"] = floor
+        parts = []
+        for row in passing:
+            candidate = candidates[row["name"]]
+            theta = torch.tensor(row["theta"], dtype=torch.float32)
+            tables = effect_tables(ctx, candidate.apply(shared, theta), shared)
+            summary = summarise_effect(tables, frames)
+            summary["at"] = (
+                "own shared parameters"
+                if row["name"] == accepted["name"]
+                else "accepted shared parameters"
+            )
+            row["effect"] = summary
+            parts.append(
+                f"{row['name']} {summary['fit']:.3g} mm^2 fit, "
+                f"max {summary['max_displacement_mm']:.3g} mm"
+            )
+        floor_text = "diverged" if floor is None else f"{floor['fit']:.3g} mm^2 fit"
+        line = f"{name}: floor {floor_text}; " + "; ".join(parts)
+    tmp = dst / "diagnosis.json.tmp"
+    tmp.write_text(json.dumps(diagnosis, indent=2, default=float) + "\n")
+    tmp.replace(dst / "diagnosis.json")
+    return line
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("entries", nargs="+", help="saved suite entry folders")
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--gpus", default=None)
+    args = parser.parse_args(argv)
+    if args.jobs <= 1:
+        for entry in args.entries:
+            print(measure(entry, args.out), flush=True)
+        return 0
+    jobs = {Path(e).name: (e, args.out) for e in args.entries}
+    run_jobs(
+        measure,
+        jobs,
+        workers=args.jobs,
+        gpus=args.gpus,
+        on_result=lambda name, line: print(line, flush=True),
+        on_error=lambda name, error: print(f"{name}: FAILED {error!r}", flush=True),
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
