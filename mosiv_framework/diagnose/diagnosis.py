@@ -8,8 +8,9 @@ together are what the decision judges models on, frames none of the compared ref
 "Model" has two routes per model (the null and each kept candidate): a refit from the run's
 identified state (``model.refit``) and, in the full budget, an identification from scratch
 with the run's schedule (``reidentify``); the better fit of the two is kept, then every model
-may continue from the best state any model found (``model.converge_*``). The evidence is
-recorded beside the model's resolution floor (``floor``).
+may continue from the best state any model found (``model.converge_*``). The evidence
+includes each standing candidate's own effect (``effect``) against the null's resolution floor
+(``floor``).
 """
 
 from __future__ import annotations
@@ -24,12 +25,14 @@ from mosiv_framework.diagnose.candidates import build_candidates
 from mosiv_framework.diagnose.context import load_run
 from mosiv_framework.diagnose.decide import (
     DecideOptions,
+    apply_effect_test,
     apply_interval_test,
     decide,
     frame_errors,
     verdict,
 )
-from mosiv_framework.diagnose.floor import resolution_floor
+from mosiv_framework.diagnose.effect import measure_effect
+from mosiv_framework.diagnose.floor import resolution_floor, summarise_floor
 from mosiv_framework.diagnose.hypothesise import choose_refits, regression_estimate, screen
 from mosiv_framework.diagnose.interval import coefficient_interval
 from mosiv_framework.diagnose.locate import locate
@@ -74,9 +77,10 @@ def null_starts(regression) -> list:
 class Budget:
     """How much a diagnosis may compute: candidates refitted, refit iterations and starts,
     bootstrap resamples, the fraction of the observed window held out, the steps a
-    regression start settles the shared parameters first (``RefitOptions.settle``), and
+    regression start settles the shared parameters first (``RefitOptions.settle``),
     whether every model is also identified afresh with the run's schedule (``reidentify``;
-    the better of that and its refit is kept)."""
+    the better of that and its refit is kept), and the backtracking steps that end every
+    refit (``RefitOptions.polish``)."""
 
     max_candidates: int
     iterations: int
@@ -85,6 +89,7 @@ class Budget:
     heldout_fraction: float = 0.25
     settle: int = 0
     reidentify: bool = False
+    polish: int = 0
 
 
 BUDGETS = {
@@ -94,7 +99,13 @@ BUDGETS = {
     # four candidates: wind ranked fourth in the screen of wind-1 and was never refitted with
     # three (full suite, session 10)
     "full": Budget(
-        max_candidates=4, iterations=20, starts=3, bootstrap=1000, settle=20, reidentify=True
+        max_candidates=4,
+        iterations=20,
+        starts=3,
+        bootstrap=1000,
+        settle=20,
+        reidentify=True,
+        polish=10,
     ),
 }
 
@@ -217,7 +228,9 @@ def diagnose_run(
             regimes=location.regimes,
         )
         kept = choose_refits(screens, budget.max_candidates)
-        refit_options = RefitOptions(iterations=budget.iterations, settle=budget.settle)
+        refit_options = RefitOptions(
+            iterations=budget.iterations, settle=budget.settle, polish=budget.polish
+        )
         say(f"refitting the null model and {[s.candidate.name for s in kept]}")
         null_start = regression_estimate(
             ctx, None, location.residuals, location.regimes, fit_frames
@@ -280,6 +293,16 @@ def diagnose_run(
         }
         evidence = apply_interval_test(
             evidence, {n: [list(p) for p in zip(*b)] for n, b in bounds.items()}, rule
+        )
+        # and every candidate still standing has its own effect measured against the floor
+        effects = {
+            e.name: measure_effect(ctx, by_name[e.name], result["frames"])
+            for e in evidence
+            if e.accepted
+        }
+        floor = summarise_floor(result["resolution_floor"], result["frames"])
+        evidence = apply_effect_test(
+            evidence, {n: v for n, v in effects.items() if v is not None}, floor, rule
         )
         if evidence and evidence[0].accepted:
             accepted = by_name[evidence[0].name]
