@@ -66,3 +66,32 @@ def test_stiffness_ceiling_puts_the_p_wave_at_the_cfl_speed():
     # a start above the ceiling starts at it; the optimiser's bound is the ceiling
     e2 = float(vec.physical().objects[2].values["E"])
     assert e2 == pytest.approx(vec.specs["obj2.E"].upper, rel=1e-5) and e2 < 1e6
+
+
+@pytest.mark.parametrize("backend", ["warp-mpm", "taichi-mpm"])
+def test_ballistic_fit_of_a_simulated_fall_recovers_v0_once_given_the_time_step(backend):
+    """A free body rolled out by an MPM backend: its centroid follows symplectic Euler, whose
+    line through c(t) - g t^2 / 2 has slope v0 + g h / 2 (h the substep). Told h, the fit
+    returns the v0 the simulator was given; without it, one off by g h / 2."""
+    from mosiv_framework.registry import get_registry
+    from mosiv_framework.testing.shapes import block, default_params
+
+    if backend not in get_registry().names("simulator"):
+        pytest.skip(f"simulator {backend!r} is not installed")
+    substeps = 10
+    sim = get_registry().create(
+        "simulator", backend, {"grid": 16, "substeps": substeps, "device": "cpu"}
+    )
+    world = World((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), gravity=G, ground_height=None, fps=FPS)
+    particles = block((0.4, 0.4, 0.5), (0.5, 0.5, 0.6), spacing=0.025, object_id=1)
+    v0 = (0.3, -0.2, 0.8)
+    params = default_params(particles, velocities={1: v0})
+    traj = sim.rollout(particles, params, world=world, frames=4)
+    points = {1: traj.object_positions(1).detach()}
+    h = 1.0 / (FPS * substeps)
+    told = initial_velocity_from_points(points, fps=FPS, gravity=G, frames=5, time_step=h)[1]
+    assert torch.allclose(told.double(), torch.tensor(v0, dtype=torch.float64), atol=2e-5)
+    untold = initial_velocity_from_points(points, fps=FPS, gravity=G, frames=5)[1]
+    bias = untold.double() - torch.tensor(v0, dtype=torch.float64)
+    expected = 0.5 * h * torch.tensor(G, dtype=torch.float64)  # -20 mm/s in z here
+    assert torch.allclose(bias, expected, atol=2e-5)

@@ -269,7 +269,11 @@ def start_vector(
     dx = world.extent / grid if isinstance(grid, int) and grid > 0 else None
     gap = section.contact_gap or (2.0 * dx if dx else 0.02)
     free = free_flight_frames(targets, world, gap=gap)
-    v0 = initial_velocity_from_points(targets, fps=scene.fps, gravity=scene.gravity, frames=free)
+    # the simulator's step, where its options name one (substeps per frame)
+    step = 1.0 / (scene.fps * substeps) if isinstance(substeps, int) and substeps > 0 else 0.0
+    v0 = initial_velocity_from_points(
+        targets, fps=scene.fps, gravity=scene.gravity, frames=free, time_step=step
+    )
     ceilings = None
     if section.stiffness_cfl > 0 and dx and isinstance(substeps, int) and substeps > 0:
         ceilings = stiffness_ceilings(

@@ -36,6 +36,7 @@ def initial_velocity_from_points(
     fps: float,
     gravity: tuple[float, float, float],
     frames: int = 2,
+    time_step: float = 0.0,
 ) -> dict[int, torch.Tensor]:
     """v0 per object from a least-squares ballistic fit of its centroid over ``frames`` frames.
 
@@ -43,6 +44,13 @@ def initial_velocity_from_points(
     does internally (rotation, vibration), so over the frames before any contact
     c(t) - g t^2 / 2 is a straight line in t whose slope is v0 (m/s). With ``frames=2`` this is
     v0 = (c(1) - c(0)) / dt - g dt / 2.
+
+    ``time_step`` (s): the step h of the simulator that will roll v0 out. Symplectic Euler (v +=
+    g h, then x += v h, as both MPM backends step) moves a free centroid by v0 t + g h^2 n (n + 1)
+    / 2 after n steps, i.e. c0 + (v0 + g h / 2) t + g t^2 / 2: the line's slope is v0 + g h / 2,
+    so g h / 2 is taken off. Without it, the velocities handed to that simulator are off by
+    g h / 2 (3.4 mm/s at 24 fps and 60 substeps), which identification did not fully remove and
+    a diagnosis then took for a gravity change (sessions 15-17, every control scene).
     """
     g = torch.tensor(gravity, dtype=torch.float64)
     out = {}
@@ -52,7 +60,8 @@ def initial_velocity_from_points(
         c = pts[:n].to(torch.float64).mean(dim=1) - 0.5 * t[:, None] ** 2 * g
         # slope of the least-squares line through (t_i, c_i): cov(t, c) / var(t)
         tc = t - t.mean()
-        out[k] = ((tc[:, None] * (c - c.mean(dim=0))).sum(0) / (tc**2).sum()).to(torch.float32)
+        slope = (tc[:, None] * (c - c.mean(dim=0))).sum(0) / (tc**2).sum()
+        out[k] = (slope - 0.5 * time_step * g).to(torch.float32)
     return out
 
 
