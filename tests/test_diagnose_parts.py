@@ -1167,3 +1167,37 @@ def test_a_replayed_suite_folder_without_scenes_scores_coefficients_from_the_ent
     assert score["correct"] and score["accepted"] == "wind"
     assert score["coefficient_error"] == pytest.approx(saved["coefficient_error"], rel=1e-9)
     assert "control-0" in summary["missing"]
+
+
+def test_the_screen_walks_out_along_the_descent_direction_when_the_loss_keeps_falling():
+    """A bounce lowers the loss slowly at small restitution and fast at large. Where the loss
+    curves down, the probe's quadratic model has no minimum; where it curves up but keeps
+    falling, the model's minimum is too close. Either way the screen rolls out longer
+    steps and starts the refit near the lowest, not a step or two (0.01) from zero."""
+    from mosiv_framework.diagnose.candidates import build_candidates
+    from mosiv_framework.diagnose.hypothesise import screen
+
+    shapes = {
+        "concave": lambda e: 1.0 - 0.05 * e - 0.9 * e**2,  # lowest at the bound e = 1
+        # convex, still falling at the bound: a quadratic model from the probe stops near 0.025
+        "convex": lambda e: 1.0 / (1.0 + 20.0 * e),
+    }
+    for name, loss_of in shapes.items():
+
+        class FakeContext(_FakeContext):
+            def simulate(self, params, *, frames):
+                return params
+
+            rollout = simulate
+
+            def loss(self, params, frames, loss_of=loss_of):
+                zero = torch.tensor(0.0)
+                return loss_of(params.terms.get("ground_restitution", {}).get("coefficient", zero))
+
+        ctx = FakeContext(frozenset({"ground_restitution"}), ground_height=0.0)
+        bounce = next(c for c in build_candidates(ctx)[0] if c.name == "ground_restitution")
+        (result,) = screen(ctx, [bounce], flagged_regimes=["ground_contact"], fit_frames=[1, 2])
+        theta = float(result.theta[0])
+        assert theta >= 0.3, name  # the rungs: 0.0316, 0.1, 0.316, 1.0
+        assert result.drop_fraction == pytest.approx(1.0 - float(loss_of(result.theta[0]))), name
+        assert "walked" in result.note, name
