@@ -29,13 +29,12 @@ import sys
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 
 from mosiv_framework.diagnose.candidates import build_candidates
-from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.diagnose.context import RunContext, build_context
 from mosiv_framework.diagnose.effect import effect_tables, summarise_effect
 from mosiv_framework.diagnose.floor import resolution_floor, summarise_floor
-from mosiv_framework.diagnose.suite import DEFAULT_RECIPES, suite_entries
+from mosiv_framework.diagnose.suite import DEFAULT_RECIPES, entry_overrides, suite_entries
 from mosiv_framework.pipeline import _component, ensure_scene
 from mosiv_framework.pipeline.rundir import RunDir
 from mosiv_framework.recipes import load_recipe
@@ -45,48 +44,23 @@ from mosiv_framework.workers import run_jobs
 
 
 def prepare(entry, run_dir: Path) -> RunContext:
-    """The entry's scene, reconstruction and particles (made once, then reloaded)."""
-    overrides = [
-        f"scene.path={run_dir / 'scene'}",
-        f"output.dir={run_dir}",
-        f"scene.source.materials={entry.materials}",
-        f"scene.source.seed={entry.seed}",
-        *entry.overrides,
-    ]
-    if entry.conceal:
-        overrides.append(f"scene.source.conceal='{entry.conceal}'")
-    recipe = load_recipe(DEFAULT_RECIPES[False], overrides)
+    """The entry's scene, reconstruction and particles (made once, then reloaded), with no
+    identified model yet (the caller sets it from the diagnosis file)."""
+    recipe = load_recipe(DEFAULT_RECIPES[False], entry_overrides(entry, run_dir))
     rd = RunDir(run_dir)
     scene = ensure_scene(recipe.scene, rd)
-    registry = get_registry()
     if rd.path("particles.pt").is_file():
         reconstruction = rd.load_torch("reconstruction.pt")
         particles = rd.load_torch("particles.pt")
     else:
+        registry = get_registry()
         name, options = _component(recipe.reconstructor)
         reconstruction = registry.create("reconstructor", name, options).fit(scene, run_dir=rd.root)
         name, options = _component(recipe.lifter)
         particles = registry.create("lifter", name, options).lift(reconstruction, scene)
         rd.save_torch("reconstruction.pt", reconstruction)
         rd.save_torch("particles.pt", particles)
-    sim_options = dict(OmegaConf.to_container(recipe.simulator, resolve=True))
-    sim_name = sim_options.pop("name")
-    simulator = registry.create("simulator", sim_name, sim_options)
-    targets = {int(k): v.detach().float().cpu() for k, v in reconstruction.points.items()}
-    n_frames = min(scene.n_frames, min(t.shape[0] for t in targets.values()))
-    return RunContext(
-        run_dir=rd,
-        recipe=recipe,
-        scene=scene,
-        particles=particles,
-        targets=targets,
-        identified=None,  # set from the diagnosis file
-        identified_json={},
-        simulator=simulator,
-        simulator_name=sim_name,
-        observed_frames=min(scene.observed_frames, n_frames),
-        n_frames=n_frames,
-    )
+    return build_context(rd, recipe, scene, reconstruction, particles, None, {})
 
 
 def params_from_shift(ctx: RunContext, shift: dict, side: str) -> SimulationParams:

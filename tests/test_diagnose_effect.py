@@ -31,7 +31,7 @@ FRAMES = 4
 
 
 def test_a_steady_acceleration_moves_a_free_body_by_half_a_t_squared():
-    if "warp-mpm" not in get_registry().names("simulator"):
+    if "warp-mpm" not in get_registry().names("simulator"):  # an optional plugin
         pytest.skip("simulator 'warp-mpm' is not installed")
     sim = get_registry().create(
         "simulator", "warp-mpm", {"grid": 16, "substeps": SUBSTEPS, "device": "cpu"}

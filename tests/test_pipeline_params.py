@@ -76,7 +76,7 @@ def test_ballistic_fit_of_a_simulated_fall_recovers_v0_once_given_the_time_step(
     from mosiv_framework.registry import get_registry
     from mosiv_framework.testing.shapes import block, default_params
 
-    if backend not in get_registry().names("simulator"):
+    if backend not in get_registry().names("simulator"):  # each backend is an optional plugin
         pytest.skip(f"simulator {backend!r} is not installed")
     substeps = 10
     sim = get_registry().create(

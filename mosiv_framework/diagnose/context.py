@@ -188,17 +188,37 @@ def load_run(run_dir: str | Path, *, simulator_overrides: dict | None = None) ->
             f"`mosiv run RECIPE output.dir={rd.root}` first"
         )
     recipe = OmegaConf.load(rd.path("recipe.yaml"))
-    scene = read_scene(recipe.scene.path)
-    reconstruction = rd.load_torch("reconstruction.pt")
-    particles = rd.load_torch("particles.pt")
     identified_json = rd.load_json("identified.json")
-    identified = ParameterVector.from_json(identified_json)
+    return build_context(
+        rd,
+        recipe,
+        read_scene(recipe.scene.path),
+        rd.load_torch("reconstruction.pt"),
+        rd.load_torch("particles.pt"),
+        ParameterVector.from_json(identified_json),
+        identified_json,
+        simulator_overrides=simulator_overrides,
+    )
 
-    registry = get_registry()
+
+def build_context(
+    rd: RunDir,
+    recipe: DictConfig,
+    scene: Scene,
+    reconstruction,
+    particles: ParticleSet,
+    identified: SimulationParams | None,
+    identified_json: dict,
+    *,
+    simulator_overrides: dict | None = None,
+) -> RunContext:
+    """A RunContext from a run's parts: the recipe's simulator (with ``simulator_overrides``)
+    and the reconstruction's points as targets, over the frames both the scene and the
+    reconstruction cover."""
     sim_options = dict(OmegaConf.to_container(recipe.simulator, resolve=True))
     sim_name = sim_options.pop("name")
     sim_options.update(simulator_overrides or {})
-    simulator = registry.create("simulator", sim_name, sim_options)
+    simulator = get_registry().create("simulator", sim_name, sim_options)
     losses = OmegaConf.to_container(recipe.losses, resolve=True)
     targets = {int(k): v.detach().float().cpu() for k, v in reconstruction.points.items()}
     n_frames = min(scene.n_frames, min(t.shape[0] for t in targets.values()))

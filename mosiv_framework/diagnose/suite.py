@@ -174,16 +174,8 @@ def score_entry(entry: Entry, diagnosis: dict, effects: list[dict]) -> Score:
     )
 
 
-def run_entry(entry: Entry, out: Path, recipe_path: Path, budget: str, say=print) -> Score:
-    """Generate, run, diagnose and score one entry into ``out/entry.name``.
-
-    The score is written atomically to ``score.json`` last, so a suite stopped part-way resumes
-    from the entries without one (the pipeline itself resumes its finished stages).
-    """
-    run_dir = out / entry.name
-    done = run_dir / "score.json"
-    if done.exists():
-        return Score(**json.loads(done.read_text()))
+def entry_overrides(entry: Entry, run_dir: Path) -> list[str]:
+    """The recipe overrides that make the suite's recipe run ``entry`` into ``run_dir``."""
     overrides = [
         f"scene.path={run_dir / 'scene'}",
         f"output.dir={run_dir}",
@@ -194,9 +186,21 @@ def run_entry(entry: Entry, out: Path, recipe_path: Path, budget: str, say=print
         overrides.append(f"scene.source.conceal='{entry.conceal}'")
     if entry.exclude:
         overrides.append(f"diagnose.exclude=[{entry.exclude}]")
-    overrides += list(entry.overrides)
+    return overrides + list(entry.overrides)
+
+
+def run_entry(entry: Entry, out: Path, recipe_path: Path, budget: str, say=print) -> Score:
+    """Generate, run, diagnose and score one entry into ``out/entry.name``.
+
+    The score is written atomically to ``score.json`` last, so a suite stopped part-way resumes
+    from the entries without one (the pipeline itself resumes its finished stages).
+    """
+    run_dir = out / entry.name
+    done = run_dir / "score.json"
+    if done.exists():
+        return Score(**json.loads(done.read_text()))
     say(f"[suite] {entry.name}: {entry.conceal or 'control'} on {entry.materials}")
-    run_pipeline(load_recipe(recipe_path, overrides), run_dir=run_dir)
+    run_pipeline(load_recipe(recipe_path, entry_overrides(entry, run_dir)), run_dir=run_dir)
     diagnosis = diagnose_run(run_dir, budget=budget, say=lambda m: say(f"[suite]   {m}"))
     effects = read_scene(run_dir / "scene").gt_effects()  # scoring only, after diagnosis
     score = score_entry(entry, diagnosis, effects)
