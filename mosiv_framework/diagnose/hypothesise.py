@@ -256,7 +256,6 @@ def _walk_out(
     direction: torch.Tensor,
     limit: float,
     *,
-    horizon: int,
     fit_frames: list[int],
 ) -> tuple[float, float]:
     """(step, loss) of the best of FALLBACK_RUNGS - 1 steps along ``direction`` beyond the
@@ -274,19 +273,21 @@ def _walk_out(
         return best_step, best_loss
     for i in range(1, FALLBACK_RUNGS):
         step = top ** (i / (FALLBACK_RUNGS - 1))
-        try:
-            with torch.no_grad():
-                loss = float(
-                    ctx.loss(
-                        ctx.rollout(c.apply(ctx.identified, step * direction), frames=horizon),
-                        fit_frames,
-                    )
-                )
-        except SimulationDiverged:
-            continue
+        loss = _loss_at(ctx, c, step * direction, fit_frames=fit_frames)
         if loss < best_loss:
             best_step, best_loss = step, loss
     return best_step, best_loss
+
+
+def _loss_at(ctx: RunContext, c: Candidate, theta: torch.Tensor, *, fit_frames: list[int]) -> float:
+    """Fit-frame loss of the run's identified model with ``c`` on at ``theta`` (inf if the
+    rollout diverges)."""
+    try:
+        with torch.no_grad():
+            traj = ctx.rollout(c.apply(ctx.identified, theta), frames=max(fit_frames))
+            return float(ctx.loss(traj, fit_frames))
+    except SimulationDiverged:
+        return math.inf
 
 
 def _screen_ladder(
@@ -304,14 +305,7 @@ def _screen_ladder(
     best_theta, best_loss, losses = c.zero(), base, []
     for rung in rungs:
         theta = c.clamp(torch.full((c.dim,), float(rung)))
-        try:
-            loss = float(
-                ctx.loss(
-                    ctx.rollout(c.apply(ctx.identified, theta), frames=max(fit_frames)), fit_frames
-                )
-            )
-        except SimulationDiverged:
-            loss = math.inf
+        loss = _loss_at(ctx, c, theta, fit_frames=fit_frames)
         losses.append(loss)
         if loss < best_loss:
             best_theta, best_loss = theta, loss
@@ -417,7 +411,7 @@ def screen(
         else:  # concave: the quadratic model has no minimum; the probe is what is known
             step, predicted = 1.0, float(probe)
         walk_note = ""
-        far, far_loss = _walk_out(ctx, c, direction, limit, horizon=horizon, fit_frames=fit_frames)
+        far, far_loss = _walk_out(ctx, c, direction, limit, fit_frames=fit_frames)
         if far_loss < predicted:
             step, predicted = far, far_loss
             walk_note = f"walked {far:.3g} steps along the descent direction; "
