@@ -1201,3 +1201,18 @@ def test_the_screen_walks_out_along_the_descent_direction_when_the_loss_keeps_fa
         assert theta >= 0.3, name  # the rungs: 0.0316, 0.1, 0.316, 1.0
         assert result.drop_fraction == pytest.approx(1.0 - float(loss_of(result.theta[0]))), name
         assert "walked" in result.note, name
+
+
+def test_coefficient_error_is_relative_to_truth_or_to_the_change_when_truth_is_zero():
+    from mosiv_framework.diagnose.suite import coefficient_error
+
+    wind = {"kind": "wind", "params": {"acceleration": [2.0, 0.0, 0.0]}}
+    assert coefficient_error({"value": {"acceleration": [2.2, 0.0, 0.0]}}, wind) == (
+        pytest.approx(0.1)
+    )
+    # frictionless bodies (truth 0) against an assumed 0.3: 0.009 is 3 % of the 0.3 change
+    frictionless = {"kind": "object_friction", "params": {"coefficient": 0.0}}
+    fitted = {"value": {"friction_change": -0.291, "coefficient": 0.009}}
+    assert coefficient_error(fitted, frictionless) == pytest.approx(0.03)
+    # nothing to compare with: no error rather than a division by zero
+    assert coefficient_error({"value": {"coefficient": 0.1}}, frictionless) is None

@@ -121,7 +121,12 @@ class Score:
 
 
 def coefficient_error(accepted: dict, effect: dict) -> float | None:
-    """Relative error |fitted - true| / |true| of the accepted effect against gt/effects.json."""
+    """Relative error |fitted - true| / |true| of the accepted effect against gt/effects.json.
+
+    A concealed value of zero (frictionless bodies) has no relative error; there the error is
+    relative to the concealed change instead, |fitted - true| / |true - assumed|, with the
+    assumed value recovered from the fitted value and its change (``friction_change``).
+    """
     true = effect["params"]
     value = accepted["value"]
     if effect["kind"] == "ground_friction":
@@ -134,7 +139,12 @@ def coefficient_error(accepted: dict, effect: dict) -> float | None:
         truth = true[name] if isinstance(true[name], list) else [true[name]]
     diff = math.sqrt(sum((a - b) ** 2 for a, b in zip(fitted, truth)))
     norm = math.sqrt(sum(b * b for b in truth))
-    return diff / max(norm, 1e-12)
+    if norm == 0.0 and "friction_change" in value and len(fitted) == 1:
+        assumed = fitted[0] - value["friction_change"]
+        norm = abs(truth[0] - assumed)
+    if norm == 0.0:
+        return None  # neither a true value nor a concealed change to compare with
+    return diff / norm
 
 
 def candidate_kind(name: str) -> str:
