@@ -374,6 +374,7 @@ def test_suite_resumes_scored_entries_and_rejects_unknown_names(tmp_path):
     assert summary["scores"] == [asdict(stored)]
     assert summary["missing"] == []
     assert summary["correct_first_rate"] == 1.0
+    assert (tmp_path / "suite.png").stat().st_size > 0  # the suite's figure next to its table
     with pytest.raises(ConfigError, match="valid"):
         run_suite(tmp_path, small=True, only=["no-such-entry"], say=lambda m: None)
 
@@ -1216,3 +1217,57 @@ def test_coefficient_error_is_relative_to_truth_or_to_the_change_when_truth_is_z
     assert coefficient_error(fitted, frictionless) == pytest.approx(0.03)
     # nothing to compare with: no error rather than a division by zero
     assert coefficient_error({"value": {"coefficient": 0.1}}, frictionless) is None
+
+
+def test_suite_figure_draws_every_kind_of_entry(tmp_path):
+    """The suite figure takes controls and misses (no coefficient, no reduction), a term that
+    made the future worse, and an exact coefficient, and refuses an empty suite."""
+    import imageio.v3 as iio
+
+    from mosiv_framework.diagnose.suite import Score, summarise
+    from mosiv_framework.diagnose.suite_plot import plot_suite
+
+    scores = [
+        Score(
+            "wind-0",
+            "wind:acceleration=1.5,0,0",
+            "missing physics",
+            "wind",
+            "wind",
+            True,
+            182.0,
+            0.0,
+            0.99,
+        ),
+        Score(
+            "ground_restitution-1",
+            "ground_restitution:coefficient=0.9",
+            "unexplained",
+            None,
+            "ground_restitution",
+            False,
+            26.6,
+            None,
+            None,
+        ),
+        Score("control-1", "-", "missing physics", "gravity", "gravity", False, 49.3, None, -0.4),
+        Score(
+            "outside-gravity",
+            "gravity:acceleration=0,0,-7.5",
+            "unexplained",
+            None,
+            None,
+            True,
+            64.8,
+            None,
+            None,
+        ),
+    ]
+    summary = summarise(scores)
+    path = plot_suite(summary, tmp_path / "suite.png")
+    image = iio.imread(path)
+    assert image.ndim == 3 and image.shape[0] > 200 and image.shape[1] > 800
+    # not a blank canvas: the green and red markers are drawn
+    assert image[..., :3].std() > 10
+    with pytest.raises(ValueError, match="no scored entries"):
+        plot_suite(summarise([]), tmp_path / "empty.png")

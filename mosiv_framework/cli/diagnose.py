@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 
+from mosiv_framework.errors import ConfigError
+
 
 def add_parsers(sub) -> None:
     diag = sub.add_parser("diagnose", help="locate and explain what the fitted model misses")
@@ -62,6 +64,12 @@ def add_parsers(sub) -> None:
         type=float,
         help="resolution floors a term's own effect on the fit frames must reach (0: off, the default)",
     )
+    suite.add_argument(
+        "--plot",
+        metavar="PNG",
+        help="with --replay: also draw the replayed suite into this file (a run always writes "
+        "OUT/suite.png)",
+    )
     suite.set_defaults(handler=diagnose_suite)
 
 
@@ -84,6 +92,8 @@ def diagnose_suite(args) -> int:
 
     if args.replay:
         return _replay(args)
+    if args.plot:
+        raise ConfigError("--plot draws a replayed suite: give it with --replay")
 
     run_suite(
         args.out,
@@ -115,4 +125,8 @@ def _replay(args) -> int:
     summary = replay_suite(args.out, options, small=args.small)
     print(f"replayed under {summary['rule']}")
     print(table(summary))
+    if args.plot:
+        from mosiv_framework.diagnose.suite_plot import plot_suite
+
+        print(f"figure: {plot_suite(summary, args.plot)}")
     return 0

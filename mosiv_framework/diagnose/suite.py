@@ -294,6 +294,10 @@ def run_suite(
     summary["missing"] = [e.name for e in entries if e.name not in scores]
     (out / "suite.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
     (out / "suite.md").write_text(table(summary) + "\n")
+    if ordered:
+        from mosiv_framework.diagnose.suite_plot import plot_suite
+
+        plot_suite(summary, out / "suite.png")
     say(table(summary))
     return summary
 
