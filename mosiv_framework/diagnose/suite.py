@@ -302,10 +302,19 @@ def run_suite(
     return summary
 
 
+def entry_group(name: str, concealed: str) -> str:
+    """'control' (nothing concealed), 'outside' (an effect outside the library, which the
+    suite's entry names say) or 'concealed'."""
+    if concealed == "-":
+        return "control"
+    return "outside" if "outside" in name else "concealed"
+
+
 def summarise(scores: list[Score]) -> dict:
-    concealed = [s for s in scores if s.concealed != "-" and "outside" not in s.name]
-    controls = [s for s in scores if s.concealed == "-"]
-    outside = [s for s in scores if "outside" in s.name]
+    groups = {g: [] for g in ("concealed", "control", "outside")}
+    for s in scores:
+        groups[entry_group(s.name, s.concealed)].append(s)
+    concealed, controls, outside = groups["concealed"], groups["control"], groups["outside"]
     strong = [s for s in concealed if s.signal_to_noise >= 3.0]
     coefs = [s.coefficient_error for s in concealed if s.coefficient_error is not None]
     reductions = [s.future_reduction for s in concealed if s.future_reduction is not None]

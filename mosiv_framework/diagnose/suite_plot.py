@@ -6,19 +6,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from mosiv_framework.diagnose.suite import entry_group
+
 #: issue 9's targets, drawn as reference lines
 TARGET_COEFFICIENT_ERROR = 0.15
 TARGET_FUTURE_REDUCTION = 0.5
 #: coefficient errors below this are drawn at it (an exact fit has no place on a log axis)
 SMALLEST_DRAWN_ERROR = 1e-3
-
-
-def entry_group(score: dict) -> str:
-    """'control' (nothing concealed), 'outside' (an effect outside the library) or
-    'concealed'."""
-    if score["concealed"] == "-":
-        return "control"
-    return "outside" if "outside" in score["name"] else "concealed"
 
 
 def plot_suite(summary: dict, path: str | Path) -> Path:
@@ -43,7 +37,10 @@ def plot_suite(summary: dict, path: str | Path) -> Path:
     snr_ax, coef_ax, future_ax = axes
     for row, s, colour in zip(rows, scores, colours):
         snr_ax.scatter(
-            max(s["signal_to_noise"], 1e-3), row, color=colour, marker=markers[entry_group(s)]
+            max(s["signal_to_noise"], 1e-3),
+            row,
+            color=colour,
+            marker=markers[entry_group(s["name"], s["concealed"])],
         )
         if s["coefficient_error"] is not None:
             coef_ax.scatter(
