@@ -14,9 +14,18 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import pickle
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
 from collections.abc import Callable, Hashable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO
 
 GPUS_VARIABLE = "MOSIV_GPUS"
 
@@ -58,6 +67,35 @@ def worker_pool(jobs: int, *, gpus: str | Sequence[str] | None = None) -> Proces
     )
 
 
+class WorkerDied(RuntimeError):
+    """A job's process ended without a result or an exception: killed by a signal (the
+    out-of-memory killer, a crash in native code) or stopped by ``os._exit``."""
+
+    def __init__(self, key: Hashable, exit_code: int, log: Path | None):
+        self.key, self.exit_code, self.log = key, exit_code, log
+        where = f" (its output: {log})" if log is not None else ""
+        super().__init__(f"the process of job {key!r} {describe_exit(exit_code)}{where}")
+
+
+def describe_exit(exit_code: int) -> str:
+    """``exit_code`` of a child process in words: negative codes are the signal that ended it."""
+    if exit_code < 0:
+        try:
+            name = signal.Signals(-exit_code).name
+        except ValueError:
+            name = f"signal {-exit_code}"
+        return f"was killed by {name} (signal {-exit_code})"
+    return f"exited with code {exit_code} and no result"
+
+
+@dataclass
+class _Running:
+    process: subprocess.Popen
+    folder: Path
+    gpu: str | None
+    log: IO | None
+
+
 def run_jobs(
     fn: Callable,
     jobs_by_key: dict[Hashable, tuple],
@@ -65,48 +103,106 @@ def run_jobs(
     workers: int,
     gpus: str | Sequence[str] | None = None,
     retries: int = 2,
+    logs: dict[Hashable, Path] | None = None,
     on_result: Callable = lambda key, result: None,
     on_error: Callable = lambda key, error: None,
-    on_retry: Callable = lambda keys: None,
+    on_retry: Callable = lambda key, died: None,
+    poll_s: float = 0.2,
 ) -> dict:
-    """``fn(*args)`` for every ``key: args`` of ``jobs_by_key`` in a :func:`worker_pool`;
-    returns ``{key: result}`` for the jobs that finished, calling ``on_result`` for each as it
-    does, ``on_error`` for each job that raised, and ``on_retry`` with the keys of the jobs a
-    dead worker cut short before they run again.
+    """``fn(*args)`` for every ``key: args`` of ``jobs_by_key``, each job in a process of its
+    own (``python -m mosiv_framework.worker_main``), at most ``workers`` at once, each pinned
+    to the listed GPU (:func:`gpu_list`) running the fewest jobs. Returns ``{key: result}``
+    for the jobs that finished, calling ``on_result`` for each as it does, ``on_error`` for
+    each job that raised or died too often, and ``on_retry(key, WorkerDied)`` for each job
+    run again after its process died.
 
-    A worker process that dies (a crash in native code, the out-of-memory killer) breaks the
-    whole pool: every job still in it fails with ``BrokenProcessPool``, not only the one that
-    crashed (13 diagnosis entries were lost that way at once, session 15). Those jobs are
-    submitted again to a fresh pool, up to ``retries`` more rounds, so the work a suite's
-    entries had saved (their finished stages) is picked up where it stopped; a job that
-    raised an ordinary exception is not retried.
+    One process per job, not a pool: a pool's worker that dies breaks the whole pool, and
+    every job in it fails with no word of why (8 diagnosis entries, three times over, on two
+    H200s in session 19; 13 in session 15). Here a job whose process dies (a signal, a crash
+    in native code: the child runs with ``-X faulthandler``) costs only itself, the signal is
+    named, and it runs again, up to ``retries`` more times, from the work it had saved. A job
+    that raised an ordinary exception is not retried. ``logs`` (key: file) appends each job's
+    output to its own file instead of this process's.
     """
     results: dict = {}
-    pending = dict(jobs_by_key)
-    for round_ in range(retries + 1):
-        if not pending:
-            break
-        cut_short: dict = {}
-        with worker_pool(min(workers, len(pending)), gpus=gpus) as pool:
-            futures = {pool.submit(fn, *args): key for key, args in pending.items()}
-            for future in as_completed(futures):
-                key = futures[future]
-                try:
-                    results[key] = future.result()
-                except BrokenProcessPool as error:
-                    if round_ < retries:
-                        cut_short[key] = pending[key]
+    listed = gpu_list(gpus)
+    waiting = list(jobs_by_key)
+    deaths = dict.fromkeys(jobs_by_key, 0)
+    running: dict[Hashable, _Running] = {}
+    started = 0
+    scratch = Path(tempfile.mkdtemp(prefix="mosiv-jobs-"))
+    try:
+        while waiting or running:
+            while waiting and len(running) < max(1, workers):
+                key = waiting.pop(0)
+                gpu = _least_busy(listed, [job.gpu for job in running.values()])
+                log = None if logs is None or key not in logs else logs[key]
+                started += 1
+                running[key] = _start(fn, jobs_by_key[key], scratch / str(started), gpu, log)
+            time.sleep(poll_s)
+            for key in [k for k, job in running.items() if job.process.poll() is not None]:
+                job = running.pop(key)
+                if job.log is not None:
+                    job.log.close()
+                outcome, value = _collect(job)
+                if outcome == "result":
+                    results[key] = value
+                    on_result(key, value)
+                elif outcome == "error":
+                    on_error(key, value)
+                else:
+                    log = None if logs is None else logs.get(key)
+                    died = WorkerDied(key, job.process.returncode, log)
+                    deaths[key] += 1
+                    if deaths[key] <= retries:
+                        on_retry(key, died)
+                        waiting.append(key)
                     else:
-                        on_error(key, error)
-                    continue
-                except Exception as error:  # one broken job must not lose the others
-                    on_error(key, error)
-                    continue
-                on_result(key, results[key])
-        pending = cut_short
-        if pending:
-            on_retry(sorted(pending, key=str))
+                        on_error(key, died)
+    finally:
+        for job in running.values():  # interrupted: leave no orphans behind
+            job.process.kill()
+            job.process.wait()
+        shutil.rmtree(scratch, ignore_errors=True)
     return results
+
+
+def _least_busy(listed: list[str], busy: list[str | None]) -> str | None:
+    if not listed:
+        return None
+    return min(listed, key=lambda gpu: (busy.count(gpu), listed.index(gpu)))
+
+
+def _start(fn, args: tuple, folder: Path, gpu: str | None, log: Path | None) -> _Running:
+    folder.mkdir(parents=True)
+    # the child puts this process's import path in place before it unpickles the job, so a
+    # function of any importable module (a test file too) can be a job
+    payload = pickle.dumps((fn, args))
+    (folder / "job.pkl").write_bytes(pickle.dumps((list(sys.path), payload)))
+    env = dict(os.environ)
+    if gpu is not None:
+        env["CUDA_VISIBLE_DEVICES"] = gpu  # before the child imports any backend
+    handle = None
+    if log is not None:
+        log.parent.mkdir(parents=True, exist_ok=True)
+        handle = log.open("ab")
+    process = subprocess.Popen(
+        [sys.executable, "-X", "faulthandler", "-m", "mosiv_framework.worker_main", str(folder)],
+        env=env,
+        stdin=subprocess.DEVNULL,
+        stdout=handle,
+        stderr=subprocess.STDOUT if handle is not None else None,
+    )
+    return _Running(process, folder, gpu, handle)
+
+
+def _collect(job: _Running) -> tuple[str, object]:
+    """("result", value), ("error", exception) or ("died", None) for a finished job."""
+    for outcome in ("result", "error"):
+        path = job.folder / f"{outcome}.pkl"
+        if path.exists():
+            return outcome, pickle.loads(path.read_bytes())
+    return "died", None
 
 
 def environment_for(index: int, *, gpus: str | Sequence[str] | None = None) -> dict[str, str]:

@@ -1,6 +1,7 @@
 """Suites spread their worker processes over the listed GPUs, one GPU per worker in turn."""
 
 import os
+import signal
 import time
 
 import pytest
@@ -57,8 +58,8 @@ def _crash_once_then_answer(marker: str, key: str, behaviour: str) -> str:
     return key.upper()
 
 
-def test_jobs_cut_short_by_a_dead_worker_run_again_and_a_raising_job_does_not(tmp_path):
-    from mosiv_framework.workers import run_jobs
+def test_a_dead_job_runs_again_alone_and_a_raising_job_does_not(tmp_path):
+    from mosiv_framework.workers import WorkerDied, run_jobs
 
     marker = str(tmp_path / "attempts-")
     behaviours = {"a": "answer", "b": "crash", "c": "answer", "d": "raise"}
@@ -68,35 +69,51 @@ def test_jobs_cut_short_by_a_dead_worker_run_again_and_a_raising_job_does_not(tm
         {key: (marker, key, b) for key, b in behaviours.items()},
         workers=4,
         on_error=lambda key, error: errors.update({key: error}),
-        on_retry=retried.append,
+        on_retry=lambda key, died: retried.append((key, died)),
     )
     assert results == {"a": "A", "b": "B", "c": "C"}
     assert list(errors) == ["d"] and isinstance(errors["d"], ValueError)
-    assert retried and "b" in retried[0]
+    assert [key for key, _ in retried] == ["b"] and isinstance(retried[0][1], WorkerDied)
+    assert "exited with code 1 and no result" in str(retried[0][1])
     assert (tmp_path / "attempts-b").read_text().count("attempt") == 2
-    assert (tmp_path / "attempts-d").read_text().count("attempt") == 1  # not retried
+    # the others ran once: a dead job no longer takes the jobs beside it down
+    for key in "acd":
+        assert (tmp_path / f"attempts-{key}").read_text().count("attempt") == 1
 
 
-def test_a_job_that_kills_its_worker_every_time_fails_after_the_retries(tmp_path):
-    from concurrent.futures.process import BrokenProcessPool
-
-    from mosiv_framework.workers import run_jobs
+def test_a_job_killed_by_a_signal_is_named_and_fails_after_the_retries(tmp_path):
+    from mosiv_framework.workers import WorkerDied, run_jobs
 
     errors = {}
+    log = tmp_path / "logs" / "x.log"
     results = run_jobs(
-        _crash_always,
+        _killed_always,
         {"x": (str(tmp_path / "x"),)},
         workers=1,
         retries=1,
+        logs={"x": log},
         on_error=lambda key, error: errors.update({key: error}),
     )
-    assert results == {} and isinstance(errors["x"], BrokenProcessPool)
+    assert results == {} and isinstance(errors["x"], WorkerDied)
+    assert errors["x"].exit_code == -signal.SIGKILL
+    assert "killed by SIGKILL (signal 9)" in str(errors["x"]) and str(log) in str(errors["x"])
     assert (tmp_path / "x").read_text().count("attempt") == 2  # the first try and one retry
+    assert log.read_text().count("last words") == 2  # each attempt's output, in its log
 
 
-def _crash_always(path: str) -> None:
+def test_jobs_are_pinned_to_the_least_busy_gpu(tmp_path):
+    from mosiv_framework.workers import run_jobs
+
+    results = run_jobs(
+        _visible_devices_after_a_pause, {k: (k,) for k in range(4)}, workers=2, gpus="2,5"
+    )
+    assert sorted(results.values()) == ["2", "2", "5", "5"]
+
+
+def _killed_always(path: str) -> None:
     from pathlib import Path
 
     with Path(path).open("a") as log:
         log.write("attempt\n")
-    os._exit(1)
+    print("last words", flush=True)
+    os.kill(os.getpid(), signal.SIGKILL)

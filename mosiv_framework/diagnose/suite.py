@@ -220,17 +220,10 @@ def run_entry(entry: Entry, out: Path, recipe_path: Path, budget: str, say=print
     return score
 
 
-def _run_entry_quietly(entry: Entry, out: Path, recipe_path: Path, budget: str) -> Score:
-    """A worker process's job: one entry, its log in ``out/entry.name/suite.log``."""
-    log_path = out / entry.name / "suite.log"
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    with log_path.open("a") as log:
-
-        def say(message: str) -> None:
-            log.write(message + "\n")
-            log.flush()
-
-        return run_entry(entry, out, recipe_path, budget, say=say)
+def _run_entry_logged(entry: Entry, out: Path, recipe_path: Path, budget: str) -> Score:
+    """A worker process's job: one entry; its output (``run_jobs`` sends it to the entry's
+    ``suite.log``) flushed line by line, so a process that dies leaves its last words there."""
+    return run_entry(entry, out, recipe_path, budget, say=lambda m: print(m, flush=True))
 
 
 def run_suite(
@@ -278,15 +271,15 @@ def run_suite(
             say(f"[suite] {name} FAILED: {error!r} (log: {out / name}/suite.log)")
 
         run_jobs(
-            _run_entry_quietly,
+            _run_entry_logged,
             {name: (entry, out, recipe_path, budget) for name, entry in by_name.items()},
             workers=jobs,
             gpus=gpus,
+            logs={name: out / name / "suite.log" for name in by_name},
             on_result=done,
             on_error=failed,
-            on_retry=lambda names: say(
-                f"[suite] a worker process died; running {', '.join(names)} again from their "
-                "finished stages"
+            on_retry=lambda name, died: say(
+                f"[suite] {died}; running {name} again from its finished stages"
             ),
         )
     ordered = [scores[e.name] for e in entries if e.name in scores]
