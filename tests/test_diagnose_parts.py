@@ -1271,3 +1271,34 @@ def test_suite_figure_draws_every_kind_of_entry(tmp_path):
     assert image[..., :3].std() > 10
     with pytest.raises(ValueError, match="no scored entries"):
         plot_suite(summarise([]), tmp_path / "empty.png")
+
+
+def test_a_recipe_sets_the_refit_budget_and_bad_values_are_named(tmp_path):
+    from omegaconf import OmegaConf
+
+    from mosiv_framework.diagnose.diagnosis import BUDGETS, resolve_budget
+    from mosiv_framework.recipes import load_recipe
+
+    recipe = "recipes/diagnose_small.yaml"
+    section = load_recipe(
+        recipe, ["diagnose.iterations=40", "diagnose.refit_velocity_lr=1e-4"]
+    ).diagnose
+    budget = resolve_budget("full", section)
+    assert (budget.iterations, budget.velocity_lr) == (40, 1e-4)
+    # what the recipe leaves unset stays the budget's
+    assert (budget.starts, budget.polish) == (BUDGETS["full"].starts, BUDGETS["full"].polish)
+    assert resolve_budget("full", OmegaConf.create({})) == BUDGETS["full"]
+    with pytest.raises(ConfigError, match="budget 'huge' is unknown; valid: \\['full', 'small'\\]"):
+        resolve_budget("huge")
+    with pytest.raises(ConfigError) as err:
+        load_recipe(recipe, ["diagnose.refit_velocity_lr=0", "diagnose.polish=-1"])
+    assert "diagnose.refit_velocity_lr=0.0: must be a positive step in m/s" in str(err.value)
+    assert "diagnose.polish=-1: must be >= 0" in str(err.value)
+
+
+def test_suite_overrides_are_checked_before_any_entry_runs(tmp_path):
+    from mosiv_framework.diagnose.suite import run_suite
+
+    with pytest.raises(ConfigError, match="diagnose.iterations=0: must be >= 1"):
+        run_suite(tmp_path / "suite", small=True, overrides=["diagnose.iterations=0"])
+    assert not any((tmp_path / "suite").glob("*/"))  # nothing generated

@@ -33,6 +33,14 @@ def add_parsers(sub) -> None:
     suite.add_argument("--budget", choices=("small", "full"), help="diagnosis budget")
     suite.add_argument("--only", help="comma-separated entry names to run (default: all)")
     suite.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override every entry's recipe (repeatable), e.g. diagnose.refit_velocity_lr=1e-4",
+    )
+    suite.add_argument(
         "--jobs", type=int, default=1, help="entries run in parallel worker processes"
     )
     suite.add_argument(
@@ -103,6 +111,7 @@ def diagnose_suite(args) -> int:
         only=[name for name in args.only.split(",") if name] if args.only else None,
         jobs=args.jobs,
         gpus=args.gpus,
+        overrides=args.overrides,
         say=lambda m: print(m, flush=True),
     )
     return 0

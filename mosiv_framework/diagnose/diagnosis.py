@@ -79,8 +79,10 @@ class Budget:
     bootstrap resamples, the fraction of the observed window held out, the steps a
     regression start settles the shared parameters first (``RefitOptions.settle``),
     whether every model is also identified afresh with the run's schedule (``reidentify``;
-    the better of that and its refit is kept), and the backtracking steps that end every
-    refit (``RefitOptions.polish``)."""
+    the better of that and its refit is kept), the backtracking steps that end every
+    refit (``RefitOptions.polish``) and the refit's initial-velocity step (m/s per step). A recipe's
+    ``diagnose`` section may set max_candidates, bootstrap, starts, iterations, polish and
+    (as ``refit_velocity_lr``) velocity_lr."""
 
     max_candidates: int
     iterations: int
@@ -90,6 +92,7 @@ class Budget:
     settle: int = 0
     reidentify: bool = False
     polish: int = 0
+    velocity_lr: float = RefitOptions.velocity_lr
 
 
 BUDGETS = {
@@ -145,6 +148,23 @@ def split_frames(
     return fit, sorted(held) + future
 
 
+def resolve_budget(budget: str | Budget, section=None) -> Budget:
+    """The budget named (or given), with what the recipe's ``diagnose`` ``section`` sets."""
+    if isinstance(budget, str):
+        if budget not in BUDGETS:
+            raise ConfigError(f"budget {budget!r} is unknown; valid: {sorted(BUDGETS)}")
+        budget = BUDGETS[budget]
+    if section is None:
+        return budget
+    counts = ("max_candidates", "bootstrap", "starts", "iterations", "polish")
+    budget = replace(
+        budget, **{name: int(section[name]) for name in counts if section.get(name) is not None}
+    )
+    if section.get("refit_velocity_lr") is not None:
+        budget = replace(budget, velocity_lr=float(section["refit_velocity_lr"]))
+    return budget
+
+
 def _better(fit, ctx, candidate, start, fit_frames, schedule):
     """``fit`` or the model re-identified afresh, whichever fits the fit frames better."""
     try:
@@ -172,21 +192,9 @@ def diagnose_run(
     def say(message: str) -> None:
         report(f"{message} [{time.perf_counter() - t_start:.0f} s]")
 
-    if isinstance(budget, str):
-        if budget not in BUDGETS:
-            raise ConfigError(f"budget {budget!r} is unknown; valid: {sorted(BUDGETS)}")
-        budget = BUDGETS[budget]
     ctx = load_run(run_dir, simulator_overrides=simulator_overrides)
     section = ctx.recipe.get("diagnose", None)
-    if section is not None:  # the recipe may narrow the screened terms and set the budget
-        budget = replace(
-            budget,
-            **{
-                name: int(section[name])
-                for name in ("max_candidates", "bootstrap", "starts")
-                if section.get(name) is not None
-            },
-        )
+    budget = resolve_budget(budget, section)
     allowed_names = list(section.terms) if section is not None and section.terms else None
     excluded_names = set(section.exclude) if section is not None else set()
     fit_frames, heldout = split_frames(ctx.observed_frames, ctx.n_frames, budget.heldout_fraction)
@@ -229,7 +237,10 @@ def diagnose_run(
         )
         kept = choose_refits(screens, budget.max_candidates)
         refit_options = RefitOptions(
-            iterations=budget.iterations, settle=budget.settle, polish=budget.polish
+            iterations=budget.iterations,
+            settle=budget.settle,
+            polish=budget.polish,
+            velocity_lr=budget.velocity_lr,
         )
         say(f"refitting the null model and {[s.candidate.name for s in kept]}")
         null_start = regression_estimate(

@@ -14,7 +14,7 @@ import json
 import math
 import os
 import statistics
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from mosiv_framework.diagnose.diagnosis import diagnose_run
@@ -236,14 +236,17 @@ def run_suite(
     only: list[str] | None = None,
     jobs: int = 1,
     gpus: str | None = None,
+    overrides: list[str] | None = None,
     say=print,
 ) -> dict:
     """Generate, run, diagnose and score every entry into ``out``; returns the summary.
 
     ``only`` restricts the suite to the named entries; ``jobs`` > 1 runs entries in that many
-    worker processes (spawned, so each initialises its own simulator device), spread over the
-    GPUs ``gpus`` (e.g. ``"0,1"``; default ``$MOSIV_GPUS``, see :mod:`mosiv_framework.workers`).
-    Entries already scored in ``out`` are not recomputed.
+    worker processes (one per entry, so each initialises its own simulator device), spread over
+    the GPUs ``gpus`` (e.g. ``"0,1"``; default ``$MOSIV_GPUS``, see
+    :mod:`mosiv_framework.workers`). ``overrides`` (``key=value``) apply to every entry's
+    recipe, e.g. ``diagnose.refit_velocity_lr=1e-4``. Entries already scored in ``out`` are not
+    recomputed.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -256,6 +259,10 @@ def run_suite(
         if unknown:
             raise ConfigError(f"suite entries {unknown} do not exist; valid: {sorted(known)}")
         entries = [e for e in entries if e.name in only]
+    if overrides:  # checked once here, rather than failing every entry the same way
+        entries = [replace(e, overrides=(*e.overrides, *overrides)) for e in entries]
+        if entries:
+            load_recipe(recipe_path, entry_overrides(entries[0], out / entries[0].name))
     scores: dict[str, Score] = {}
     if jobs <= 1:
         for entry in entries:

@@ -155,6 +155,31 @@ class DiagnoseSection:
     max_candidates: int | None = None
     bootstrap: int | None = None
     starts: int | None = None
+    #: the budget's Adam steps and backtracking steps per refit start, unless set here
+    iterations: int | None = None
+    polish: int | None = None
+    #: refit step of the initial velocities, m/s per Adam step (default 0.02). Contact scenes
+    #: may want far less: on ground_restitution-1 one 0.02 m/s step took the fit from 10 to
+    #: 12,000 mm^2 (docs/RESULTS.md, session 18)
+    refit_velocity_lr: float | None = None
+
+    @staticmethod
+    def value_problems(values: dict[str, Any]) -> list[str]:
+        """Values the type check cannot catch, each naming the key and what is valid."""
+        out = []
+        for key, least in (
+            ("max_candidates", 1),
+            ("bootstrap", 1),
+            ("starts", 1),
+            ("iterations", 1),
+            ("polish", 0),
+        ):
+            if values.get(key) is not None and values[key] < least:
+                out.append(f"diagnose.{key}={values[key]!r}: must be >= {least} (or null)")
+        lr = values.get("refit_velocity_lr")
+        if lr is not None and not lr > 0:
+            out.append(f"diagnose.refit_velocity_lr={lr!r}: must be a positive step in m/s")
+        return out
 
 
 @dataclass
