@@ -1287,6 +1287,10 @@ def test_a_recipe_sets_the_refit_budget_and_bad_values_are_named(tmp_path):
     assert (budget.iterations, budget.velocity_lr) == (40, 1e-4)
     # what the recipe leaves unset stays the budget's
     assert (budget.starts, budget.polish) == (BUDGETS["full"].starts, BUDGETS["full"].polish)
+    assert not budget.far_start
+    assert resolve_budget(
+        "full", load_recipe(recipe, ["diagnose.far_start=true"]).diagnose
+    ).far_start
     assert resolve_budget("full", OmegaConf.create({})) == BUDGETS["full"]
     with pytest.raises(ConfigError, match="budget 'huge' is unknown; valid: \\['full', 'small'\\]"):
         resolve_budget("huge")
@@ -1302,3 +1306,39 @@ def test_suite_overrides_are_checked_before_any_entry_runs(tmp_path):
     with pytest.raises(ConfigError, match="diagnose.iterations=0: must be >= 1"):
         run_suite(tmp_path / "suite", small=True, overrides=["diagnose.iterations=0"])
     assert not any((tmp_path / "suite").glob("*/"))  # nothing generated
+
+
+def test_the_far_start_is_added_only_when_asked_and_only_without_a_regression():
+    from mosiv_framework.diagnose.candidates import Candidate
+    from mosiv_framework.diagnose.diagnosis import refit_starts
+    from mosiv_framework.diagnose.hypothesise import Screen
+
+    bounce = Candidate(
+        name="ground_restitution",
+        kind="term",
+        coefficient_names=["restitution"],
+        units=["1"],
+        lower=torch.tensor([0.0]),
+        upper=torch.tensor([1.0]),
+        step=torch.tensor([0.01]),
+        regimes=frozenset({"ground_contact"}),
+        description="a bounce",
+    )
+    contact = Screen(bounce, True, [-1.0], torch.tensor([0.1]), 0.3, 5.0, far=torch.tensor([1.0]))
+    thetas = [float(t) for t, _ in refit_starts(contact, 3)]
+    assert thetas == pytest.approx([0.1, 0.05, 0.15])
+    with_far = refit_starts(contact, 3, far_start=True)
+    assert [float(t) for t, _ in with_far] == pytest.approx([0.1, 0.05, 0.15, 1.0])
+    assert with_far[-1][1] is None  # the run's initial velocities
+    # a body force's regression start already carries its own estimate: no far start
+    wind = Screen(
+        bounce,
+        True,
+        [-1.0],
+        torch.tensor([0.1]),
+        0.3,
+        5.0,
+        far=torch.tensor([1.0]),
+        regression=(torch.tensor([0.4]), {}),
+    )
+    assert len(refit_starts(wind, 3, far_start=True)) == 3

@@ -50,13 +50,23 @@ from mosiv_framework.errors import ConfigError, SimulationDiverged
 START_FACTORS = (1.0, 0.5, 1.5, 2.0, 0.25)
 
 
-def refit_starts(screen_result, count: int) -> list:
+def refit_starts(screen_result, count: int, *, far_start: bool = False) -> list:
     """Up to ``count`` (coefficient, initial-velocity change) starts: the regression estimate
-    (if any, with the velocity change it implies), the probe's, then multiples of the first."""
+    (if any, with the velocity change it implies), the probe's, then multiples of the first;
+    with ``far_start``, one more at the far end of the screening's walk for a candidate that
+    has no regression estimate (a contact or material effect).
+
+    Why the far start: the screening reads the loss at the run's identified state, which made
+    up for the missing effect; there ground_restitution-1's loss was lowest near e = 0.17, and
+    every start near it ended there, while a refit begun at e = 0.9 reached 0.96 (concealed:
+    0.9; docs/RESULTS.md, session 18)."""
     starts = [] if screen_result.regression is None else [screen_result.regression]
     starts.append((screen_result.theta, None))
     starts += [(f * starts[0][0], starts[0][1]) for f in START_FACTORS[1:]]
-    return starts[:count]
+    starts = starts[:count]
+    if far_start and screen_result.regression is None and screen_result.far is not None:
+        starts.append((screen_result.far, None))
+    return starts
 
 
 def null_starts(regression) -> list:
@@ -80,9 +90,11 @@ class Budget:
     regression start settles the shared parameters first (``RefitOptions.settle``),
     whether every model is also identified afresh with the run's schedule (``reidentify``;
     the better of that and its refit is kept), the backtracking steps that end every
-    refit (``RefitOptions.polish``) and the refit's initial-velocity step (m/s per step). A recipe's
-    ``diagnose`` section may set max_candidates, bootstrap, starts, iterations, polish and
-    (as ``refit_velocity_lr``) velocity_lr."""
+    refit (``RefitOptions.polish``), the refit's initial-velocity step (m/s per step) and
+    whether contact and material candidates get a start at the far end of the screening's
+    walk (``refit_starts``). A recipe's ``diagnose`` section may set max_candidates,
+    bootstrap, starts, iterations, polish, far_start and (as ``refit_velocity_lr``)
+    velocity_lr."""
 
     max_candidates: int
     iterations: int
@@ -93,6 +105,7 @@ class Budget:
     reidentify: bool = False
     polish: int = 0
     velocity_lr: float = RefitOptions.velocity_lr
+    far_start: bool = False
 
 
 BUDGETS = {
@@ -162,6 +175,8 @@ def resolve_budget(budget: str | Budget, section=None) -> Budget:
     )
     if section.get("refit_velocity_lr") is not None:
         budget = replace(budget, velocity_lr=float(section["refit_velocity_lr"]))
+    if section.get("far_start") is not None:
+        budget = replace(budget, far_start=bool(section["far_start"]))
     return budget
 
 
@@ -258,7 +273,7 @@ def diagnose_run(
                 ctx,
                 s.candidate,
                 fit_frames=fit_frames,
-                starts=refit_starts(s, budget.starts),
+                starts=refit_starts(s, budget.starts, far_start=budget.far_start),
                 options=refit_options,
             )
             for s in kept

@@ -54,6 +54,9 @@ class Screen:
     regression: tuple[torch.Tensor, dict[int, torch.Tensor]] | None = None
     #: BIC decrease of the free-flight centroid regression (``regression_gain``)
     regression_gain: float | None = None
+    #: the walk's furthest point along the descent direction (the bound, or FALLBACK_SPAN
+    #: natural steps): a refit start for an effect whose loss falls only far from zero
+    far: torch.Tensor | None = None
 
     def to_json(self) -> dict:
         return {
@@ -67,6 +70,7 @@ class Screen:
             "score": self.score if math.isfinite(self.score) else None,
             "regression_theta": None if self.regression is None else self.regression[0].tolist(),
             "regression_gain": self.regression_gain,
+            "far_theta": None if self.far is None else self.far.tolist(),
             "note": self.note,
         }
 
@@ -412,6 +416,7 @@ def screen(
             step, predicted = 1.0, float(probe)
         walk_note = ""
         far, far_loss = _walk_out(ctx, c, direction, limit, fit_frames=fit_frames)
+        top = min(limit, FALLBACK_SPAN)
         if far_loss < predicted:
             step, predicted = far, far_loss
             walk_note = f"walked {far:.3g} steps along the descent direction; "
@@ -438,6 +443,7 @@ def screen(
                 note,
                 regression=regression,
                 regression_gain=gain,
+                far=(top * direction).detach() if top > 1.0 else None,
             )
         )
     out.sort(key=lambda s: s.score, reverse=True)

@@ -162,6 +162,9 @@ class DiagnoseSection:
     #: may want far less: on ground_restitution-1 one 0.02 m/s step took the fit from 10 to
     #: 12,000 mm^2 (docs/RESULTS.md, session 18)
     refit_velocity_lr: float | None = None
+    #: a further refit start at the far end of the screening's walk for contact and material
+    #: candidates (``diagnose.diagnosis.refit_starts``); default off
+    far_start: bool | None = None
 
     @staticmethod
     def value_problems(values: dict[str, Any]) -> list[str]:
