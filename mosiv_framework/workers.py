@@ -20,6 +20,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Hashable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -131,6 +132,10 @@ def run_jobs(
     running: dict[Hashable, _Running] = {}
     started = 0
     scratch = Path(tempfile.mkdtemp(prefix="mosiv-jobs-"))
+    # a SIGTERM (``timeout``, a batch system) must reach the ``finally`` below, as Ctrl-C does,
+    # or the children run on as orphans holding their GPUs
+    on_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _exit_on_signal) if on_main_thread else None
     try:
         while waiting or running:
             while waiting and len(running) < max(1, workers):
@@ -164,7 +169,13 @@ def run_jobs(
             job.process.kill()
             job.process.wait()
         shutil.rmtree(scratch, ignore_errors=True)
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return results
+
+
+def _exit_on_signal(signum, frame) -> None:
+    raise SystemExit(128 + signum)
 
 
 def _least_busy(listed: list[str], busy: list[str | None]) -> str | None:

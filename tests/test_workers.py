@@ -117,3 +117,37 @@ def _killed_always(path: str) -> None:
         log.write("attempt\n")
     print("last words", flush=True)
     os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _sleep_and_report(pid_file: str) -> None:
+    from pathlib import Path
+
+    Path(pid_file).write_text(str(os.getpid()))
+    time.sleep(60)
+
+
+def test_a_terminated_parent_takes_its_jobs_with_it(tmp_path):
+    import subprocess
+    import sys
+
+    pid_file = tmp_path / "child.pid"
+    parent = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys; sys.path.insert(0, sys.argv[1]); import test_workers as t; "
+            "from mosiv_framework.workers import run_jobs; "
+            "run_jobs(t._sleep_and_report, {'x': (sys.argv[2],)}, workers=1)",
+            os.path.dirname(__file__),
+            str(pid_file),
+        ]
+    )
+    deadline = time.time() + 30
+    while not (pid_file.exists() and pid_file.read_text()) and time.time() < deadline:
+        time.sleep(0.1)
+    child = int(pid_file.read_text())
+    parent.send_signal(signal.SIGTERM)
+    assert parent.wait(timeout=30) == 128 + signal.SIGTERM
+    time.sleep(0.5)
+    with pytest.raises(ProcessLookupError):  # the child was killed and reaped, not orphaned
+        os.kill(child, 0)
