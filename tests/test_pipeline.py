@@ -107,8 +107,13 @@ def test_pipeline_recovers_ballistic_motion_and_resumes(tmp_path, registry):
     horizons = [h["horizon"] for h in history]
     assert horizons[0] == 2 and horizons[-1] == 3 and horizons == sorted(horizons)  # curriculum
 
-    # a rerun with the same recipe resumes every stage: only the evaluation rollout runs
+    # a rerun with the same recipe resumes every stage, the evaluation too: nothing rolls out
     Ballistic.calls = 0
+    again = run_pipeline(recipe, run_dir=run)
+    assert Ballistic.calls == 0
+    assert again["future"]["cd_mm2"] == pytest.approx(metrics["future"]["cd_mm2"])
+    # an evaluation setting changed: only the evaluation rollout runs
+    recipe.evaluate.emd_samples = 512
     run_pipeline(recipe, run_dir=run)
     assert Ballistic.calls == 1
 

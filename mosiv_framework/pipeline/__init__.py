@@ -115,19 +115,25 @@ def run_pipeline(recipe: DictConfig, *, run_dir: Path) -> dict:
         )
         rd.mark_done("identify", key)
 
-    # Evaluation
-    _say("evaluating over observed and future frames")
-    metrics = evaluate_run(
-        recipe=recipe,
-        scene=scene,
-        particles=particles,
-        reconstruction=reconstruction,
-        identified=identified,
-        simulator=simulator,
-        run_dir=rd,
-        started=t_start,
-        refine=simulator_refiner(recipe.simulator),
-    )
+    # Evaluation (a resumed run, such as a suite entry run again after its diagnosis was cut
+    # short, keeps its metrics, plots and videos rather than rolling out again)
+    key = fingerprint(key, plain["evaluate"])
+    if rd.stage_done("evaluate", key) and rd.path("metrics.json").is_file():
+        metrics = rd.load_json("metrics.json")
+    else:
+        _say("evaluating over observed and future frames")
+        metrics = evaluate_run(
+            recipe=recipe,
+            scene=scene,
+            particles=particles,
+            reconstruction=reconstruction,
+            identified=identified,
+            simulator=simulator,
+            run_dir=rd,
+            started=t_start,
+            refine=simulator_refiner(recipe.simulator),
+        )
+        rd.mark_done("evaluate", key)
     _say(
         f"done: observed cd {metrics['observed']['cd_mm2']:.3g} mm^2"
         + (f", future cd {metrics['future']['cd_mm2']:.3g} mm^2" if metrics["future"] else "")
