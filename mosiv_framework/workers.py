@@ -141,9 +141,10 @@ def run_jobs(
             while waiting and len(running) < max(1, workers):
                 key = waiting.pop(0)
                 gpu = _least_busy(listed, [job.gpu for job in running.values()])
-                log = None if logs is None or key not in logs else logs[key]
                 started += 1
-                running[key] = _start(fn, jobs_by_key[key], scratch / str(started), gpu, log)
+                running[key] = _start(
+                    fn, jobs_by_key[key], scratch / str(started), gpu, (logs or {}).get(key)
+                )
             time.sleep(poll_s)
             for key in [k for k, job in running.items() if job.process.poll() is not None]:
                 job = running.pop(key)
@@ -156,8 +157,7 @@ def run_jobs(
                 elif outcome == "error":
                     on_error(key, value)
                 else:
-                    log = None if logs is None else logs.get(key)
-                    died = WorkerDied(key, job.process.returncode, log)
+                    died = WorkerDied(key, job.process.returncode, (logs or {}).get(key))
                     deaths[key] += 1
                     if deaths[key] <= retries:
                         on_retry(key, died)
@@ -168,6 +168,8 @@ def run_jobs(
         for job in running.values():  # interrupted: leave no orphans behind
             job.process.kill()
             job.process.wait()
+            if job.log is not None:
+                job.log.close()
         shutil.rmtree(scratch, ignore_errors=True)
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
