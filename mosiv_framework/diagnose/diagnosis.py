@@ -169,15 +169,23 @@ def resolve_budget(budget: str | Budget, section=None) -> Budget:
         budget = BUDGETS[budget]
     if section is None:
         return budget
-    counts = ("max_candidates", "bootstrap", "starts", "iterations", "polish")
-    budget = replace(
-        budget, **{name: int(section[name]) for name in counts if section.get(name) is not None}
+    keys = {  # recipe key: (budget field, type)
+        "max_candidates": ("max_candidates", int),
+        "bootstrap": ("bootstrap", int),
+        "starts": ("starts", int),
+        "iterations": ("iterations", int),
+        "polish": ("polish", int),
+        "refit_velocity_lr": ("velocity_lr", float),
+        "far_start": ("far_start", bool),
+    }
+    return replace(
+        budget,
+        **{
+            field: kind(section[key])
+            for key, (field, kind) in keys.items()
+            if section.get(key) is not None
+        },
     )
-    if section.get("refit_velocity_lr") is not None:
-        budget = replace(budget, velocity_lr=float(section["refit_velocity_lr"]))
-    if section.get("far_start") is not None:
-        budget = replace(budget, far_start=bool(section["far_start"]))
-    return budget
 
 
 def _better(fit, ctx, candidate, start, fit_frames, schedule):

@@ -254,6 +254,13 @@ FALLBACK_RUNGS = 5
 FALLBACK_SPAN = 100.0
 
 
+def _walk_end(limit: float) -> float | None:
+    """How many natural steps the walk goes out to (the bound, or FALLBACK_SPAN steps); None
+    if that is no further than the probe."""
+    top = min(limit, FALLBACK_SPAN)
+    return top if top > 1.0 else None
+
+
 def _walk_out(
     ctx: RunContext,
     c: Candidate,
@@ -272,8 +279,8 @@ def _walk_out(
     concealed 0.9. The model predicted 0.16 there, and refits begun near it ended at 0.14-0.21
     (sessions 15-17); checking a few longer steps starts them near the loss's real minimum."""
     best_step, best_loss = math.nan, math.inf
-    top = min(limit, FALLBACK_SPAN)
-    if not top > 1.0:
+    top = _walk_end(limit)
+    if top is None:
         return best_step, best_loss
     for i in range(1, FALLBACK_RUNGS):
         step = top ** (i / (FALLBACK_RUNGS - 1))
@@ -416,7 +423,7 @@ def screen(
             step, predicted = 1.0, float(probe)
         walk_note = ""
         far, far_loss = _walk_out(ctx, c, direction, limit, fit_frames=fit_frames)
-        top = min(limit, FALLBACK_SPAN)
+        top = _walk_end(limit)
         if far_loss < predicted:
             step, predicted = far, far_loss
             walk_note = f"walked {far:.3g} steps along the descent direction; "
@@ -443,7 +450,7 @@ def screen(
                 note,
                 regression=regression,
                 regression_gain=gain,
-                far=(top * direction).detach() if top > 1.0 else None,
+                far=None if top is None else (top * direction).detach(),
             )
         )
     out.sort(key=lambda s: s.score, reverse=True)
