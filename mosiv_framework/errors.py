@@ -37,6 +37,22 @@ class SimulationDiverged(MosivError):
             f"{reason}. {advice}"
         )
 
+    def __reduce__(self):
+        # keyword-only fields: the default pickling (positional args) could not rebuild it, and
+        # a job's error travels from its worker process to the suite by pickle
+        fields = dict(
+            object_id=self.object_id,
+            frame=self.frame,
+            substep=self.substep,
+            reason=self.reason,
+            advice=self.advice,
+        )
+        return (_rebuild_diverged, (fields,))
+
+
+def _rebuild_diverged(fields: dict) -> SimulationDiverged:
+    return SimulationDiverged(**fields)
+
 
 class StageNotAvailable(MosivError):
     """A pipeline stage or command needs a component that is not installed or not built yet."""

@@ -32,8 +32,11 @@ def main(folder: str) -> int:
         traceback.print_exc()
         sys.stdout.flush()
         try:
+            # an exception can pickle and yet not unpickle (keyword-only ``__init__``): the
+            # parent would then fail on reading it and take every other job down with it
+            pickle.loads(pickle.dumps(error))
             _write(job / "error.pkl", error)
-        except Exception:  # an exception that does not pickle still reaches the parent
+        except Exception:  # an exception that does not travel still reaches the parent
             _write(job / "error.pkl", RuntimeError(f"{type(error).__name__}: {error}"))
         return 1
     _write(job / "result.pkl", result)

@@ -81,6 +81,44 @@ def test_a_dead_job_runs_again_alone_and_a_raising_job_does_not(tmp_path):
         assert (tmp_path / f"attempts-{key}").read_text().count("attempt") == 1
 
 
+class _KeywordOnlyError(Exception):
+    def __init__(self, *, what: str):
+        super().__init__(f"broken: {what}")
+
+
+def _raise_untravelling(what: str) -> None:
+    raise _KeywordOnlyError(what=what)
+
+
+def _raise_diverged(frame: int) -> None:
+    from mosiv_framework.errors import SimulationDiverged
+
+    raise SimulationDiverged(object_id=2, frame=frame, substep=1, reason="r", advice="a")
+
+
+def test_errors_that_do_not_unpickle_still_reach_the_parent_by_name(tmp_path):
+    """Session 20: a job's SimulationDiverged pickled but did not unpickle, and the suite died."""
+    from mosiv_framework.errors import SimulationDiverged
+    from mosiv_framework.workers import run_jobs
+
+    errors = {}
+    results = run_jobs(
+        _raise_untravelling,
+        {"odd": ("x",)},
+        workers=1,
+        on_error=lambda key, error: errors.update({key: error}),
+    )
+    assert results == {} and isinstance(errors["odd"], RuntimeError)
+    assert "_KeywordOnlyError: broken: x" in str(errors["odd"])
+    run_jobs(
+        _raise_diverged,
+        {"sim": (18,)},
+        workers=1,
+        on_error=lambda key, error: errors.update({key: error}),
+    )
+    assert isinstance(errors["sim"], SimulationDiverged) and errors["sim"].frame == 18
+
+
 def test_a_job_killed_by_a_signal_is_named_and_fails_after_the_retries(tmp_path):
     from mosiv_framework.workers import WorkerDied, run_jobs
 
