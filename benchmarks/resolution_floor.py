@@ -21,8 +21,7 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
-
+from mosiv_framework.diagnose.report import loaded_table
 from mosiv_framework.diagnose.suite import DEFAULT_RECIPES, suite_entries
 from mosiv_framework.workers import run_jobs
 
@@ -61,7 +60,8 @@ def heldout_drops(diagnosis: dict) -> dict[str, tuple[float, bool]]:
     diagnosis."""
     held = diagnosis["frames"]["heldout"]
     tables = {
-        k: np.asarray(v).sum(axis=0)[held].mean() for k, v in diagnosis["frame_errors_mm2"].items()
+        k: loaded_table(v).sum(axis=0)[held].mean()
+        for k, v in diagnosis["frame_errors_mm2"].items()
     }
     return {
         e["name"]: (float(tables["null"] - tables[e["name"]]), bool(e["accepted"]))

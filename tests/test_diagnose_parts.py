@@ -1342,3 +1342,175 @@ def test_the_far_start_is_added_only_when_asked_and_only_without_a_regression():
         regression=(torch.tensor([0.4]), {}),
     )
     assert len(refit_starts(wind, 3, far_start=True)) == 3
+
+
+# ------------------------------------------------------------------ diverging predictions
+def _diverged(frame: int = 18) -> Exception:
+    from mosiv_framework.errors import SimulationDiverged
+
+    return SimulationDiverged(
+        object_id=2, frame=frame, substep=1, reason="a particle moved too far", advice="test"
+    )
+
+
+class _PredictingContext(_QuadraticContext):
+    """A _QuadraticContext whose rollout over all frames (``frames=None``) diverges where
+    ``blows_up(params)``, as a refit that fits the fit frames can still blow up after them."""
+
+    def __init__(self, target, blows_up):
+        super().__init__(target)
+        self.blows_up, self.asked = blows_up, []
+
+    def rollout(self, params, *, frames=None):
+        self.asked.append(frames)
+        if frames is None and self.blows_up(params):
+            raise _diverged()
+        return super().rollout(params, frames=frames)
+
+
+def test_refit_predicts_with_the_next_best_start_when_the_best_ones_prediction_diverges():
+    """The start that fits best (here the one begun at the target) blows up after the fit
+    frames: the refit keeps the next-best start, whose prediction succeeds, with every start
+    still listed for the interval."""
+    from mosiv_framework.diagnose.model import RefitOptions, refit
+
+    ctx = _PredictingContext([1.0, 0.0, 0.0], lambda p: float(p.initial_velocity[1][0]) > 0.5)
+    starts = [(torch.zeros(0), None), (torch.zeros(0), {1: torch.tensor([1.0, 0.0, 0.0])})]
+    fit = refit(ctx, None, fit_frames=[1, 2], starts=starts, options=RefitOptions(iterations=2))
+    assert fit.diverged is None and fit.trajectory is not None
+    assert float(fit.params.initial_velocity[1][0]) < 0.5  # the start begun at zero
+    losses = sorted(loss for _, loss in fit.starts)
+    assert len(losses) == 2 and fit.loss == pytest.approx(losses[1]) and losses[0] < 1e-3
+    assert ctx.asked == [None, None]  # the best start's prediction, then the next one's
+
+
+def test_refit_keeps_a_model_whose_every_prediction_diverges_as_evidence():
+    """Every start's prediction diverges: no crash, but the best fit without a trajectory,
+    with the simulator's message and its rollout up to the frame before the divergence; a
+    fit that predicts replaces it in any later comparison, even at a higher fit loss."""
+    from mosiv_framework.diagnose.model import Fit, RefitOptions, refit, replaces
+
+    ctx = _PredictingContext([1.0, 0.0, 0.0], lambda p: True)
+    starts = [(torch.zeros(0), None), (torch.zeros(0), {1: torch.tensor([1.0, 0.0, 0.0])})]
+    fit = refit(ctx, None, fit_frames=[1, 2], starts=starts, options=RefitOptions(iterations=2))
+    assert fit.trajectory is None
+    assert "object 2 at frame 18, substep 1" in fit.diverged
+    assert fit.loss == pytest.approx(min(loss for _, loss in fit.starts))  # the best start
+    assert ctx.asked == [None, None, 17] and fit.reached is not None
+    predicts = Fit("null", None, fit.params, torch.zeros(0), 10 * fit.loss + 1.0, fit.n_params)
+    assert replaces(predicts, fit) and not replaces(fit, predicts)
+
+
+def _moving_targets(n_frames: int, objects=(1, 2), points: int = 4):
+    """Per object, ``points`` points moving at 1 cm per frame along x."""
+    rng = np.random.default_rng(0)
+    t = torch.arange(n_frames, dtype=torch.float32)[:, None, None]
+    out = {}
+    for k in objects:
+        base = torch.tensor(rng.random((points, 3)), dtype=torch.float32)[None] * 0.05
+        out[k] = base + 0.01 * t * torch.tensor([1.0, 0.0, 0.0])
+    return out
+
+
+def _trajectory(targets, drift: float, frames: int | None = None):
+    """The targets, each frame t shifted by ``drift * t`` (m) along y; ``frames`` first."""
+    from mosiv_framework.types import Trajectory
+
+    ids = sorted(targets)
+    n = next(iter(targets.values())).shape[0] if frames is None else frames
+    t = torch.arange(n, dtype=torch.float32)[:, None, None]
+    moved = [targets[k][:n] + drift * t * torch.tensor([0.0, 1.0, 0.0]) for k in ids]
+    object_ids = torch.cat([torch.full((targets[k].shape[1],), k) for k in ids])
+    return Trajectory(torch.cat(moved, dim=1), object_ids, 24.0)
+
+
+def test_the_decision_rejects_a_diverged_prediction_and_survives_a_diverged_null():
+    """A candidate exact on every frame it reached, but whose prediction diverged, is not
+    accepted and the report says why; against a null whose own prediction diverged, a
+    candidate that predicts every frame is still judged (and here accepted), and the saved
+    diagnosis stays strict JSON that replays to the same decision."""
+    from types import SimpleNamespace
+
+    from mosiv_framework.diagnose.decide import DecideOptions, decide, verdict
+    from mosiv_framework.diagnose.model import Fit
+    from mosiv_framework.diagnose.replay import replay_diagnosis
+    from mosiv_framework.diagnose.report import _block_means, _markdown, saved_table
+
+    n_frames, fit_frames, held = 12, list(range(1, 8)), list(range(8, 12))
+    targets = _moving_targets(n_frames)
+    ctx = SimpleNamespace(targets=targets, object_ids=[1, 2], n_frames=n_frames, fps=24.0)
+    params = _elastic_pair_params()
+
+    def fit(name, n_params, *, drift, reached=None):
+        f = Fit(name, None, params, torch.zeros(n_params - 6), 1e-6, n_params)
+        if reached is None:
+            f.trajectory = _trajectory(targets, drift)
+        else:  # diverged at frame ``reached``
+            f.diverged = str(_diverged(reached))
+            f.reached = _trajectory(targets, drift, frames=reached)
+        return f
+
+    good = fit("good", 7, drift=2e-4)
+    boom = fit("boom", 7, drift=0.0, reached=9)  # exact until it blew up in frame 9
+    options = DecideOptions(bootstrap=50)
+
+    for null in (fit("null", 6, drift=2e-3), fit("null", 6, drift=2e-3, reached=10)):
+        evidence, errors = decide(
+            ctx, null, [boom, good], fit_frames=fit_frames, heldout_frames=held, options=options
+        )
+        by_name = {e.name: e for e in evidence}
+        assert not by_name["boom"].accepted and not by_name["boom"].passes_heldout
+        assert "at frame 9" in by_name["boom"].diverged
+        assert by_name["boom"].passes_bic  # its fit frames were fine: only its future failed
+        assert evidence[0].name == "good" and evidence[0].accepted
+        assert verdict(True, evidence) == "missing physics"
+        assert np.isinf(errors["boom"][:, 9:]).all() and np.isfinite(errors["boom"][:, :9]).all()
+
+        saved = json.loads(
+            json.dumps(
+                {
+                    "rule": dict(options.__dict__),
+                    "evidence": [e.to_json() for e in evidence],
+                    "frames": {"fit": fit_frames, "heldout": held, "observed": 8},
+                    "null_parameters": 6,
+                    "where": {"significant": True},
+                    "frame_errors_mm2": {name: saved_table(e) for name, e in errors.items()},
+                    "errors": {name: _block_means(e, 8) for name, e in errors.items()},
+                    "accepted": {"name": "good"},
+                },
+                allow_nan=False,  # no Infinity / NaN tokens
+            )
+        )
+        assert saved["errors"]["boom"]["future_cd_mm2"] is None
+        assert next(e for e in saved["evidence"] if e["name"] == "boom")["heldout_drop"] is None
+        replayed = replay_diagnosis(saved)
+        assert replayed["accepted"] == {"name": "good"}
+        assert [e["name"] for e in replayed["evidence"]] == ["good", "boom"]
+
+    # the null's divergence and the rejected candidate's are both told in the report
+    where = {
+        "object": 1,
+        "signal_to_noise": 9.0,
+        "noise_floor_m": 1e-3,
+        "jitter_m": 1e-3,
+        "targets_tracked": True,
+        "sampling_m": 0.0,
+        "onset_frame": 3,
+        "window": [3, 7],
+        "regimes": ["free_flight"],
+        "direction_fraction": {"x": 1.0},
+    }
+    text = _markdown(
+        {
+            **saved,
+            "verdict": "missing physics",
+            "where": where,
+            "accepted": None,
+            "screening": [],
+            "null_diverged": null.diverged,
+        }
+    )
+    told = "was not accepted: its prediction diverged (simulation diverged in object 2 at frame"
+    assert f"`boom` {told} 9, substep 1" in text
+    null_told = "The null model's prediction diverged (simulation diverged in object 2 at frame"
+    assert f"{null_told} 10, substep 1" in text

@@ -85,9 +85,25 @@ class DecideOptions:
 
 
 def frame_errors(ctx: RunContext, fit_or_traj) -> np.ndarray:
-    """[K, T] Chamfer error (m^2) per object and frame of a fit's (or trajectory's) rollout."""
+    """[K, T] Chamfer error (m^2) per object and frame of a fit's (or trajectory's) rollout.
+
+    A fit whose prediction diverged (``model.Fit.diverged``) has no trajectory: its errors are
+    those of the frames it reached (``Fit.reached``) and infinite after, the error of a
+    prediction that does not exist. So the held-out test can never pass a diverging candidate,
+    and a diverging null counts against itself, while the fit frames keep their errors for the
+    information criterion."""
+    if isinstance(fit_or_traj, Fit) and fit_or_traj.trajectory is None:
+        table = np.full((len(ctx.object_ids), ctx.n_frames), math.inf)
+        if fit_or_traj.reached is not None:
+            n = min(fit_or_traj.reached.n_frames, ctx.n_frames)
+            table[:, :n] = _chamfer_table(ctx, fit_or_traj.reached, n)
+        return table
     traj = fit_or_traj.trajectory if isinstance(fit_or_traj, Fit) else fit_or_traj
-    res = object_residuals(ctx, traj, ctx.n_frames)
+    return _chamfer_table(ctx, traj, ctx.n_frames)
+
+
+def _chamfer_table(ctx: RunContext, traj, frames: int) -> np.ndarray:
+    res = object_residuals(ctx, traj, frames)
     return np.stack([res[k].chamfer for k in ctx.object_ids])
 
 
@@ -151,6 +167,9 @@ class Evidence:
     effect: dict | None = None
     #: the effect test (``min_effect``); True where not required or not measured
     passes_effect: bool = True
+    #: where the candidate's prediction diverged (``model.Fit.diverged``): the simulator's
+    #: message, the reason its held-out test failed
+    diverged: str | None = None
 
     @property
     def accepted(self) -> bool:
@@ -161,9 +180,11 @@ class Evidence:
     def to_json(self) -> dict:
         return {
             "name": self.name,
-            "heldout_drop": self.heldout_drop,
-            "heldout_spread": self.heldout_spread,
-            "delta_bic": self.delta_bic,
+            # an infinite or undefined number (a diverged prediction, one resampling unit) is
+            # written as null: diagnosis.json stays strict JSON
+            "heldout_drop": _finite_or_none(self.heldout_drop),
+            "heldout_spread": _finite_or_none(self.heldout_spread),
+            "delta_bic": _finite_or_none(self.delta_bic),
             "passes_heldout": self.passes_heldout,
             "passes_bic": self.passes_bic,
             "accepted": self.accepted,
@@ -178,7 +199,12 @@ class Evidence:
             "value": self.value,
             "effect": self.effect,
             "passes_effect": self.passes_effect,
+            "diverged": self.diverged,
         }
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
 
 
 def decide(
@@ -211,6 +237,7 @@ def decide(
         e.theta = by_name[e.name].theta.tolist()
         e.started_from = by_name[e.name].started_from
         e.reidentified = by_name[e.name].reidentified
+        e.diverged = by_name[e.name].diverged
         candidate = by_name[e.name].candidate
         e.value = candidate.physical(by_name[e.name].theta) if candidate is not None else None
     return evidence, errors
@@ -236,13 +263,18 @@ def weigh(
     bic_null = bic(null[:, fit_frames], floor, null_parameters, block=options.block)
     evidence = []
     for name, n_new, fit_loss in candidates:
-        drop, spread = bootstrap_drop(
-            null[:, heldout_frames],
-            errors[name][:, heldout_frames],
-            block=options.block,
-            resamples=options.bootstrap,
-            seed=options.seed,
-        )
+        held = errors[name][:, heldout_frames]
+        if np.isfinite(held).all():
+            # (a null that diverged has infinite errors on some units: the drop there is 1)
+            drop, spread = bootstrap_drop(
+                null[:, heldout_frames],
+                held,
+                block=options.block,
+                resamples=options.bootstrap,
+                seed=options.seed,
+            )
+        else:  # its prediction diverged (``frame_errors``): no drop, and nothing to resample
+            drop, spread = -math.inf, math.inf
         n_params = null_parameters + n_new
         delta = bic(errors[name][:, fit_frames], floor, n_params, block=options.block) - bic_null
         evidence.append(
@@ -252,7 +284,9 @@ def weigh(
                 spread,
                 delta,
                 passes_heldout=drop > 0 and drop > options.z * spread and drop >= options.min_drop,
-                passes_bic=delta < -options.bic_margin,
+                # a criterion that could not be computed (a fit frame a prediction did not
+                # reach: infinite, or NaN for two) is no evidence for the candidate
+                passes_bic=math.isfinite(delta) and delta < -options.bic_margin,
                 fit_loss=fit_loss,
                 n_new=n_new,
                 special_case_of=tuple(special_cases.get(name, ())),

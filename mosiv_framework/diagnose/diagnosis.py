@@ -41,6 +41,7 @@ from mosiv_framework.diagnose.model import (
     converge_candidates,
     converge_null,
     refit,
+    replaces,
 )
 from mosiv_framework.diagnose.reidentify import ReidentifyOptions, reidentify
 from mosiv_framework.diagnose.report import write_report
@@ -189,12 +190,13 @@ def resolve_budget(budget: str | Budget, section=None) -> Budget:
 
 
 def _better(fit, ctx, candidate, start, fit_frames, schedule):
-    """``fit`` or the model re-identified afresh, whichever fits the fit frames better."""
+    """``fit`` or the model re-identified afresh, whichever fits the fit frames better (or
+    predicts all frames where the other diverged: ``model.replaces``)."""
     try:
         fresh = reidentify(ctx, candidate, fit_frames=fit_frames, start=start, options=schedule)
     except SimulationDiverged:
         return fit
-    if fresh.loss < fit.loss:
+    if replaces(fresh, fit):
         fresh.starts = fit.starts + fresh.starts
         return fresh
     return fit
@@ -307,6 +309,9 @@ def diagnose_run(
             null = converge_null(ctx, null, fits, fit_frames=fit_frames, options=refit_options)
         if null.started_from is not None:
             say(f"the null model refitted again from {null.started_from}'s shared parameters")
+        for fit in [null, *fits]:  # kept as evidence (``model.predict``), not a crash
+            if fit.diverged is not None:
+                say(f"the prediction of {fit.name} diverged: {fit.diverged}")
         evidence, model_errors = decide(
             ctx,
             null,

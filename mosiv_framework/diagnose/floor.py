@@ -55,10 +55,11 @@ def resolution_floor(
     ctx: RunContext, params: SimulationParams, *, fraction: float = DEFAULT_FRACTION, seed: int = 0
 ) -> np.ndarray | None:
     """[K, T] Chamfer (m^2) per object and frame between the rollout of ``params`` on the run's
-    particles and on ``resampled`` ones; None if the resampled rollout diverges."""
-    original = ctx.rollout(params)
+    particles and on ``resampled`` ones; None if either rollout diverges (the null's own
+    prediction may: ``model.Fit.diverged``)."""
     particles = resampled(ctx.particles_for(params), fraction=fraction, seed=seed)
     try:
+        original = ctx.rollout(params)
         with torch.no_grad():
             moved = ctx.simulator.rollout(
                 particles, params.detached(), world=ctx.world, frames=ctx.n_frames - 1

@@ -89,6 +89,12 @@ class Fit:
     #: whether the fit came from identifying the model afresh (``reidentify``) rather than
     #: from a refit of the run's identified state
     reidentified: bool = False
+    #: the simulator's message (object, frame, substep) where the prediction over all frames
+    #: diverged for every start; ``trajectory`` is then None (see ``predict``)
+    diverged: str | None = None
+    #: then the prediction up to the frame before the divergence (None if that failed too),
+    #: so that the frames it reached, the fit frames among them, still have errors
+    reached: Trajectory | None = None
 
 
 def count_free(vector: ParameterVector) -> int:
@@ -112,14 +118,14 @@ def refit(
     default: zero and none) begins a fit; the first start that brings a velocity change (an
     empty one too) settles the shared parameters first (``RefitOptions.settle``). The coefficient is
     optimised as theta = scale * u with scale the larger of |start| and the candidate's natural
-    step, so one learning rate suits coefficients of any unit. Returns the best start; a start
-    whose rollouts all diverge is skipped. The free parameters start at ``base`` (default: the
-    run's identified values).
+    step, so one learning rate suits coefficients of any unit. Returns the best start whose
+    prediction over all frames succeeds (``predict``); a start whose rollouts all diverge is
+    skipped. The free parameters start at ``base`` (default: the run's identified values).
     """
     horizon = max(fit_frames)
     if not starts:
         starts = [(torch.zeros(0) if candidate is None else candidate.zero(), None)]
-    best: Fit | None = None
+    ends: list[Fit] = []  # each start's best point
     tried: list[tuple[list[float], float]] = []
     settled = False
     for start, velocity_change in starts:
@@ -194,8 +200,8 @@ def refit(
         restore(vector, u, best_start[1])
         theta = (u * scale).detach() if candidate is not None else torch.zeros(0)
         tried.append((theta.tolist(), best_start[0]))
-        if best is None or best_start[0] < best.loss:
-            best = Fit(
+        ends.append(
+            Fit(
                 "null" if candidate is None else candidate.name,
                 candidate,
                 assemble(vector, candidate, u, scale).detached(),
@@ -205,7 +211,8 @@ def refit(
                 history=history,
                 shared=vector.physical().detached(),
             )
-    if best is None:
+        )
+    if not ends:
         raise SimulationDiverged(
             object_id=-1,
             frame=-1,
@@ -213,9 +220,47 @@ def refit(
             reason=f"every refit start of {candidate.name if candidate else 'the null model'} diverged",
             advice="lower the refit learning rates or raise the simulator's substeps",
         )
+    best = predict(ctx, sorted(ends, key=lambda f: f.loss))  # stable: the first start on ties
     best.starts = tried
-    best.trajectory = ctx.rollout(best.params)
     return best
+
+
+def predict(ctx: RunContext, ranked: list[Fit]) -> Fit:
+    """The first of ``ranked`` (best fit first) whose rollout over all frames succeeds, with
+    that rollout as its ``trajectory``; if every one diverges, the first, with ``diverged``
+    and ``reached`` set instead.
+
+    A refit simulates only up to the last fit frame, so a start can fit those frames well and
+    blow up after them (outside-quadratic_drag of a GPU diagnose-suite: object 2, frame 18).
+    One model's prediction must not end the whole diagnosis: a start that fits a little worse
+    but predicts is taken instead, and a model none of whose starts predicts is kept with its
+    divergence as evidence (``decide.frame_errors`` counts the frames it did not reach as
+    infinitely wrong, so such a candidate cannot be accepted).
+    """
+    failures = []
+    for fit in ranked:
+        try:
+            fit.trajectory = ctx.rollout(fit.params)
+            return fit
+        except SimulationDiverged as exc:
+            failures.append(exc)
+    best, exc = ranked[0], failures[0]
+    best.diverged = str(exc)
+    try:  # the simulator passed every frame before the one it diverged in
+        best.reached = ctx.rollout(best.params, frames=max(exc.frame - 1, 0))
+    except SimulationDiverged:
+        best.reached = None
+    return best
+
+
+def replaces(new: Fit, old: Fit) -> bool:
+    """Whether ``new`` should replace ``old`` as a model's fit: the lower fit loss, except that a
+    fit whose prediction over all frames succeeds beats one whose prediction diverged (the
+    decision cannot accept a diverging candidate, and a diverging null leaves the candidates'
+    future errors nothing finite to be compared with)."""
+    if (new.diverged is None) != (old.diverged is None):
+        return new.diverged is None
+    return new.loss < old.loss
 
 
 def assemble(vector, candidate, u, scale) -> SimulationParams:
@@ -253,7 +298,7 @@ def converge_null(
     model too, so a null that did not reach them is under-converged, and every candidate would
     win the held-out test against it by optimisation alone (three of six controls of the full
     suite, session 10, were rejected by the information criterion only). The null becomes the
-    better of itself and a refit begun at the best switched-off candidate.
+    better of itself and a refit begun at the best switched-off candidate (``replaces``).
     """
     best_loss, best_fit = null.loss, None
     for fit in fits:
@@ -271,7 +316,7 @@ def converge_null(
         warm = refit(ctx, None, fit_frames=fit_frames, base=best_fit.shared, options=options)
     except SimulationDiverged:
         return null
-    if warm.loss >= null.loss:
+    if not replaces(warm, null):
         return null
     warm.started_from = best_fit.name
     return warm
@@ -293,7 +338,8 @@ def converge_candidates(
     continuation from the null (the first form of this step); and linear and
     quadratic drag, hard to tell apart, were named the wrong way round on three of four drag
     scenes. The mirror of ``converge_null``: every model may start from the best state any
-    model found. A continued candidate replaces its refit only where it fits better.
+    model found. A continued candidate replaces its refit only where it fits better (or
+    predicts all frames where that refit's prediction diverged, see ``replaces``).
     """
     source = min([null, *fits], key=lambda f: f.loss)
     if source.shared is None:
@@ -315,7 +361,7 @@ def converge_candidates(
         except SimulationDiverged:
             converged.append(fit)
             continue
-        if warm.loss < fit.loss:
+        if replaces(warm, fit):
             warm.started_from = source.name
             warm.starts = fit.starts + warm.starts
             converged.append(warm)

@@ -23,8 +23,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
-
 from mosiv_framework.diagnose.decide import (
     DecideOptions,
     Evidence,
@@ -33,7 +31,7 @@ from mosiv_framework.diagnose.decide import (
     verdict,
     weigh,
 )
-from mosiv_framework.diagnose.report import MM2
+from mosiv_framework.diagnose.report import MM2, loaded_table
 
 
 def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> dict:
@@ -60,7 +58,7 @@ def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> d
             )
         )
     out = dict(diagnosis)
-    tables = {name: np.asarray(t, dtype=float) / MM2 for name, t in _tables(diagnosis).items()}
+    tables = {name: loaded_table(t) / MM2 for name, t in _tables(diagnosis).items()}
     ranked: list[Evidence] = []
     if diagnosis["evidence"] and "null" in tables:
         ranked = weigh(
@@ -84,6 +82,7 @@ def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> d
             e.started_from = saved[e.name].get("started_from")
             e.reidentified = bool(saved[e.name].get("reidentified", False))
             e.value = saved[e.name].get("value")
+            e.diverged = saved[e.name].get("diverged")
     out["verdict"] = verdict(bool(diagnosis["where"]["significant"]), ranked)
     out["evidence"] = [e.to_json() for e in ranked]
     winner = ranked[0].name if ranked and ranked[0].accepted else None

@@ -10,6 +10,8 @@ its fitted value, ``identify: true``; format in ``mosiv_framework.recipes.terms`
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import yaml
 from omegaconf import OmegaConf
@@ -23,12 +25,31 @@ MM2 = 1e6  # m^2 -> mm^2, the unit metrics.json reports Chamfer errors in
 
 
 def _block_means(errors: np.ndarray, observed: int) -> dict:
-    """Mean Chamfer (mm^2) over objects and the observed / future frames of a [K, T] table."""
+    """Mean Chamfer (mm^2) over objects and the observed / future frames of a [K, T] table;
+    None where there is none, or where a prediction diverged (an infinite error)."""
     future = errors[:, observed:]
     return {
-        "observed_cd_mm2": float(errors[:, :observed].mean() * MM2),
-        "future_cd_mm2": float(future.mean() * MM2) if future.size else None,
+        "observed_cd_mm2": _finite(errors[:, :observed].mean() * MM2),
+        "future_cd_mm2": _finite(future.mean() * MM2) if future.size else None,
     }
+
+
+def _finite(x) -> float | None:
+    """``x`` as a float, or None for a number JSON cannot hold (a diverged prediction's inf)."""
+    return float(x) if math.isfinite(x) else None
+
+
+def saved_table(errors: np.ndarray) -> list[list[float | None]]:
+    """A [K, T] error table (m^2) as diagnosis.json holds it: mm^2, and null for a frame a
+    diverged prediction did not reach (its infinite error, ``decide.frame_errors``; read back
+    by ``replay``)."""
+    return [[_finite(x) for x in row] for row in (errors * MM2).tolist()]
+
+
+def loaded_table(rows: list) -> np.ndarray:
+    """The inverse of ``saved_table`` (still in mm^2): a null entry, a frame a diverged
+    prediction did not reach, is the infinite error the decision counted it as."""
+    return np.asarray([[np.inf if x is None else x for x in row] for row in rows], dtype=float)
 
 
 def _effect_cell(evidence: dict) -> str:
@@ -120,7 +141,7 @@ def plot_paths(ctx: RunContext, trajectories: dict, path) -> None:
             ax.plot(t, target[:, axis], "k.-", lw=1.5, label="recording")
             for name, traj in trajectories.items():
                 c = traj.object_positions(k)[: ctx.n_frames].detach().cpu().mean(1).numpy()
-                ax.plot(t, c[:, axis], label=name)
+                ax.plot(t[: len(c)], c[:, axis], label=name)  # shorter if it diverged
             ax.axvline((ctx.observed_frames - 0.5) / ctx.fps, color="grey", lw=0.8)
             ax.set_title(f"object {k} centroid {'xyz'[axis]} (m)", fontsize=9)
     axes[0, 0].legend(fontsize=7)
@@ -178,7 +199,7 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
         "errors": {name: _block_means(e, observed) for name, e in errors.items()},
         # the [object, frame] tables themselves, so another decision rule can be replayed on
         # a finished diagnosis without refitting anything
-        "frame_errors_mm2": {name: (e * MM2).tolist() for name, e in errors.items()},
+        "frame_errors_mm2": {name: saved_table(e) for name, e in errors.items()},
         "null_parameters": result["null"].n_params if result.get("null") is not None else None,
         # the decision rule (``DecideOptions``) the evidence was judged by, for a replay
         "rule": result.get("rule"),
@@ -190,6 +211,8 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
         "null_reidentified": (
             result["null"].reidentified if result.get("null") is not None else False
         ),
+        # where the null's prediction over all frames diverged (``model.Fit.diverged``)
+        "null_diverged": result["null"].diverged if result.get("null") is not None else None,
         # how far the null's prediction moves on resampled particles (``floor.py``): recorded,
         # not yet part of the rule, so that a replay can weigh the held-out drops against it
         "resolution_floor_mm2": summarise_floor(result.get("resolution_floor"), result["frames"]),
@@ -197,8 +220,11 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
         "time_s": result["time_s"],
     }
     trajectories = {"identified": ctx.identified_rollout()}
-    if result.get("null") is not None:
-        trajectories["refit without new physics"] = result["null"].trajectory
+    null = result.get("null")
+    if null is not None and null.trajectory is not None:
+        trajectories["refit without new physics"] = null.trajectory
+    elif null is not None and null.reached is not None:  # drawn up to where it diverged
+        trajectories["refit without new physics (diverged)"] = null.reached
     fit = result["accepted"]
     if fit is not None:
         lower, upper = result["interval"]
@@ -224,8 +250,12 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
     return summary
 
 
-def _fmt(x) -> str:
-    return "n/a" if x is None else f"{x:.4g}"
+def _fmt(x, spec: str = ".4g") -> str:
+    return "n/a" if x is None else format(x, spec)
+
+
+def _pct(x) -> str:
+    return _fmt(x, ".2%")
 
 
 def _markdown(s: dict) -> str:
@@ -327,6 +357,13 @@ def _markdown(s: dict) -> str:
                 "fitted better than its refit."
                 if s.get("null_reidentified") and not s.get("null_started_from")
                 else ""
+            )
+            + (
+                f" The null model's prediction diverged ({s['null_diverged']}): the frames it "
+                "did not reach count as infinitely wrong for it, so there every candidate that "
+                "predicts them has the lower held-out error."
+                if s.get("null_diverged")
+                else ""
             ),
             "",
             "| candidate | refitted coefficients | 95 % interval | held-out drop | bootstrap sd "
@@ -347,14 +384,25 @@ def _markdown(s: dict) -> str:
             )
             if not e.get("passes_interval", True):
                 interval += " (includes zero)"
+            held = "pass" if e["passes_heldout"] else "fail"
+            if e.get("diverged"):
+                held += " (prediction diverged)"
             lines.append(
-                f"| {e['name']}{mark} | {theta} | {interval} | {e['heldout_drop']:.2%} | "
-                f"{e['heldout_spread']:.2%} | "
-                f"{e['delta_bic']:.3g} | {'pass' if e['passes_heldout'] else 'fail'} | "
+                f"| {e['name']}{mark} | {theta} | {interval} | {_pct(e['heldout_drop'])} | "
+                f"{_pct(e['heldout_spread'])} | "
+                f"{_fmt(e['delta_bic'], '.3g')} | {held} | "
                 f"{'pass' if e['passes_bic'] else 'fail'} | {_effect_cell(e)} | "
                 f"{'yes' if e['accepted'] else 'no'} |"
             )
         lines.append("")
+        # why a candidate whose prediction blew up was not accepted, in the simulator's words
+        lines += [
+            f"- `{e['name']}` was not accepted: its prediction diverged ({e['diverged']})."
+            for e in s["evidence"]
+            if e.get("diverged")
+        ]
+        if any(e.get("diverged") for e in s["evidence"]):
+            lines.append("")
     if s["screening"]:
         lines += [
             "## Screening",
