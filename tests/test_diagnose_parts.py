@@ -379,6 +379,27 @@ def test_suite_resumes_scored_entries_and_rejects_unknown_names(tmp_path):
         run_suite(tmp_path, small=True, only=["no-such-entry"], say=lambda m: None)
 
 
+def test_a_prepared_suite_runs_the_pipeline_and_diagnoses_nothing(tmp_path, monkeypatch):
+    """``prepare_only``: the entries' pipelines run (into OUT/entry, for another machine to
+    diagnose from their stages), no diagnosis starts, and nothing is scored."""
+    from mosiv_framework.diagnose import suite
+
+    ran = []
+    monkeypatch.setattr(suite, "run_pipeline", lambda recipe, run_dir: ran.append(run_dir))
+
+    def no_diagnosis(*args, **kwargs):
+        raise AssertionError("a prepared suite must not diagnose")
+
+    monkeypatch.setattr(suite, "diagnose_run", no_diagnosis)
+    names = [e.name for e in suite.suite_entries(small=True)[:2]]
+    summary = suite.run_suite(
+        tmp_path, small=True, only=names, prepare_only=True, say=lambda m: None
+    )
+    assert summary == {"prepared": sorted(names)}
+    assert sorted(ran) == sorted(tmp_path / n for n in names)
+    assert not list(tmp_path.glob("*/score.json")) and not (tmp_path / "suite.json").exists()
+
+
 def test_null_refit_starts_from_the_identified_state_too():
     """The null model is refitted from the run's own state as well as from the regression's
     velocity change, so it can never end worse than the run every candidate starts from."""

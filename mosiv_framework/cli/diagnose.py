@@ -33,6 +33,12 @@ def add_parsers(sub) -> None:
     suite.add_argument("--budget", choices=("small", "full"), help="diagnosis budget")
     suite.add_argument("--only", help="comma-separated entry names to run (default: all)")
     suite.add_argument(
+        "--prepare-only",
+        action="store_true",
+        help="generate and run the entries (synthesis, identification, evaluation) but do not "
+        "diagnose them; a later run with the same OUT path diagnoses them from those stages",
+    )
+    suite.add_argument(
         "--set",
         dest="overrides",
         action="append",
@@ -112,6 +118,7 @@ def diagnose_suite(args) -> int:
         jobs=args.jobs,
         gpus=args.gpus,
         overrides=args.overrides,
+        prepare_only=args.prepare_only,
         say=lambda m: print(m, flush=True),
     )
     return 0

@@ -199,11 +199,14 @@ def entry_overrides(entry: Entry, run_dir: Path) -> list[str]:
     return overrides + list(entry.overrides)
 
 
-def run_entry(entry: Entry, out: Path, recipe_path: Path, budget: str, say=print) -> Score:
+def run_entry(
+    entry: Entry, out: Path, recipe_path: Path, budget: str, say=print, prepare_only=False
+) -> Score | None:
     """Generate, run, diagnose and score one entry into ``out/entry.name``.
 
     The score is written atomically to ``score.json`` last, so a suite stopped part-way resumes
     from the entries without one (the pipeline itself resumes its finished stages).
+    ``prepare_only``: stop after the pipeline (None is returned), see ``run_suite``.
     """
     run_dir = out / entry.name
     done = run_dir / "score.json"
@@ -211,6 +214,8 @@ def run_entry(entry: Entry, out: Path, recipe_path: Path, budget: str, say=print
         return Score(**json.loads(done.read_text()))
     say(f"[suite] {entry.name}: {entry.conceal or 'control'} on {entry.materials}")
     run_pipeline(load_recipe(recipe_path, entry_overrides(entry, run_dir)), run_dir=run_dir)
+    if prepare_only:
+        return None
     diagnosis = diagnose_run(run_dir, budget=budget, say=lambda m: say(f"[suite]   {m}"))
     effects = read_scene(run_dir / "scene").gt_effects()  # scoring only, after diagnosis
     score = score_entry(entry, diagnosis, effects)
@@ -220,10 +225,19 @@ def run_entry(entry: Entry, out: Path, recipe_path: Path, budget: str, say=print
     return score
 
 
-def _run_entry_logged(entry: Entry, out: Path, recipe_path: Path, budget: str) -> Score:
+def _run_entry_logged(
+    entry: Entry, out: Path, recipe_path: Path, budget: str, prepare_only: bool = False
+) -> Score | None:
     """A worker process's job: one entry; its output (``run_jobs`` sends it to the entry's
     ``suite.log``) flushed line by line, so a process that dies leaves its last words there."""
-    return run_entry(entry, out, recipe_path, budget, say=lambda m: print(m, flush=True))
+    return run_entry(
+        entry,
+        out,
+        recipe_path,
+        budget,
+        say=lambda m: print(m, flush=True),
+        prepare_only=prepare_only,
+    )
 
 
 def run_suite(
@@ -237,6 +251,7 @@ def run_suite(
     jobs: int = 1,
     gpus: str | None = None,
     overrides: list[str] | None = None,
+    prepare_only: bool = False,
     say=print,
 ) -> dict:
     """Generate, run, diagnose and score every entry into ``out``; returns the summary.
@@ -247,6 +262,12 @@ def run_suite(
     :mod:`mosiv_framework.workers`). ``overrides`` (``key=value``) apply to every entry's
     recipe, e.g. ``diagnose.refit_velocity_lr=1e-4``. Entries already scored in ``out`` are not
     recomputed.
+
+    ``prepare_only`` generates and runs the entries' pipelines (synthesis, identification,
+    evaluation) without diagnosing them, and returns an empty summary. Why: those stages are
+    about a third of an entry's time, and a suite prepared on one machine is diagnosed on
+    another from its finished stages, provided ``out`` is the same path there (the scene's
+    path is part of every stage's key).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -264,22 +285,33 @@ def run_suite(
         if entries:
             load_recipe(recipe_path, entry_overrides(entries[0], out / entries[0].name))
     scores: dict[str, Score] = {}
+    prepared: list[str] = []
     if jobs <= 1:
         for entry in entries:
-            scores[entry.name] = run_entry(entry, out, recipe_path, budget, say=say)
+            score = run_entry(entry, out, recipe_path, budget, say=say, prepare_only=prepare_only)
+            if score is not None:
+                scores[entry.name] = score
+            else:
+                prepared.append(entry.name)
     else:
         by_name = {e.name: e for e in entries}
 
-        def done(name: str, score: Score) -> None:
-            say(f"[suite] {name} done ({len(scores) + 1}/{len(entries)})")
-            scores[name] = score
+        def done(name: str, score: Score | None) -> None:
+            say(f"[suite] {name} done ({len(scores) + len(prepared) + 1}/{len(entries)})")
+            if score is not None:
+                scores[name] = score
+            else:
+                prepared.append(name)
 
         def failed(name: str, error: Exception) -> None:
             say(f"[suite] {name} FAILED: {error!r} (log: {out / name}/suite.log)")
 
         run_jobs(
             _run_entry_logged,
-            {name: (entry, out, recipe_path, budget) for name, entry in by_name.items()},
+            {
+                name: (entry, out, recipe_path, budget, prepare_only)
+                for name, entry in by_name.items()
+            },
             workers=jobs,
             gpus=gpus,
             logs={name: out / name / "suite.log" for name in by_name},
@@ -289,6 +321,9 @@ def run_suite(
                 f"[suite] {died}; running {name} again from its finished stages"
             ),
         )
+    if prepare_only:
+        say(f"[suite] prepared for diagnosis: {', '.join(sorted(prepared)) or 'none'}")
+        return {"prepared": sorted(prepared)}
     ordered = [scores[e.name] for e in entries if e.name in scores]
     summary = summarise(ordered)
     summary["missing"] = [e.name for e in entries if e.name not in scores]
