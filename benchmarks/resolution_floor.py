@@ -21,6 +21,8 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
+
 from mosiv_framework.diagnose.report import loaded_table
 from mosiv_framework.diagnose.suite import DEFAULT_RECIPES, suite_entries
 from mosiv_framework.workers import run_jobs
@@ -57,7 +59,8 @@ def measure(entry, out: Path, recipe_path: Path, fractions: tuple[float, ...]) -
 
 def heldout_drops(diagnosis: dict) -> dict[str, tuple[float, bool]]:
     """Candidate -> (null's held-out mean minus the candidate's, mm^2; accepted) of a saved
-    diagnosis."""
+    diagnosis. A model whose prediction diverged (an infinite error) has no such number and is
+    left out."""
     held = diagnosis["frames"]["heldout"]
     tables = {
         k: loaded_table(v).sum(axis=0)[held].mean()
@@ -66,6 +69,7 @@ def heldout_drops(diagnosis: dict) -> dict[str, tuple[float, bool]]:
     return {
         e["name"]: (float(tables["null"] - tables[e["name"]]), bool(e["accepted"]))
         for e in diagnosis["evidence"]
+        if np.isfinite(tables["null"]) and np.isfinite(tables[e["name"]])
     }
 
 

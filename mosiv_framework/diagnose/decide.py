@@ -262,18 +262,21 @@ def weigh(
     floor = null[:, :1]  # frame 0 is the lifted state: identical for every model
     bic_null = bic(null[:, fit_frames], floor, null_parameters, block=options.block)
     evidence = []
+    # a null whose prediction diverged (``frame_errors``) is compared only on the held-out
+    # frames it reached: against its infinite errors every candidate would drop them by 100 %
+    # with no spread, and a control whose null blows up would name whatever keeps it stable
+    judged = [f for f in heldout_frames if np.isfinite(null[:, f]).all()]
     for name, n_new, fit_loss in candidates:
         held = errors[name][:, heldout_frames]
-        if np.isfinite(held).all():
-            # (a null that diverged has infinite errors on some units: the drop there is 1)
+        if np.isfinite(held).all() and judged:
             drop, spread = bootstrap_drop(
-                null[:, heldout_frames],
-                held,
+                null[:, judged],
+                errors[name][:, judged],
                 block=options.block,
                 resamples=options.bootstrap,
                 seed=options.seed,
             )
-        else:  # its prediction diverged (``frame_errors``): no drop, and nothing to resample
+        else:  # its prediction diverged, or no held-out frame is left to judge it on
             drop, spread = -math.inf, math.inf
         n_params = null_parameters + n_new
         delta = bic(errors[name][:, fit_frames], floor, n_params, block=options.block) - bic_null

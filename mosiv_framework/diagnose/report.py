@@ -359,9 +359,8 @@ def _markdown(s: dict) -> str:
                 else ""
             )
             + (
-                f" The null model's prediction diverged ({s['null_diverged']}): the frames it "
-                "did not reach count as infinitely wrong for it, so there every candidate that "
-                "predicts them has the lower held-out error."
+                f" The null model's prediction diverged ({s['null_diverged']}): the candidates "
+                "are judged only on the held-out frames it reached."
                 if s.get("null_diverged")
                 else ""
             ),
