@@ -1422,6 +1422,26 @@ def test_refit_keeps_a_model_whose_every_prediction_diverges_as_evidence():
     assert replaces(predicts, fit) and not replaces(fit, predicts)
 
 
+def test_a_diverged_null_is_continued_from_a_candidate_state_that_predicts():
+    """The null fits the fit frames best but its prediction diverged: it is refitted again
+    from a candidate's shared state, and that refit, which predicts, replaces it although it
+    fits a little worse; a diverged state is never the one others continue from."""
+    from mosiv_framework.diagnose.model import Fit, RefitOptions, converge_null, refit
+
+    # a velocity above 0.5 m/s fits best and blows up after the fit frames
+    ctx = _PredictingContext([1.0, 0.0, 0.0], lambda p: float(p.initial_velocity[1][0]) > 0.5)
+    options = RefitOptions(iterations=2, velocity_lr=0.01)
+    start = [(torch.zeros(0), {1: torch.tensor([1.0, 0.0, 0.0])})]
+    null = refit(ctx, None, fit_frames=[1], starts=start, options=options)
+    assert null.diverged is not None and null.loss < 1e-3
+    calm = ctx.parameter_vector().physical()
+    calm.initial_velocity[1] = torch.tensor([0.4, 0.0, 0.0])
+    candidate = Fit("calm", None, calm, torch.zeros(1), 0.5, 7, shared=calm)
+    warm = converge_null(ctx, null, [candidate], fit_frames=[1], options=options)
+    assert warm.diverged is None and warm.trajectory is not None
+    assert warm.started_from == "calm" and warm.loss > null.loss
+
+
 def _moving_targets(n_frames: int, objects=(1, 2), points: int = 4):
     """Per object, ``points`` points moving at 1 cm per frame along x."""
     rng = np.random.default_rng(0)

@@ -300,7 +300,9 @@ def converge_null(
     suite, session 10, were rejected by the information criterion only). The null becomes the
     better of itself and a refit begun at the best switched-off candidate (``replaces``).
     """
-    best_loss, best_fit = null.loss, None
+    # a null whose prediction diverged is continued from the best candidate state whatever
+    # its fit loss: one that predicts every frame replaces it (``replaces``)
+    best_loss, best_fit = (math.inf if null.diverged else null.loss), None
     for fit in fits:
         if fit.shared is None:
             continue
@@ -341,12 +343,15 @@ def converge_candidates(
     model found. A continued candidate replaces its refit only where it fits better (or
     predicts all frames where that refit's prediction diverged, see ``replaces``).
     """
-    source = min([null, *fits], key=lambda f: f.loss)
+    # the best state is one that predicts every frame: a diverged fit's shared parameters
+    # blow up after the fit frames, and a diverged fit is continued whatever its loss
+    source = min([null, *fits], key=lambda f: (f.diverged is not None, f.loss))
     if source.shared is None:
         return fits
     converged = []
     for fit in fits:
-        if fit.candidate is None or fit.loss <= source.loss:  # the source itself too
+        settled = fit.loss <= source.loss and fit.diverged is None
+        if fit.candidate is None or fit is source or settled:
             converged.append(fit)
             continue
         try:
