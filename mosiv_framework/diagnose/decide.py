@@ -182,9 +182,9 @@ class Evidence:
             "name": self.name,
             # an infinite or undefined number (a diverged prediction, one resampling unit) is
             # written as null: diagnosis.json stays strict JSON
-            "heldout_drop": _finite_or_none(self.heldout_drop),
-            "heldout_spread": _finite_or_none(self.heldout_spread),
-            "delta_bic": _finite_or_none(self.delta_bic),
+            "heldout_drop": finite_or_none(self.heldout_drop),
+            "heldout_spread": finite_or_none(self.heldout_spread),
+            "delta_bic": finite_or_none(self.delta_bic),
             "passes_heldout": self.passes_heldout,
             "passes_bic": self.passes_bic,
             "accepted": self.accepted,
@@ -203,7 +203,8 @@ class Evidence:
         }
 
 
-def _finite_or_none(x: float) -> float | None:
+def finite_or_none(x: float) -> float | None:
+    """``x`` as a float, or None for a number JSON cannot hold (a diverged prediction's inf)."""
     return float(x) if math.isfinite(x) else None
 
 

@@ -10,13 +10,12 @@ its fitted value, ``identify: true``; format in ``mosiv_framework.recipes.terms`
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import yaml
 from omegaconf import OmegaConf
 
 from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.diagnose.decide import finite_or_none
 from mosiv_framework.diagnose.floor import summarise_floor
 from mosiv_framework.diagnose.locate import Location, plot_location
 from mosiv_framework.recipes.terms import IDENTIFY_KEY
@@ -29,21 +28,16 @@ def _block_means(errors: np.ndarray, observed: int) -> dict:
     None where there is none, or where a prediction diverged (an infinite error)."""
     future = errors[:, observed:]
     return {
-        "observed_cd_mm2": _finite(errors[:, :observed].mean() * MM2),
-        "future_cd_mm2": _finite(future.mean() * MM2) if future.size else None,
+        "observed_cd_mm2": finite_or_none(errors[:, :observed].mean() * MM2),
+        "future_cd_mm2": finite_or_none(future.mean() * MM2) if future.size else None,
     }
-
-
-def _finite(x) -> float | None:
-    """``x`` as a float, or None for a number JSON cannot hold (a diverged prediction's inf)."""
-    return float(x) if math.isfinite(x) else None
 
 
 def saved_table(errors: np.ndarray) -> list[list[float | None]]:
     """A [K, T] error table (m^2) as diagnosis.json holds it: mm^2, and null for a frame a
     diverged prediction did not reach (its infinite error, ``decide.frame_errors``; read back
     by ``replay``)."""
-    return [[_finite(x) for x in row] for row in (errors * MM2).tolist()]
+    return [[finite_or_none(x) for x in row] for row in (errors * MM2).tolist()]
 
 
 def loaded_table(rows: list) -> np.ndarray:

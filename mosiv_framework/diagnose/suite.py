@@ -264,7 +264,7 @@ def run_suite(
     recomputed.
 
     ``prepare_only`` generates and runs the entries' pipelines (synthesis, identification,
-    evaluation) without diagnosing them, and returns an empty summary. Why: those stages are
+    evaluation) without diagnosing them, and returns ``{"prepared": [names]}``. Why: those stages are
     about a third of an entry's time, and a suite prepared on one machine is diagnosed on
     another from its finished stages, provided ``out`` is the same path there (the scene's
     path is part of every stage's key).
@@ -286,22 +286,22 @@ def run_suite(
             load_recipe(recipe_path, entry_overrides(entries[0], out / entries[0].name))
     scores: dict[str, Score] = {}
     prepared: list[str] = []
+
+    def record(name: str, score: Score | None) -> None:  # None: prepared, not diagnosed
+        if score is None:
+            prepared.append(name)
+        else:
+            scores[name] = score
+
     if jobs <= 1:
         for entry in entries:
-            score = run_entry(entry, out, recipe_path, budget, say=say, prepare_only=prepare_only)
-            if score is not None:
-                scores[entry.name] = score
-            else:
-                prepared.append(entry.name)
+            record(entry.name, run_entry(entry, out, recipe_path, budget, say, prepare_only))
     else:
         by_name = {e.name: e for e in entries}
 
         def done(name: str, score: Score | None) -> None:
             say(f"[suite] {name} done ({len(scores) + len(prepared) + 1}/{len(entries)})")
-            if score is not None:
-                scores[name] = score
-            else:
-                prepared.append(name)
+            record(name, score)
 
         def failed(name: str, error: Exception) -> None:
             say(f"[suite] {name} FAILED: {error!r} (log: {out / name}/suite.log)")
