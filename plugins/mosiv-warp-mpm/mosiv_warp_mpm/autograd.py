@@ -105,16 +105,18 @@ class BackwardWorkspace:
         state, then run the substeps' adjoints in reverse, one short tape each."""
         S, work, grid = run.substeps, self.work, self.grid
         run.flag.fill_(K.NO_FLAG)
+        boxes = []
         for s in range(S):
-            grid.clear()
-            run.substep(work[s], work[s + 1], grid, s)
+            boxes.append(run.active_box(work[s]))
+            grid.clear(boxes[s])
+            run.substep(work[s], work[s + 1], grid, s, boxes[s])
         work[S].copy_grad_from(self.carry)
         for s in range(S - 1, -1, -1):
             work[s].zero_grad()
-            grid.zero_grad()
-            grid.clear()
+            grid.zero_grad(boxes[s])
+            grid.clear(boxes[s])
             tape = wp.Tape()
             with tape:
-                run.substep(work[s], work[s + 1], grid, s)
+                run.substep(work[s], work[s + 1], grid, s, boxes[s])
             tape.backward()  # no tape.reset(): it would zero every gradient, parameters included
         self.carry.copy_grad_from(work[0])

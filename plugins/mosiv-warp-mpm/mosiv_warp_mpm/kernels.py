@@ -26,6 +26,46 @@ def node_index(f: int, i: int, j: int, k: int, nodes: wp.vec3i):
 
 
 @wp.func
+def box_ijk(r: int, lo: wp.vec3i, dims: wp.vec3i):
+    # node (i, j, k) of the r-th node of a box of nodes (state.NodeBox), k fastest
+    return wp.vec3i(
+        lo[0] + r // (dims[1] * dims[2]), lo[1] + (r // dims[2]) % dims[1], lo[2] + r % dims[2]
+    )
+
+
+@wp.func
+def box_node(t: int, lo: wp.vec3i, dims: wp.vec3i, nodes: wp.vec3i):
+    # flat index of the t-th (field, node) pair of a box, field slowest
+    per_field = dims[0] * dims[1] * dims[2]
+    c = box_ijk(t % per_field, lo, dims)
+    return node_index(t // per_field, c[0], c[1], c[2], nodes)
+
+
+@wp.kernel
+def clear_box(
+    lo: wp.vec3i,
+    dims: wp.vec3i,
+    nodes: wp.vec3i,
+    m: wp.array(dtype=float),
+    mv: wp.array(dtype=wp.vec3),
+    gm: wp.array(dtype=wp.vec3),
+    pm: wp.array(dtype=wp.vec3),
+    vs: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    with_velocities: int,
+):
+    # zero the grid arrays (or their gradients) on the box's nodes: one launch, not six
+    n = box_node(wp.tid(), lo, dims, nodes)
+    m[n] = 0.0
+    mv[n] = wp.vec3()
+    gm[n] = wp.vec3()
+    pm[n] = wp.vec3()
+    if with_velocities != 0:
+        vs[n] = wp.vec3()
+        v[n] = wp.vec3()
+
+
+@wp.func
 def bspline_weights(fx: wp.vec3):
     # quadratic B-spline weights, row r = node base + r, column = axis
     w0 = 0.5 * wp.cw_mul(wp.vec3(1.5) - fx, wp.vec3(1.5) - fx)
@@ -121,10 +161,13 @@ def grid_free_velocity(
     accel: wp.array(dtype=wp.vec3),
     drag: wp.array(dtype=float),
     dt: float,
+    box_lo: wp.vec3i,
+    box_dims: wp.vec3i,
+    nodes: wp.vec3i,
     grid_vs: wp.array(dtype=wp.vec3),
 ):
-    # v = mv/m + dt (g + wind - c_lin v - c_quad |v| v)
-    n = wp.tid()
+    # v = mv/m + dt (g + wind - c_lin v - c_quad |v| v), on every field's nodes of the box
+    n = box_node(wp.tid(), box_lo, box_dims, nodes)
     m = grid_m[n]
     vf = wp.vec3()
     if m > MASS_EPS:
@@ -189,14 +232,17 @@ def grid_boundaries(
     ground_k: float,
     ground_friction: wp.array(dtype=float),
     ground_restitution: wp.array(dtype=float),
+    box_lo: wp.vec3i,
+    box_dims: wp.vec3i,
     grid_v: wp.array(dtype=wp.vec3),
 ):
-    # multi-field Coulomb contact, ground plane and slip walls at one spatial node
-    s = wp.tid()
+    # multi-field Coulomb contact, ground plane and slip walls at one spatial node of the box
+    c = box_ijk(wp.tid(), box_lo, box_dims)
+    i = c[0]
+    j = c[1]
+    k = c[2]
     per_field = nodes[0] * nodes[1] * nodes[2]
-    k = s % nodes[2]
-    j = (s // nodes[2]) % nodes[1]
-    i = s // (nodes[1] * nodes[2])
+    s = node_index(0, i, j, k, nodes)
     # sums over fields go through field_sums: Warp cannot differentiate a local variable
     # accumulated in a loop over the run-time field count
     m_tot, p_tot, g_tot, mu_tot, count = field_sums(

@@ -16,7 +16,7 @@ from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, Wor
 from mosiv_warp_mpm import kernels as K
 from mosiv_warp_mpm.laws import LAW_IDS, LAW_PARAM_NAMES, N_SLOTS
 from mosiv_warp_mpm.options import WarpMPMOptions
-from mosiv_warp_mpm.state import Grid, GridLayout, ObjectTables, ParticleState
+from mosiv_warp_mpm.state import Grid, GridLayout, NodeBox, ObjectTables, ParticleState
 
 #: physics term -> its parameter names (mpm_spec.md, "Body-force PhysicsTerms")
 TERMS: dict[str, tuple[str, ...]] = {
@@ -63,8 +63,17 @@ class MPMRun:
         families: list[str],
         obj_index: torch.Tensor,
         volumes: torch.Tensor,
+        windowed: bool | None = None,
     ):
+        """``windowed``: whether grid kernels visit only the nodes around the particles
+        (``active_box``); default: on the CPU only."""
         self.layout, self.world, self.substeps, self.device = layout, world, substeps, device
+        if windowed is None:
+            windowed = not wp.get_device(device).is_cuda
+        if windowed and wp.get_device(device).is_cuda:
+            raise ConfigError("a windowed grid needs the CPU: CUDA replays one captured graph")
+        self.windowed = windowed
+        self.whole_box = NodeBox.whole(layout)
         self.object_ids = object_ids
         self.dt = 1.0 / (world.fps * substeps)
         self.n = int(obj_index.shape[0])
@@ -94,10 +103,21 @@ class MPMRun:
         wp.copy(self.volume, wp.from_torch(volumes.float().contiguous()))
 
     # -- one substep -----------------------------------------------------------------------
-    def substep(self, src: ParticleState, dst: ParticleState, grid: Grid, s: int) -> None:
-        """P2G, grid update (contact, ground, walls, terms) and G2P from src into dst."""
+    def active_box(self, state: ParticleState) -> NodeBox:
+        """The grid nodes this substep from ``state`` can touch (state.NodeBox): the whole grid
+        on CUDA (one captured graph per frame), the box around the particles on the CPU."""
+        if not self.windowed:
+            return self.whole_box
+        return NodeBox.around(state.x.numpy(), self.layout)
+
+    def substep(
+        self, src: ParticleState, dst: ParticleState, grid: Grid, s: int, box: NodeBox
+    ) -> None:
+        """P2G, grid update (contact, ground, walls, terms) and G2P from src into dst; the grid
+        kernels visit the nodes of ``box`` (``active_box(src)``), cleared beforehand."""
         lay, t, dev = self.layout, self.tables, self.device
         origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
+        box_lo, box_dims = wp.vec3i(*box.lo), wp.vec3i(*box.dims)
         wp.launch(
             K.p2g,
             dim=self.n,
@@ -109,16 +129,17 @@ class MPMRun:
         )
         wp.launch(
             K.grid_free_velocity,
-            dim=lay.size,
-            inputs=[grid.m, grid.mv, t.accel, t.drag, self.dt],
+            dim=lay.fields * box.count,
+            inputs=[grid.m, grid.mv, t.accel, t.drag, self.dt, box_lo, box_dims, nodes],
             outputs=[grid.vs],
             device=dev,
         )
         wp.launch(
             K.grid_boundaries,
-            dim=lay.nodes_per_field,
+            dim=box.count,
             inputs=[grid.m, grid.vs, grid.gm, grid.pm, lay.fields, t.friction, nodes]
-            + [self.ground_on, self.ground_k, t.ground_friction, t.ground_restitution],
+            + [self.ground_on, self.ground_k, t.ground_friction, t.ground_restitution]
+            + [box_lo, box_dims],
             outputs=[grid.v],
             device=dev,
         )
@@ -136,8 +157,9 @@ class MPMRun:
         self.flag.fill_(K.NO_FLAG)
         src, dst = self.a, self.b
         for s in range(self.substeps):
-            self.grid.clear()
-            self.substep(src, dst, self.grid, s)
+            box = self.active_box(src)
+            self.grid.clear(box)
+            self.substep(src, dst, self.grid, s, box)
             src, dst = dst, src
         if src is not self.a:  # odd substep count: the result sits in b
             self.a.copy_from(src)
@@ -343,6 +365,9 @@ class WarpMPMSimulator(Simulator):
         #: backward's one-frame workspace; filled by autograd.py
         self.last_memory: dict[str, int] = {}
         self._peak = 0
+        #: whether grid kernels visit only the nodes around the particles (MPMRun.active_box);
+        #: None: on the CPU only. Results are the same either way (tests/test_grid_window.py)
+        self.windowed_grid: bool | None = None
         # Rollouts of the same layout reuse a run: its buffers and captured CUDA graphs. One
         # for forward-only rollouts (evaluation, generation, benchmarks, line searches), one
         # for differentiable ones (identification's iterations)
@@ -414,6 +439,7 @@ class WarpMPMSimulator(Simulator):
             families=families,
             obj_index=obj_index,
             volumes=volumes,
+            windowed=self.windowed_grid,
         )
         if wp.get_device(self.device).is_cuda:
             run.peak_sampler = self._sample_peak

@@ -13,7 +13,7 @@ import torch
 import warp as wp
 
 from mosiv_framework.types import World
-from mosiv_warp_mpm.kernels import PAD
+from mosiv_warp_mpm.kernels import PAD, clear_box
 from mosiv_warp_mpm.laws import N_SLOTS, vec5
 
 PAD_CELLS = int(PAD)
@@ -125,6 +125,48 @@ class ParticleState:
         return total
 
 
+@dataclass(frozen=True)
+class NodeBox:
+    """The block of grid nodes a substep's grid kernels visit: ``lo`` (first node per axis)
+    and ``dims`` (node counts per axis), the same block in every field.
+
+    Only nodes in some particle's 3x3x3 stencil hold mass, and only those are read back. On the
+    CPU, where Warp runs each kernel thread in turn, sweeping the whole grid cost 75 % of a
+    rollout of 278 particles on a 48-cell grid (docs/BENCHMARKS.md, session 21); the box around
+    the particles is a few percent of it. On CUDA the box is the whole grid, so that one frame
+    stays one captured graph.
+    """
+
+    lo: tuple[int, int, int]
+    dims: tuple[int, int, int]
+
+    @classmethod
+    def whole(cls, layout: GridLayout) -> NodeBox:
+        return cls((0, 0, 0), tuple(layout.nodes))
+
+    @classmethod
+    def around(cls, positions: np.ndarray, layout: GridLayout) -> NodeBox:
+        """The nodes of every stencil of ``positions`` [N, 3] (m), plus one node of margin
+        each side, so that a stencil base rounded differently on the host than in the kernel
+        still falls inside."""
+        if positions.shape[0] == 0:
+            return cls.whole(layout)
+        xl = (positions.astype(np.float64) - np.asarray(layout.origin)) / layout.dx
+        base = np.floor(xl - 0.5).astype(np.int64)  # kernels.cell_base
+        nodes = np.asarray(layout.nodes)
+        lo = np.clip(base.min(axis=0) - 1, 0, nodes - 1)
+        hi = np.clip(base.max(axis=0) + 3, 0, nodes - 1)  # stencil base + 2, plus the margin
+        return cls(tuple(int(v) for v in lo), tuple(int(v) for v in hi - lo + 1))
+
+    @property
+    def count(self) -> int:
+        """Nodes per field."""
+        return self.dims[0] * self.dims[1] * self.dims[2]
+
+    def is_whole(self, layout: GridLayout) -> bool:
+        return self.lo == (0, 0, 0) and self.dims == tuple(layout.nodes)
+
+
 class Grid:
     """Per-field node mass (kg), momentum (kg m/s), mass gradient (kg/m), free and final
     velocities (m/s); flat arrays of GridLayout.size."""
@@ -137,20 +179,31 @@ class Grid:
         self.pm = wp.zeros(layout.size, dtype=wp.vec3, **kw)
         self.vs = wp.zeros(layout.size, dtype=wp.vec3, **kw)
         self.v = wp.zeros(layout.size, dtype=wp.vec3, **kw)
+        self.layout, self.device = layout, device
 
     def arrays(self) -> list[wp.array]:
         return [self.m, self.mv, self.gm, self.pm, self.vs, self.v]
 
-    def clear(self) -> None:
-        self.m.zero_()
-        self.mv.zero_()
-        self.gm.zero_()
-        self.pm.zero_()
+    def clear(self, box: NodeBox) -> None:
+        """Zero what P2G accumulates into, on the nodes of ``box``."""
+        self._zero([self.m, self.mv, self.gm, self.pm, self.vs, self.v], box, velocities=False)
 
-    def zero_grad(self) -> None:
-        for a in self.arrays():
-            if a.grad is not None:
-                a.grad.zero_()
+    def zero_grad(self, box: NodeBox) -> None:
+        if self.m.grad is not None:
+            self._zero([a.grad for a in self.arrays()], box, velocities=True)
+
+    def _zero(self, arrays: list[wp.array], box: NodeBox, *, velocities: bool) -> None:
+        if box.is_whole(self.layout):  # a memset per array
+            for a in arrays[: None if velocities else 4]:
+                a.zero_()
+            return
+        wp.launch(
+            clear_box,
+            dim=self.layout.fields * box.count,
+            inputs=[wp.vec3i(*box.lo), wp.vec3i(*box.dims), wp.vec3i(*self.layout.nodes)]
+            + [*arrays, int(velocities)],
+            device=self.device,
+        )
 
 
 class ObjectTables:
