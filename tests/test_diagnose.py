@@ -11,6 +11,7 @@ nothing.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -251,3 +252,56 @@ def test_concealed_plasticity_of_an_elastic_body_is_found(plastic):
     # a family is declared by the scene: the change names the file, the body and the law
     change = diagnosis["accepted"]["recipe_change"]
     assert "scene.json" in change and "object 1" in change and "plasticine" in change
+
+
+def test_a_diagnosis_cut_off_resumes_after_its_saved_steps(wind, tmp_path, monkeypatch):
+    # a device lease that ends mid-diagnosis must not cost the refits that had finished
+    import mosiv_framework.diagnose.diagnosis as diagnosis_module
+    from mosiv_framework.diagnose.steps import FOLDER
+
+    root = tmp_path / "run"
+    shutil.copytree(wind[0], root)
+    (root / "diagnosis.json").unlink()
+
+    def lease_ends(*args, **kwargs):
+        raise RuntimeError("the lease ended")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(diagnosis_module, "converge_candidates", lease_ends)
+        with pytest.raises(RuntimeError, match="lease ended"):
+            diagnose_run(root, budget="small", say=lambda m: None)
+    saved = sorted(p.stem for p in (root / FOLDER).glob("*.pt"))
+    refitted = [f"refit-{s['name']}" for s in wind[1]["screening"][:3]]
+    assert {"locate", "screen", "refit-null", *refitted} <= set(saved)
+    assert "converged" not in saved
+
+    # the second attempt recomputes none of them, and decides exactly as an uncut diagnosis
+    for name in ("locate", "screen", "refit"):
+        monkeypatch.setattr(diagnosis_module, name, lease_ends)
+    messages = []
+    resumed = diagnose_run(root, budget="small", say=messages.append)
+    assert any("resumed from the saved steps" in m and "refit-null" in m for m in messages)
+    assert not (root / FOLDER).exists()  # a finished diagnosis keeps no steps
+    assert resumed["verdict"] == wind[1]["verdict"]
+    assert resumed["accepted"]["name"] == wind[1]["accepted"]["name"]
+    for got, expected in zip(resumed["evidence"], wind[1]["evidence"]):
+        assert got["name"] == expected["name"]
+        assert got["heldout_drop"] == pytest.approx(expected["heldout_drop"], rel=1e-6)
+
+
+def test_saved_steps_belong_to_one_budget_and_identified_model(wind, tmp_path):
+    from mosiv_framework.diagnose.steps import diagnosis_key
+    from mosiv_framework.pipeline.rundir import RunDir
+
+    root = tmp_path / "run"
+    shutil.copytree(wind[0], root)
+    recipe = load_recipe(root / "recipe.yaml")
+    base = {"budget": {"iterations": 6}, "fit_frames": [1, 2, 3], "heldout": [4, 5]}
+    key = diagnosis_key(RunDir(root), recipe=recipe, **base)
+    assert key == diagnosis_key(RunDir(root), recipe=recipe, **base)
+    assert key != diagnosis_key(
+        RunDir(root), recipe=recipe, **{**base, "budget": {"iterations": 7}}
+    )
+    identified = json.loads((root / "identified.json").read_text())
+    (root / "identified.json").write_text(json.dumps({**identified, "changed": 1}))
+    assert key != diagnosis_key(RunDir(root), recipe=recipe, **base)

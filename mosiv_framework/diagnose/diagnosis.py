@@ -45,6 +45,7 @@ from mosiv_framework.diagnose.model import (
 )
 from mosiv_framework.diagnose.reidentify import ReidentifyOptions, reidentify
 from mosiv_framework.diagnose.report import write_report
+from mosiv_framework.diagnose.steps import DiagnosisSteps, diagnosis_key
 from mosiv_framework.errors import ConfigError, SimulationDiverged
 
 #: multiples of the screening's estimates that further refit starts begin at
@@ -202,6 +203,17 @@ def _better(fit, ctx, candidate, start, fit_frames, schedule):
     return fit
 
 
+def _converge(ctx, null, fits, *, fit_frames, options):
+    """(null, fits) after every model may start from the best state any model found: the null
+    from the candidates' shared parameters, then each candidate that still fits worse from the
+    best model's, then the null once more if those moved the shared parameters further."""
+    null = converge_null(ctx, null, fits, fit_frames=fit_frames, options=options)
+    fits = converge_candidates(ctx, null, fits, fit_frames=fit_frames, options=options)
+    if any(f.started_from for f in fits):
+        null = converge_null(ctx, null, fits, fit_frames=fit_frames, options=options)
+    return null, fits
+
+
 def diagnose_run(
     run_dir: str | Path,
     *,
@@ -223,9 +235,17 @@ def diagnose_run(
     allowed_names = list(section.terms) if section is not None and section.terms else None
     excluded_names = set(section.exclude) if section is not None else set()
     fit_frames, heldout = split_frames(ctx.observed_frames, ctx.n_frames, budget.heldout_fraction)
+    key = diagnosis_key(
+        ctx.run_dir,
+        budget=budget.__dict__,
+        fit_frames=fit_frames,
+        heldout=heldout,
+        recipe=ctx.recipe,
+    )
+    steps = DiagnosisSteps(ctx.run_dir, key, say=say)
 
     say(f"locating the mismatch over {ctx.observed_frames} observed frames")
-    location = locate(ctx)
+    location = steps.get("locate", lambda: locate(ctx))
     before = frame_errors(ctx, ctx.identified_rollout())
     result = {
         "run_dir": str(ctx.run_dir.root),
@@ -252,13 +272,16 @@ def diagnose_run(
         ]
         candidates = [c for c in candidates if c.name not in excluded_names]
         say(f"screening {len(candidates)} candidate effects in regimes {location.flagged_regimes}")
-        screens = screen(
-            ctx,
-            candidates,
-            flagged_regimes=location.flagged_regimes,
-            fit_frames=fit_frames,
-            residuals=location.residuals,
-            regimes=location.regimes,
+        screens = steps.get(
+            "screen",
+            lambda: screen(
+                ctx,
+                candidates,
+                flagged_regimes=location.flagged_regimes,
+                fit_frames=fit_frames,
+                residuals=location.residuals,
+                regimes=location.regimes,
+            ),
         )
         kept = choose_refits(screens, budget.max_candidates)
         refit_options = RefitOptions(
@@ -271,42 +294,53 @@ def diagnose_run(
         null_start = regression_estimate(
             ctx, None, location.residuals, location.regimes, fit_frames
         )
-        null = refit(
-            ctx,
-            None,
-            fit_frames=fit_frames,
-            starts=null_starts(null_start),
-            options=refit_options,
+        null = steps.get(
+            "refit-null",
+            lambda: refit(
+                ctx,
+                None,
+                fit_frames=fit_frames,
+                starts=null_starts(null_start),
+                options=refit_options,
+            ),
         )
         fits = [
-            refit(
-                ctx,
-                s.candidate,
-                fit_frames=fit_frames,
-                starts=refit_starts(s, budget.starts, far_start=budget.far_start),
-                options=refit_options,
+            steps.get(
+                f"refit-{s.candidate.name}",
+                lambda s=s: refit(
+                    ctx,
+                    s.candidate,
+                    fit_frames=fit_frames,
+                    starts=refit_starts(s, budget.starts, far_start=budget.far_start),
+                    options=refit_options,
+                ),
             )
             for s in kept
         ]
         if budget.reidentify:
             say("identifying the null model and each candidate afresh on the fit frames")
             schedule = ReidentifyOptions.from_recipe(ctx.recipe.identify)
-            null = _better(null, ctx, None, None, fit_frames, schedule)
+            null = steps.get(
+                "fresh-null", lambda: _better(null, ctx, None, None, fit_frames, schedule)
+            )
             fits = [
-                _better(fit, ctx, s.candidate, refit_starts(s, 1)[0][0], fit_frames, schedule)
+                steps.get(
+                    f"fresh-{s.candidate.name}",
+                    lambda fit=fit, s=s: _better(
+                        fit, ctx, s.candidate, refit_starts(s, 1)[0][0], fit_frames, schedule
+                    ),
+                )
                 for fit, s in zip(fits, kept)
             ]
             fresh = [f.name for f in [null, *fits] if f.reidentified]
             say(f"identified afresh, better than refitted: {fresh or 'none'}")
-        # every model may start from the best state any model found: the null from the
-        # candidates' shared parameters, then each candidate that still fits worse from the
-        # best model's, then the null once more if those moved the shared parameters further
-        null = converge_null(ctx, null, fits, fit_frames=fit_frames, options=refit_options)
-        fits = converge_candidates(ctx, null, fits, fit_frames=fit_frames, options=refit_options)
+        null, fits = steps.get(
+            "converged",
+            lambda: _converge(ctx, null, fits, fit_frames=fit_frames, options=refit_options),
+        )
         continued = [f"{f.name} from {f.started_from}" for f in fits if f.started_from]
         if continued:
             say(f"refitted again from the best model's shared parameters: {continued}")
-            null = converge_null(ctx, null, fits, fit_frames=fit_frames, options=refit_options)
         if null.started_from is not None:
             say(f"the null model refitted again from {null.started_from}'s shared parameters")
         for fit in [null, *fits]:  # kept as evidence (``model.predict``), not a crash
@@ -356,7 +390,10 @@ def diagnose_run(
     result["interval"] = accepted_interval if accepted is not None else None
     result["errors"] = errors
     result["time_s"] = time.perf_counter() - t_start
+    if steps.resumed:
+        say(f"resumed from the saved steps {steps.resumed}")
     summary = write_report(ctx, location, result)
+    steps.clear()
     say(
         f"verdict: {summary['verdict']}"
         + (f" ({summary['accepted']['name']})" if summary.get("accepted") else "")
