@@ -282,6 +282,11 @@ def test_a_diagnosis_cut_off_resumes_after_its_saved_steps(wind, tmp_path, monke
     resumed = diagnose_run(root, budget="small", say=messages.append)
     assert any("resumed from the saved steps" in m and "refit-null" in m for m in messages)
     assert not (root / FOLDER).exists()  # a finished diagnosis keeps no steps
+    assert {"locate", "screen", "refit-null"} <= set(resumed["resumed_steps"])
+    assert (
+        json.loads((root / "diagnosis.json").read_text())["resumed_steps"]
+        == resumed["resumed_steps"]
+    )
     assert resumed["verdict"] == wind[1]["verdict"]
     assert resumed["accepted"]["name"] == wind[1]["accepted"]["name"]
     for got, expected in zip(resumed["evidence"], wind[1]["evidence"]):

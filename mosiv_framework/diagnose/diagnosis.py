@@ -390,6 +390,7 @@ def diagnose_run(
     result["interval"] = accepted_interval if accepted is not None else None
     result["errors"] = errors
     result["time_s"] = time.perf_counter() - t_start
+    result["resumed_steps"] = steps.resumed
     if steps.resumed:
         say(f"resumed from the saved steps {steps.resumed}")
     summary = write_report(ctx, location, result)

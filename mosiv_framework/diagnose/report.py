@@ -211,7 +211,9 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
         # not yet part of the rule, so that a replay can weigh the held-out drops against it
         "resolution_floor_mm2": summarise_floor(result.get("resolution_floor"), result["frames"]),
         "accepted": None,
+        # time of this attempt; the steps it took from an earlier, cut-off one (``steps.py``)
         "time_s": result["time_s"],
+        "resumed_steps": result.get("resumed_steps", []),
     }
     trajectories = {"identified": ctx.identified_rollout()}
     null = result.get("null")
