@@ -292,21 +292,3 @@ def test_a_diagnosis_cut_off_resumes_after_its_saved_steps(wind, tmp_path, monke
     for got, expected in zip(resumed["evidence"], wind[1]["evidence"]):
         assert got["name"] == expected["name"]
         assert got["heldout_drop"] == pytest.approx(expected["heldout_drop"], rel=1e-6)
-
-
-def test_saved_steps_belong_to_one_budget_and_identified_model(wind, tmp_path):
-    from mosiv_framework.diagnose.steps import diagnosis_key
-    from mosiv_framework.pipeline.rundir import RunDir
-
-    root = tmp_path / "run"
-    shutil.copytree(wind[0], root)
-    recipe = load_recipe(root / "recipe.yaml")
-    base = {"budget": {"iterations": 6}, "fit_frames": [1, 2, 3], "heldout": [4, 5]}
-    key = diagnosis_key(RunDir(root), recipe=recipe, **base)
-    assert key == diagnosis_key(RunDir(root), recipe=recipe, **base)
-    assert key != diagnosis_key(
-        RunDir(root), recipe=recipe, **{**base, "budget": {"iterations": 7}}
-    )
-    identified = json.loads((root / "identified.json").read_text())
-    (root / "identified.json").write_text(json.dumps({**identified, "changed": 1}))
-    assert key != diagnosis_key(RunDir(root), recipe=recipe, **base)

@@ -241,6 +241,7 @@ def diagnose_run(
         fit_frames=fit_frames,
         heldout=heldout,
         recipe=ctx.recipe,
+        simulator_overrides=simulator_overrides,
     )
     steps = DiagnosisSteps(ctx.run_dir, key, say=say)
 

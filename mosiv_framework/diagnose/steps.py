@@ -19,61 +19,86 @@ import shutil
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from mosiv_framework.pipeline.rundir import RunDir, fingerprint
 
 T = TypeVar("T")
 
-#: bump when a saved step's meaning changes, so that old files are recomputed, not misread
+#: bump when a saved step's meaning or its classes' fields change (``model.Fit``,
+#: ``hypothesise.Screen``, ``locate``'s result), so that old files are recomputed, not misread
 STEP_FORMAT = 1
 FOLDER = "diagnose/steps"
+#: recipe sections a saved step depends on, besides the simulator's
+SECTIONS = ("diagnose", "identify", "losses", "physics_terms")
 
 
-def diagnosis_key(run_dir: RunDir, *, budget: dict, fit_frames: list, heldout: list, recipe) -> str:
+def diagnosis_key(
+    run_dir: RunDir,
+    *,
+    budget: dict,
+    fit_frames: list,
+    heldout: list,
+    recipe,
+    simulator_overrides: dict | None = None,
+) -> str:
     """What every saved step of one diagnosis depends on: the budget, the frame split, the
-    recipe's diagnose and simulator sections and the run's identified model (by content, so a
-    run identified again invalidates them). Not the device: a step saved on the CPU serves a
-    GPU diagnosis and the other way round."""
+    recipe sections that shape a refit (diagnose; identify: which parameters are free and the
+    fresh identifications' schedule; losses; the simulator with its overrides; physics terms)
+    and the run's identified model (by content, so a run identified again invalidates them).
+    Not the device: a step saved on the CPU serves a GPU diagnosis and the other way round."""
     identified = run_dir.path("identified.json").read_bytes()
+    simulator = {**(_plain(recipe.get("simulator", None)) or {}), **(simulator_overrides or {})}
+    simulator.pop("device", None)
     return fingerprint(
         STEP_FORMAT,
         budget,
         fit_frames,
         heldout,
-        _plain(recipe.get("diagnose", None)),
-        {k: v for k, v in (_plain(recipe.get("simulator", None)) or {}).items() if k != "device"},
-        _plain(recipe.get("physics_terms", None)),
+        {name: _plain(recipe.get(name, None)) for name in SECTIONS},
+        simulator,
         hashlib.sha256(identified).hexdigest(),
     )
 
 
 def _plain(section) -> Any:
-    return OmegaConf.to_container(section) if isinstance(section, DictConfig) else section
+    if isinstance(section, DictConfig):
+        return OmegaConf.to_container(section, resolve=True)
+    return section
 
 
 class DiagnosisSteps:
-    """Get-or-compute of a diagnosis's named steps (``get``), saved atomically."""
+    """Get-or-compute of a diagnosis's named steps (``get``), saved atomically.
+
+    Steps are asked for in the diagnosis's fixed order, and the saved ones are used only as an
+    unbroken prefix of it: once one step is computed (its file missing, unreadable or from
+    another key), every later one is computed too, so that no saved step built on an earlier
+    result is combined with a new one (GPU rollouts are not bit-reproducible: a screening
+    computed again can differ from the one the saved refits started from).
+    """
 
     def __init__(self, run_dir: RunDir, key: str, *, say: Callable[[str], None] = print):
         self.run_dir, self.key, self.say = run_dir, key, say
         self.resumed: list[str] = []
+        self._computing = False
 
     def get(self, step: str, compute: Callable[[], T]) -> T:
-        """The saved result of ``step`` if it was saved under this diagnosis's key, else
-        ``compute()``, saved before it is returned."""
-        name = f"{FOLDER}/{step}.pt"
-        if self.run_dir.path(name).is_file():
-            try:
-                saved = self.run_dir.load_torch(name)
-            except Exception as exc:  # a file from another code version: recompute it
+        """The saved result of ``step`` if the steps before it were all saved too and it was
+        saved under this diagnosis's key, else ``compute()``, saved before it is returned."""
+        path = self.run_dir.path(f"{FOLDER}/{step}.pt")
+        if not self._computing and path.is_file():
+            try:  # on the CPU: a step saved beside a GPU serves a CPU-only machine as well
+                saved = torch.load(path, map_location="cpu", weights_only=False)
+            except Exception as exc:  # e.g. a file of another code version: compute it again
                 self.say(f"  could not read the saved step {step} ({exc}); computing it again")
             else:
                 if isinstance(saved, dict) and saved.get("key") == self.key:
                     self.resumed.append(step)
                     return saved["value"]
+        self._computing = True
         value = compute()
-        self.run_dir.save_torch(name, {"key": self.key, "value": value})
+        self.run_dir.save_torch(f"{FOLDER}/{step}.pt", {"key": self.key, "value": value})
         return value
 
     def clear(self) -> None:
