@@ -10,6 +10,7 @@ import torch
 import warp as wp
 from mosiv_warp_mpm.state import GridLayout, NodeBox
 
+from mosiv_framework.errors import ConfigError
 from mosiv_framework.testing.shapes import combine, default_params, sphere
 from mosiv_framework.types import World
 
@@ -37,7 +38,12 @@ def _collide_and_land(sim) -> tuple[torch.Tensor, ...]:
 def test_windowed_grid_matches_the_whole_grid_bit_for_bit(make_warp_simulator) -> None:
     whole = make_warp_simulator(grid=16, substeps=20)
     if wp.get_device(whole.device).is_cuda:
-        pytest.skip("CUDA always sweeps the whole grid (one captured graph per frame)")
+        # CUDA replays one captured graph per frame, so it must sweep the whole grid: asking
+        # for the node box there is refused rather than silently ignored
+        whole.windowed_grid = True
+        with pytest.raises(ConfigError, match="windowed grid needs the CPU"):
+            _collide_and_land(whole)
+        return
     whole.windowed_grid = False
     windowed = make_warp_simulator(grid=16, substeps=20)
     expected = _collide_and_land(whole)
