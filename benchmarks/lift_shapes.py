@@ -3,6 +3,7 @@
 Usage:
     python benchmarks/lift_shapes.py --device cuda --out runs/lift_shapes
     python benchmarks/lift_shapes.py --device cpu --tiny --out runs/lift_shapes_tiny
+    python benchmarks/lift_shapes.py --device cuda --seed-offsets 0,100,200   # three draws each
 
 Five generated two-object scenes (fixed seeds) cover the ten shapes of the paper. Per scene:
 1. the scene is generated (a short clip: the lift uses frame 0 only), all scenes in one child
@@ -100,7 +101,7 @@ PRESETS = {
 N_FRAMES = 3
 
 
-def scene_options(index: int, preset: str, device: str) -> dict:
+def scene_options(index: int, preset: str, device: str, seed_offset: int = 0) -> dict:
     a, b, seed = SCENES[index]
     return {
         "n_objects": 2,
@@ -111,29 +112,28 @@ def scene_options(index: int, preset: str, device: str) -> dict:
         "collision_frame": N_FRAMES - 1,
         "simulator": "warp-mpm",
         "simulator_options": {"grid": 32, "substeps": 40, "device": device},
-        "seed": seed,
+        "seed": seed + seed_offset,
         "progress": False,
         **PRESETS[preset]["scene"],
     }
 
 
-def scene_folder(scenes_dir: Path, index: int, preset: str) -> Path:
+def scene_folder(scenes_dir: Path, index: int, preset: str, seed_offset: int = 0) -> Path:
     a, b, seed = SCENES[index]
-    return scenes_dir / f"{preset}_{a}_{b}_s{seed}"
+    return scenes_dir / f"{preset}_{a}_{b}_s{seed + seed_offset}"
 
 
-def generate_all(scenes_dir: Path, preset: str, device: str, indices: list[int]) -> None:
-    """Generate the missing scenes (run in a child process by ``main``)."""
+def generate_all(scenes_dir: Path, preset: str, device: str, jobs: list[tuple[int, int]]) -> None:
+    """Generate the missing scenes, one per (scene index, seed offset) (a child of ``main``)."""
     from mosiv_framework.registry import get_registry
 
-    for i in indices:
-        folder = scene_folder(scenes_dir, i, preset)
+    for i, offset in jobs:
+        folder = scene_folder(scenes_dir, i, preset, offset)
         if (folder / "scene.json").is_file():
             continue
         start = time.perf_counter()
-        get_registry().create("scene_source", "synth", scene_options(i, preset, device)).generate(
-            folder
-        )
+        options = scene_options(i, preset, device, offset)
+        get_registry().create("scene_source", "synth", options).generate(folder)
         print(f"generated {folder.name} in {time.perf_counter() - start:.1f} s", flush=True)
 
 
@@ -194,22 +194,28 @@ def markdown(results: list[dict], header: str) -> str:
     lines = [
         header,
         "",
-        "| shape | volume error | IoU | min gap / cell | PSNR full (dB) | PSNR objects (dB) "
+        "| shape | seed | volume error | IoU | min gap / cell | PSNR full (dB) | PSNR objects (dB) "
         "| fit (s) | lift (s) | peak GPU (GiB) | peak RSS (GiB) | pass |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
     ]
+    passes: dict[str, list[bool]] = {}
     for r in results:
         s = r["lift"]
         for k, obj in s["objects"].items():
             v = verdicts(s, k)
             failed = [name for name, ok in v.items() if not ok]
             gpu = "-" if r["fit_peak_gpu_gb"] is None else f"{r['fit_peak_gpu_gb']:.2f}"
+            shape = r["shapes"][int(k) - 1]
+            passes.setdefault(shape, []).append(not failed)
             lines.append(
-                f"| {r['shapes'][int(k) - 1]} | {100 * obj['volume_error']:+.1f}% "
+                f"| {shape} | {r.get('seed', '-')} | {100 * obj['volume_error']:+.1f}% "
                 f"| {obj['iou']:.3f} | {s['min_gap_cells']:.2f} | {s['psnr']['full']:.1f} "
                 f"| {s['psnr']['objects']:.1f} | {r['fit_s']:.0f} | {s['lift_s']:.1f} | {gpu} "
                 f"| {s['peak_rss_gb']:.2f} | {'pass' if not failed else 'FAIL: ' + ', '.join(failed)} |"
             )
+    if any(len(v) > 1 for v in passes.values()):
+        lines += ["", "| shape | draws passing every check |", "| --- | ---: |"]
+        lines += [f"| {shape} | {sum(v)} of {len(v)} |" for shape, v in passes.items()]
     t = TARGETS
     lines += [
         "",
@@ -231,6 +237,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--lift-options", default="{}", help="JSON overriding gaussians lifter options")
     p.add_argument(
         "--scenes", default="0,1,2,3,4", help="comma-separated scene indices 0..4 (default: all)"
+    )
+    p.add_argument(
+        "--seed-offsets",
+        default="0",
+        help="comma-separated offsets added to each scene's seed (default 0): every offset is "
+        "a fresh random draw of the scene (sizes, rotations, cameras), so '0,100,200' measures "
+        "each shape in three orientations",
     )
     p.add_argument(
         "--save-reconstructions",
@@ -255,18 +268,25 @@ def main(argv=None) -> dict:
     indices = [int(i) for i in args.scenes.split(",")]
     if any(not 0 <= i < len(SCENES) for i in indices):
         raise SystemExit(f"--scenes={args.scenes!r}: indices must lie in 0..{len(SCENES) - 1}")
+    offsets = [int(o) for o in args.seed_offsets.split(",")]
+    jobs = [(i, offset) for offset in offsets for i in indices]
     generate_device = args.generate_device or args.device
     if args.generate_only:
-        generate_all(scenes_dir, preset, generate_device, indices)
+        generate_all(scenes_dir, preset, generate_device, jobs)
         return {}
     missing = [
-        i for i in indices if not (scene_folder(scenes_dir, i, preset) / "scene.json").is_file()
+        (i, o)
+        for i, o in jobs
+        if not (scene_folder(scenes_dir, i, preset, o) / "scene.json").is_file()
     ]
     if missing:
-        child = [sys.executable, __file__, "--generate-only", "--device", generate_device]
-        child += ["--scenes-dir", str(scenes_dir), "--out", str(args.out)]
-        child += ["--scenes", ",".join(map(str, missing))]
-        subprocess.run(child + (["--tiny"] if args.tiny else []), check=True)
+        # one child per missing seed offset keeps the generator's memory out of this process
+        for offset in sorted({o for _, o in missing}):
+            child = [sys.executable, __file__, "--generate-only", "--device", generate_device]
+            child += ["--scenes-dir", str(scenes_dir), "--out", str(args.out)]
+            child += ["--scenes", ",".join(str(i) for i, o in missing if o == offset)]
+            child += ["--seed-offsets", str(offset)]
+            subprocess.run(child + (["--tiny"] if args.tiny else []), check=True)
 
     from mosiv_framework.scene import read_scene
 
@@ -280,11 +300,15 @@ def main(argv=None) -> dict:
     lift_options = {**PRESETS[preset]["lift"], **json.loads(args.lift_options)}
     spacing = PRESETS[preset]["scene"]["particle_spacing"]
     results = []
-    for i in indices:
-        folder = scene_folder(scenes_dir, i, preset)
+    for n, (i, offset) in enumerate(jobs):
+        folder = scene_folder(scenes_dir, i, preset, offset)
         scene = read_scene(folder)
         shapes = list(SCENES[i][:2])
-        print(f"[{i + 1}/{len(SCENES)}] {'+'.join(shapes)}: fitting gauss-dynamic", flush=True)
+        seed = SCENES[i][2] + offset
+        print(
+            f"[{n + 1}/{len(jobs)}] {'+'.join(shapes)} seed {seed}: fitting gauss-dynamic",
+            flush=True,
+        )
         recon, fit_s, fit_gpu = fit_gauss(scene, fit_options, args.device)
         training = recon.extras["training"]
         if args.save_reconstructions:
@@ -301,6 +325,7 @@ def main(argv=None) -> dict:
             {
                 "scene": str(folder),
                 "shapes": shapes,
+                "seed": seed,
                 "fit_s": fit_s,
                 "fit_peak_gpu_gb": fit_gpu,
                 "n_gaussians": recon.extras["n_gaussians"],
