@@ -70,9 +70,7 @@ def lifted(request, scenes):
 def test_volume_and_voxel_iou_match_ground_truth(lifted):
     scene, _, particles = lifted
     gt = {k: pts[0] for k, pts in scene.gt_points().items()}
-    scores = lift_geometry(
-        particles, gt, gt_spacing=SPACING, cell=LIFT["cell_size"], origin=scene.domain_lower
-    )
+    scores = lift_geometry(particles, gt, gt_spacing=SPACING, cell=LIFT["cell_size"])
     names = {o.id: o.name for o in scene.objects}
     for k, s in scores.items():
         assert abs(s["volume_error"]) <= 0.10, (names[k], s)
@@ -161,8 +159,6 @@ def test_an_object_whose_gaussians_sit_elsewhere_is_lifted_from_its_masks(scenes
     # the masks' visual hull puts it where it was filmed, with about its volume (a hull of 4
     # views over-estimates it)
     assert (lifted.mean(0) - gt.mean(0)).norm() < 0.01
-    scores = lift_geometry(
-        particles, {2: gt}, gt_spacing=SPACING, cell=LIFT["cell_size"], origin=scene.domain_lower
-    )
+    scores = lift_geometry(particles, {2: gt}, gt_spacing=SPACING, cell=LIFT["cell_size"])
     assert 0.0 <= scores[2]["volume_error"] <= 0.3, scores
     assert min_foreign_distance(particles) >= 0.5 * LIFT["cell_size"] * (1 - 1e-4)
