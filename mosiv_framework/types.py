@@ -70,6 +70,23 @@ class ParticleSet:
         missing = sorted(set(self.object_ids.unique().tolist()) - set(self.materials))
         if missing:
             raise ValueError(f"ParticleSet.materials lacks a family for object ids {missing}")
+        # a NaN position passes every "inside the domain" comparison, so it is caught here,
+        # where it enters, rather than as a diverged rollout frames later
+        bad = ~torch.isfinite(self.positions.detach()).all(dim=1)
+        if bool(bad.any()):
+            raise ValueError(
+                f"ParticleSet.positions: {int(bad.sum())} of {n} particles have a non-finite "
+                f"coordinate (first of object {int(self.object_ids[bad][0])}); positions must "
+                "be finite (m)"
+            )
+        volumes = self.volumes.detach()
+        bad = ~(torch.isfinite(volumes) & (volumes > 0))
+        if bool(bad.any()):
+            raise ValueError(
+                f"ParticleSet.volumes: {int(bad.sum())} of {n} particles have a volume that is "
+                f"not finite and > 0 (first of object {int(self.object_ids[bad][0])}: "
+                f"{float(volumes[bad][0])}); rest volumes must be positive (m^3)"
+            )
 
     @property
     def object_list(self) -> list[int]:
