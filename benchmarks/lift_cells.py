@@ -20,9 +20,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).parent))  # lift_shapes' presets, for ``relift``
 
 
 def perfect_occupancy(mesh, origin: np.ndarray, cell: float, samples: int) -> np.ndarray:
@@ -123,9 +126,11 @@ def main(argv=None) -> None:
         q.add_argument("--cells", default="0.006,0.003", help="lift cell sizes (m)")
         q.add_argument("--spacing", type=float, default=0.006, help="ground-truth lattice (m)")
     args = p.parse_args(argv)
-    ceiling(args) if args.command == "ceiling" else relift(args)
+    if args.command == "ceiling":
+        ceiling(args)
+    else:
+        relift(args)
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
     main(sys.argv[1:])
