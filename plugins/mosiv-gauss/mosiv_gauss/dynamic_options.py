@@ -63,6 +63,12 @@ class DynamicGaussOptions:
             hull term at the issue's settings", which also chose lambda_radius's default);
         lr_position (m per step scale), lr_radius, lr_color, lr_opacity, lr_network,
             lr_background: Adam learning rates (log-radius, logits and weights are unitless);
+        network_warmup: steps over which the networks' learning rate ramps up linearly from
+            lr_network / network_warmup (0: no ramp). The photometric training starts a fresh
+            Adam on networks the motion prior has just fitted, and Adam's first steps have
+            the full learning rate whatever the gradient: at 1e-3 one step moved a banana's
+            frame 2 from 1 to 12 hull voxels off its hull, and the drift guard then pulled the
+            whole body, frame 0 too, 2 cm off (docs/BENCHMARKS.md "Lifting", session 23);
         densify_every, densify_from, densify_until: densification/pruning schedule (steps);
         densify_grad: clone/split a Gaussian when its mean positional gradient times the voxel
             size exceeds this; prune_opacity: drop Gaussians whose opacity falls below this;
@@ -101,6 +107,7 @@ class DynamicGaussOptions:
     lr_opacity: float = 3e-2
     lr_network: float = 1e-3
     lr_background: float = 1e-2
+    network_warmup: int = 100
     densify_every: int = 100
     densify_from: int = 200
     densify_until: int = 2000
@@ -131,6 +138,7 @@ class DynamicGaussOptions:
             "iterations": (0, 10_000_000),
             "views_per_step": (1, 1024),
             "motion_init_iterations": (0, 1_000_000),
+            "network_warmup": (0, 1_000_000),
             "densify_every": (1, 1_000_000),
             "densify_from": (0, 10_000_000),
             "densify_until": (0, 10_000_000),

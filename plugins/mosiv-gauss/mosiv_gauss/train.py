@@ -353,6 +353,9 @@ def train_dynamic(
         for o, lrs in zip(optimizers, base_lrs, strict=True):
             for g, lr in zip(o.param_groups, lrs, strict=True):
                 g["lr"] = lr * decay
+        if opts.network_warmup > 0:  # keep the motion prior's fit through Adam's first steps
+            for g in net_opt.param_groups:
+                g["lr"] *= min(1.0, (step + 1) / opts.network_warmup)
         batch = []
         while len(batch) < min(opts.views_per_step, len(views)):
             if not order:  # walk the views in a fresh random order each epoch
