@@ -412,3 +412,37 @@ def test_save_load_round_trip_and_silhouettes(tmp_path):
     assert sil_a[1].max() > 0.1 and sil_a[2].max() > 0.1
     with pytest.raises(ValueError, match="reconstruction.json"):
         load_reconstruction(tmp_path / "missing")
+
+
+def test_network_warmup_keeps_the_fitted_deformation_through_adams_first_steps():
+    # Adam's first steps move every weight by about the learning rate whatever the gradient,
+    # so a fresh optimiser on fitted networks throws the deformation off at once; the ramp
+    # makes those steps network_warmup times smaller
+    def deformation_change(warmup: int) -> float:
+        model = small_model(n_frames=3)
+        with torch.no_grad():  # a fitted-looking deformation: non-zero coefficients
+            model.coefficients.net[-1].weight.normal_(0.0, 0.1)
+            before = model.residuals([0, 1, 2])[..., :3].clone()
+        gen = torch.Generator().manual_seed(1)
+        data = TrainingData(
+            rgb=torch.rand(3, 1, 24, 24, 3, generator=gen),
+            masks=torch.zeros(3, 1, 2, 24, 24),
+            cameras=[camera()],
+            background=torch.zeros(1, 24, 24, 3),
+            voxel_size=0.01,
+        )
+        options = DynamicGaussOptions(
+            iterations=3,
+            views_per_step=3,
+            network_warmup=warmup,
+            densify_from=10**6,
+            progress=False,
+        )
+        train_dynamic(model, data, options, generator=torch.Generator().manual_seed(0))
+        with torch.no_grad():
+            after = model.residuals([0, 1, 2])[..., :3]
+        return float((after - before).norm(dim=-1).mean())
+
+    free, ramped = deformation_change(0), deformation_change(100)
+    assert free > 1e-4  # metres: the unramped steps do move the fitted deformation
+    assert ramped < 0.1 * free, (ramped, free)

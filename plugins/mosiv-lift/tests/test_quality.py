@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from mosiv_lift.quality import lift_geometry
+from mosiv_lift.quality import lift_geometry, scoring_cell
 
 from mosiv_framework.types import ParticleSet
 
@@ -89,3 +89,24 @@ def test_a_perfect_lift_on_another_grid_scores_near_its_voxelisation_ceiling(see
     )[1]
     assert abs(score["volume_error"]) < 0.06, score
     assert score["iou"] >= 0.7, score
+
+
+@pytest.mark.parametrize("lift_cell", [SPACING / 2, SPACING / 3])
+def test_a_lift_on_a_finer_grid_is_scored_on_the_lattice(lift_cell):
+    """A lift on cells finer than the lattice fills each ground-truth voxel with sub-cells;
+    scored on ``scoring_cell`` it counts as exact, while the finer grid itself would count
+    every ground-truth particle as one mostly empty cell."""
+    gt = ground_truth(np.random.default_rng(7))
+    n = round(SPACING / lift_cell)
+    g = (np.arange(n) + 0.5) / n - 0.5  # the lifter's cell centres inside each lattice voxel
+    emit = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3) * SPACING
+    lift = particle_set((gt[:, None, :] + emit[None]).reshape(-1, 3), n)
+    assert scoring_cell(lift_cell, SPACING) == SPACING
+    assert scoring_cell(2 * SPACING, SPACING) == 2 * SPACING
+    truth = {1: torch.from_numpy(gt)}
+    on_lattice = lift_geometry(
+        lift, truth, gt_spacing=SPACING, cell=scoring_cell(lift_cell, SPACING)
+    )
+    assert on_lattice[1]["iou"] == 1.0, on_lattice
+    too_fine = lift_geometry(lift, truth, gt_spacing=SPACING, cell=lift_cell)
+    assert too_fine[1]["iou"] < 0.5, too_fine
