@@ -64,7 +64,8 @@ class DynamicGaussOptions:
         lr_position (m per step scale), lr_radius, lr_color, lr_opacity, lr_network,
             lr_background: Adam learning rates (log-radius, logits and weights are unitless);
         network_warmup: steps over which the networks' learning rate ramps up linearly from
-            lr_network / network_warmup (0: no ramp). The photometric training starts a fresh
+            lr_network / network_warmup (0: no ramp; None: iterations // 15, 100 of 1500 steps,
+            so short fits keep most of their schedule at full rate). The photometric training starts a fresh
             Adam on networks the motion prior has just fitted, and Adam's first steps have
             the full learning rate whatever the gradient: at 1e-3 one step moved a banana's
             frame 2 from 1 to 12 hull voxels off its hull, and the drift guard then pulled the
@@ -107,7 +108,7 @@ class DynamicGaussOptions:
     lr_opacity: float = 3e-2
     lr_network: float = 1e-3
     lr_background: float = 1e-2
-    network_warmup: int = 100
+    network_warmup: int | None = None
     densify_every: int = 100
     densify_from: int = 200
     densify_until: int = 2000
@@ -138,7 +139,6 @@ class DynamicGaussOptions:
             "iterations": (0, 10_000_000),
             "views_per_step": (1, 1024),
             "motion_init_iterations": (0, 1_000_000),
-            "network_warmup": (0, 1_000_000),
             "densify_every": (1, 1_000_000),
             "densify_from": (0, 10_000_000),
             "densify_until": (0, 10_000_000),
@@ -146,6 +146,8 @@ class DynamicGaussOptions:
             "tile_size": (1, 256),
             "seed": (0, 2**63 - 1),
         }
+        if self.network_warmup is not None:
+            ints["network_warmup"] = (0, 1_000_000)
         for name, (lo, hi) in ints.items():
             value = getattr(self, name)
             if not _is_int(value) or not lo <= value <= hi:

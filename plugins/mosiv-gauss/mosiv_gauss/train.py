@@ -340,6 +340,7 @@ def train_dynamic(
         bg_opt = torch.optim.Adam([background], lr=opts.lr_background)
     optimizers = [o for o in (canon_opt, net_opt, bg_opt) if o is not None]
     base_lrs = [[g["lr"] for g in o.param_groups] for o in optimizers]
+    warmup = opts.iterations // 15 if opts.network_warmup is None else opts.network_warmup
 
     n_cams = len(data.cameras)
     views = [(t, c) for t in range(data.n_frames) for c in range(n_cams)]
@@ -353,9 +354,9 @@ def train_dynamic(
         for o, lrs in zip(optimizers, base_lrs, strict=True):
             for g, lr in zip(o.param_groups, lrs, strict=True):
                 g["lr"] = lr * decay
-        if opts.network_warmup > 0:  # keep the motion prior's fit through Adam's first steps
+        if warmup > 0:  # keep the motion prior's fit through Adam's first steps
             for g in net_opt.param_groups:
-                g["lr"] *= min(1.0, (step + 1) / opts.network_warmup)
+                g["lr"] *= min(1.0, (step + 1) / warmup)
         batch = []
         while len(batch) < min(opts.views_per_step, len(views)):
             if not order:  # walk the views in a fresh random order each epoch
