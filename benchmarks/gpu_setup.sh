@@ -4,9 +4,16 @@
 # Usage: source benchmarks/gpu_setup.sh   (repository root; carry .ti and .tideps, the small
 # pure-Python packages taichi needs: dill colorama rich pygments markdown-it-py mdurl)
 set -e
+# When the checkout plus .ti no longer fits one call (64 MiB), split the taichi wheel like warp's:
+#   split -b 30M .ti/taichi-*.whl .tia/ti.part. ; move ti.part.ab and the small wheels to .tib;
+#   basename of the wheel > .tib/ti.name; carry .tia, then .tib, copying each into /root/stash.
 if [ ! -d /root/site/warp ]; then
   (cd /root/stash && cat warp.part.* > "$(cat warp.name)")
-  python3 -m pip install -q --no-index --no-deps --target /root/site /root/stash/*.whl .ti/*.whl
+  if [ -f /root/stash/ti.name ]; then
+    (cd /root/stash && cat ti.part.* > "$(cat ti.name)")
+  fi
+  python3 -m pip install -q --no-index --no-deps --target /root/site /root/stash/*.whl \
+    $(ls .ti/*.whl 2>/dev/null)
 fi
 export PYTHONPATH=/root/site:$PWD/.tideps:$PWD:$PWD/plugins/mosiv-warp-mpm:$PWD/plugins/mosiv-taichi-mpm:$PWD/plugins/mosiv-gauss:$PWD/plugins/mosiv-lift:$PWD/plugins/mosiv-synth
 for d in . plugins/mosiv-warp-mpm plugins/mosiv-taichi-mpm plugins/mosiv-gauss plugins/mosiv-lift plugins/mosiv-synth; do

@@ -82,32 +82,40 @@ def ceiling(args) -> None:
 def relift(args) -> None:
     from lift_shapes import PRESETS
     from mosiv_gauss.reconstructor import load_reconstruction
-    from mosiv_lift.quality import lift_geometry
+    from mosiv_lift.quality import score_lift
 
     from mosiv_framework.registry import get_registry
     from mosiv_framework.scene import read_scene
 
     if len(args.folders) % 2:
         raise SystemExit("relift takes pairs: RECONSTRUCTION_DIR SCENE_DIR ...")
+    cells = args.cells.split(",")
     print(
         "| shape | "
-        + " | ".join(f"volume error / IoU, {1000 * float(c):g} mm" for c in args.cells.split(","))
+        + " | ".join(
+            f"volume error / IoU / min gap (cells) / PSNR full (dB), {1000 * float(c):g} mm"
+            for c in cells
+        )
         + " |"
     )
-    print("|---|" + "---|" * len(args.cells.split(",")))
+    print("|---|" + "---|" * len(cells))
+    renderer = get_registry().create("renderer", "gauss-torch", {"tile_size": 8})
     for recon_dir, scene_dir in zip(args.folders[::2], args.folders[1::2]):
         scene = read_scene(scene_dir)
         reconstruction = load_reconstruction(recon_dir)
-        gt = {k: points[0] for k, points in scene.gt_points().items()}
-        rows = {o.id: [o.name] for o in scene.objects}
-        for c in args.cells.split(","):
+        rows = {str(o.id): [o.name] for o in scene.objects}
+        for c in cells:
             options = {**PRESETS["full"]["lift"], "cell_size": float(c)}
             particles = (
                 get_registry().create("lifter", "gaussians", options).lift(reconstruction, scene)
             )
-            scores = lift_geometry(particles, gt, gt_spacing=args.spacing, cell=args.spacing)
-            for k, s in scores.items():
-                rows[k].append(f"{100 * s['volume_error']:+.1f} % / {s['iou']:.3f}")
+            # IoU on the lattice (``scoring_cell``), the gap in lift cells, as lift_shapes.py
+            score = score_lift(particles, scene, renderer, gt_spacing=args.spacing, cell=float(c))
+            for k, s in score["objects"].items():
+                rows[k].append(
+                    f"{100 * s['volume_error']:+.1f} % / {s['iou']:.3f} / "
+                    f"{score['min_gap_cells']:.1f} / {score['psnr']['full']:.1f}"
+                )
         for row in rows.values():
             print("| " + " | ".join(row) + " |", flush=True)
 
