@@ -64,12 +64,13 @@ class DynamicGaussOptions:
         lr_position (m per step scale), lr_radius, lr_color, lr_opacity, lr_network,
             lr_background: Adam learning rates (log-radius, logits and weights are unitless);
         network_warmup: steps over which the networks' learning rate ramps up linearly from
-            lr_network / network_warmup (0: no ramp; None: iterations // 15, 100 of 1500 steps,
-            so short fits keep most of their schedule at full rate). The photometric training starts a fresh
-            Adam on networks the motion prior has just fitted, and Adam's first steps have
-            the full learning rate whatever the gradient: at 1e-3 one step moved a banana's
-            frame 2 from 1 to 12 hull voxels off its hull, and the drift guard then pulled the
-            whole body, frame 0 too, 2 cm off (docs/BENCHMARKS.md "Lifting", session 23);
+            lr_network / network_warmup (0: no ramp; None: iterations // 15, 100 of 1500
+            steps, so short fits keep most of their schedule at full rate). The photometric
+            training starts a fresh Adam on networks the motion prior has just fitted, and
+            Adam's first steps have the full learning rate whatever the gradient: at 1e-3 one
+            step moved a banana's frame 2 from 1 to 12 hull voxels off its hull, and the drift
+            guard then pulled the whole body, frame 0 too, 2 cm off (docs/BENCHMARKS.md
+            "Lifting", session 23);
         densify_every, densify_from, densify_until: densification/pruning schedule (steps);
         densify_grad: clone/split a Gaussian when its mean positional gradient times the voxel
             size exceeds this; prune_opacity: drop Gaussians whose opacity falls below this;
