@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 import torch
-import yaml
+from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parent.parent
 #: (label, options): the guard's "off" keeps a negligible weight so its offsets are still logged
@@ -39,7 +39,7 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("runs/warmup_check"))
     args = p.parse_args(argv)
-    recipe = yaml.safe_load((ROOT / "recipes/video_quickstart.yaml").read_text())
+    recipe = OmegaConf.to_container(OmegaConf.load(ROOT / "recipes/video_quickstart.yaml"))
     source = {k: v for k, v in recipe["scene"]["source"].items() if k != "name"}
     source.update(materials="sand,sand", seed=9, n_frames=14, observed_frames=9, progress=False)
     registry = get_registry()
