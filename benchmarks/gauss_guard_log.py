@@ -38,14 +38,11 @@ def main(argv=None) -> None:
 
     def logged(means, frames, object_ids, data, *, tolerance):
         value = track_loss(means, frames, object_ids, data, tolerance=tolerance)
-        offsets = []
         with torch.no_grad():
-            for i, t in enumerate(frames):
-                for k in range(data.n_objects):
-                    mine = object_ids == k + 1
-                    if bool(data.track_valid[t, k]) and bool(mine.any()):
-                        off = (means[i, mine].mean(dim=0) - data.tracks[t, k]).norm()
-                        offsets.append([t, k + 1, round(float(off / data.voxel_size), 3)])
+            offsets = [
+                [t, k, round(float(off), 3)]
+                for t, k, off in train.track_offsets(means, frames, object_ids, data)
+            ]
         steps.append({"guard": float(value.detach()), "offsets": offsets})
         return value
 

@@ -57,11 +57,7 @@ def main(argv=None) -> None:
         def logged(means, frames, object_ids, data, *, tolerance, offsets=offsets):
             with torch.no_grad():
                 step = [
-                    float((means[i, object_ids == k + 1].mean(0) - data.tracks[t, k]).norm())
-                    / data.voxel_size
-                    for i, t in enumerate(frames)
-                    for k in range(data.n_objects)
-                    if bool(data.track_valid[t, k]) and bool((object_ids == k + 1).any())
+                    float(o) for _, _, o in train.track_offsets(means, frames, object_ids, data)
                 ]
             offsets.append(max(step, default=0.0))
             return track_loss(means, frames, object_ids, data, tolerance=tolerance)

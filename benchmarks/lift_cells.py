@@ -80,11 +80,9 @@ def ceiling(args) -> None:
 
 
 def relift(args) -> None:
-    from lift_shapes import PRESETS
+    from lift_shapes import PRESETS, lift_scene
     from mosiv_gauss.reconstructor import load_reconstruction
-    from mosiv_lift.quality import score_lift
 
-    from mosiv_framework.registry import get_registry
     from mosiv_framework.scene import read_scene
 
     if len(args.folders) % 2:
@@ -99,18 +97,13 @@ def relift(args) -> None:
         + " |"
     )
     print("|---|" + "---|" * len(cells))
-    renderer = get_registry().create("renderer", "gauss-torch", {"tile_size": 8})
     for recon_dir, scene_dir in zip(args.folders[::2], args.folders[1::2]):
         scene = read_scene(scene_dir)
         reconstruction = load_reconstruction(recon_dir)
         rows = {str(o.id): [o.name] for o in scene.objects}
         for c in cells:
             options = {**PRESETS["full"]["lift"], "cell_size": float(c)}
-            particles = (
-                get_registry().create("lifter", "gaussians", options).lift(reconstruction, scene)
-            )
-            # IoU on the lattice (``scoring_cell``), the gap in lift cells, as lift_shapes.py
-            score = score_lift(particles, scene, renderer, gt_spacing=args.spacing, cell=float(c))
+            score = lift_scene(reconstruction, scene, options, gt_spacing=args.spacing)
             for k, s in score["objects"].items():
                 rows[k].append(
                     f"{100 * s['volume_error']:+.1f} % / {s['iou']:.3f} / "

@@ -22,8 +22,9 @@ Writes ``lift_shapes.json`` and ``lift_shapes.md`` (one table row per shape, pas
 the issue's thresholds) into ``--out``; progress goes to stdout.
 
 Presets: ``full`` (default; 128 px, 11 cameras, 6 mm lattice, lifted on a 3 mm cell and scored
-on the 6 mm lattice, 26 virtual views of 96 px, sized for ~1 min per scene on one H200) and ``--tiny`` (64 px, 6 cameras, 8 mm, a short fit: a CPU check of the
-pipeline in minutes, not of the thresholds).
+on the 6 mm lattice, 26 virtual views of 96 px, sized for ~1 min per scene on one H200) and
+``--tiny`` (64 px, 6 cameras, 8 mm, a short fit: a CPU check of the pipeline in minutes, not of
+the thresholds).
 """
 
 from __future__ import annotations

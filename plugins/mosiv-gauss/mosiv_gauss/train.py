@@ -129,6 +129,22 @@ def _hull_chamfer(points: Tensor, hull: Tensor, *, free: float = 0.0) -> Tensor:
     return d.min(dim=1).values.mean() + d.min(dim=0).values.mean()
 
 
+def track_offsets(
+    means: Tensor, frames: list[int], object_ids: Tensor, data: TrainingData
+) -> list[tuple[int, int, Tensor]]:
+    """(frame, object id, distance in hull voxels) between each object's mean Gaussian centre
+    in ``means`` [len(frames), G, 3] and its visual-hull centroid, for the ``frames`` and
+    objects whose hull is non-empty there (differentiable)."""
+    out = []
+    for i, t in enumerate(frames):
+        for k in range(data.n_objects):
+            mine = object_ids == k + 1
+            if bool(data.track_valid[t, k]) and bool(mine.any()):
+                offset = (means[i, mine].mean(dim=0) - data.tracks[t, k]).norm()
+                out.append((t, k + 1, offset / data.voxel_size))
+    return out
+
+
 def track_loss(
     means: Tensor, frames: list[int], object_ids: Tensor, data: TrainingData, *, tolerance: float
 ) -> Tensor:
@@ -139,16 +155,10 @@ def track_loss(
     cameras above the object reaches further down than the object), so the term only acts on
     an object drifting away."""
     total = means.new_zeros(())
-    count = 0
-    for i, t in enumerate(frames):
-        for k in range(data.n_objects):
-            mine = object_ids == k + 1
-            if bool(data.track_valid[t, k]) and bool(mine.any()):
-                offset = (means[i, mine].mean(dim=0) - data.tracks[t, k]).norm()
-                excess = (offset / data.voxel_size - tolerance).clamp(min=0.0)
-                total = total + excess.square()
-                count += 1
-    return total / max(count, 1)
+    offsets = track_offsets(means, frames, object_ids, data)
+    for _, _, offset in offsets:
+        total = total + (offset - tolerance).clamp(min=0.0).square()
+    return total / max(len(offsets), 1)
 
 
 #: at most this many Gaussians per object and frame enter the hull term (random subset)
