@@ -44,6 +44,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--options", default="{}", help="JSON of gauss-dynamic options to override")
     p.add_argument("--out", type=Path, required=True, help="JSON file to write the results to")
+    p.add_argument(
+        "--save-reconstruction",
+        type=Path,
+        help="also save the fitted reconstruction in this folder (gaussians.npz, for re-scoring)",
+    )
     return p.parse_args(argv)
 
 
@@ -119,6 +124,10 @@ def main(argv=None) -> dict:
         torch.cuda.synchronize()
     fit_s = time.perf_counter() - t1
 
+    if args.save_reconstruction:
+        from mosiv_gauss.reconstructor import save_reconstruction
+
+        save_reconstruction(recon, args.save_reconstruction)
     training = recon.extras["training"]
     gt = scene.gt_points()
     cd = chamfer_per_frame(recon.points, gt)

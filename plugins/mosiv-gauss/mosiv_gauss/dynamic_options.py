@@ -75,6 +75,14 @@ class DynamicGaussOptions:
         densify_grad: clone/split a Gaussian when its mean positional gradient times the voxel
             size exceeds this; prune_opacity: drop Gaussians whose opacity falls below this;
         max_gaussians: cap on the number of Gaussians after densification;
+    Per-frame refinement (``refine.py``), after training:
+        refine_iterations: steps fitting a free centre and log-radius offset per Gaussian and
+            frame, networks, colours and opacities frozen (0: off, the plain eq. 1 model);
+        lr_refine_position: Adam learning rate of the centre offsets, in hull voxels per step;
+        lambda_refine_smooth: weight of the squared difference (voxels^2) between a Gaussian's
+            offsets and those of its ``refine_neighbours`` nearest canonical neighbours of the
+            same object, so each body moves as a body and hidden Gaussians follow;
+    Rendering and run:
         background: "median" (per-pixel median of the frames outside the masks, fixed) or
             "learned" (that median refined as a parameter);
         tile_size: tile side of the torch rasterizer (pixels); raster_checkpoint: let the
@@ -110,6 +118,10 @@ class DynamicGaussOptions:
     lr_network: float = 1e-3
     lr_background: float = 1e-2
     network_warmup: int | None = None
+    refine_iterations: int = 0
+    lr_refine_position: float = 0.05
+    lambda_refine_smooth: float = 1.0
+    refine_neighbours: int = 8
     densify_every: int = 100
     densify_from: int = 200
     densify_until: int = 2000
@@ -144,6 +156,8 @@ class DynamicGaussOptions:
             "densify_from": (0, 10_000_000),
             "densify_until": (0, 10_000_000),
             "max_gaussians": (2, 100_000_000),
+            "refine_iterations": (0, 10_000_000),
+            "refine_neighbours": (1, 64),
             "tile_size": (1, 256),
             "seed": (0, 2**63 - 1),
         }
@@ -154,14 +168,14 @@ class DynamicGaussOptions:
             if not _is_int(value) or not lo <= value <= hi:
                 problems.append(f"{name}={value!r}: must be an integer in [{lo}, {hi}]")
         non_negative = ("lambda_ssim", "lambda_radius", "lambda_mask", "lambda_track")
-        non_negative += ("lambda_hull",)
+        non_negative += ("lambda_hull", "lambda_refine_smooth")
         non_negative += ("track_tolerance", "densify_grad")
         for name in non_negative:
             value = getattr(self, name)
             if not _is_number(value) or value < 0:
                 problems.append(f"{name}={value!r}: must be a finite number >= 0")
         rates = ("lr_position", "lr_radius", "lr_color", "lr_opacity", "lr_network")
-        for name in (*rates, "lr_background"):
+        for name in (*rates, "lr_background", "lr_refine_position"):
             value = getattr(self, name)
             if not _is_number(value) or not 0 < value <= 1:
                 problems.append(f"{name}={value!r}: must be a learning rate in (0, 1]")

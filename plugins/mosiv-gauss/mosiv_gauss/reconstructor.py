@@ -28,6 +28,7 @@ from mosiv_gauss.dynamic_options import DynamicGaussOptions
 from mosiv_gauss.evaluate import render_views, training_metrics
 from mosiv_gauss.init import hull_init
 from mosiv_gauss.model import DynamicGaussians
+from mosiv_gauss.refine import refine_frames
 from mosiv_gauss.train import (
     INIT_RADIUS_VOXELS,
     TrainingData,
@@ -131,6 +132,12 @@ class GaussDynamicReconstructor(Reconstructor):
 
         with torch.no_grad():
             gaussians = model.frames()
+        refine_loss: list[float] = []
+        if opts.refine_iterations > 0:
+            gaussians, refine_loss = refine_frames(
+                gaussians, data, history.background, opts, generator=generator
+            )
+        with torch.no_grad():
             scores = training_metrics(
                 gaussians,
                 data.cameras,
@@ -147,6 +154,7 @@ class GaussDynamicReconstructor(Reconstructor):
             "n_gaussians": model.n_gaussians,
             "final_loss": history.loss[-1] if history.loss else None,
             "motion_prior_loss": motion[-1] if motion else None,
+            "refine_loss": refine_loss[-1] if refine_loss else None,
             "seconds": time.perf_counter() - start,
             "training": scores,
         }

@@ -119,6 +119,58 @@ def view_loss(rgb: Tensor, object_alpha: Tensor, target: Tensor, masks: Tensor, 
     return l1 + opts.lambda_ssim * structural + opts.lambda_mask * mask
 
 
+def sample_views(
+    data: TrainingData, n: int, order: list[int], generator: torch.Generator | None
+) -> list[tuple[int, int]]:
+    """The next ``n`` (frame, camera) pairs: every view once per epoch, in a fresh random
+    order each epoch. ``order`` holds the rest of the current epoch and is consumed."""
+    n_cams = len(data.cameras)
+    total = data.n_frames * n_cams
+    batch = []
+    while len(batch) < min(n, total):
+        if not order:
+            order.extend(torch.randperm(total, generator=generator).tolist())
+        index = order.pop()
+        batch.append((index // n_cams, index % n_cams))
+    return batch
+
+
+def batch_view_loss(
+    means: Tensor,
+    radii: Tensor,
+    colors: Tensor,
+    opacities: Tensor,
+    object_ids: Tensor,
+    frames: list[int],
+    batch: list[tuple[int, int]],
+    data: TrainingData,
+    background: Tensor,
+    opts: DynamicGaussOptions,
+) -> Tensor:
+    """``view_loss`` of the Gaussians (means [F, G, 3] m and radii [F, G] m at ``frames``)
+    drawn through the (frame, camera) views of ``batch`` over their cameras' background."""
+    raster = TorchRasterizerOptions(
+        tile_size=opts.tile_size, checkpoint=opts.raster_checkpoint, backend=opts.raster_backend
+    )
+    rendered, alphas = [], []
+    for t, c in batch:
+        i = frames.index(t)
+        gauss = GaussianFrames(means[i : i + 1], radii[i : i + 1], colors, opacities, object_ids)
+        out, _ = rasterize(
+            gauss,
+            data.cameras[c],
+            n_objects=data.n_objects,
+            options=raster,
+            background=background[c].clamp(0.0, 1.0),
+        )
+        rendered.append(out.rgb)
+        alphas.append(out.object_alpha)
+    ts, cs = [t for t, _ in batch], [c for _, c in batch]
+    return view_loss(
+        torch.stack(rendered), torch.stack(alphas), data.rgb[ts, cs], data.masks[ts, cs], opts
+    )
+
+
 def _hull_chamfer(points: Tensor, hull: Tensor, *, free: float = 0.0) -> Tensor:
     """Symmetric Chamfer (squared distances, input units) between two point sets, each
     distance less ``free`` (never below 0)."""
@@ -338,9 +390,6 @@ def train_dynamic(
     """Optimise canonical Gaussians, networks (and a learned background) per eq. 2."""
     history = TrainingHistory()
     device = model.means.device
-    raster = TorchRasterizerOptions(
-        tile_size=opts.tile_size, checkpoint=opts.raster_checkpoint, backend=opts.raster_backend
-    )
     canon_opt = _canonical_optimizer(model, opts)
     net_opt = torch.optim.Adam(model.network_parameters(), lr=opts.lr_network)
     background = data.background
@@ -352,8 +401,6 @@ def train_dynamic(
     base_lrs = [[g["lr"] for g in o.param_groups] for o in optimizers]
     warmup = opts.iterations // 15 if opts.network_warmup is None else opts.network_warmup
 
-    n_cams = len(data.cameras)
-    views = [(t, c) for t in range(data.n_frames) for c in range(n_cams)]
     order: list[int] = []
     grad_sum = torch.zeros(model.n_gaussians, device=device)
     grad_count = torch.zeros(model.n_gaussians, device=device)
@@ -367,32 +414,20 @@ def train_dynamic(
         if warmup > 0:  # keep the motion prior's fit through Adam's first steps
             for g in net_opt.param_groups:
                 g["lr"] *= min(1.0, (step + 1) / warmup)
-        batch = []
-        while len(batch) < min(opts.views_per_step, len(views)):
-            if not order:  # walk the views in a fresh random order each epoch
-                order = torch.randperm(len(views), generator=generator).tolist()
-            batch.append(views[order.pop()])
+        batch = sample_views(data, opts.views_per_step, order, generator)
         frames = sorted({t for t, _ in batch})
         means, radii = model.at(frames)
-        colors, opacities = model.colors(), model.opacities()
-        rendered, alphas = [], []
-        for t, c in batch:
-            i = frames.index(t)
-            gauss = GaussianFrames(
-                means[i : i + 1], radii[i : i + 1], colors, opacities, model.object_ids
-            )
-            out, _ = rasterize(
-                gauss,
-                data.cameras[c],
-                n_objects=data.n_objects,
-                options=raster,
-                background=background[c].clamp(0.0, 1.0),
-            )
-            rendered.append(out.rgb)
-            alphas.append(out.object_alpha)
-        ts, cs = [t for t, _ in batch], [c for _, c in batch]
-        loss = view_loss(
-            torch.stack(rendered), torch.stack(alphas), data.rgb[ts, cs], data.masks[ts, cs], opts
+        loss = batch_view_loss(
+            means,
+            radii,
+            model.colors(),
+            model.opacities(),
+            model.object_ids,
+            frames,
+            batch,
+            data,
+            background,
+            opts,
         )
         loss = loss + opts.lambda_radius * radii.mean() / data.voxel_size
         if opts.lambda_track > 0 and data.tracks is not None:
