@@ -79,6 +79,7 @@ class DynamicGaussOptions:
         refine_iterations: steps fitting a free centre and log-radius offset per Gaussian and
             frame, networks, colours and opacities frozen (0: off, the plain eq. 1 model);
         lr_refine_position: Adam learning rate of the centre offsets, in hull voxels per step;
+        lr_refine_radius: Adam learning rate of the log-radius offsets;
         lambda_refine_smooth: weight of the squared difference (voxels^2) between a Gaussian's
             offsets and those of its ``refine_neighbours`` nearest canonical neighbours of the
             same object, so each body moves as a body and hidden Gaussians follow;
@@ -119,8 +120,9 @@ class DynamicGaussOptions:
     lr_background: float = 1e-2
     network_warmup: int | None = None
     refine_iterations: int = 0
-    lr_refine_position: float = 0.05
-    lambda_refine_smooth: float = 1.0
+    lr_refine_position: float = 0.5
+    lr_refine_radius: float = 0.02
+    lambda_refine_smooth: float = 0.001
     refine_neighbours: int = 8
     densify_every: int = 100
     densify_from: int = 200
@@ -175,7 +177,7 @@ class DynamicGaussOptions:
             if not _is_number(value) or value < 0:
                 problems.append(f"{name}={value!r}: must be a finite number >= 0")
         rates = ("lr_position", "lr_radius", "lr_color", "lr_opacity", "lr_network")
-        for name in (*rates, "lr_background", "lr_refine_position"):
+        for name in (*rates, "lr_background", "lr_refine_position", "lr_refine_radius"):
             value = getattr(self, name)
             if not _is_number(value) or not 0 < value <= 1:
                 problems.append(f"{name}={value!r}: must be a learning rate in (0, 1]")

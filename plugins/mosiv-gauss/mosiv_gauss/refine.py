@@ -92,7 +92,7 @@ def refine_frames(
     optimizer = torch.optim.Adam(
         [
             {"params": offsets, "lr": opts.lr_refine_position},
-            {"params": scales, "lr": opts.lr_radius},
+            {"params": scales, "lr": opts.lr_refine_radius},
         ]
     )
     base_lrs = [g["lr"] for g in optimizer.param_groups]

@@ -13,6 +13,7 @@ margin for other CPUs and seeds of torch.
 from __future__ import annotations
 
 import torch
+from mosiv_gauss.dynamic_options import DynamicGaussOptions
 from mosiv_gauss.evaluate import chamfer_per_frame, mask_iou
 from mosiv_gauss.reconstructor import load_reconstruction, render_silhouettes
 
@@ -24,6 +25,8 @@ MIN_PSNR_DB = 35.0
 MIN_IOU = 0.6
 #: per-object Chamfer distance (mm^2) of the Gaussian centres to the true points, every frame
 MAX_CHAMFER_MM2 = 500.0
+#: the options the session's fit was made with, for a second fit that differs in one option
+TINY_FIT_FIELDS = DynamicGaussOptions.__dataclass_fields__
 
 
 def test_fit_returns_object_aware_dynamic_gaussians(tiny_scene, tiny_fit):
@@ -72,3 +75,34 @@ def test_run_folder_reloads_and_silhouettes_match_the_masks(tiny_scene, tiny_fit
     alpha = torch.stack([silhouettes[1], silhouettes[2]], dim=2)  # [F, C, K, H, W]
     iou = mask_iou(alpha, tiny_scene.load_mask_ids())
     assert (iou >= MIN_IOU).all(), iou
+
+
+def test_per_frame_refinement_sharpens_every_frame_without_swapping_identity(tiny_scene, tiny_fit):
+    """The same fit with ``refine_iterations``: on the development CPU (2026-11-23) 100 steps
+    raised the worst IoU from 0.69 to 0.95 and the PSNR from 44.0 to 49.4 dB. With 4 cameras
+    the weak default neighbour term lets hidden parts wander (object 2's mean Chamfer 112 ->
+    125 mm^2), so only the silhouettes are held to a tighter bound here; the 3D error keeps
+    the plain fit's threshold."""
+    from conftest import TINY_FIT
+
+    from mosiv_framework.registry import get_registry
+
+    _, plain, _ = tiny_fit
+    refined = (
+        get_registry()
+        .create(
+            "reconstructor", "gauss-dynamic", {**TINY_FIT, "refine_iterations": 100, "save_dir": ""}
+        )
+        .fit(tiny_scene)
+    )
+    before, after = plain.extras["training"], refined.extras["training"]
+    assert after["iou_min"] >= before["iou_min"] + 0.1, (before["iou_min"], after["iou_min"])
+    assert after["iou_min"] >= 0.85, after["iou"]
+    assert after["psnr_mean"] >= before["psnr_mean"] + 2.0
+    gt = tiny_scene.gt_points()
+    own = chamfer_per_frame(refined.points, gt)
+    swapped = chamfer_per_frame({1: refined.points[2], 2: refined.points[1]}, gt)
+    for k in (1, 2):
+        assert max(own[k]) <= MAX_CHAMFER_MM2, (k, own[k])
+        for t in range(tiny_scene.n_frames):
+            assert own[k][t] < swapped[k][t], (k, t, own[k][t], swapped[k][t])
