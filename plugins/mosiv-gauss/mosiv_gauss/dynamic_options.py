@@ -77,12 +77,16 @@ class DynamicGaussOptions:
         max_gaussians: cap on the number of Gaussians after densification;
     Per-frame refinement (``refine.py``), after training:
         refine_iterations: steps fitting a free centre and log-radius offset per Gaussian and
-            frame, networks, colours and opacities frozen (0: off, the plain eq. 1 model);
+            frame, networks, colours and opacities frozen (0: off, the plain eq. 1 model). With
+            11 cameras, 2000 steps took issue 6's worst collision-frame IoU from 0.67 to 0.99
+            and cut the Chamfer (docs/BENCHMARKS.md "Per-frame refinement"); off by default
+            because with few cameras the free offsets fit the views better than the 3D shape;
         lr_refine_position: Adam learning rate of the centre offsets, in hull voxels per step;
         lr_refine_radius: Adam learning rate of the log-radius offsets;
         lambda_refine_smooth: weight of the squared difference (voxels^2) between a Gaussian's
             offsets and those of its ``refine_neighbours`` nearest canonical neighbours of the
-            same object, so each body moves as a body and hidden Gaussians follow;
+            same object, so each body moves as a body and hidden Gaussians follow (the default
+            is the best of the sweep with 11 cameras; raise it when few cameras see a body);
     Rendering and run:
         background: "median" (per-pixel median of the frames outside the masks, fixed) or
             "learned" (that median refined as a parameter);

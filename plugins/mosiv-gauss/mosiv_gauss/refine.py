@@ -17,8 +17,9 @@ moving as a body rather than as loose points:
 
 with N(g) the ``neighbours`` nearest canonical centres of g's own object (at frame 0 of the
 fitted model). Hidden Gaussians, which no image moves, follow their visible neighbours through
-it; an object's Gaussians never join another object's neighbourhoods, so the term cannot pull
-one body's Gaussians into the other across a contact.
+it (slowly at the default weight, which the 11-camera sweep chose); an object's Gaussians
+never join another object's neighbourhoods, so the term cannot pull one body's Gaussians into
+the other across a contact.
 
 Each frame's offsets are their own tensor, so Adam moves only the frames of the current batch
 (one shared tensor would keep moving every frame on stale momentum).
