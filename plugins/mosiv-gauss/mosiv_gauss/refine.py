@@ -42,6 +42,9 @@ from mosiv_gauss.train import (
 
 Tensor = torch.Tensor
 
+#: rows of the distance matrix computed at once when finding neighbours
+NEIGHBOUR_BLOCK = 2048
+
 
 def object_neighbours(means: Tensor, object_ids: Tensor, k: int) -> Tensor:
     """Indices [G, k] of each point's k nearest other points of the same object (fewer
@@ -54,10 +57,14 @@ def object_neighbours(means: Tensor, object_ids: Tensor, k: int) -> Tensor:
         take = min(k, len(mine) - 1)
         if take <= 0:
             continue
-        d = torch.cdist(means[mine], means[mine])
-        d.fill_diagonal_(float("inf"))
-        nearest = d.topk(take, largest=False).indices  # [n_obj, take] into `mine`
-        out[mine, :take] = mine[nearest]
+        points = means[mine]
+        # row blocks keep the distance matrix at NEIGHBOUR_BLOCK x n_obj, whatever n_obj is
+        for start in range(0, len(mine), NEIGHBOUR_BLOCK):
+            rows = torch.arange(start, min(start + NEIGHBOUR_BLOCK, len(mine)), device=means.device)
+            d = torch.cdist(points[rows], points)
+            d[torch.arange(len(rows), device=means.device), rows] = float("inf")  # not itself
+            nearest = d.topk(take, largest=False).indices  # into `mine`
+            out[mine[rows], :take] = mine[nearest]
     return out[:, :k]
 
 

@@ -33,6 +33,17 @@ def test_neighbours_are_the_nearest_points_of_the_same_object():
         assert set(nbrs[g].tolist()) == set(mine[d.argsort()[:4]].tolist())
 
 
+def test_neighbours_do_not_depend_on_the_block_size(monkeypatch):
+    import mosiv_gauss.refine as refine
+
+    gen = torch.Generator().manual_seed(1)
+    means = torch.rand(300, 3, generator=gen)
+    ids = (torch.rand(300, generator=gen) < 0.5).long() + 1
+    whole = object_neighbours(means, ids, 5)
+    monkeypatch.setattr(refine, "NEIGHBOUR_BLOCK", 7)
+    assert torch.equal(object_neighbours(means, ids, 5), whole)
+
+
 def test_smoothness_is_zero_for_a_rigid_translation_and_counts_differences():
     nbrs = object_neighbours(torch.rand(10, 3), torch.ones(10, dtype=torch.long), 3)
     same = torch.tensor([0.5, -1.0, 2.0]).expand(2, 10, 3)
