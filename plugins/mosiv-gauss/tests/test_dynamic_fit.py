@@ -83,18 +83,12 @@ def test_per_frame_refinement_sharpens_every_frame_without_swapping_identity(tin
     the weak default neighbour term lets hidden parts wander (object 2's mean Chamfer 112 ->
     125 mm^2), so only the silhouettes are held to a tighter bound here; the 3D error keeps
     the plain fit's threshold."""
-    from conftest import TINY_FIT
-
     from mosiv_framework.registry import get_registry
 
-    _, plain, _ = tiny_fit
-    refined = (
-        get_registry()
-        .create(
-            "reconstructor", "gauss-dynamic", {**TINY_FIT, "refine_iterations": 100, "save_dir": ""}
-        )
-        .fit(tiny_scene)
-    )
+    reconstructor, plain, _ = tiny_fit
+    same = {name: getattr(reconstructor.options, name) for name in TINY_FIT_FIELDS}
+    options = {**same, "refine_iterations": 100, "save_dir": ""}
+    refined = get_registry().create("reconstructor", "gauss-dynamic", options).fit(tiny_scene)
     before, after = plain.extras["training"], refined.extras["training"]
     assert after["iou_min"] >= before["iou_min"] + 0.1, (before["iou_min"], after["iou_min"])
     assert after["iou_min"] >= 0.85, after["iou"]
