@@ -36,41 +36,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def training_data(scene, options, device):
-    """The ``TrainingData`` the reconstructor builds for ``scene`` (hulls at the options'
-    resolution); background is filled in by the caller."""
-    from mosiv_gauss.init import hull_init
-    from mosiv_gauss.train import TrainingData, estimate_background
-
-    n_objects = len(scene.objects)
-    rgb = scene.load_rgb_tensor(device=device)
-    mask_ids = scene.load_mask_ids(device=device)
-    ids = torch.arange(1, n_objects + 1, device=device)
-    masks = (mask_ids.unsqueeze(2) == ids[:, None, None]).float()
-    seeds = hull_init(
-        scene.cameras,
-        mask_ids,
-        rgb[0],
-        lower=scene.domain_lower,
-        upper=scene.domain_upper,
-        n_objects=n_objects,
-        resolution=options.hull_resolution,
-        max_gaussians=options.max_init_gaussians,
-        generator=torch.Generator().manual_seed(options.seed),
-    )
-    data = TrainingData(
-        rgb=rgb,
-        masks=masks,
-        cameras=list(scene.cameras),
-        background=estimate_background(rgb, mask_ids),
-        voxel_size=seeds.voxel_size,
-        tracks=seeds.tracks,
-        track_valid=seeds.track_valid,
-        hulls=seeds.hulls,
-    )
-    return data, mask_ids
-
-
 def scores(gaussians, scene, data, mask_ids, background, contact) -> dict:
     """Per object: IoU worst/mean, Chamfer worst/mean (mm^2), contact ratio; and PSNR."""
     from mosiv_gauss.evaluate import chamfer_per_frame, training_metrics
@@ -114,7 +79,7 @@ def main(argv=None) -> list[dict]:
     sys.path.insert(0, str(Path(__file__).parent))
     from gauss_reconstruct import contact_frames
     from mosiv_gauss.dynamic_options import DynamicGaussOptions
-    from mosiv_gauss.reconstructor import load_reconstruction
+    from mosiv_gauss.reconstructor import load_reconstruction, prepare_training
     from mosiv_gauss.refine import refine_frames
 
     from mosiv_framework.types import GaussianFrames
@@ -122,7 +87,8 @@ def main(argv=None) -> list[dict]:
     scene = read_scene(args.scene)
     shared = {"device": args.device, "progress": False, **json.loads(args.options)}
     base_opts = DynamicGaussOptions(**shared)
-    data, mask_ids = training_data(scene, base_opts, args.device)
+    generator = torch.Generator().manual_seed(base_opts.seed)
+    data, _, mask_ids = prepare_training(scene, base_opts, torch.device(args.device), generator)
     recon = load_reconstruction(args.recon)
     g = recon.gaussians
     gaussians = GaussianFrames(

@@ -26,7 +26,7 @@ from mosiv_framework.scene.io import atomic_write_bytes, atomic_write_json
 from mosiv_framework.types import GaussianFrames, Reconstruction
 from mosiv_gauss.dynamic_options import DynamicGaussOptions
 from mosiv_gauss.evaluate import render_views, training_metrics
-from mosiv_gauss.init import hull_init
+from mosiv_gauss.init import HullInit, hull_init
 from mosiv_gauss.model import DynamicGaussians
 from mosiv_gauss.refine import refine_frames
 from mosiv_gauss.train import (
@@ -55,6 +55,42 @@ def _device(name: str) -> torch.device:
     return device
 
 
+def prepare_training(
+    scene, opts: DynamicGaussOptions, device, generator: torch.Generator
+) -> tuple[TrainingData, HullInit, Tensor]:
+    """What a fit of ``scene`` trains against: (TrainingData on ``device``, the visual-hull
+    seeds and tracks, instance ids [T, C, H, W]). Draws the hull seeds from ``generator``."""
+    n_objects = len(scene.objects)
+    if scene.object_ids != list(range(1, n_objects + 1)):
+        raise ValueError(f"scene object ids must be 1..K, got {scene.object_ids}")
+    rgb = scene.load_rgb_tensor(device=device)  # [T, C, H, W, 3]
+    mask_ids = scene.load_mask_ids(device=device)  # [T, C, H, W]
+    ids = torch.arange(1, n_objects + 1, device=device)
+    masks = (mask_ids.unsqueeze(2) == ids[:, None, None]).float()  # [T, C, K, H, W]
+    seeds = hull_init(
+        scene.cameras,
+        mask_ids,
+        rgb[0],
+        lower=scene.domain_lower,
+        upper=scene.domain_upper,
+        n_objects=n_objects,
+        resolution=opts.hull_resolution,
+        max_gaussians=opts.max_init_gaussians,
+        generator=generator,
+    )
+    data = TrainingData(
+        rgb=rgb,
+        masks=masks,
+        cameras=list(scene.cameras),
+        background=estimate_background(rgb, mask_ids),
+        voxel_size=seeds.voxel_size,
+        tracks=seeds.tracks,
+        track_valid=seeds.track_valid,
+        hulls=seeds.hulls,
+    )
+    return data, seeds, mask_ids
+
+
 class GaussDynamicReconstructor(Reconstructor):
     """Object-aware dynamic Gaussians fitted to a scene's videos and instance masks."""
 
@@ -69,24 +105,8 @@ class GaussDynamicReconstructor(Reconstructor):
         start = time.perf_counter()
         generator = torch.Generator().manual_seed(opts.seed)
         n_objects = len(scene.objects)
-        if scene.object_ids != list(range(1, n_objects + 1)):
-            raise ValueError(f"scene object ids must be 1..K, got {scene.object_ids}")
-        rgb = scene.load_rgb_tensor(device=device)  # [T, C, H, W, 3]
-        mask_ids = scene.load_mask_ids(device=device)  # [T, C, H, W]
-        ids = torch.arange(1, n_objects + 1, device=device)
-        masks = (mask_ids.unsqueeze(2) == ids[:, None, None]).float()  # [T, C, K, H, W]
-
-        seeds = hull_init(
-            scene.cameras,
-            mask_ids,
-            rgb[0],
-            lower=scene.domain_lower,
-            upper=scene.domain_upper,
-            n_objects=n_objects,
-            resolution=opts.hull_resolution,
-            max_gaussians=opts.max_init_gaussians,
-            generator=generator,
-        )
+        data, seeds, mask_ids = prepare_training(scene, opts, device, generator)
+        rgb = data.rgb
         n_seeds = len(seeds.means)
         with torch.random.fork_rng(devices=[]):  # network init from the seed, not global state
             torch.manual_seed(opts.seed)
@@ -116,16 +136,6 @@ class GaussDynamicReconstructor(Reconstructor):
             voxel_size=seeds.voxel_size,
             hulls=seeds.hulls,
             progress=opts.progress,
-        )
-        data = TrainingData(
-            rgb=rgb,
-            masks=masks,
-            cameras=list(scene.cameras),
-            background=estimate_background(rgb, mask_ids),
-            voxel_size=seeds.voxel_size,
-            tracks=seeds.tracks,
-            track_valid=seeds.track_valid,
-            hulls=seeds.hulls,
         )
         history = train_dynamic(model, data, opts, generator=generator)
         self.model = model

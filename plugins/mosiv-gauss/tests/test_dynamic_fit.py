@@ -29,6 +29,19 @@ MAX_CHAMFER_MM2 = 500.0
 TINY_FIT_FIELDS = DynamicGaussOptions.__dataclass_fields__
 
 
+def assert_each_object_follows_its_own_points(recon, scene) -> None:
+    """Each object's Gaussian centres are within MAX_CHAMFER_MM2 of its true points in every
+    frame, and nearer its own points than the other object's (no identity swap), the
+    collision frame 3 and after included."""
+    gt = scene.gt_points()
+    own = chamfer_per_frame(recon.points, gt)
+    swapped = chamfer_per_frame({1: recon.points[2], 2: recon.points[1]}, gt)
+    for k in (1, 2):
+        assert max(own[k]) <= MAX_CHAMFER_MM2, (k, own[k])
+        for t in range(scene.n_frames):
+            assert own[k][t] < swapped[k][t], (k, t, own[k][t], swapped[k][t])
+
+
 def test_fit_returns_object_aware_dynamic_gaussians(tiny_scene, tiny_fit):
     _, recon, _ = tiny_fit
     assert isinstance(recon, Reconstruction)
@@ -54,15 +67,7 @@ def test_training_views_are_reproduced(tiny_fit):
 
 def test_gaussian_centres_follow_each_object_through_the_collision(tiny_scene, tiny_fit):
     _, recon, _ = tiny_fit
-    gt = tiny_scene.gt_points()
-    own = chamfer_per_frame(recon.points, gt)
-    swapped = chamfer_per_frame({1: recon.points[2], 2: recon.points[1]}, gt)
-    for k in (1, 2):
-        assert max(own[k]) <= MAX_CHAMFER_MM2, (k, own[k])
-        # no identity swap: each object's Gaussians are nearer its own points in every frame,
-        # the collision frame 3 and after included
-        for t in range(tiny_scene.n_frames):
-            assert own[k][t] < swapped[k][t], (k, t, own[k][t], swapped[k][t])
+    assert_each_object_follows_its_own_points(recon, tiny_scene)
 
 
 def test_run_folder_reloads_and_silhouettes_match_the_masks(tiny_scene, tiny_fit):
@@ -93,10 +98,4 @@ def test_per_frame_refinement_sharpens_every_frame_without_swapping_identity(tin
     assert after["iou_min"] >= before["iou_min"] + 0.1, (before["iou_min"], after["iou_min"])
     assert after["iou_min"] >= 0.85, after["iou"]
     assert after["psnr_mean"] >= before["psnr_mean"] + 2.0
-    gt = tiny_scene.gt_points()
-    own = chamfer_per_frame(refined.points, gt)
-    swapped = chamfer_per_frame({1: refined.points[2], 2: refined.points[1]}, gt)
-    for k in (1, 2):
-        assert max(own[k]) <= MAX_CHAMFER_MM2, (k, own[k])
-        for t in range(tiny_scene.n_frames):
-            assert own[k][t] < swapped[k][t], (k, t, own[k][t], swapped[k][t])
+    assert_each_object_follows_its_own_points(refined, tiny_scene)
