@@ -36,8 +36,8 @@ from mosiv_gauss.train import (
     TrainingData,
     _bar,
     batch_view_loss,
-    hull_loss,
     sample_views,
+    shape_terms,
 )
 
 Tensor = torch.Tensor
@@ -131,18 +131,10 @@ def refine_frames(
             background,
             opts,
         )
-        loss = loss + opts.lambda_radius * radii.mean() / voxel
+        loss = loss + shape_terms(
+            means, radii, frames, gaussians.object_ids, data, opts, generator=generator
+        )
         loss = loss + opts.lambda_refine_smooth * smoothness(d, s, neighbours)
-        if opts.lambda_hull > 0 and data.hulls is not None:
-            shape = hull_loss(
-                means,
-                frames,
-                gaussians.object_ids,
-                data.hulls,
-                voxel_size=voxel,
-                generator=generator,
-            )
-            loss = loss + opts.lambda_hull * shape
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

@@ -246,6 +246,28 @@ def hull_loss(
     return total / max(count, 1)
 
 
+def shape_terms(
+    means: Tensor,
+    radii: Tensor,
+    frames: list[int],
+    object_ids: Tensor,
+    data: TrainingData,
+    opts: DynamicGaussOptions,
+    *,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """The geometric terms shared by training and the per-frame refinement: eq. 2's radius
+    penalty (mean radius in hull voxels) plus the hull term when ``opts.lambda_hull`` is on.
+    means [F, G, 3] and radii [F, G] (m) at ``frames``."""
+    total = opts.lambda_radius * radii.mean() / data.voxel_size
+    if opts.lambda_hull > 0 and data.hulls is not None:
+        shape = hull_loss(
+            means, frames, object_ids, data.hulls, voxel_size=data.voxel_size, generator=generator
+        )
+        total = total + opts.lambda_hull * shape
+    return total
+
+
 def fit_motion_prior(
     model: DynamicGaussians,
     tracks: Tensor,
@@ -429,22 +451,14 @@ def train_dynamic(
             background,
             opts,
         )
-        loss = loss + opts.lambda_radius * radii.mean() / data.voxel_size
+        loss = loss + shape_terms(
+            means, radii, frames, model.object_ids, data, opts, generator=generator
+        )
         if opts.lambda_track > 0 and data.tracks is not None:
             anchor = track_loss(
                 means, frames, model.object_ids, data, tolerance=opts.track_tolerance
             )
             loss = loss + opts.lambda_track * anchor
-        if opts.lambda_hull > 0 and data.hulls is not None:
-            shape = hull_loss(
-                means,
-                frames,
-                model.object_ids,
-                data.hulls,
-                voxel_size=data.voxel_size,
-                generator=generator,
-            )
-            loss = loss + opts.lambda_hull * shape
         for o in optimizers:
             o.zero_grad(set_to_none=True)
         loss.backward()
