@@ -25,6 +25,7 @@ import shutil
 import statistics
 import time
 import traceback
+from concurrent.futures import as_completed
 from pathlib import Path
 
 from identify_suite import LETTERS, PAIRS, _fmt, _timed, errors_of, select_pairs
@@ -55,6 +56,9 @@ QUANTITIES += (("ssim", "SSIM", max), ("cd_mm2", "CD mm^2", min))
 QUANTITIES += (("emd_mm", "EMD mm", min),)
 #: files of Stage I and II that a variant copies from the scene's first run to skip them
 SHARED_STAGES = ("reconstruction.pt", "particles.pt", "stages/reconstruct.json", "stages/lift.json")
+#: written into the first variant's folder when its run fails, so the variants waiting for its
+#: Stage I-II stop waiting
+STAGES_FAILED = "stages_failed.txt"
 
 
 def variant_losses(recipe_losses: dict, granularity: str, terms: tuple[str, ...]) -> dict:
@@ -92,9 +96,10 @@ def _run_one(job: dict) -> dict:
         if problems:
             raise SystemExit("; ".join(problems))
         shared = Path(job["shared_from"]) if job["shared_from"] else None
-        if shared is not None:
-            if not (shared / "stages" / "lift.json").is_file():
-                raise RuntimeError(f"Stage I-II of this scene did not finish in {shared}")
+        if shared is None:
+            (run_dir / STAGES_FAILED).unlink(missing_ok=True)  # a rerun starts afresh
+        else:
+            wait_for_shared_stages(shared, poll_s=job.get("poll_s", 10.0))
             for name in SHARED_STAGES:
                 if not (run_dir / name).exists():
                     (run_dir / name).parent.mkdir(parents=True, exist_ok=True)
@@ -106,6 +111,9 @@ def _run_one(job: dict) -> dict:
         elapsed = _timed(run_dir, before, time.perf_counter() - started)
     except Exception as exc:  # one failed run must not lose the others' rows
         traceback.print_exc()
+        if shared is None and not (run_dir / "stages" / "lift.json").is_file():
+            run_dir.mkdir(parents=True, exist_ok=True)
+            (run_dir / STAGES_FAILED).write_text(f"{type(exc).__name__}: {exc}\n")
         return {"error": f"{type(exc).__name__}: {exc}"}
     scores = {}
     for block in ("observed", "future"):
@@ -117,6 +125,17 @@ def _run_one(job: dict) -> dict:
         "time_s": elapsed,
         "peak_memory_gb": metrics.get("peak_memory_gb"),
     }
+
+
+def wait_for_shared_stages(shared: Path, *, poll_s: float) -> None:
+    """Block until the scene's first variant has finished Stage I-II in ``shared`` (its lift
+    marker exists); raise if that run failed first. Later variants wait here instead of for
+    every scene's first variant, so a scene's supervisions run side by side."""
+    while not (shared / "stages" / "lift.json").is_file():
+        failed = shared / STAGES_FAILED
+        if failed.is_file():
+            raise RuntimeError(f"Stage I-II of this scene failed in {shared}: {failed.read_text()}")
+        time.sleep(poll_s)
 
 
 def _jobs_for(selected, *, recipe, out, seed, extra, threads, variants):
@@ -150,22 +169,25 @@ def _jobs_for(selected, *, recipe, out, seed, extra, threads, variants):
 def run_suite(
     *, recipe, selected, out: Path, seed: int, extra, jobs: int, threads: int, variants, gpus=None
 ):
-    """Stage I-II and the first variant per scene, then every other variant; rows merged
-    with earlier ones in ``out/table.json``."""
+    """Every variant of every scene; rows merged with earlier ones in ``out/table.json``.
+
+    The first variant of each scene runs Stage I-II; the scene's other variants wait for those
+    stages (not for the first variant's identification) and then run beside it. All first
+    variants are queued before any other, so with fewer ``jobs`` than runs no waiting run holds
+    a worker that a Stage I-II it waits for would need."""
     table = out / "table.json"
     rows = {r["scene"]: r for r in json.loads(table.read_text())["rows"]} if table.is_file() else {}
     first, rest = _jobs_for(
         selected, recipe=recipe, out=out, seed=seed, extra=extra, threads=threads, variants=variants
     )
     with worker_pool(jobs, gpus=gpus) as pool:  # spawned: no inherited torch or Warp state
-        for phase in (first, rest):
-            for job, result in zip(phase, pool.map(_run_one, phase)):
-                row = rows.setdefault(job["scene"], {"scene": job["scene"], "pair": job["pair"]})
-                row[job["variant"]] = result
-                print(
-                    f"[video-suite] {job['scene']} {job['variant']}: {_brief(result)}", flush=True
-                )
-                table.write_text(json.dumps({"rows": [rows[k] for k in sorted(rows)]}, indent=2))
+        futures = {pool.submit(_run_one, job): job for job in first + rest}
+        for future in as_completed(futures):
+            job, result = futures[future], future.result()
+            row = rows.setdefault(job["scene"], {"scene": job["scene"], "pair": job["pair"]})
+            row[job["variant"]] = result
+            print(f"[video-suite] {job['scene']} {job['variant']}: {_brief(result)}", flush=True)
+            table.write_text(json.dumps({"rows": [rows[k] for k in sorted(rows)]}, indent=2))
     ordered = [rows[k] for k in sorted(rows)]
     summary = summarise(ordered)
     result = {"recipe": str(recipe), "overrides": extra, "rows": ordered, "summary": summary}

@@ -62,3 +62,27 @@ def test_too_few_scenes_give_no_p_value():
     suite = _suite()
     assert suite.paired_p_value([(1.0, 0.0)] * 5) is None
     assert suite.paired_p_value([(1.0, 1.0)] * 10) is None  # no scene differs
+
+
+def test_a_later_variant_waits_for_its_scenes_stage_one_and_two(tmp_path):
+    import threading
+
+    suite = _suite()
+    shared = tmp_path / "object-cd-sil"
+    (shared / "stages").mkdir(parents=True)
+    timer = threading.Timer(0.2, lambda: (shared / "stages" / "lift.json").write_text("{}"))
+    timer.start()
+    try:
+        suite.wait_for_shared_stages(shared, poll_s=0.02)  # returns once the lift is marked done
+    finally:
+        timer.cancel()
+    assert (shared / "stages" / "lift.json").is_file()
+
+
+def test_a_later_variant_stops_waiting_when_the_first_one_failed(tmp_path):
+    suite = _suite()
+    shared = tmp_path / "object-cd-sil"
+    shared.mkdir()
+    (shared / suite.STAGES_FAILED).write_text("RuntimeError: lifting found no cell\n")
+    with pytest.raises(RuntimeError, match="no cell"):
+        suite.wait_for_shared_stages(shared, poll_s=0.02)
