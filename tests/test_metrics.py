@@ -214,3 +214,20 @@ def test_frame_metrics_per_object_and_scene():
         geometry_metrics({1: predicted[1]}, target)
     with pytest.raises(ValueError, match="not in 0..2"):
         geometry_metrics(predicted, target, frames=[5])
+
+
+def test_chamfer_against_a_particle_lattice_has_a_floor_of_a_quarter_spacing_squared():
+    # The generator places each body's particles on a lattice of spacing h at a random phase.
+    # Points that fill the body without knowing that phase sit, per axis, uniformly within
+    # +-h/2 of the nearest lattice plane, so their mean squared distance to the particles is
+    # 3 * h^2 / 12 = h^2 / 4 (16 mm^2 at the benchmark's 8 mm), one direction of the Chamfer
+    # alone; a reconstruction scored against the particles cannot go below it.
+    rng = np.random.default_rng(3)
+    h = 0.008
+    axis = np.arange(13) * h
+    lattice = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    lattice = lattice + rng.uniform(0.0, h, size=3)
+    dense = rng.uniform(2 * h, 11 * h, size=(20000, 3))  # inside, away from the edges
+    one_way = float(np.mean((nearest_distances(dense, lattice) * 1000.0) ** 2))
+    assert one_way == pytest.approx(h**2 / 4 * 1e6, rel=0.03)
+    assert chamfer_mm2(dense, lattice) > 16.0
