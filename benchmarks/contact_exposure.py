@@ -4,7 +4,7 @@ The paper explains its supervision ablation (table 3) by contact: a Chamfer over
 the bodies may match a point of one body to the other where they touch, which per-object
 Chamfers cannot. That can only happen to points lying within about a particle spacing or two of
 the other body. For each material pair of ``identify_suite.PAIRS`` (the same scenes: same seeds,
-the paper recipe's simulator settings), this plans and simulates the scene on the CPU, without
+the recipe's simulator settings, here on the CPU), this plans and simulates the scene on the CPU, without
 rendering, and reports per observed frame the share of particles within ``--radius`` of the
 other body, and the frames in which the bodies touch (closest particles within one spacing).
 
@@ -19,7 +19,11 @@ from pathlib import Path
 
 import numpy as np
 from identify_suite import LETTERS, select_pairs
+from omegaconf import OmegaConf
 from scipy.spatial import cKDTree
+
+#: the from-video suite's recipe, whose scene source the scenes are made with
+PAPER_RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "video_paper.yaml"
 
 
 def exposure(positions: np.ndarray, sizes: list[int], *, radius: float, touch: float) -> dict:
@@ -39,7 +43,11 @@ def exposure(positions: np.ndarray, sizes: list[int], *, radius: float, touch: f
     return {"near_share": near, "touching": touching}
 
 
-def scene_exposure(pair: str, seed: int, *, observed: int, radius_cells: float) -> dict:
+def scene_exposure(
+    pair: str, seed: int, *, source: dict, observed: int, radius_cells: float
+) -> dict:
+    """The exposure of ``pair``'s scene drawn from ``seed`` with the recipe's scene ``source``
+    settings (its simulator run on the CPU)."""
     from mosiv_synth.generate import plan_scene, simulate
     from mosiv_synth.options import SynthOptions
 
@@ -47,7 +55,9 @@ def scene_exposure(pair: str, seed: int, *, observed: int, radius_cells: float) 
     options = SynthOptions(
         materials=f"{a},{b}",
         seed=seed,
-        simulator_options={"grid": 64, "substeps": 100, "device": "cpu"},
+        particle_spacing=source["particle_spacing"],
+        simulator=source["simulator"],
+        simulator_options={**source["simulator_options"], "device": "cpu"},
         progress=False,
     )
     plan = plan_scene(options)
@@ -78,13 +88,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--radius-cells", type=float, default=2.0, help="'near' radius in particle spacings"
     )
+    parser.add_argument("--recipe", type=Path, default=PAPER_RECIPE, help="scene source settings")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = parser.parse_args(argv)
+    source = OmegaConf.to_container(OmegaConf.load(args.recipe).scene.source, resolve=True)
     rows = []
     print("| pair | touching frames | mean share near the other body | largest share |")
     print("|---|---:|---:|---:|")
     for index, pair in select_pairs(pairs=args.pairs, scenes=None):
-        row = scene_exposure(pair, index, observed=args.observed, radius_cells=args.radius_cells)
+        row = scene_exposure(
+            pair, index, source=source, observed=args.observed, radius_cells=args.radius_cells
+        )
         rows.append(row)
         print(
             f"| {pair} | {row['touching_frames']} of {row['observed_frames']} | "

@@ -59,6 +59,8 @@ SHARED_STAGES = ("reconstruction.pt", "particles.pt", "stages/reconstruct.json",
 #: written into the first variant's folder when its run fails, so the variants waiting for its
 #: Stage I-II stop waiting
 STAGES_FAILED = "stages_failed.txt"
+#: seconds between a waiting variant's looks for its scene's Stage I-II (which take minutes)
+SHARED_POLL_S = 10.0
 
 
 def variant_losses(recipe_losses: dict, granularity: str, terms: tuple[str, ...]) -> dict:
@@ -88,6 +90,9 @@ def _run_one(job: dict) -> dict:
 
     torch.set_num_threads(job["threads"])
     run_dir = Path(job["run_dir"])
+    shared = Path(job["shared_from"]) if job["shared_from"] else None
+    if shared is None:
+        (run_dir / STAGES_FAILED).unlink(missing_ok=True)  # a rerun starts afresh
     try:
         raw = read_recipe_file(job["recipe"], job["overrides"])
         raw["losses"] = variant_losses(raw.get("losses") or {}, job["granularity"], job["terms"])
@@ -95,11 +100,8 @@ def _run_one(job: dict) -> dict:
         resolved, problems = validate_recipe(raw, get_registry())
         if problems:
             raise SystemExit("; ".join(problems))
-        shared = Path(job["shared_from"]) if job["shared_from"] else None
-        if shared is None:
-            (run_dir / STAGES_FAILED).unlink(missing_ok=True)  # a rerun starts afresh
-        else:
-            wait_for_shared_stages(shared, poll_s=job.get("poll_s", 10.0))
+        if shared is not None:
+            wait_for_shared_stages(shared, poll_s=SHARED_POLL_S)
             for name in SHARED_STAGES:
                 if not (run_dir / name).exists():
                     (run_dir / name).parent.mkdir(parents=True, exist_ok=True)
