@@ -73,6 +73,13 @@ class Simulator(ABC):
         default is the CPU, GPU backends override it."""
         return torch.device("cpu")
 
+    @property
+    def deterministic(self) -> bool:
+        """Whether two rollouts of the same inputs give bit-identical states and gradients.
+        The pipeline then asks torch for its deterministic algorithms as well, so a whole
+        identification repeats exactly. Backends that cannot promise it keep this default."""
+        return False
+
     @abstractmethod
     def rollout(
         self,

@@ -14,6 +14,7 @@ from mosiv_framework.errors import ConfigError, SimulationDiverged
 from mosiv_framework.interfaces import Simulator
 from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, World
 from mosiv_warp_mpm import kernels as K
+from mosiv_warp_mpm import laws as laws_module
 from mosiv_warp_mpm.laws import LAW_IDS, LAW_PARAM_NAMES, N_SLOTS
 from mosiv_warp_mpm.options import WarpMPMOptions
 from mosiv_warp_mpm.state import Grid, GridLayout, NodeBox, ObjectTables, ParticleState
@@ -38,6 +39,34 @@ def init_warp() -> None:
         wp.config.quiet = True
         wp.init()
         _WARP_READY = True
+
+
+#: the deterministic setting this process's warp-mpm kernels were given (None: not yet)
+_DETERMINISTIC: bool | None = None
+
+
+def use_deterministic_atomics(on: bool) -> None:
+    """Compile this plugin's kernels with Warp's deterministic atomics (``on``) or ordinary ones.
+
+    Float atomics summed in whatever order the GPU schedules them make two runs of the same
+    rollout differ in the last bits, and a chaotic rollout (fracture, contact) or a long
+    identification grows that into visible differences. RUN_TO_RUN records the updates and
+    reduces them in a fixed order instead. The setting belongs to the Warp modules, not to a
+    simulator, so a process that asks for both is refused rather than silently mixed.
+    """
+    global _DETERMINISTIC
+    if _DETERMINISTIC is not None and _DETERMINISTIC != on:
+        raise ConfigError(
+            f"simulator warp-mpm: deterministic={on} after deterministic={_DETERMINISTIC} in "
+            "the same process; Warp compiles the kernels one way per process: give every "
+            "warp-mpm simulator of the run the same setting (the recipe's simulator and "
+            "scene.source.simulator_options) or run them in separate processes"
+        )
+    if _DETERMINISTIC is None:
+        mode = wp.DeterministicMode.RUN_TO_RUN if on else wp.DeterministicMode.NOT_GUARANTEED
+        for module in (K, laws_module):
+            wp.set_module_options({"deterministic": mode}, module=module)
+        _DETERMINISTIC = on
 
 
 def resolve_device(name: str) -> str:
@@ -360,6 +389,7 @@ class WarpMPMSimulator(Simulator):
     def __init__(self, options: WarpMPMOptions | None = None, **kwargs):
         self.options = options if options is not None else WarpMPMOptions(**kwargs)
         init_warp()
+        use_deterministic_atomics(self.options.deterministic)
         self.device = resolve_device(self.options.device)
         #: bytes held for the last differentiable rollout: checkpoints (forward) and the
         #: backward's one-frame workspace; filled by autograd.py
@@ -379,6 +409,11 @@ class WarpMPMSimulator(Simulator):
     @property
     def torch_device(self) -> torch.device:
         return wp.device_to_torch(self.device)
+
+    @property
+    def deterministic(self) -> bool:
+        # CUDA sums atomics in schedule order unless asked not to; the CPU runs them in order
+        return self.options.deterministic or not wp.get_device(self.device).is_cuda
 
     # -- memory ----------------------------------------------------------------------------
     def reset_peak_memory(self) -> None:
