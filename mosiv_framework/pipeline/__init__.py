@@ -103,7 +103,7 @@ def run_pipeline(recipe: DictConfig, *, run_dir: Path) -> dict:
     # Stage III: identification
     sim_name, sim_options = _component(recipe.simulator)
     simulator = registry.create("simulator", sim_name, sim_options)
-    if simulator.deterministic and simulator.torch_device.type == "cuda":
+    if simulator.deterministic and torch.device(simulator.torch_device).type == "cuda":
         # the losses' gathers scatter their gradients on the GPU too: in a fixed order now,
         # so an identification repeats bit for bit (cuBLAS products already do)
         torch.use_deterministic_algorithms(True, warn_only=True)

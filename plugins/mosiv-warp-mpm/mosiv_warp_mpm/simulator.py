@@ -408,7 +408,8 @@ class WarpMPMSimulator(Simulator):
 
     @property
     def torch_device(self) -> torch.device:
-        return wp.device_to_torch(self.device)
+        # wp.device_to_torch returns a device string; the interface promises a torch.device
+        return torch.device(wp.device_to_torch(self.device))
 
     @property
     def deterministic(self) -> bool:
