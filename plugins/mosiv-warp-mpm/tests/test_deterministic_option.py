@@ -135,6 +135,8 @@ def test_cpu_rollouts_repeat_bit_for_bit() -> None:
 
 def test_simulator_interface_is_not_deterministic_by_default() -> None:
     class Minimal(Simulator):
+        # only to make the abstract class constructible: the test reads a property and never
+        # rolls out
         def rollout(self, particles, params, *, world, frames):
             raise NotImplementedError
 
