@@ -11,7 +11,7 @@ exceed the floor" would keep the true effects and reject the false acceptances. 
 nothing.
 
     python benchmarks/resolution_floor.py --out /root/floor --jobs 5 --gpus 0 \\
-        --diagnoses benchmarks/data/dsuite_s15_reidentify \\
+        --diagnoses benchmarks/data/diagnosis_suite \\
         control-1 outside-quadratic_drag material_damping-0 ground_friction-0 quadratic_drag-0
 """
 

@@ -1,7 +1,7 @@
 """Measure each saved diagnosis's candidates' own effects (``diagnose.effect``) and resolution
 floors (``diagnose.floor``), and write copies of the diagnosis files that carry them.
 
-The suite's saved entries (benchmarks/data/dsuite_*) hold every candidate's refitted
+The suite's saved entries (benchmarks/data/diagnosis_suite/*/) hold every candidate's refitted
 coefficients, and the accepted candidate's refitted shared parameters (``param_shift``), but not
 the run's particles. This script regenerates each entry's scene from its suite definition (same
 seed and conceal spec), reconstructs and lifts it as the suite's recipe does (no
@@ -16,8 +16,8 @@ Output: OUT/NAME/diagnosis.json (the input with ``effect`` on those evidence row
 ``resolution_floor_mm2`` measured here, the file's own floor kept as ``resolution_floor_saved``),
 plus diagnosis.md and score.json copied, so ``mosiv diagnose-suite OUT --replay`` scores them.
 
-    python benchmarks/term_effect.py benchmarks/data/dsuite_s15_reidentify/*/ \
-        benchmarks/data/dsuite_s16_rest/*/ --out runs/term_effect --jobs 8 --gpus 0,1,2,3
+    python benchmarks/term_effect.py benchmarks/data/diagnosis_suite/*/ \
+        --out runs/term_effect --jobs 8 --gpus 0,1,2,3
 """
 
 from __future__ import annotations

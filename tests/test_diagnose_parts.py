@@ -1112,7 +1112,7 @@ def test_replaying_with_the_interval_test_reports_the_out_of_library_entry_unexp
     from mosiv_framework.diagnose.decide import DecideOptions
     from mosiv_framework.diagnose.replay import replay_diagnosis
 
-    data = Path(__file__).resolve().parents[1] / "benchmarks" / "data" / "dsuite_s15_reidentify"
+    data = Path(__file__).resolve().parents[1] / "benchmarks" / "data" / "diagnosis_rule_cases"
     outside = json.loads((data / "outside-quadratic_drag" / "diagnosis.json").read_text())
     true = json.loads((data / "material_damping-0" / "diagnosis.json").read_text())
     strict = DecideOptions(**{**outside["rule"], "require_nonzero": True})
@@ -1156,7 +1156,7 @@ def test_replaying_the_gravity_entry_names_gravity_not_a_vertical_wind():
     from mosiv_framework.diagnose.candidates import SPECIAL_CASES
     from mosiv_framework.diagnose.replay import replay_diagnosis, saved_special_cases
 
-    data = Path(__file__).resolve().parents[1] / "benchmarks" / "data" / "dsuite_s16_rest"
+    data = Path(__file__).resolve().parents[1] / "benchmarks" / "data" / "diagnosis_rule_cases"
     diagnosis = json.loads((data / "gravity-1" / "diagnosis.json").read_text())
     assert diagnosis["accepted"]["name"] == "wind"  # as it ran, before the preference
     assert saved_special_cases(diagnosis)["gravity"] == SPECIAL_CASES["gravity"] == ("wind",)
@@ -1181,7 +1181,7 @@ def test_a_replayed_suite_folder_without_scenes_scores_coefficients_from_the_ent
     from mosiv_framework.diagnose.decide import DecideOptions
     from mosiv_framework.diagnose.replay import replay_suite
 
-    data = Path(__file__).resolve().parents[1] / "benchmarks" / "data" / "dsuite_s15_reidentify"
+    data = Path(__file__).resolve().parents[1] / "benchmarks" / "data" / "diagnosis_rule_cases"
     shutil.copytree(data / "wind-0", tmp_path / "wind-0")
     summary = replay_suite(tmp_path, DecideOptions())
     (score,) = summary["scores"]

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-RUN = BENCHMARKS / "data" / "video_refine_s25" / "scene-03-plasticine-newtonian" / "scene-cd-sil"
+RUN = BENCHMARKS / "data" / "video_ablation" / "scene-03-plasticine-newtonian" / "scene-cd-sil"
 
 
 def test_errors_from_the_plan_match_the_runs_own_metrics():

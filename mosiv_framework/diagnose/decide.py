@@ -23,7 +23,7 @@ better-fitted null, true terms that won the held-out test by 53 % +- 1.5 % (a wi
 90 % +- 5 % (a table friction) had delta BIC -1.8 and -0.06. The margin is now 0 ("the BIC
 favours the term", as issue 9 words it), with the effect-size test in its place. Both values
 were chosen on the session-13 suite entries (``mosiv diagnose-suite OUT --replay``). The whole
-suite of session 14 (benchmarks/data/dsuite_s14) kept them: 8 of 18 named against 6 under the
+suite of session 14 kept them: 8 of 18 named against 6 under the
 old rule, and still no term accepted on any of the six controls.
 Among accepted candidates, one that contains another accepted one as a special case (a wind
 along g is a change of gravity's magnitude: ``candidates.SPECIAL_CASES``) is named only if it
