@@ -21,6 +21,7 @@ import yaml
 from mosiv_framework.cli.diagnose import add_parsers
 from mosiv_framework.diagnose import diagnose_run
 from mosiv_framework.diagnose.decide import bic
+from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT
 from mosiv_framework.diagnose.suite import coefficient_error
 from mosiv_framework.pipeline import run_pipeline
 from mosiv_framework.recipes import load_recipe
@@ -92,6 +93,7 @@ def test_wind_coefficient_and_future_error(wind):
 def test_report_files(wind):
     root, diagnosis = wind
     saved = json.loads((root / "diagnosis.json").read_text())
+    assert saved["format"] == DIAGNOSIS_FORMAT  # how a replay tells layouts apart
     assert saved["accepted"]["name"] == "wind"
     text = (root / "diagnosis.md").read_text()
     assert "physics_terms:" in text and "wind:" in text and "Evidence" in text
@@ -126,8 +128,8 @@ def test_replaying_the_saved_tables_reproduces_the_decision(wind):
         for key in ("heldout_drop", "heldout_spread", "delta_bic"):
             assert new[key] == pytest.approx(old[key], rel=1e-9, abs=1e-12)
     assert saved["rule"]["min_drop"] == DecideOptions().min_drop
-    # a file from before the rule was saved is replayed under the rule of its time
-    legacy = {k: v for k, v in saved.items() if k != "rule"}
+    # a file of the unversioned layout without a rule is replayed under the rule of its time
+    legacy = {k: v for k, v in saved.items() if k not in ("rule", "format")}
     for e in replay_diagnosis(legacy)["evidence"]:
         assert e["passes_bic"] == (e["delta_bic"] < -2.0)
     # a rule no candidate can meet: the significant residual stays unexplained

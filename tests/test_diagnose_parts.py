@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -165,7 +166,7 @@ def test_bic_penalises_a_parameter_that_buys_nothing():
 def test_a_small_consistent_held_out_gain_is_not_worth_naming():
     """Two candidates against the null on [2 objects, 20 frames] error tables: one removes 7 %
     of every held-out frame's error (significant against its spread, as a control's gravity
-    change was in session 13), the other 40 %. Only the second passes the effect-size test."""
+    change was on a full suite), the other 40 %. Only the second passes the effect-size test."""
     from mosiv_framework.diagnose.decide import DecideOptions, weigh
 
     rng = np.random.default_rng(1)
@@ -361,6 +362,7 @@ def test_suite_resumes_scored_entries_and_rejects_unknown_names(tmp_path):
     and ``only`` names that are not entries are refused with the valid ones."""
     from dataclasses import asdict
 
+    from mosiv_framework.diagnose.formats import SUITE_FORMAT, FormatError
     from mosiv_framework.diagnose.suite import Score, run_suite, suite_entries
     from mosiv_framework.errors import ConfigError
 
@@ -375,6 +377,11 @@ def test_suite_resumes_scored_entries_and_rejects_unknown_names(tmp_path):
     assert summary["missing"] == []
     assert summary["correct_first_rate"] == 1.0
     assert (tmp_path / "suite.png").stat().st_size > 0  # the suite's figure next to its table
+    assert json.loads((tmp_path / "suite.json").read_text())["format"] == SUITE_FORMAT
+    # a score of a format this version cannot read is refused, not misread
+    (tmp_path / entry.name / "score.json").write_text(json.dumps({"format": "x/2"}))
+    with pytest.raises(FormatError, match="score.json: field 'format' is 'x/2'"):
+        run_suite(tmp_path, small=True, only=[entry.name], say=lambda m: None)
     with pytest.raises(ConfigError, match="valid"):
         run_suite(tmp_path, small=True, only=["no-such-entry"], say=lambda m: None)
 
@@ -880,7 +887,7 @@ def test_a_strong_regression_left_out_by_the_score_gets_one_extra_refit():
 def test_a_candidate_flat_at_zero_is_probed_at_multiples_of_its_step():
     """A bounce does nothing to the loss until the restitution is large enough, so the
     gradient at zero is exactly 0; the screen then probes a few coefficients instead of
-    dropping the candidate (session 9: restitution was never refitted on its own scenes)."""
+    dropping the candidate (restitution was otherwise never refitted on its own scenes)."""
 
     from mosiv_framework.diagnose.candidates import build_candidates
     from mosiv_framework.diagnose.hypothesise import screen
@@ -1097,24 +1104,43 @@ def test_the_interval_test_fails_a_term_whose_interval_includes_absent():
     assert kept[0].interval == [[0.0, 18.9]] and kept[2].interval is None
 
     strict = apply_interval_test(evidence(), intervals, DecideOptions())
-    assert DecideOptions().require_nonzero  # on by default since session 16
+    assert DecideOptions().require_nonzero  # on by default
     assert [e.name for e in strict] == ["drag", "damping", "wind"]
     assert strict[0].accepted and not strict[1].accepted and not strict[1].passes_interval
 
 
-def test_replaying_with_the_interval_test_reports_the_out_of_library_entry_unexplained():
-    """Session 15's out-of-library entry (a concealed drag with drag out of the library)
-    accepted material damping with a viscosity interval of [0, 18.9] Pa s; replayed with the
-    interval test it is unexplained, and a true effect's diagnosis (its interval clear of
-    zero) is unchanged."""
-    from pathlib import Path
+#: benchmarks/data/, where kept diagnoses are found by their content, not by folder names
+KEPT = Path(__file__).resolve().parents[1] / "benchmarks" / "data"
 
+
+def _kept_diagnosis(entry: str, accepted: str, match=lambda diagnosis: True) -> Path:
+    """The first diagnosis.json of suite entry ``entry`` kept under benchmarks/data/ that
+    accepted ``accepted`` as it ran and satisfies ``match``."""
+    for path in sorted(KEPT.glob(f"**/{entry}/diagnosis.json")):
+        diagnosis = json.loads(path.read_text())
+        if (diagnosis.get("accepted") or {}).get("name") == accepted and match(diagnosis):
+            return path
+    pytest.fail(f"no diagnosis of {entry} accepting {accepted} is kept under {KEPT}")
+
+
+def _interval_includes_zero(diagnosis: dict) -> bool:
+    return any(lo <= 0.0 <= hi for lo, hi in diagnosis["accepted"]["interval_95"].values())
+
+
+def test_replaying_with_the_interval_test_reports_the_out_of_library_entry_unexplained():
+    """An out-of-library entry (a concealed drag with drag out of the library) that ran
+    without the interval test accepted material damping with a viscosity interval of
+    [0, 18.9] Pa s; replayed with the interval test it is unexplained, and a true effect's
+    diagnosis of the same suite (its interval clear of zero) is unchanged."""
     from mosiv_framework.diagnose.decide import DecideOptions
     from mosiv_framework.diagnose.replay import replay_diagnosis
 
-    data = Path(__file__).resolve().parents[1] / "benchmarks" / "data" / "diagnosis_rule_cases"
-    outside = json.loads((data / "outside-quadratic_drag" / "diagnosis.json").read_text())
-    true = json.loads((data / "material_damping-0" / "diagnosis.json").read_text())
+    outside_path = _kept_diagnosis(
+        "outside-quadratic_drag", "material_damping", _interval_includes_zero
+    )
+    outside = json.loads(outside_path.read_text())
+    true_path = outside_path.parents[1] / "material_damping-0" / "diagnosis.json"
+    true = json.loads(true_path.read_text())
     strict = DecideOptions(**{**outside["rule"], "require_nonzero": True})
     assert replay_diagnosis(outside)["accepted"]["name"] == "material_damping"
     replayed = replay_diagnosis(outside, strict)
@@ -1131,7 +1157,7 @@ def test_a_special_case_is_preferred_unless_the_general_term_adds_a_real_drop():
     def ev(name, drop, delta, n_new, within=()):
         return Evidence(name, drop, 0.01, delta, True, True, 1.0, n_new, special_case_of=within)
 
-    # session 16, gravity-1: wind -29.5 BIC with drop 0.976, gravity -23.5 with 0.937
+    # a kept gravity-1 entry: wind -29.5 BIC with drop 0.976, gravity -23.5 with 0.937
     ranked = rank_evidence(
         [ev("wind", 0.976, -29.5, 3), ev("gravity", 0.937, -23.5, 1, ("wind",))], min_drop=0.2
     )
@@ -1147,17 +1173,15 @@ def test_a_special_case_is_preferred_unless_the_general_term_adds_a_real_drop():
 
 
 def test_replaying_the_gravity_entry_names_gravity_not_a_vertical_wind():
-    """gravity-1 of session 16 (gravity 7.5 m/s^2 instead of 9.81) accepted a nearly vertical
-    wind; the decision with the special-case preference names the gravity change, from the
-    saved error tables alone. Files without a recorded ``special_case_of`` use the built-in
-    declaration."""
-    from pathlib import Path
-
+    """A gravity-1 entry (gravity 7.5 m/s^2 instead of 9.81) diagnosed before the special-case
+    preference accepted a nearly vertical wind; the decision with the preference names the
+    gravity change, from the saved error tables alone. Files of the unversioned layout without
+    a recorded ``special_case_of`` use the built-in declaration."""
     from mosiv_framework.diagnose.candidates import SPECIAL_CASES
     from mosiv_framework.diagnose.replay import replay_diagnosis, saved_special_cases
 
-    data = Path(__file__).resolve().parents[1] / "benchmarks" / "data" / "diagnosis_rule_cases"
-    diagnosis = json.loads((data / "gravity-1" / "diagnosis.json").read_text())
+    diagnosis = json.loads(_kept_diagnosis("gravity-1", "wind").read_text())
+    assert "format" not in diagnosis  # the unversioned layout
     assert diagnosis["accepted"]["name"] == "wind"  # as it ran, before the preference
     assert saved_special_cases(diagnosis)["gravity"] == SPECIAL_CASES["gravity"] == ("wind",)
     replayed = replay_diagnosis(diagnosis)
@@ -1165,7 +1189,7 @@ def test_replaying_the_gravity_entry_names_gravity_not_a_vertical_wind():
     assert replayed["evidence"][0]["special_case_of"] == ["wind"]
     assert replayed["evidence"][1]["name"] == "wind" and replayed["evidence"][1]["accepted"]
     assert replayed["evidence"][0]["theta"] == pytest.approx([-2.19], abs=0.01)  # kept from file
-    # files since session 16 record each fit's physical value: a newly accepted term carries it
+    # a file that records each fit's physical value: a newly accepted term carries it
     for e in diagnosis["evidence"]:
         if e["name"] == "gravity":
             e["value"] = {"acceleration": [0.0, 0.0, -7.62]}
@@ -1176,19 +1200,91 @@ def test_a_replayed_suite_folder_without_scenes_scores_coefficients_from_the_ent
     """benchmarks/data keeps diagnoses without their scenes; a replay scores the coefficient
     error against the entry's conceal spec (what the generator wrote to gt/effects.json)."""
     import shutil
-    from pathlib import Path
 
     from mosiv_framework.diagnose.decide import DecideOptions
     from mosiv_framework.diagnose.replay import replay_suite
 
-    data = Path(__file__).resolve().parents[1] / "benchmarks" / "data" / "diagnosis_rule_cases"
-    shutil.copytree(data / "wind-0", tmp_path / "wind-0")
+    kept = _kept_diagnosis("wind-0", "wind").parent
+    shutil.copytree(kept, tmp_path / "wind-0")
     summary = replay_suite(tmp_path, DecideOptions())
     (score,) = summary["scores"]
-    saved = json.loads((data / "wind-0" / "score.json").read_text())
+    saved = json.loads((kept / "score.json").read_text())
     assert score["correct"] and score["accepted"] == "wind"
     assert score["coefficient_error"] == pytest.approx(saved["coefficient_error"], rel=1e-9)
     assert "control-0" in summary["missing"]
+
+
+def test_a_diagnosis_of_an_unknown_format_is_refused_naming_the_file_field_and_values(tmp_path):
+    """A diagnosis.json of a format this version cannot read (e.g. from a newer MOSIV) is not
+    misread: the replay stops with the file, the field, its value and the supported values."""
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT, FormatError
+    from mosiv_framework.diagnose.replay import replay_suite
+
+    diagnosis = json.loads(_kept_diagnosis("wind-0", "wind").read_text())
+    path = tmp_path / "wind-0" / "diagnosis.json"
+    path.parent.mkdir()
+    path.write_text(json.dumps({**diagnosis, "format": "mosiv-diagnosis/99"}))
+    with pytest.raises(FormatError) as info:
+        replay_suite(tmp_path, DecideOptions())
+    message = str(info.value)
+    assert str(path) in message and "'format'" in message
+    assert "'mosiv-diagnosis/99'" in message and repr(DIAGNOSIS_FORMAT) in message
+
+
+def test_kept_diagnoses_of_the_unversioned_layout_replay_to_their_own_decision():
+    """Files written before diagnosis.json carried a format replay, under the rule they record
+    (or the one their layout implies), to the verdict and term they recorded; the one change
+    allowed is the special-case preference, which names the special case of the term they
+    accepted (a gravity change for a vertical wind)."""
+    from mosiv_framework.diagnose.candidates import SPECIAL_CASES
+    from mosiv_framework.diagnose.replay import replay_diagnosis
+
+    paths = sorted(KEPT.glob("**/diagnosis.json"))
+    unversioned = [p for p in paths if "format" not in json.loads(p.read_text())]
+    assert unversioned
+    changed = 0
+    for path in unversioned:
+        saved = json.loads(path.read_text())
+        replayed = replay_diagnosis(saved, source=path)
+        assert replayed["verdict"] == saved["verdict"], path
+        before = (saved["accepted"] or {}).get("name")
+        after = (replayed["accepted"] or {}).get("name")
+        changed += after != before
+        assert after == before or before in SPECIAL_CASES.get(after, ()), path
+    assert changed < len(unversioned)
+
+
+def test_the_format_field_decides_how_a_diagnosis_is_read():
+    """The unversioned layout gets what its fields leave out from the layout (a file without a
+    rule ran BIC margin 2 without the interval test; the accepted interval stands for the
+    evidence's); a versioned file is read as written. A complete unversioned file replays the
+    same once it carries the current format."""
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT
+    from mosiv_framework.diagnose.replay import (
+        replay_diagnosis,
+        saved_intervals,
+        saved_rule,
+        saved_special_cases,
+    )
+
+    saved = json.loads(_kept_diagnosis("outside-quadratic_drag", "material_damping").read_text())
+    rule_less = {k: v for k, v in saved.items() if k != "rule"}
+    legacy = saved_rule(rule_less)
+    assert legacy.bic_margin == 2.0 and not legacy.require_nonzero and legacy.min_effect == 0.0
+    assert "material_damping" in saved_intervals(saved)  # from accepted.interval_95
+    versioned = {**saved, "format": DIAGNOSIS_FORMAT}
+    assert "material_damping" not in saved_intervals(versioned)
+    assert all(v == () for v in saved_special_cases(versioned).values())
+
+    complete = json.loads(_kept_diagnosis("gravity-1", "gravity").read_text())
+    assert set(complete["rule"]) == set(DecideOptions().__dict__)
+    assert all("special_case_of" in e for e in complete["evidence"])
+    as_unversioned = replay_diagnosis(complete)
+    as_versioned = replay_diagnosis({**complete, "format": DIAGNOSIS_FORMAT})
+    as_versioned.pop("format")
+    assert as_versioned == as_unversioned
 
 
 def test_the_screen_walks_out_along_the_descent_direction_when_the_loss_keeps_falling():

@@ -5,17 +5,18 @@ A diagnosis.json keeps every refitted model's [object, frame] Chamfer table
 last step of a diagnosis (``decide.py``: held-out drop against its bootstrap spread, and the
 BIC margin) can be re-run with other ``DecideOptions`` without refitting anything. On a whole
 ``mosiv diagnose-suite`` folder this scores a candidate rule in seconds, where the suite itself
-takes GPU-hours; a rule chosen this way is chosen on that suite, which a report must say.
+takes GPU-hours; a rule chosen this way is chosen on that suite, which a report must say
+(docs/DIAGNOSIS.md).
 
-The interval test (``DecideOptions.require_nonzero``) uses the intervals a diagnosis recorded;
-files from before session 15 hold only the accepted candidate's, so there a candidate accepted
-only after the replay has none and is not tested. Likewise the effect test (``min_effect``) uses
-the recorded own effects and resolution floor: a candidate without a recorded effect passes.
-
-Replayed scores lack the coefficient error of a candidate the original run did not accept when
-the file predates session 16 (only then is its physical value missing); everything else is
-recomputed. A folder kept without its scenes is scored against the suite entry's conceal
-spec, the truth the generator was given.
+Files are told apart by their ``format`` field (``formats.DIAGNOSIS_FORMAT``). A file without
+it has the unversioned layout, whose fields grew over time: it may lack the rule it ran with
+(then it ran z 2, BIC margin 2, no effect-size test, no interval or effect test), the interval
+of every candidate but the accepted one, the candidates' physical values and their
+special-case relations. Each of those is read where present and otherwise taken as that
+layout implies (``legacy_rule``, ``saved_intervals``, ``saved_special_cases``); a candidate
+without a recorded interval or effect is not tested on it, and one newly accepted without a
+recorded physical value has no coefficient error. A folder kept without its scenes is scored
+against the suite entry's conceal spec, the truth the generator was given.
 """
 
 from __future__ import annotations
@@ -31,106 +32,161 @@ from mosiv_framework.diagnose.decide import (
     verdict,
     weigh,
 )
+from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT, FIELD, file_format
 from mosiv_framework.diagnose.report import MM2, loaded_table
 
+#: the diagnosis.json formats ``replay_diagnosis`` reads (besides the unversioned layout)
+SUPPORTED = (DIAGNOSIS_FORMAT,)
 
-def replay_diagnosis(diagnosis: dict, options: DecideOptions | None = None) -> dict:
-    """The decision of one diagnosis.json under ``options`` (default: the rule it ran with,
-    its ``rule``; files from before session 13 lack it and ran the rule of then, z 2, BIC
-    margin 2 and no effect-size test, with their budget's bootstrap count): a copy of
-    ``diagnosis`` with ``verdict``, ``evidence`` and ``accepted`` replaced. ``accepted`` keeps
-    the original record when the same candidate is accepted again, else holds its name and,
-    where the file recorded it (since session 16), the physical ``value`` of its fit."""
+
+def load_diagnosis(path: str | Path) -> dict:
+    """A diagnosis.json, its format checked (``formats.file_format``)."""
+    diagnosis = json.loads(Path(path).read_text())
+    file_format(diagnosis, path, SUPPORTED)
+    return diagnosis
+
+
+def replay_diagnosis(
+    diagnosis: dict, options: DecideOptions | None = None, *, source: str | Path = "diagnosis.json"
+) -> dict:
+    """The decision of one diagnosis.json under ``options``: a copy of ``diagnosis`` with
+    ``verdict``, ``evidence`` and ``accepted`` replaced.
+
+    Args:
+        diagnosis: the parsed file.
+        options: the rule; default: the one the diagnosis ran with (``saved_rule``).
+        source: where the file came from, named in errors.
+
+    Returns:
+        The copy. ``accepted`` keeps the original record when the same candidate is accepted
+        again, else holds its name and, where the file recorded it, the physical ``value`` of
+        its fit.
+
+    Raises:
+        formats.FormatError: the file's format is not one of ``SUPPORTED``.
+        ValueError: the file holds no error tables to replay.
+    """
+    file_format(diagnosis, source, SUPPORTED)
     if options is None:
-        # files from before session 15 lack require_nonzero and ran without the interval test,
-        # files from before session 17 lack min_effect and ran without the effect test
-        options = DecideOptions(
-            **(
-                {"require_nonzero": False, "min_effect": 0.0, **diagnosis["rule"]}
-                if diagnosis.get("rule")
-                else {
-                    "bootstrap": diagnosis.get("budget", {}).get("bootstrap", 200),
-                    "bic_margin": 2.0,
-                    "min_drop": 0.0,
-                    "require_nonzero": False,
-                    "min_effect": 0.0,
-                }
-            )
-        )
-    out = dict(diagnosis)
-    tables = {name: loaded_table(t) / MM2 for name, t in _tables(diagnosis).items()}
+        options = saved_rule(diagnosis)
+    tables = {name: loaded_table(t) / MM2 for name, t in _tables(diagnosis, source).items()}
     ranked: list[Evidence] = []
     if diagnosis["evidence"] and "null" in tables:
-        ranked = weigh(
-            tables,
-            null_parameters=diagnosis["null_parameters"],
-            candidates=[
-                (e["name"], e["new_coefficients"], e["fit_loss_m2"]) for e in diagnosis["evidence"]
-            ],
-            fit_frames=diagnosis["frames"]["fit"],
-            heldout_frames=diagnosis["frames"]["heldout"],
-            options=options,
-            special_cases=saved_special_cases(diagnosis),
-        )
-        ranked = apply_interval_test(ranked, saved_intervals(diagnosis), options)
-        ranked = apply_effect_test(
-            ranked, saved_effects(diagnosis), diagnosis.get("resolution_floor_mm2"), options
-        )
-        saved = {e["name"]: e for e in diagnosis["evidence"]}
-        for e in ranked:  # what the fits were: unchanged by a new rule
-            e.theta = saved[e.name].get("theta")
-            e.started_from = saved[e.name].get("started_from")
-            e.reidentified = bool(saved[e.name].get("reidentified", False))
-            e.value = saved[e.name].get("value")
-            e.diverged = saved[e.name].get("diverged")
+        ranked = _redecide(diagnosis, tables, options)
+    out = dict(diagnosis)
     out["verdict"] = verdict(bool(diagnosis["where"]["significant"]), ranked)
     out["evidence"] = [e.to_json() for e in ranked]
-    winner = ranked[0].name if ranked and ranked[0].accepted else None
-    before = diagnosis.get("accepted")
-    if winner is None:
-        out["accepted"] = None
-    elif before is not None and before["name"] == winner:
-        out["accepted"] = before
-    else:
-        out["accepted"] = {"name": winner}
-        if ranked[0].value is not None:
-            out["accepted"]["value"] = ranked[0].value
+    out["accepted"] = _accepted(diagnosis.get("accepted"), ranked)
     return out
 
 
+def _versioned(diagnosis: dict) -> bool:
+    """Whether the file carries a format (checked by ``replay_diagnosis``), not the unversioned
+    layout."""
+    return diagnosis.get(FIELD) is not None
+
+
+def saved_rule(diagnosis: dict) -> DecideOptions:
+    """The rule a diagnosis ran with: its ``rule`` field, complete in a versioned file."""
+    if _versioned(diagnosis):
+        return DecideOptions(**diagnosis["rule"])
+    return legacy_rule(diagnosis)
+
+
+def legacy_rule(diagnosis: dict) -> DecideOptions:
+    """The rule of a file in the unversioned layout. Its ``rule`` may lack the interval test
+    (``require_nonzero``) and the effect test (``min_effect``), which it then ran without; a
+    file without any ``rule`` ran z 2 with a BIC margin of 2 and no effect-size test, with its
+    budget's bootstrap count."""
+    if diagnosis.get("rule"):
+        return DecideOptions(**{"require_nonzero": False, "min_effect": 0.0, **diagnosis["rule"]})
+    return DecideOptions(
+        bootstrap=diagnosis.get("budget", {}).get("bootstrap", 200),
+        bic_margin=2.0,
+        min_drop=0.0,
+        require_nonzero=False,
+        min_effect=0.0,
+    )
+
+
+def _redecide(diagnosis: dict, tables: dict, options: DecideOptions) -> list[Evidence]:
+    """Every test of ``decide`` on the saved tables, intervals and effects; ranked."""
+    ranked = weigh(
+        tables,
+        null_parameters=diagnosis["null_parameters"],
+        candidates=[
+            (e["name"], e["new_coefficients"], e["fit_loss_m2"]) for e in diagnosis["evidence"]
+        ],
+        fit_frames=diagnosis["frames"]["fit"],
+        heldout_frames=diagnosis["frames"]["heldout"],
+        options=options,
+        special_cases=saved_special_cases(diagnosis),
+    )
+    ranked = apply_interval_test(ranked, saved_intervals(diagnosis), options)
+    ranked = apply_effect_test(
+        ranked, saved_effects(diagnosis), diagnosis.get("resolution_floor_mm2"), options
+    )
+    saved = {e["name"]: e for e in diagnosis["evidence"]}
+    for e in ranked:  # what the fits were: unchanged by a new rule
+        e.theta = saved[e.name].get("theta")
+        e.started_from = saved[e.name].get("started_from")
+        e.reidentified = bool(saved[e.name].get("reidentified", False))
+        e.value = saved[e.name].get("value")
+        e.diverged = saved[e.name].get("diverged")
+    return ranked
+
+
+def _accepted(before: dict | None, ranked: list[Evidence]) -> dict | None:
+    """The replay's ``accepted`` record: None, the file's own if it names the same winner, or
+    the winner's name and (where recorded) physical value."""
+    if not ranked or not ranked[0].accepted:
+        return None
+    winner = ranked[0]
+    if before is not None and before["name"] == winner.name:
+        return before
+    record = {"name": winner.name}
+    if winner.value is not None:
+        record["value"] = winner.value
+    return record
+
+
 def saved_intervals(diagnosis: dict) -> dict[str, list[list[float]]]:
-    """Candidate -> [lower, upper] per coefficient, as a diagnosis recorded them: in its
-    evidence (since session 15), or only the accepted candidate's (``interval_95``, before)."""
+    """Candidate -> [lower, upper] per coefficient, as a diagnosis recorded them in its
+    evidence; a file in the unversioned layout may hold only the accepted candidate's
+    (``accepted.interval_95``)."""
     out = {e["name"]: e["interval"] for e in diagnosis["evidence"] if e.get("interval")}
     accepted = diagnosis.get("accepted")
-    if accepted and accepted.get("interval_95") and accepted["name"] not in out:
+    legacy = not _versioned(diagnosis) and accepted and accepted.get("interval_95")
+    if legacy and accepted["name"] not in out:
         out[accepted["name"]] = [list(v) for v in accepted["interval_95"].values()]
     return out
 
 
 def saved_effects(diagnosis: dict) -> dict[str, dict]:
     """Candidate -> its own effect (``effect.summarise_effect``), where the diagnosis measured
-    one (since session 17; or added to a copy by benchmarks/term_effect.py)."""
+    one (or benchmarks/term_effect.py added it to a copy)."""
     return {e["name"]: e["effect"] for e in diagnosis["evidence"] if e.get("effect")}
 
 
 def saved_special_cases(diagnosis: dict) -> dict[str, tuple[str, ...]]:
-    """Candidate -> the candidates containing it, as recorded (since session 16), else as the
-    built-in candidates declare it (``candidates.SPECIAL_CASES``)."""
+    """Candidate -> the candidates containing it, as recorded; a file in the unversioned layout
+    that did not record them gets the built-in declaration (``candidates.SPECIAL_CASES``)."""
     from mosiv_framework.diagnose.candidates import SPECIAL_CASES
 
     out = {}
     for e in diagnosis["evidence"]:
         saved = e.get("special_case_of")
-        out[e["name"]] = tuple(saved) if saved is not None else SPECIAL_CASES.get(e["name"], ())
+        if saved is None and not _versioned(diagnosis):
+            saved = SPECIAL_CASES.get(e["name"], ())
+        out[e["name"]] = tuple(saved or ())
     return out
 
 
-def _tables(diagnosis: dict) -> dict:
+def _tables(diagnosis: dict, source: str | Path) -> dict:
     if "frame_errors_mm2" not in diagnosis:
         raise ValueError(
-            "diagnosis.json has no 'frame_errors_mm2': it was written before session 11's "
-            "report format and cannot be replayed; run the diagnosis again"
+            f"{source} has no 'frame_errors_mm2' (the per-frame error tables a replay "
+            "re-decides on): it cannot be replayed; run the diagnosis again"
         )
     return diagnosis["frame_errors_mm2"]
 
@@ -139,9 +195,7 @@ def replay_suite(out: Path, options: DecideOptions, *, small: bool = False) -> d
     """Re-score every finished entry of a ``mosiv diagnose-suite`` folder under ``options``;
     returns the suite summary (``suite.summarise``) of the replayed scores. Entries without a
     diagnosis.json (not finished, or failed) are left out and listed under ``missing``."""
-    from mosiv_framework.conceal import parse_conceal
     from mosiv_framework.diagnose.suite import score_entry, suite_entries, summarise
-    from mosiv_framework.scene import read_scene
 
     out = Path(out)
     scores, missing = [], []
@@ -150,21 +204,25 @@ def replay_suite(out: Path, options: DecideOptions, *, small: bool = False) -> d
         if not path.exists():
             missing.append(entry.name)
             continue
-        diagnosis = replay_diagnosis(json.loads(path.read_text()), options)
-        accepted = diagnosis["accepted"]
-        # a newly accepted candidate of a file from before session 16 has no recorded value
-        known = accepted is None or "value" in accepted
-        # a folder kept without its scenes (benchmarks/data/) takes the truth from the entry's
-        # conceal spec, which is what the generator wrote to gt/effects.json
-        scene = out / entry.name / "scene"
-        if not known:
-            effects = []
-        elif scene.is_dir():
-            effects = read_scene(scene).gt_effects()
-        else:
-            effects = [effect.to_json() for effect in parse_conceal(entry.conceal or None)]
-        scores.append(score_entry(entry, diagnosis, effects))
+        diagnosis = replay_diagnosis(load_diagnosis(path), options, source=path)
+        scores.append(score_entry(entry, diagnosis, _truth(entry, out, diagnosis["accepted"])))
     summary = summarise(scores)
     summary["missing"] = missing
     summary["rule"] = dict(options.__dict__)
     return summary
+
+
+def _truth(entry, out: Path, accepted: dict | None) -> list[dict]:
+    """The concealed effects an entry is scored against: its scene's gt/effects.json, or for a
+    folder kept without its scenes (benchmarks/data/) the entry's conceal spec, which is what
+    the generator wrote there. None for a newly accepted candidate without a recorded physical
+    value (an unversioned file): it has no coefficient to compare."""
+    from mosiv_framework.conceal import parse_conceal
+    from mosiv_framework.scene import read_scene
+
+    if accepted is not None and "value" not in accepted:
+        return []
+    scene = out / entry.name / "scene"
+    if scene.is_dir():
+        return read_scene(scene).gt_effects()
+    return [effect.to_json() for effect in parse_conceal(entry.conceal or None)]

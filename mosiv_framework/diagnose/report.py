@@ -17,6 +17,7 @@ from omegaconf import OmegaConf
 from mosiv_framework.diagnose.context import RunContext
 from mosiv_framework.diagnose.decide import finite_or_none
 from mosiv_framework.diagnose.floor import summarise_floor
+from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT
 from mosiv_framework.diagnose.locate import Location, plot_location
 from mosiv_framework.recipes.terms import IDENTIFY_KEY
 
@@ -165,6 +166,7 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
     errors = result["errors"]
     observed = ctx.observed_frames
     summary = {
+        "format": DIAGNOSIS_FORMAT,
         "verdict": result["verdict"],
         "where": {
             "object": location.flagged_object,

@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from mosiv_framework.diagnose.diagnosis import diagnose_run
+from mosiv_framework.diagnose.formats import FIELD, SCORE_FORMAT, SUITE_FORMAT, file_format
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.pipeline import run_pipeline
 from mosiv_framework.recipes import load_recipe
@@ -211,7 +212,7 @@ def run_entry(
     run_dir = out / entry.name
     done = run_dir / "score.json"
     if done.exists():
-        return Score(**json.loads(done.read_text()))
+        return load_score(done)
     say(f"[suite] {entry.name}: {entry.conceal or 'control'} on {entry.materials}")
     run_pipeline(load_recipe(recipe_path, entry_overrides(entry, run_dir)), run_dir=run_dir)
     if prepare_only:
@@ -220,9 +221,18 @@ def run_entry(
     effects = read_scene(run_dir / "scene").gt_effects()  # scoring only, after diagnosis
     score = score_entry(entry, diagnosis, effects)
     tmp = done.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(asdict(score), indent=2, default=float) + "\n")
+    record = {FIELD: SCORE_FORMAT, **asdict(score)}
+    tmp.write_text(json.dumps(record, indent=2, default=float) + "\n")
     os.replace(tmp, done)
     return score
+
+
+def load_score(path: Path) -> Score:
+    """An entry's score.json (with or without its ``format`` field, which is checked)."""
+    data = json.loads(path.read_text())
+    file_format(data, path, (SCORE_FORMAT,))
+    data.pop(FIELD, None)
+    return Score(**data)
 
 
 def _run_entry_logged(
@@ -327,7 +337,8 @@ def run_suite(
     ordered = [scores[e.name] for e in entries if e.name in scores]
     summary = summarise(ordered)
     summary["missing"] = [e.name for e in entries if e.name not in scores]
-    (out / "suite.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
+    record = {FIELD: SUITE_FORMAT, **summary}
+    (out / "suite.json").write_text(json.dumps(record, indent=2, default=float) + "\n")
     (out / "suite.md").write_text(table(summary) + "\n")
     if ordered:
         from mosiv_framework.diagnose.suite_plot import plot_suite
