@@ -11,8 +11,10 @@ from mosiv_framework.scene.check import (
     Problem,
     check_layout,
     check_scene,
+    require_valid_scene,
     run_check,
     summary,
+    validate_scene,
 )
 from mosiv_framework.scene.example import write_example_scene
 from mosiv_framework.scene.io import (
@@ -41,9 +43,11 @@ __all__ = [
     "encode_png",
     "is_rigid",
     "read_scene",
+    "require_valid_scene",
     "rigidity_problems",
     "run_check",
     "summary",
+    "validate_scene",
     "write_example_scene",
     "write_scene",
 ]

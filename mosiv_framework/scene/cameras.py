@@ -33,7 +33,7 @@ def rigidity_problems(matrix: object, *, atol: float = RIGID_ATOL) -> list[str]:
     """
     try:
         m = np.asarray(matrix, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an int beyond float range
         return ["is not a 4x4 array of numbers"]
     if m.shape != (4, 4):
         return [f"has shape {list(m.shape)}, expected 4x4"]

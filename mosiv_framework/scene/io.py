@@ -24,6 +24,14 @@ import torch
 from mosiv_framework.errors import SceneFormatError
 from mosiv_framework.scene.cameras import Camera
 from mosiv_framework.scene.check import FORMAT, check_layout, frame_name
+from mosiv_framework.scene.check_common import Meta, Report, load_json, path_kind
+from mosiv_framework.scene.check_gt import (
+    EFFECTS,
+    PARAMS,
+    check_gt_effects,
+    check_gt_params,
+    read_points,
+)
 from mosiv_framework.types import World
 
 
@@ -190,45 +198,57 @@ class Scene:
     def has_gt(self) -> bool:
         return (self.root / "gt" / "points.npz").is_file()
 
-    def gt_points(self) -> dict[int, torch.Tensor]:
-        """Object id -> float32 [T, N_k, 3] true particle positions (m). Evaluation only."""
-        path = self.root / "gt" / "points.npz"
-        if not path.is_file():
-            raise SceneFormatError(
-                f"gt/points.npz: missing; scene {self.name!r} has no ground truth"
-            )
-        with np.load(path, allow_pickle=False) as npz:
-            missing = [f"obj_{k}" for k in self.object_ids if f"obj_{k}" not in npz.files]
-            if missing:
-                raise SceneFormatError(f"gt/points.npz: lacks {missing} (has {npz.files})")
-            return {
-                k: torch.from_numpy(np.array(npz[f"obj_{k}"], np.float32)) for k in self.object_ids
-            }
+    def _meta(self) -> Meta:
+        """What scene.json declares, for the ground-truth rules of ``check_gt``."""
+        return Meta(
+            n_frames=self.n_frames,
+            object_ids=set(self.object_ids),
+            materials=self.materials,
+            names={o.id: o.name for o in self.objects},
+        )
 
-    def _gt_json(self, name: str) -> dict | None:
-        path = self.root / "gt" / name
-        if not path.is_file():
+    def _refuse(self, report: Report) -> None:
+        if report.problems:
+            raise SceneFormatError([f"{self.root / p.file}: {p.reason}" for p in report.problems])
+
+    def gt_points(self) -> dict[int, torch.Tensor]:
+        """Object id -> float32 [T, N_k, 3] true particle positions (m). Evaluation only.
+
+        Raises SceneFormatError naming gt/points.npz unless it holds, for every object, a
+        finite float32 array with a position for each of the scene's n_frames frames (read
+        without pickle: an object array is refused, never loaded).
+        """
+        report = Report()
+        arrays = read_points(self.root, report, self._meta())
+        self._refuse(report)
+        return {k: torch.from_numpy(arrays[f"obj_{k}"]) for k in self.object_ids}
+
+    def _gt_json(self, rel: str, check) -> dict | None:
+        """The parsed, checked gt JSON file ``rel``; None when absent."""
+        if path_kind(self.root / rel) == "missing":
             return None
-        try:
-            return json.loads(path.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise SceneFormatError(f"gt/{name}: is not valid JSON ({exc})") from exc
+        report = Report()
+        data = load_json(self.root, rel, report)
+        if data is not None:
+            check(report, data)
+        self._refuse(report)
+        return data
 
     def gt_params(self) -> dict[str, Any]:
         """The parsed gt/params.json (``generator``, ``objects`` with true parameters).
-        Evaluation only."""
-        data = self._gt_json("params.json")
+        Evaluation only. Raises SceneFormatError when it is missing or breaks a rule."""
+        data = self._gt_json(PARAMS, lambda report, d: check_gt_params(report, d, self._meta()))
         if data is None:
             raise SceneFormatError(
-                f"gt/params.json: missing; scene {self.name!r} has no ground truth"
+                f"{self.root / PARAMS}: missing; scene {self.name!r} has no ground truth"
             )
         return data
 
     def gt_effects(self) -> list[dict[str, Any]]:
         """Effects of gt/effects.json (``kind``, ``params``); [] when the file is absent.
         Only the evaluation of discrepancy diagnosis may read this."""
-        data = self._gt_json("effects.json")
-        return [] if data is None else list(data.get("effects", []))
+        data = self._gt_json(EFFECTS, check_gt_effects)
+        return [] if data is None else list(data["effects"])
 
 
 def read_scene(path: str | Path) -> Scene:
@@ -239,7 +259,21 @@ def read_scene(path: str | Path) -> Scene:
     root = Path(path)
     problems = check_layout(root)
     if problems:
-        raise SceneFormatError([f"{root / p.file}: {p.reason}" for p in problems])
+        raise SceneFormatError(
+            [str(p) if p.file == "." else f"{root / p.file}: {p.reason}" for p in problems]
+        )
+    try:
+        return _build_scene(root)
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+        # the layout check passed, so the files changed under us; still name them, no traceback
+        raise SceneFormatError(
+            f"{root / 'scene.json'}, {root / 'cameras.json'}: changed while being read "
+            f"({type(exc).__name__}: {exc}); run `mosiv data check {root}`"
+        ) from exc
+
+
+def _build_scene(root: Path) -> Scene:
+    """The Scene of a folder whose layout has been checked."""
     scene = json.loads((root / "scene.json").read_text(encoding="utf-8"))
     cams = json.loads((root / "cameras.json").read_text(encoding="utf-8"))
     ground = scene.get("ground")
