@@ -2,7 +2,7 @@
 
 ``diagnose`` reads a finished run folder and writes diagnosis.json / diagnosis.md into it;
 ``diagnose-suite`` generates scenes with concealed effects, runs and diagnoses each, and prints
-the score table (DESIGN.md section 6).
+the score table (docs/DIAGNOSIS.md).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Finding missing physics (DESIGN.md section 6): ``mosiv diagnose RUN``.
+"""Finding missing physics (docs/DIAGNOSIS.md, docs/ARCHITECTURE.md): ``mosiv diagnose RUN``.
 
 One module per step: ``context`` (the loaded run), ``locate`` with ``changepoint`` (where the
 model misses, against a noise floor estimated from the data), ``candidates`` and

@@ -1,50 +1,32 @@
 """Step 4 of a diagnosis: accept a candidate only on evidence that extra parameters cannot game.
 
-Three tests, all required:
-- held-out: every model was fitted on the fit frames only; on the frames it did not see (a
-  held-out blocks spread over the observed window and the future frames) the candidate's
-  Chamfer error must be lower than the equally refitted null model's by more than
-  ``z`` bootstrap standard deviations, resampling (object, time block) units;
-- effect size: that drop must also be at least ``min_drop`` of the null's held-out error. A
-  model that is not exactly the generator's (the oracle's points against a lifted body, a
-  coarser identification) leaves a small systematic residual that any extra coefficient
-  absorbs a little of, consistently across views and blocks: a control scene's gravity change
-  won 6.9 % +- 1.0 % (full suite, session 13). Missing physics worth naming explains a large
-  share of the error (issue 9 asks modelling to halve the future error);
-- information criterion: on the fit frames, BIC = n log(mean excess error) + p log n must be
-  lower with the candidate than without by more than ``bic_margin`` (p free parameters; the
-  excess error is the Chamfer above frame 0's, which no dynamics can remove). n counts
-  independent observations: the errors of consecutive frames of a smooth path are
-  correlated, so n is the number of (object, time block) units, the same units the bootstrap
-  resamples, not of frames.
-The margin was 2 (Kass and Raftery's "positive evidence") until session 13, when the null
-refit began to continue from the candidates' refits (``model.converge_null``): against a
-better-fitted null, true terms that won the held-out test by 53 % +- 1.5 % (a wind) and
-90 % +- 5 % (a table friction) had delta BIC -1.8 and -0.06. The margin is now 0 ("the BIC
-favours the term", as issue 9 words it), with the effect-size test in its place. Both values
-were chosen on the session-13 suite entries (``mosiv diagnose-suite OUT --replay``). The whole
-suite of session 14 kept them: 8 of 18 named against 6 under the
-old rule, and still no term accepted on any of the six controls.
+Every model (the null and each candidate) was refitted on the fit frames only. A candidate is
+accepted when it passes all of these tests (docs/DIAGNOSIS.md explains the rule and the suite
+results it was chosen on):
+
+- held-out: on the frames no refit saw (held-out blocks of the observed window and the future
+  frames) its Chamfer error is lower than the refitted null's by more than ``z`` bootstrap
+  standard deviations, resampling (object, time block) units;
+- effect size: that drop is at least ``min_drop`` of the null's held-out error. A model that
+  is not exactly the generator's leaves a small systematic residual that any extra coefficient
+  absorbs a little of, consistently across views and blocks; missing physics worth naming
+  explains a large share of the error;
+- information criterion: on the fit frames, BIC = n log(mean excess error) + p log n is lower
+  with the candidate than without by more than ``bic_margin`` (p free parameters; the excess
+  error is the Chamfer above frame 0's, which no dynamics can remove; n counts (object, time
+  block) units, the units the bootstrap resamples, because errors of consecutive frames of a
+  smooth path are correlated);
+- interval (``require_nonzero``): the candidate's 95 % coefficient interval excludes "absent"
+  (zero) on some coefficient, i.e. the effect is there at all;
+- own effect (``min_effect``, off by default): the candidate's effect on the fit frames (its
+  model against the same parameters with the effect off, ``effect``) reaches that many
+  resolution floors (``floor``); it is always recorded.
+
 Among accepted candidates, one that contains another accepted one as a special case (a wind
 along g is a change of gravity's magnitude: ``candidates.SPECIAL_CASES``) is named only if it
 explains at least ``min_drop`` of the null's held-out error beyond the special case; otherwise
-the special case, with fewer coefficients, ranks first (``prefer_special_cases``). The BIC alone
-let a wind's two extra coefficients win by absorbing a small systematic residual: on gravity-1
-of session 16 wind (0.07 m/s^2 sideways, 2.18 m/s^2 up) beat the gravity change (2.19 m/s^2)
-by 6 BIC units while adding 3.9 % of the null's held-out error to its drop.
-A fourth test (``require_nonzero``, on since session 16): the accepted term's 95 % coefficient
-interval must exclude "absent" (zero) on some coefficient. On the out-of-library entry of
-session 15, material damping took up part of a concealed drag with a viscosity interval of
-[0, 18.9] Pa s. Replayed on all 27 suite entries (sessions 15 and 16, benchmarks/data/), the
-test changed only that entry, and a BIC margin of 2 would have done the same; the interval was
-kept because it asks the physical question (is the effect there at all) rather than moving a
-threshold the true terms of session 13 had come within 2 of.
-Each standing candidate's own effect (``effect``: its model against the same parameters with
-the effect off) is recorded beside the null's resolution floor, and ``min_effect`` > 0 fails an
-effect smaller than that many floors. It is off by default: on the 27 saved suite entries of
-sessions 15-16 (benchmarks/term_effect.py, session 17) no threshold separates the false
-discoveries from the true: control-4's wind moved the fit frames by 67 mm^2 against a floor of
-53 (up to 11 mm), ground_restitution-1's restitution by 9.6 mm^2 against 269 (up to 4 mm).
+the special case, with fewer coefficients, ranks first (``prefer_special_cases``).
+
 Verdicts: "missing physics" (a candidate passed every test), "unexplained" (the residual is above
 the noise floor but no candidate passed), "no missing physics" (the residual is at noise level).
 """
@@ -160,7 +142,7 @@ class Evidence:
     #: candidates that contain this one as a special case (``candidates.SPECIAL_CASES``)
     special_case_of: tuple[str, ...] = ()
     #: theta as the recipe would write it (``Candidate.physical``); a replay copies it from the
-    #: file (None in files from before session 16)
+    #: file (None where an unversioned file did not record it)
     value: dict | None = None
     #: the effect's own size (``effect.summarise_effect``), measured for candidates passing
     #: the first tests

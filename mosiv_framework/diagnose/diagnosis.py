@@ -1,4 +1,4 @@
-"""``mosiv diagnose RUN``: locate -> hypothesise -> model -> decide -> report (DESIGN.md §6).
+"""``mosiv diagnose RUN``: locate -> hypothesise -> model -> decide -> report (docs/DIAGNOSIS.md).
 
 The frames of the run are split three ways: fit frames (the observed window minus held-out
 blocks) on which every model is refitted, the held-out blocks (short runs of observed frames
@@ -61,7 +61,7 @@ def refit_starts(screen_result, count: int, *, far_start: bool = False) -> list:
     Why the far start: the screening reads the loss at the run's identified state, which made
     up for the missing effect; there ground_restitution-1's loss was lowest near e = 0.17, and
     every start near it ended there, while a refit begun at e = 0.9 reached 0.96 (concealed:
-    0.9; docs/RESULTS.md, session 18)."""
+    0.9; docs/RESULTS.md)."""
     starts = [] if screen_result.regression is None else [screen_result.regression]
     starts.append((screen_result.theta, None))
     starts += [(f * starts[0][0], starts[0][1]) for f in START_FACTORS[1:]]
@@ -114,8 +114,8 @@ BUDGETS = {
     # the small budget fits the whole observed window (as the run did) and judges on the
     # future frames only: short windows leave too few fitted frames to tell effects apart
     "small": Budget(max_candidates=3, iterations=6, starts=2, bootstrap=200, heldout_fraction=0.0),
-    # four candidates: wind ranked fourth in the screen of wind-1 and was never refitted with
-    # three (full suite, session 10)
+    # four candidates: wind ranked fourth in the screen of wind-1 of the full suite and was
+    # never refitted with three
     "full": Budget(
         max_candidates=4,
         iterations=20,
@@ -139,7 +139,7 @@ def split_frames(
     keep fitted frames and are each tested. (A single block at the end of the window held out
     exactly the frames where late effects such as ground friction act: their refit could not
     improve the fitted frames, and the information criterion, computed on those, could never
-    favour them; full device suite, session 9.) Without 2 future frames, the last observed
+    favour them, on the full suite.) Without 2 future frames, the last observed
     frames make up the difference: a prediction is then tested on the only frames after the fit.
     """
     window = list(range(1, observed))

@@ -4,17 +4,17 @@ by other particles.
 The location's noise floor (``locate.estimate_noise``) measures the targets' jitter, and
 the oracle's targets have none, so on a control scene every sub-millimetre mismatch between the
 recording's particles and the run's is "significant". A small change of a term can take up
-part of that mismatch. On control-1 of session 15, a gravity change of 0.1 % brought the held-out
-error from 3.4 to 1.4 mm^2, passing both evidence tests. No data can credit an effect
+part of that mismatch. On a control scene of the full suite, a gravity change of 0.1 % brought
+the held-out error from 3.4 to 1.4 mm^2, passing both evidence tests. No data can credit an effect
 smaller than the change its own discretisation makes. This module measures that change: the
 run's particles moved by a random fraction of their spacing (a different sampling of the same
 shapes, as the recording's generator or a lifter with another seed would give), rolled out
 with the same parameters, and compared with the original rollout frame by frame. The report
 gives it in excess of frame 0, where it is the resampling offset itself.
 
-It is recorded beside the evidence and not yet part of the decision rule: whether "a held-out
-improvement must exceed the floor" keeps the true effects of the full suite is to be measured
-on the suite first (a ``replay`` can apply it to the saved tables).
+It is recorded beside the evidence; the decision uses it only through the own-effect test
+(``DecideOptions.min_effect``, off by default, see ``decide`` and docs/DIAGNOSIS.md), which a
+``replay`` can apply to saved diagnoses.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from mosiv_framework.losses import chamfer_m2
 from mosiv_framework.types import ParticleSet, SimulationParams
 
 #: how far particles move, as a fraction of their spacing (the offset is up to half of it per
-#: axis). Measured on five full-suite entries (session 15, benchmarks/resolution_floor.py): at
+#: axis). Measured on five full-suite entries (benchmarks/resolution_floor.py): at
 #: 0.5 the collision after the move went so differently that control-1's floor on the held-out
 #: frames was 4,840 mm^2 while its null predicts them to 3.4 mm^2; 0.25 gave 882 mm^2
 DEFAULT_FRACTION = 0.25

@@ -186,8 +186,8 @@ def regression_gain(
     This reads the candidate's signature straight off the paths, where the rollout at its
     estimate (``regression_drop``) also carries every later frame: a sideways wind regressed
     exactly (2.5 m/s^2 of 2.5) still scored no drop, because the identified material
-    parameters, biased by the missing wind, spoiled the collision after it (wind-1, full suite,
-    session 13)."""
+    parameters, biased by the missing wind, spoiled the collision after it (wind-1, full
+    suite)."""
     system = _regression_system(ctx, candidate, residuals, regimes, fit_frames)
     if system is None:
         return None
@@ -276,8 +276,8 @@ def _walk_out(
     The probe's quadratic model sees the loss one natural step from zero only. A bounce lowers
     the loss slowly at small restitution and fast at large: at the generator's other parameters,
     ground_restitution-1's loss falls from 41 mm^2 at e = 0 to 33 at 0.15 and to 0 at its
-    concealed 0.9. The model predicted 0.16 there, and refits begun near it ended at 0.14-0.21
-    (sessions 15-17); checking a few longer steps starts them near the loss's real minimum."""
+    concealed 0.9. The model predicted 0.16 there, and refits begun near it ended at
+    0.14-0.21; checking a few longer steps starts them near the loss's real minimum."""
     best_step, best_loss = math.nan, math.inf
     top = _walk_end(limit)
     if top is None:
@@ -331,9 +331,9 @@ def _screen_flat(
     ctx: RunContext, c: Candidate, base: float, g: torch.Tensor, *, n: int, fit_frames: list[int]
 ) -> Screen:
     """A candidate whose gradient at zero gives no descent direction: a scalar one is probed on
-    a log ladder from its natural step towards each bound it has room for (the screening of
-    session 9's suite gave ground restitution "no descent direction" on both restitution
-    scenes, so it was never refitted)."""
+    a log ladder from its natural step towards each bound it has room for (without it, ground
+    restitution had "no descent direction" on both restitution scenes of the full suite and
+    was never refitted)."""
     flat = Screen(c, True, g.tolist(), c.zero(), 0.0, -math.inf, "no descent direction")
     step = float(c.step[0]) if c.dim == 1 else 0.0
     rungs = []

@@ -34,8 +34,8 @@ class RefitOptions:
     held.
 
     Why settle: the regression reads a body force off the free flight, but the identified
-    materials were biased to make up for its absence. At the exact wind of wind-1 (full suite,
-    session 13) the collision went so wrong that the window fitted 11x worse than the run
+    materials were biased to make up for its absence. At the exact wind of wind-1 (full suite)
+    the collision went so wrong that the window fitted 11x worse than the run
     (0.0186 against 0.0017 m^2), and a joint refit pulled the wind from 2.5 down to 1.5 m/s^2
     before the materials could follow. With the wind held, 20 steps moved the second body's
     density from 332 to 651 kg/m^3 and reached 0.0015 m^2 (CPU check, docs/RESULTS.md).
@@ -44,7 +44,7 @@ class RefitOptions:
     a step that does not lower the loss is taken back, and the next, from the best point along
     its gradient's signs, is half as long (backtracking). Why: Adam's
     steps are about one learning rate per coordinate whatever the gradient, 0.02 m/s of
-    velocity moves a body 10 mm over half a second, and on the control scenes of sessions 15-16
+    velocity moves a body 10 mm over half a second, and on the control scenes of the full suite
     the run's identified state fitted to 0.1-2 mm^2. There every refit step made the fit worse:
     the refits of control-1's gravity ended at their starts (loss 2.5e-6 m^2), while the
     model identified afresh fitted to 5e-8 m^2, and such differences of optimisation, not of
@@ -296,9 +296,9 @@ def converge_null(
     A candidate's refit also moves the shared parameters (velocities, material), and may find
     shared values that fit better even without its effect: those values belong to the null
     model too, so a null that did not reach them is under-converged, and every candidate would
-    win the held-out test against it by optimisation alone (three of six controls of the full
-    suite, session 10, were rejected by the information criterion only). The null becomes the
-    better of itself and a refit begun at the best switched-off candidate (``replaces``).
+    win the held-out test against it by optimisation alone (without this step, three of six
+    controls of the full suite were rejected by the information criterion only). The null
+    becomes the better of itself and a refit begun at the best switched-off candidate (``replaces``).
     """
     # a null whose prediction diverged is continued from the best candidate state whatever
     # its fit loss: one that predicts every frame replaces it (``replaces``)
@@ -334,12 +334,11 @@ def converge_candidates(
     The comparison is of laws, not of optimisation luck. The null starts from the run's
     identification, which the curriculum made for the model without the effect (110 steps on
     wind-1), and ``converge_null`` continues it; each candidate gets its refit from a state
-    biased against it. Two signs that optimisation rather than the law decided the full suite
-    of session 14: a candidate contains the null (its coefficients at zero), so at its optimum it
-    fits at least as well, yet 31 of 101 candidate refits still fitted worse after a
-    continuation from the null (the first form of this step); and linear and
-    quadratic drag, hard to tell apart, were named the wrong way round on three of four drag
-    scenes. The mirror of ``converge_null``: every model may start from the best state any
+    biased against it. Two signs that optimisation rather than the law decided a full suite
+    without this step: a candidate contains the null (its coefficients at zero), so at its
+    optimum it fits at least as well, yet 31 of 101 candidate refits fitted worse, even when
+    continued from the null alone; and linear and quadratic drag, hard to tell apart, were
+    named the wrong way round on three of four drag scenes. The mirror of ``converge_null``: every model may start from the best state any
     model found. A continued candidate replaces its refit only where it fits better (or
     predicts all frames where that refit's prediction diverged, see ``replaces``).
     """

@@ -4,7 +4,7 @@ A refit (``model.refit``) starts from the run's identified parameters, which the
 curriculum bent to make up for the missing effect: the initial velocities were fitted to a
 flight path that the effect had curved, and the materials then made the collision fit those
 velocities. Twenty steps over the whole window rarely undo that: on the drag scenes of the full
-suite (session 14) the refitted true law still fitted 5-130 mm^2 over the fit frames, against
+suite the refitted true law still fitted 5-130 mm^2 over the fit frames, against
 0.4-1.6 mm^2 for the controls' runs, and which of linear or quadratic drag came out ahead was
 decided by where each refit stopped.
 

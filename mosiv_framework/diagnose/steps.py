@@ -1,10 +1,9 @@
 """Finished steps of a diagnosis kept on disk, so that a diagnosis cut off resumes after them.
 
 A full diagnosis refits and re-identifies five models one after another: about 20 minutes per
-scene on a shared H200 (docs/BENCHMARKS.md, session 21), where a device lease ended with four
-entries 1,450-1,650 s into their diagnoses and every one of those seconds was lost. Each
-expensive step (the location, the screening, each model's refit, each fresh identification and
-the converging refits) is now saved under ``RUN/diagnose/steps/`` as soon as it finishes, with
+scene on a shared H200 (docs/BENCHMARKS.md), and a machine lost mid-diagnosis would lose all of
+it. Each expensive step (the location, the screening, each model's refit, each fresh
+identification and the converging refits) is saved under ``RUN/diagnose/steps/`` as soon as it finishes, with
 a key of everything it depends on; a later ``mosiv diagnose`` of the same run, budget and
 identified model takes it from there instead of computing it again.
 
