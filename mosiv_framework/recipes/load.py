@@ -8,38 +8,81 @@ anything runs.
 from __future__ import annotations
 
 import dataclasses
+import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from mosiv_framework.errors import ConfigError
+from mosiv_framework.recipes.interpolation import resolve_recipe
 from mosiv_framework.recipes.schema import COMPONENT_SECTIONS, MULTI_COMPONENT_SECTIONS, Recipe
 from mosiv_framework.recipes.terms import check_physics_terms
 from mosiv_framework.registry import Registry, get_registry, validate_options
 
 
 def read_recipe_file(path: str | Path, overrides: Sequence[str] = ()) -> dict[str, Any]:
-    """The recipe as written plus ``key=value`` overrides, as plain containers (no schema yet)."""
-    path = Path(path)
+    """The recipe as written plus ``key=value`` overrides, interpolations resolved, as plain
+    containers (no schema yet). Raises ConfigError naming the file, or every bad override and
+    interpolation with its key (see ``mosiv_framework.recipes.interpolation``)."""
+    user = _load_yaml(Path(path))
+    problems = []
+    for item in overrides:
+        if "=" not in item:
+            problems.append(f"override {item!r} is not of the form key=value")
+            continue
+        try:
+            user = OmegaConf.merge(user, OmegaConf.from_dotlist([item]))
+        except (OmegaConfBaseException, yaml.YAMLError) as exc:
+            problems.append(f"override {item!r}: {_first_line(exc)}")
+    if problems:
+        raise ConfigError(problems)
+    resolved, problems = resolve_recipe(user)
+    if problems:
+        raise ConfigError([f"{path}: {p}" for p in problems])
+    return resolved
+
+
+def _load_yaml(path: Path) -> DictConfig:
+    """The file's top-level mapping; ConfigError naming the file for anything else."""
     if not path.is_file():
-        raise ConfigError(f"recipe file {str(path)!r} does not exist")
+        what = "is a folder, not" if path.is_dir() else "does not exist; give"
+        raise ConfigError(f"recipe file {str(path)!r} {what} a recipe YAML file")
     try:
-        user = OmegaConf.load(path)
-    except Exception as exc:  # yaml errors carry the line and column
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path}: not a text file (byte {exc.start} is not UTF-8); a recipe is YAML text"
+        ) from exc
+    try:
+        # the node tree gives the top-level type without building anything; OmegaConf's own
+        # loader then rejects duplicate keys and caps alias expansion
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        data = OmegaConf.load(io.StringIO(text)) if isinstance(node, yaml.MappingNode) else None
+    except yaml.YAMLError as exc:  # yaml errors carry the line and column
         raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
-    if not isinstance(user, DictConfig):
-        raise ConfigError(f"{path}: a recipe is a mapping of sections, got a {type(user).__name__}")
-    bad = [o for o in overrides if "=" not in o]
-    if bad:
-        raise ConfigError([f"override {o!r} is not of the form key=value" for o in bad])
-    try:
-        user = OmegaConf.merge(user, OmegaConf.from_dotlist(list(overrides)))
-    except OmegaConfBaseException as exc:
-        raise ConfigError(f"overrides {list(overrides)}: {exc}") from exc
-    return OmegaConf.to_container(user, resolve=True)  # type: ignore[return-value]
+    except OmegaConfBaseException as exc:  # e.g. keys that are not strings or numbers
+        raise ConfigError(f"{path}: {_first_line(exc)}") from exc
+    if node is None or (isinstance(node, yaml.ScalarNode) and node.tag.endswith(":null")):
+        raise ConfigError(
+            f"{path}: the recipe file is empty (no sections); a recipe names at least its scene "
+            "(scene.path, or scene.source to generate it), as recipes/quickstart.yaml does"
+        )
+    if not isinstance(data, DictConfig):
+        kind = "list" if isinstance(node, yaml.SequenceNode) else "single value"
+        raise ConfigError(
+            f"{path}: a recipe is a mapping of sections (scene:, simulator:, identify:, ...), "
+            f"got a YAML {kind}"
+        )
+    return data
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__
 
 
 def validate_recipe(raw: Mapping[str, Any], registry: Registry) -> tuple[dict[str, Any], list[str]]:

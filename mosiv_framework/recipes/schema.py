@@ -13,6 +13,7 @@ fields with defaults.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -96,36 +97,75 @@ class IdentifySection:
     @staticmethod
     def value_problems(values: dict[str, Any]) -> list[str]:
         """Values the type check cannot catch, each naming the key and what is valid."""
-        out = []
-        for key, valid in (
-            ("method", IDENTIFY_METHODS),
-            ("velocity_window", VELOCITY_WINDOWS),
-            ("library_scope", LIBRARY_SCOPES),
-        ):
-            if values.get(key) not in valid:
-                out.append(f"identify.{key}={values.get(key)!r}: valid values are {list(valid)}")
-        keys = ("velocity_iterations", "param_iterations", "library_sweeps", "resync_every")
-        for key in (*keys, "resync_iterations"):
-            if values.get(key, 0) < 0:
-                out.append(f"identify.{key}={values[key]!r}: must be >= 0")
-        for key in ("velocity_lr", "param_lr"):
-            if not values.get(key, 1.0) > 0:
-                out.append(f"identify.{key}={values[key]!r}: must be a positive learning rate")
-        for key in ("contact_gap", "stiffness_cfl"):
-            if values.get(key, 0.0) < 0:
-                out.append(f"identify.{key}={values[key]!r}: must be >= 0 (0 = automatic/off)")
-        if not 8 <= values.get("silhouette_size", 48) <= 1024:
-            out.append(
-                f"identify.silhouette_size={values['silhouette_size']!r}: must be 8..1024 pixels"
+        out = [
+            f"identify.{key}={values.get(key)!r}: valid values are {list(valid)}"
+            for key, valid in (
+                ("method", IDENTIFY_METHODS),
+                ("velocity_window", VELOCITY_WINDOWS),
+                ("library_scope", LIBRARY_SCOPES),
             )
+            if values.get(key) not in valid
+        ]
+        out += _range_problems("identify", values, IDENTIFY_RANGES)
         if values.get("resync_every", 0) > 0 and values.get("resync_iterations", 1) < 1:
             out.append(
                 f"identify.resync_iterations={values['resync_iterations']!r}: must be >= 1 "
                 "when resync_every > 0"
             )
-        if values.get("horizon_start", 1) < 1:
-            out.append(f"identify.horizon_start={values['horizon_start']!r}: must be >= 1 frame")
+        if values.get("method") == "library" and values.get("library_sweeps", 1) < 1:
+            out.append(
+                f"identify.library_sweeps={values['library_sweeps']!r}: must be >= 1 with "
+                "method 'library' (each sweep tries every prototype of every object)"
+            )
         return out
+
+
+#: (least, greatest, what the value is) of numeric identify settings; None: unbounded.
+#: Iteration counts may be 0 (the phase is skipped); learning rates are Adam step sizes
+IDENTIFY_RANGES: dict[str, tuple[float | None, float | None, str]] = {
+    "velocity_iterations": (0, None, "Adam steps of the velocity phase (0 skips it)"),
+    "param_iterations": (0, None, "Adam steps of the parameter phase (0 skips it)"),
+    "velocity_lr": (0, None, "a positive learning rate (m/s per Adam step)"),
+    "param_lr": (0, None, "a positive learning rate (normalised units per Adam step)"),
+    "horizon_start": (1, None, "frames rolled out at the first iteration"),
+    "horizon_full_at": (0.0, 1.0, "fraction of each phase until the whole window is used"),
+    "resync_every": (0, None, "parameter iterations between velocity re-fits (0 = off)"),
+    "resync_iterations": (0, None, "Adam steps of each velocity re-fit"),
+    "seed": (0, None, "a random seed"),
+    "checkpoint_every": (1, None, "iterations between checkpoints"),
+    "contact_gap": (0.0, None, "a distance in m (0 = automatic)"),
+    "stiffness_cfl": (0.0, 1.0, "cells a P-wave may cross per substep; 0 = no cap"),
+    "silhouette_size": (8, 1024, "the side of the compared silhouettes in pixels"),
+    "library_sweeps": (0, None, "coordinate sweeps of the library baseline"),
+}
+#: rates are exclusive at 0: a zero learning rate never moves
+_POSITIVE = ("velocity_lr", "param_lr")
+
+
+def _range_problems(
+    section: str, values: dict[str, Any], ranges: dict[str, tuple[Any, Any, str]]
+) -> list[str]:
+    """One problem per value outside its range (or not finite), naming key, value and range."""
+    out = []
+    for key, (least, greatest, what) in ranges.items():
+        value = values.get(key)
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            continue  # a type problem, reported by the schema merge
+        if not math.isfinite(value):
+            out.append(f"{section}.{key}={value!r}: must be a finite number ({what})")
+            continue
+        low_ok = least is None or (value > least if key in _POSITIVE else value >= least)
+        high_ok = greatest is None or value <= greatest
+        if low_ok and high_ok:
+            continue
+        if key in _POSITIVE:
+            valid = f"> {least}"
+        elif greatest is None:
+            valid = f">= {least}"
+        else:
+            valid = f"in [{least}, {greatest}]"
+        out.append(f"{section}.{key}={value!r}: must be {valid} ({what})")
+    return out
 
 
 @dataclass
@@ -140,6 +180,22 @@ class EvaluateSection:
     video_camera: str = ""
     video_size: int = 256
     video_fps: float = 0.0
+
+    @staticmethod
+    def value_problems(values: dict[str, Any]) -> list[str]:
+        """Values the type check cannot catch, each naming the key and what is valid."""
+        return _range_problems("evaluate", values, EVALUATE_RANGES)
+
+
+#: the exact EMD matches n sampled points by the Hungarian algorithm: n^2 distances in memory
+#: (8192 samples: 0.5 GiB of float64) and n^3 time, so the cap keeps evaluation finishing
+EMD_SAMPLES_MAX = 8192
+EVALUATE_RANGES: dict[str, tuple[float | None, float | None, str]] = {
+    "emd_samples": (1, EMD_SAMPLES_MAX, "points per set matched by the exact EMD"),
+    "seed": (0, None, "a random seed"),
+    "video_size": (16, 4096, "the video's side in pixels"),
+    "video_fps": (0.0, None, "frames per second (0 = the scene's)"),
+}
 
 
 @dataclass
