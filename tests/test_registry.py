@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import types
 from dataclasses import dataclass
 
 import pytest
@@ -161,3 +162,83 @@ def test_option_called_name_is_rejected():
 
     with pytest.raises(ValueError, match="may not have a field called 'name'"):
         Component("scene_source", "x", factory=dict, options=Shadowing)
+
+
+def _module_plugin(name: str, **hooks) -> types.ModuleType:
+    """A plugin module built in the test, as an entry point would load it."""
+    module = types.ModuleType(name)
+    for hook_name, fn in hooks.items():
+        fn.__name__ = hook_name
+        setattr(module, hook_name, hookimpl(fn))
+    return module
+
+
+def test_misspelled_hook_makes_a_broken_plugin_and_the_others_still_load(capsys, monkeypatch):
+    def register_loss(register):
+        register(Component("loss", "never-registered", factory=dict))
+
+    def register_good(register):
+        register(Component("loss", "good-loss", factory=dict))
+
+    registry = Registry()
+    typo = _module_plugin("typo_plugin", mosiv_loss=register_loss)
+    assert registry.add_plugin(typo, name="typo", distribution="mosiv-typo") is None
+    registry.add_plugin(_module_plugin("good_plugin", mosiv_losses=register_good), name="good")
+    [broken] = registry.broken
+    assert broken.name == "typo" and broken.distribution == "mosiv-typo"
+    assert "unknown hook 'mosiv_loss'" in broken.error
+    assert "did you mean 'mosiv_losses'" in broken.error
+    assert "valid hooks: mosiv_constitutive_laws, mosiv_lifters, mosiv_losses" in broken.error
+    assert registry.names("loss") == ["good-loss"] and "typo" not in registry.plugins
+    # unregistered at once: the next plugin's check does not trip over the typo again
+    assert len(registry.broken) == 1
+
+    from mosiv_framework.cli.main import main
+    from mosiv_framework.registry import manager
+
+    monkeypatch.setattr(manager, "_REGISTRY", registry)
+    assert main(["plugins"]) == 0
+    out = capsys.readouterr().out
+    assert "BROKEN mosiv-typo (plugin 'typo'): unknown hook 'mosiv_loss'" in out
+
+
+def test_optional_unknown_hook_is_allowed():
+    class Optional:
+        @hookimpl(optionalhook=True)
+        def mosiv_future_hook(self, register):
+            pass
+
+    registry = Registry()
+    assert registry.add_plugin(Optional(), name="optional") is not None
+    assert registry.broken == []
+
+
+def _two_kinds_registry() -> Registry:
+    class Provider:
+        @hookimpl
+        def mosiv_losses(self, register):
+            register(Component("loss", "shared", factory=dict))
+            register(Component("loss", "chamfer-like", factory=dict))
+
+        @hookimpl
+        def mosiv_simulators(self, register):
+            register(Component("simulator", "shared", factory=dict))
+            register(Component("simulator", "toy", factory=dict, options=_Options))
+
+    registry = Registry()
+    registry.add_plugin(Provider(), name="provider")
+    return registry
+
+
+def test_find_by_kind_and_name_unique_name_ambiguous_and_unknown():
+    registry = _two_kinds_registry()
+    assert registry.find("toy").kind == "simulator"
+    assert registry.find("loss:shared").kind == "loss"
+    with pytest.raises(ConfigError, match=r"several kinds \(simulator, loss\).*KIND:NAME"):
+        registry.find("shared")
+    with pytest.raises(ConfigError, match="closest: loss:chamfer-like"):
+        registry.find("chamfer-lik")
+    with pytest.raises(ConfigError, match="unknown component kind 'shader'"):
+        registry.find("shader:toy")
+    with pytest.raises(ConfigError, match="valid simulator names: shared, toy"):
+        registry.find("simulator:nope")

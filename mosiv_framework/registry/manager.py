@@ -1,13 +1,16 @@
 """Discovers plugins, collects the components they register, and builds them from options.
 
 Each entry point of the group ``mosiv`` is loaded in its own guard: a plugin that fails to
-import, or whose hook raises, is recorded as broken with its error and the others still load.
+import, implements a hook no spec declares (a misspelled ``mosiv_loss`` for ``mosiv_losses``),
+or whose hook raises, is recorded as broken with its error and the others still load.
 Set ``MOSIV_DISABLE_PLUGINS=name1,name2`` (entry-point or distribution names) to skip plugins.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
+import logging
 import os
 import traceback
 from collections.abc import Iterable, Mapping
@@ -21,6 +24,8 @@ import pluggy
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.registry.hookspecs import HOOK_OF_KIND, PROJECT, MosivHookSpecs
 from mosiv_framework.registry.records import KINDS, Component
+
+logger = logging.getLogger(__name__)
 
 ENTRY_POINT_GROUP = "mosiv"
 DISABLE_ENV = "MOSIV_DISABLE_PLUGINS"
@@ -63,6 +68,17 @@ class Conflict:
         )
 
 
+def unknown_hooks_message(unknown: list[str]) -> str:
+    """Why a plugin with hooks no spec declares was not loaded, with the valid hook names."""
+    valid = sorted(HOOK_OF_KIND.values())
+    parts = []
+    for hook_name in unknown:
+        close = difflib.get_close_matches(hook_name, valid, n=1)
+        parts.append(f"{hook_name!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    noun = "hook" if len(unknown) == 1 else "hooks"
+    return f"unknown {noun} {', '.join(parts)}; valid hooks: {', '.join(valid)}"
+
+
 def _disabled_from_env() -> set[str]:
     raw = os.environ.get(DISABLE_ENV, "")
     return {part.strip() for part in raw.split(",") if part.strip()}
@@ -93,7 +109,7 @@ class Registry:
             try:
                 module = ep.load()
             except Exception as exc:  # a broken plugin must not take the others down
-                self.broken.append(
+                self._record_broken(
                     BrokenPlugin(
                         ep.name, dist, f"{type(exc).__name__}: {exc}", traceback.format_exc()
                     )
@@ -109,8 +125,15 @@ class Registry:
         distribution = distribution or name
         try:
             self._pm.register(module, name=name)
-        except Exception as exc:
-            self.broken.append(BrokenPlugin(name, distribution, f"{type(exc).__name__}: {exc}"))
+        except Exception as exc:  # e.g. a hook whose arguments do not match its spec
+            self._record_broken(BrokenPlugin(name, distribution, f"{type(exc).__name__}: {exc}"))
+            return None
+        problem = self._check_pending(module)
+        if problem is not None:
+            # a misspelled hook would otherwise register nothing without a word; the whole
+            # plugin is set aside so a half-registered plugin cannot pass for a working one
+            self._pm.unregister(module)
+            self._record_broken(BrokenPlugin(name, distribution, problem))
             return None
         info = PluginInfo(name, distribution, version, getattr(module, "__name__", repr(module)))
         for kind, hook_name in HOOK_OF_KIND.items():
@@ -120,7 +143,7 @@ class Registry:
                 try:
                     impl.function(register=self._register_callback(info, kind))
                 except Exception as exc:
-                    self.broken.append(
+                    self._record_broken(
                         BrokenPlugin(
                             name,
                             distribution,
@@ -129,7 +152,45 @@ class Registry:
                         )
                     )
         self.plugins[name] = info
+        logger.debug(
+            "plugin %r (%s %s) registered %d component(s)",
+            name,
+            distribution,
+            version,
+            len(info.components),
+        )
         return info
+
+    def _check_pending(self, module: object) -> str | None:
+        """pluggy's ``check_pending``: None, or why ``module`` implements hooks that no spec
+        declares (all of them, with the valid hook names).
+
+        Plugins that failed are unregistered at once, so whatever ``check_pending`` finds was
+        brought in by ``module``.
+        """
+        try:
+            self._pm.check_pending()
+        except pluggy.PluginValidationError:
+            pass
+        else:
+            return None
+        unknown = sorted(
+            hook_name
+            for hook_name, caller in vars(self._pm.hook).items()
+            if not hook_name.startswith("_")
+            and not caller.has_spec()
+            and any(i.plugin is module and not i.optionalhook for i in caller.get_hookimpls())
+        )
+        return unknown_hooks_message(unknown)
+
+    def _record_broken(self, broken: BrokenPlugin) -> None:
+        self.broken.append(broken)
+        logger.warning(
+            "plugin %r (%s) is broken and was not loaded: %s",
+            broken.name,
+            broken.distribution,
+            broken.error,
+        )
 
     def _register_callback(self, info: PluginInfo, kind: str):
         def register(component: Component) -> None:
@@ -172,6 +233,37 @@ class Registry:
         if name not in self._components[kind]:
             raise ConfigError(self.unknown_name_message(kind, name))
         return self._components[kind][name]
+
+    def find(self, spec: str) -> Component:
+        """The component named by ``spec``: ``KIND:NAME``, or a NAME that only one kind has.
+
+        Raises ConfigError: for an unknown name, listing the closest ``KIND:NAME`` matches; for
+        a name several kinds share, listing those kinds.
+        """
+        kind, sep, name = spec.partition(":")
+        if sep:
+            if kind not in KINDS:
+                raise ConfigError(
+                    f"unknown component kind {kind!r} in {spec!r}; valid kinds: {', '.join(KINDS)}"
+                )
+            return self.get(kind, name)
+        matches = [c for kind in KINDS for c in self.components(kind) if c.name == spec]
+        if len(matches) == 1:
+            return matches[0]
+        if matches:
+            kinds = ", ".join(c.kind for c in matches)
+            raise ConfigError(
+                f"{spec!r} names a component of several kinds ({kinds}); write KIND:NAME, "
+                f"e.g. {matches[0].kind}:{spec}"
+            )
+        every = [c for kind in KINDS for c in self.components(kind)]
+        close = difflib.get_close_matches(spec, sorted({c.name for c in every}), n=5, cutoff=0.5)
+        hint = ", ".join(f"{c.kind}:{c.name}" for n in close for c in every if c.name == n)
+        hint = hint or "none close"
+        msg = f"no component is named {spec!r}; closest: {hint} (mosiv plugins lists them all)"
+        if self.broken:
+            msg += "; broken plugins: " + ", ".join(f"{b.name} ({b.error})" for b in self.broken)
+        raise ConfigError(msg)
 
     def unknown_name_message(self, kind: str, name: object) -> str:
         valid = ", ".join(self.names(kind)) or "none installed"
