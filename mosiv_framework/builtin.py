@@ -68,7 +68,11 @@ def mosiv_reconstructors(register):
 
 @dataclass
 class ExampleSceneOptions:
-    """Options of the analytic two-sphere example scene (a format fixture, not a benchmark)."""
+    """Options of the analytic two-sphere example scene (a format fixture, not a benchmark).
+
+    n_frames: frames of the clip; n_cameras: cameras on a ring around the scene; size: image
+    width = height (pixels); seed: varies the spheres' start positions and throw velocities.
+    """
 
     n_frames: int = 4
     n_cameras: int = 4

@@ -6,7 +6,7 @@ import json
 import subprocess
 import sys
 import types
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import pytest
 
@@ -242,3 +242,80 @@ def test_find_by_kind_and_name_unique_name_ambiguous_and_unknown():
         registry.find("shader:toy")
     with pytest.raises(ConfigError, match="valid simulator names: shared, toy"):
         registry.find("simulator:nope")
+
+
+@dataclass(frozen=True)
+class _BaseDocOptions:
+    """grid: cells along the longest side; substeps (1/frame): steps per video frame.
+
+    Grouped:
+        lr_a, lr_b: learning rates
+    """
+
+    grid: int = 64
+    substeps: int = 100
+    lr_a: float = 0.1
+    lr_b: float = 0.2
+
+
+@dataclass(frozen=True)
+class _DocOptions(_BaseDocOptions):
+    """A subclass documents its own fields; the base's come from the base's docstring."""
+
+    #: seeds every random draw
+    seed: int = 0
+    sizes: tuple[int, ...] = (1, 2)
+    path: str = field(default="out", metadata={"doc": "where results go"})
+    undocumented: bool = False
+
+
+def test_option_schema_takes_docs_from_docstrings_comments_metadata_and_bases():
+    from mosiv_framework.registry.optiondoc import option_schema
+
+    schema = {e["name"]: e for e in option_schema(_DocOptions)}
+    assert list(schema) == [
+        "grid", "substeps", "lr_a", "lr_b", "seed", "sizes", "path", "undocumented"
+    ]  # fmt: skip
+    assert schema["grid"] == {
+        "name": "grid",
+        "type": "int",
+        "default": 64,
+        "doc": "cells along the longest side",
+    }
+    assert schema["substeps"]["doc"] == "(1/frame) steps per video frame"
+    assert schema["lr_a"]["doc"] == schema["lr_b"]["doc"] == "learning rates"
+    assert schema["seed"]["doc"] == "seeds every random draw"
+    assert schema["path"]["doc"] == "where results go"
+    assert schema["sizes"]["type"] == "tuple[int, ...]" and schema["sizes"]["default"] == (1, 2)
+    assert schema["undocumented"]["doc"] == ""
+
+
+def test_plugins_options_command_text_json_and_errors(capsys, monkeypatch):
+    from mosiv_framework.cli.main import main
+    from mosiv_framework.registry import manager
+
+    registry = _two_kinds_registry()
+    monkeypatch.setattr(manager, "_REGISTRY", registry)
+    assert main(["plugins", "--options", "simulator:toy"]) == 0
+    out = capsys.readouterr().out
+    assert "simulator 'toy'" in out
+    assert "grid: int, default 64" in out and "mode: str, default 'a'" in out
+    assert main(["plugins", "--options", "toy", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["kind"] == "simulator" and report["name"] == "toy"
+    assert [(o["name"], o["default"]) for o in report["options"]] == [("grid", 64), ("mode", "a")]
+    assert main(["plugins", "--options", "loss:chamfer-like"]) == 0
+    assert "takes no options" in capsys.readouterr().out
+    assert main(["plugins", "--options", "toi"]) == 2
+    assert "closest: simulator:toy" in capsys.readouterr().err
+    assert main(["plugins", "--options", "shared"]) == 2
+    assert "several kinds (simulator, loss)" in capsys.readouterr().err
+
+
+def test_installed_components_document_every_shared_mpm_option():
+    from mosiv_framework.registry.optiondoc import option_schema
+
+    registry = Registry().load_entry_points(disabled=[])
+    for name in registry.names("simulator"):
+        docs = {e["name"]: e["doc"] for e in option_schema(registry.get("simulator", name).options)}
+        assert all(docs[k] for k in ("grid", "substeps", "device", "contact")), (name, docs)

@@ -1,13 +1,24 @@
-"""``mosiv plugins``: installed distributions, their components, and plugins that failed to load."""
+"""``mosiv plugins``: installed distributions, their components, and plugins that failed to load.
+
+``mosiv plugins --options NAME`` prints one component's option schema instead: every option
+with its type, default and doc (``--json``: the same as JSON).
+"""
 
 from __future__ import annotations
 
 import json
+import textwrap
 
 
 def add_parser(sub) -> None:
     p = sub.add_parser("plugins", help="list installed plugins and the components they provide")
     p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument(
+        "--options",
+        metavar="NAME",
+        help="show the options of one component (KIND:NAME, or a NAME only one kind has): "
+        "type, default and description of each",
+    )
     p.set_defaults(handler=run)
 
 
@@ -38,7 +49,47 @@ def plugins_report() -> dict:
     }
 
 
+def options_report(spec: str) -> dict:
+    """The component ``spec`` names and its option schema (see ``registry.optiondoc``)."""
+    from mosiv_framework.registry import get_registry
+    from mosiv_framework.registry.optiondoc import jsonable, option_schema
+
+    component = get_registry().find(spec)
+    schema = option_schema(component.options) if component.options is not None else []
+    for entry in schema:
+        if "default" in entry:
+            entry["default"] = jsonable(entry["default"])
+    return {
+        "kind": component.kind,
+        "name": component.name,
+        "distribution": component.distribution,
+        "description": component.description,
+        "options": schema,
+    }
+
+
+def _print_options(report: dict) -> None:
+    print(
+        f"{report['kind']} {report['name']!r} ({report['distribution']}): {report['description']}"
+    )
+    if not report["options"]:
+        print("    takes no options")
+    for entry in report["options"]:
+        default = "required" if entry.get("required") else f"default {entry['default']!r}"
+        print(f"    {entry['name']}: {entry['type']}, {default}")
+        if entry["doc"]:
+            for line in textwrap.wrap(entry["doc"], width=88):
+                print(f"        {line}")
+
+
 def run(args) -> int:
+    if args.options:
+        report = options_report(args.options)
+        if args.json:
+            print(json.dumps(report, indent=2))
+        else:
+            _print_options(report)
+        return 0
     report = plugins_report()
     if args.json:
         print(json.dumps(report, indent=2))
