@@ -211,14 +211,14 @@ def test_resync_refits_a_wrong_initial_velocity_during_the_parameter_phase(
 ):
     # the ballistic start is spoiled by 0.3 m/s and the velocity phase is off: only the
     # alternating re-synchronisation inside the parameter phase can correct it
-    import mosiv_framework.pipeline as pipeline
+    import mosiv_framework.pipeline.identification as identification
 
-    estimate = pipeline.initial_velocity_from_points
+    estimate = identification.initial_velocity_from_points
 
     def spoiled(*args, **kwargs):
         return {k: v + torch.tensor([0.3, 0.0, 0.0]) for k, v in estimate(*args, **kwargs).items()}
 
-    monkeypatch.setattr(pipeline, "initial_velocity_from_points", spoiled)
+    monkeypatch.setattr(identification, "initial_velocity_from_points", spoiled)
     errors = {}
     for every in (0, 4):
         recipe = make_recipe(
@@ -300,9 +300,9 @@ def test_a_parameter_without_gradient_holds_still(tmp_path, registry, monkeypatc
 
 def test_the_parameter_curriculum_starts_after_the_free_flight(tmp_path, registry, monkeypatch):
     # the example's spheres never touch; declare contact from frame 3 on (free flight 0..2)
-    import mosiv_framework.pipeline as pipeline
+    import mosiv_framework.pipeline.identification as identification
 
-    monkeypatch.setattr(pipeline, "free_flight_frames", lambda *a, **k: 3)
+    monkeypatch.setattr(identification, "free_flight_frames", lambda *a, **k: 3)
     recipe = make_recipe(tmp_path, registry, param_iterations=6, horizon_start=1)
     run_pipeline(recipe, run_dir=tmp_path / "run")
     history = json.loads((tmp_path / "run" / "identify/history.json").read_text())

@@ -6,10 +6,20 @@ look at than read: per-object centroid paths (prediction vs reference) and the l
 
 from __future__ import annotations
 
+import logging
+import resource
+import time
+from dataclasses import replace
+
 import torch
 
+from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.metrics import frame_metrics
+from mosiv_framework.pipeline.appearance import can_render, rollout_images
+from mosiv_framework.pipeline.video import pick_camera, save_rollout_npz, write_comparison_video
 from mosiv_framework.types import SimulationParams, Trajectory
+
+log = logging.getLogger(__name__)
 
 
 def parameter_errors(identified: SimulationParams, gt_params: dict) -> dict:
@@ -211,3 +221,118 @@ def plot_parameters(history: list[dict], path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+#: how many times evaluation may double the simulator's substeps after a divergence
+EVALUATION_REFINEMENTS = 2
+
+
+def _evaluation_rollout(simulator, particles, identified, *, world, frames, refine):
+    """The identified model rolled over ``frames``; returns (trajectory, simulator, note).
+
+    Identification only ever rolled the observed window. A model that diverges after it (a
+    fluid hitting the table faster than the recipe's substeps resolve) is
+    a time-step problem, not a wrong model, so the rollout is retried with 2x, then 4x the
+    substeps, and the note in metrics.json says so; the run is not lost."""
+    factor, note = 1, None
+    while True:
+        try:
+            with torch.no_grad():
+                traj = simulator.rollout(particles, identified, world=world, frames=frames)
+            return traj, simulator, note
+        except SimulationDiverged as exc:
+            if refine is None or factor >= 2**EVALUATION_REFINEMENTS:
+                raise
+            factor *= 2
+            substeps, simulator = refine(factor)
+            note = (
+                f"the rollout diverged in object {exc.object_id} at frame {exc.frame}, substep "
+                f"{exc.substep} ({exc.reason}); evaluated with {substeps} substeps per frame"
+            )
+            log.info(
+                "evaluation rollout diverged (%s); retrying with %d substeps", exc.reason, substeps
+            )
+
+
+def evaluate_run(
+    *,
+    recipe,
+    scene,
+    particles,
+    reconstruction,
+    identified,
+    simulator,
+    run_dir,
+    started=None,
+    refine=None,
+) -> dict:
+    """Roll ``identified`` over every frame, score it, write metrics.json, plots and videos.
+
+    ``refine`` (see ``simulator_refiner``) lets a diverging rollout retry with more substeps.
+    """
+    t_start = time.perf_counter() if started is None else started
+    rd = run_dir
+    world = scene.world
+    # the identified families may differ from the lifted ones (library baseline, scope "all")
+    particles = replace(particles, materials={k: p.family for k, p in identified.objects.items()})
+    traj, simulator, note = _evaluation_rollout(
+        simulator, particles, identified, world=world, frames=scene.n_frames - 1, refine=refine
+    )
+    reference = scene.gt_points() if scene.has_gt else reconstruction.points
+    # PSNR/SSIM need images of the prediction: only particles with bound Gaussians (the
+    # gaussians lifter) can be rendered against the recorded videos
+    images = rollout_images(traj, particles, scene) if can_render(particles) else None
+    blocks = score(
+        traj,
+        reference,
+        observed_frames=scene.observed_frames,
+        n_samples=recipe.evaluate.emd_samples,
+        seed=recipe.evaluate.seed,
+        images=images,
+    )
+    metrics = {
+        "observed": blocks["observed"],
+        "future": blocks["future"],
+        "reference": "gt/points.npz" if scene.has_gt else "reconstruction",
+        "params": rd.load_json("identified.json"),
+        "param_error": parameter_errors(identified, scene.gt_params()) if scene.has_gt else None,
+        "time_s": time.perf_counter() - t_start,
+        "peak_memory_gb": _peak_memory_gb(simulator),
+    }
+    if note is not None:
+        metrics["evaluation_note"] = note
+    rd.save_json("metrics.json", metrics)
+    plot_centroids(
+        traj,
+        reference,
+        fps=scene.fps,
+        observed_frames=scene.observed_frames,
+        path=rd.path("trajectories.png"),
+    )
+    rd.save_torch(
+        "rollout.pt",
+        {"positions": traj.positions.detach().cpu(), "object_ids": traj.object_ids.cpu()},
+    )
+    save_rollout_npz(traj, rd.path("rollout.npz"))
+    if recipe.evaluate.render_videos:
+        write_comparison_video(
+            traj,
+            reference,
+            camera=pick_camera(scene, recipe.evaluate.video_camera),
+            path=rd.path("videos/prediction_vs_reference.gif"),
+            size=recipe.evaluate.video_size,
+            fps=recipe.evaluate.video_fps or scene.fps,
+            observed_frames=scene.observed_frames,
+        )
+    return metrics
+
+
+def _peak_memory_gb(simulator=None) -> float:
+    """Peak GPU memory if CUDA was used, else the process's peak resident memory (GiB).
+
+    On CUDA the simulator's own count is included: a backend with its own allocator (Warp's
+    pool, Taichi's fields) holds memory that torch's peak does not see."""
+    if torch.cuda.is_available() and torch.cuda.max_memory_allocated() > 0:
+        backend = simulator.peak_memory_bytes() if simulator is not None else None
+        return max(torch.cuda.max_memory_allocated(), backend or 0) / 2**30
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # ru_maxrss is KiB on Linux
