@@ -1,4 +1,4 @@
-"""The component kinds of MOSIV (DESIGN.md section 2), as small abstract base classes.
+"""The component kinds of MOSIV (docs/ARCHITECTURE.md, Interfaces), as small abstract base classes.
 
 A plugin implements one of these and registers a factory for it through the registry. The core
 only ever talks to these interfaces; it never imports a plugin.

@@ -10,7 +10,7 @@ Units, used everywhere MOSIV reports a number:
 These are evaluation metrics, not losses: they return plain floats and are not differentiable
 (the differentiable objectives of identification live in ``mosiv_framework.losses``).
 ``frame_metrics`` aggregates them over frames, per object and per scene, into the dictionary
-layout of ``metrics.json`` (DESIGN.md section 5, step 4).
+layout of ``metrics.json`` (docs/ARCHITECTURE.md, metrics.json).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Camera geometry in the OpenCV convention of SCENE_FORMAT.md, against hand-computed pixels."""
+"""Camera geometry in the OpenCV convention of docs/SCENE_FORMAT.md, against hand-computed pixels."""
 
 import json
 import math

@@ -74,7 +74,7 @@ def test_families_in_scene_order_and_lookup_errors():
         assert "jelly" in str(info.value) and "non_newtonian" in str(info.value)
 
 
-# (name, unit, lower, upper, default, log_scale) from laws_spec.md
+# (name, unit, lower, upper, default, log_scale), the table of docs/PHYSICS.md, Constitutive laws
 SPEC = {
     "elastic": [("E", "Pa", 1e3, 1e7, 5e4, True), ("nu", "1", 0.0, 0.45, 0.25, False)],
     "plasticine": [

@@ -1,4 +1,6 @@
-"""The six built-in constitutive laws of MOSIV (laws_spec.md), one module per family.
+"""The six built-in constitutive laws of MOSIV, one module per family.
+
+Their equations: docs/PHYSICS.md, Constitutive laws.
 
 ``LAWS`` maps each family name (as written in scene.json) to a ready instance; ``get_law`` looks
 one up with an error that lists the valid names.

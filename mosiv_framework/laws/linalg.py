@@ -14,7 +14,7 @@ from torch.autograd.function import once_differentiable
 
 Tensor = torch.Tensor
 
-#: singular values are clamped to at least this before taking log (laws_spec.md)
+#: singular values are clamped to at least this before taking log (docs/PHYSICS.md)
 SINGULAR_MIN = 1e-4
 #: J = det F is clamped to at least this where a law takes log(J) or J^-6: keeps inverted or
 #: crushed elements finite; the fluid's 6 J^-7 bulk_modulus stays below float32's 3.4e38

@@ -200,14 +200,14 @@ EVALUATE_RANGES: dict[str, tuple[float | None, float | None, str]] = {
 
 @dataclass
 class DiagnoseSection:
-    """Finding missing physics (DESIGN.md section 6)."""
+    """Finding missing physics (docs/DIAGNOSIS.md)."""
 
     #: screen only these candidates (empty: every candidate the simulator supports)
     terms: list[str] = field(default_factory=list)
     #: never screen these (how the suite builds its out-of-library scenes)
     exclude: list[str] = field(default_factory=list)
-    #: the budget's candidates, refit starts and bootstrap resamples, unless set here (the
-    #: full budget refits 4 candidates: a default of 3 here once capped it, session 13)
+    #: the budget's candidates, refit starts and bootstrap resamples, unless set here (None,
+    #: not a number, so that a recipe never caps the full budget's 4 candidates unasked)
     max_candidates: int | None = None
     bootstrap: int | None = None
     starts: int | None = None
@@ -216,7 +216,7 @@ class DiagnoseSection:
     polish: int | None = None
     #: refit step of the initial velocities, m/s per Adam step (default 0.02). Contact scenes
     #: may want far less: on ground_restitution-1 one 0.02 m/s step took the fit from 10 to
-    #: 12,000 mm^2 (docs/RESULTS.md, session 18)
+    #: 12,000 mm^2
     refit_velocity_lr: float | None = None
     #: a further refit start at the far end of the screening's walk for contact and material
     #: candidates (``diagnose.diagnosis.refit_starts``); default off

@@ -1,4 +1,5 @@
-"""Pinhole cameras in the OpenCV convention of ``mosiv-scene/1`` (SCENE_FORMAT.md, cameras.json).
+"""Pinhole cameras in the OpenCV convention of ``mosiv-scene/1`` (docs/SCENE_FORMAT.md,
+cameras.json).
 
 Camera frame: x right, y down, z forward. ``world_to_camera`` is a rigid 4x4 transform taking
 world points (m) to camera coordinates. A camera point (x, y, z) lands on the continuous pixel

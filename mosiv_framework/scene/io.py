@@ -1,4 +1,4 @@
-"""Reading and writing ``mosiv-scene/1`` folders (SCENE_FORMAT.md).
+"""Reading and writing ``mosiv-scene/1`` folders (docs/SCENE_FORMAT.md).
 
 ``read_scene`` validates the JSON files and the frame layout (``check.check_layout``) and
 returns a ``Scene`` whose images load lazily. ``SceneWriter`` / ``write_scene`` write a scene

@@ -69,8 +69,7 @@ class DynamicGaussOptions:
             training starts a fresh Adam on networks the motion prior has just fitted, and
             Adam's first steps have the full learning rate whatever the gradient: at 1e-3 one
             step moved a banana's frame 2 from 1 to 12 hull voxels off its hull, and the drift
-            guard then pulled the whole body, frame 0 too, 2 cm off (docs/BENCHMARKS.md
-            "Lifting", session 23);
+            guard then pulled the whole body, frame 0 too, 2 cm off;
         densify_every, densify_from, densify_until: densification/pruning schedule (steps);
         densify_grad: clone/split a Gaussian when its mean positional gradient times the voxel
             size exceeds this; prune_opacity: drop Gaussians whose opacity falls below this;

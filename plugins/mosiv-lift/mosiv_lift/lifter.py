@@ -1,6 +1,6 @@
 """The ``gaussians`` lifter: frame-0 Gaussians of every object -> simulation particles.
 
-Stage II of the pipeline (DESIGN.md section 5.2, paper section 3.3), one module per step:
+Stage II of the pipeline (docs/ARCHITECTURE.md; paper section 3.3), one module per step:
 ``carve`` (samples consistent with masks and rendered depth), ``density`` (coarse-to-fine
 interior grid), ``emit`` (particles on a shared grid, disjoint supports) and ``bind`` (the
 Gaussians follow the particles). A reconstruction without Gaussians (the oracle) gets Gaussians
@@ -139,8 +139,8 @@ class GaussiansLifter(Lifter):
             fallback = None
             if grid is None or not grid.occupied.any():
                 # the Gaussians' depth test left no cell more inside than outside (Gaussians
-                # of this object sitting elsewhere, or too few of them: session 11's paper-size
-                # sand-sand scene); the recorded masks of frame 0 still bound the object
+                # of this object sitting elsewhere, or too few of them: a paper-size sand-sand
+                # scene); the recorded masks of frame 0 still bound the object
                 fallback = (
                     f"lifted from the recorded masks alone: the Gaussians' depth test kept "
                     f"{int(carved.kept.sum())} of {carved.samples.shape[0]} samples, too few to fill "

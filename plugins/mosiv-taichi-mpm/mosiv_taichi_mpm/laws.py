@@ -1,4 +1,4 @@
-"""The six constitutive laws of /work/notes/laws_spec.md as Taichi functions.
+"""The six constitutive laws (docs/PHYSICS.md, Constitutive laws) as Taichi functions.
 
 Every law is split the same way so that the simulator needs only one SVD per particle and
 substep (whose adjoint is written by hand in ``svd_grad.py``, because Taichi cannot
@@ -30,7 +30,7 @@ LAW_PARAMS: dict[str, tuple[str, ...]] = {
 }
 MAX_LAW_PARAMS = 5
 
-SINGULAR_MIN = 1e-4  # s is clamped to this before log (laws_spec: Hencky strain)
+SINGULAR_MIN = 1e-4  # s is clamped to this before log (Hencky strain)
 J_MIN = 1e-6  # J is clamped to this before log / negative powers (matches the torch reference)
 NORM_EPS = 1e-30  # added under square roots so their derivative stays finite at 0
 DEG = math.pi / 180.0

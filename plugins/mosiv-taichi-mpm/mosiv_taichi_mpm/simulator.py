@@ -51,7 +51,7 @@ _STIFFNESS_ADVICE = {
 
 
 class TaichiMPMSimulator(Simulator):
-    """Differentiable multi-object MLS-MPM on Taichi (see /work/notes/mpm_spec.md)."""
+    """Differentiable multi-object MLS-MPM on Taichi (docs/PHYSICS.md, MLS-MPM scheme)."""
 
     supported_laws = frozenset(LAW_IDS)
     supported_terms = frozenset(TERMS)

@@ -1,12 +1,12 @@
 """Sums over the velocity fields at one grid node, with a hand-written adjoint (Warp).
 
-Multi-field contact (mpm_spec.md, grid update) needs, at each node, sums over the objects' fields
-of mass, momentum, mass gradient and mass-weighted friction. The number of fields is only known
-at run time, so these are dynamic loops that accumulate into local variables -- and Warp cannot
-differentiate a local variable mutated inside a dynamic loop: its reverse pass sees only the
-final value (it logs "detected mutated variable ... during a dynamic for-loop"), so the
-adjoints of every contact quantity came out wrong. ``field_sums`` keeps that loop in the forward
-pass and states its (linear) adjoint explicitly in ``adj_field_sums``.
+Multi-field contact (docs/PHYSICS.md, Contact between objects) needs, at each node, sums over the
+objects' fields of mass, momentum, mass gradient and mass-weighted friction. The number of fields is
+only known at run time, so these are dynamic loops that accumulate into local variables -- and Warp
+cannot differentiate a local variable mutated inside a dynamic loop: its reverse pass sees only the
+final value (it logs "detected mutated variable ... during a dynamic for-loop"), so the adjoints of
+every contact quantity came out wrong. ``field_sums`` keeps that loop in the forward pass and states
+its (linear) adjoint explicitly in ``adj_field_sums``.
 """
 
 from __future__ import annotations

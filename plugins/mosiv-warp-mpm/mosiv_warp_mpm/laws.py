@@ -1,4 +1,5 @@
-"""The six MOSIV constitutive laws as Warp functions (equations: /work/notes/laws_spec.md).
+"""The six MOSIV constitutive laws as Warp functions (equations: docs/PHYSICS.md,
+Constitutive laws).
 
 Every law reads its parameters from one ``vec5`` per object, in the order of
 ``LAW_PARAM_NAMES`` (unused slots are 0). ``kirchhoff_stress`` and ``return_map`` dispatch on the
@@ -185,7 +186,8 @@ def snow_map(F: wp.mat33, p: vec5, plastic_J: float):
     out = F
     pj = plastic_J
     if sn[0] != s[0] or sn[1] != s[1] or sn[2] != s[2]:
-        # recompose only when clamped: unyielded particles keep F bit-exactly (laws_spec.md)
+        # recompose only when clamped: unyielded particles keep F bit-exactly
+        # (docs/PHYSICS.md, Snow)
         pj = plastic_J * (s[0] * s[1] * s[2]) / (sn[0] * sn[1] * sn[2])
         out = U * wp.diag(sn) * wp.transpose(V)
     return out, pj

@@ -19,7 +19,7 @@ from mosiv_warp_mpm.laws import LAW_IDS, LAW_PARAM_NAMES, N_SLOTS
 from mosiv_warp_mpm.options import WarpMPMOptions
 from mosiv_warp_mpm.state import Grid, GridLayout, NodeBox, ObjectTables, ParticleState
 
-#: physics term -> its parameter names (mpm_spec.md, "Body-force PhysicsTerms")
+#: physics term -> its parameter names (docs/PHYSICS.md, Physics terms)
 TERMS: dict[str, tuple[str, ...]] = {
     "linear_drag": ("coefficient",),
     "quadratic_drag": ("coefficient",),
@@ -381,7 +381,7 @@ def check_inputs(particles: ParticleSet, params: SimulationParams, world: World,
 
 
 class WarpMPMSimulator(Simulator):
-    """Differentiable multi-object MLS-MPM on Warp (see mpm_spec.md for the contract)."""
+    """Differentiable multi-object MLS-MPM on Warp (docs/PHYSICS.md, MLS-MPM scheme)."""
 
     supported_laws = frozenset(LAW_IDS)
     supported_terms = frozenset(TERMS)

@@ -132,9 +132,9 @@ class NodeBox:
 
     Only nodes in some particle's 3x3x3 stencil hold mass, and only those are read back. On the
     CPU, where Warp runs each kernel thread in turn, sweeping the whole grid cost 75 % of a
-    rollout of 278 particles on a 48-cell grid (docs/BENCHMARKS.md, session 21); the box around
-    the particles is a few percent of it. On CUDA the box is the whole grid, so that one frame
-    stays one captured graph.
+    rollout of 278 particles on a 48-cell grid; the box around the particles is a few percent
+    of it (docs/BENCHMARKS.md, Simulator speed, CPU). On CUDA the box is the whole grid, so
+    that one frame stays one captured graph.
     """
 
     lo: tuple[int, int, int]

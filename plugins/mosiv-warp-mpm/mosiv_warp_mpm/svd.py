@@ -1,8 +1,8 @@
 """3x3 SVD with proper rotations and a hand-written, well-conditioned adjoint (Warp).
 
 ``proper_svd(F)`` returns F = U diag(s) V^T with det U = det V = +1 (a reflection moves into the
-sign of s_3, laws_spec.md). Warp's built-in ``wp.svd3`` adjoint divides both of its terms by
-s_j^2 - s_i^2 clamped at a small epsilon, so wherever two singular values coincide -- F = I at
+sign of s_3; docs/PHYSICS.md, Singular value decomposition). Warp's built-in ``wp.svd3``
+adjoint divides both of its terms by s_j^2 - s_i^2 clamped at a small epsilon, so wherever two singular values coincide -- F = I at
 rest, isotropic compression, snow's clamped s -- gradients through U and V are O(1) wrong
 (tests/test_svd.py measures 0.7 to 1.4 relative error there).
 
