@@ -21,7 +21,8 @@ several runs can mix them.
 With ``--jobs N`` each pair runs in its own process, N at a time, and the parent merges their
 rows. On a GPU this pays: one paper-size identification leaves the device mostly idle between
 its small kernels, and ten pairs sharing an H200 finished (ours and the library) in 30 minutes
-(docs/RESULTS.md, session 9). Each pair's output goes to ``OUT/parts/PAIR.log``.
+(docs/BENCHMARKS.md, "Suites on a device machine"). Each pair's output goes to
+``OUT/parts/PAIR.log``.
 """
 
 from __future__ import annotations

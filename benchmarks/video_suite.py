@@ -222,7 +222,8 @@ def paired_p_value(pairs: list[tuple[float, float]]) -> float | None:
     """Two-sided Wilcoxon signed-rank p-value of the per-scene differences (object-wise minus
     scene-wise), the scenes as paired units; None below 6 scenes with a difference, where even
     a clean sweep cannot reach p < 0.05. Counting wins alone would treat a 0.01 dB lead like a
-    3 dB one; a run's own spread (RESULTS.md, session 12) is why a test is needed at all."""
+    3 dB one; a run's own spread (docs/RESULTS.md, "Run-to-run spread") is why a test is
+    needed at all."""
     differences = [a - b for a, b in pairs if a != b]
     if len(differences) < 6:
         return None

@@ -38,7 +38,7 @@ class RefitOptions:
     the collision went so wrong that the window fitted 11x worse than the run
     (0.0186 against 0.0017 m^2), and a joint refit pulled the wind from 2.5 down to 1.5 m/s^2
     before the materials could follow. With the wind held, 20 steps moved the second body's
-    density from 332 to 651 kg/m^3 and reached 0.0015 m^2 (CPU check, docs/RESULTS.md).
+    density from 332 to 651 kg/m^3 and reached 0.0015 m^2 (CPU check, 2026-11-22, code 7860a80).
 
     polish: further steps, after those, that leave the best point found only for a better one:
     a step that does not lower the loss is taken back, and the next, from the best point along

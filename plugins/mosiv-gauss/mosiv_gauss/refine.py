@@ -4,7 +4,7 @@ Eq. 1 moves every Gaussian with a few temporal bases shared by the whole scene. 
 prior for the smooth parts of a clip, but it spreads an impact (two bodies that stop against
 each other between two frames) over several frames: the drawn bodies at the collision frame are
 a blend of before and after, and their silhouettes there score far below the other frames
-(docs/BENCHMARKS.md, "What the worst IoU is made of"). Four times the steps, more bases and
+(docs/BENCHMARKS.md, "Reconstruction (Gaussians, Stage I)"). Four times the steps, more bases and
 more time octaves did not change that, so the fix here is outside the bases.
 
 After training, the deformed Gaussians of each frame t get offsets d_t [G, 3] (hull voxels) and
