@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # On the GPU machine (Python 3.12, CUDA torch, no package index): install the staged warp and
-# taichi wheels (see ../shared/tools/stage-device-wheels.sh) and this checkout, offline.
+# taichi wheels and this checkout, offline.
 # The warp wheel travels in four parts made by benchmarks/stage_device_parts.sh (the tracked
-# tree is too large beside one of the shared script's 50 MB parts).
+# tree is too large beside a 50 MB part).
 # Usage: source benchmarks/gpu_setup.sh   (repository root; carry .ti and .tideps, the small
 # pure-Python packages taichi needs: dill colorama rich pygments markdown-it-py mdurl)
 set -e

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# After ../shared/tools/stage-device-wheels.sh: re-split the warp wheel into four ~38 MB parts
+# After the warp wheel was staged in three parts (.wp1 .wp2 .wp3: warp.part.*, with warp.name,
+# warp.sha256 and the small wheels in .wp3): re-split it into four ~38 MB parts
 # (.wpa .wpb .wpc .wpd, git-ignored; the small wheels and the wheel's name go with .wpd), so that
 # each part plus the tracked tree (about 17 MB) stays under a device call's 64 MiB.
 # Then, back to back with nothing else in the same batch (the machine goes back 30 s after a call):
@@ -7,7 +8,7 @@
 #   run carry [".wpb"], then [".wpc"]: cp .wpN/* /root/stash/
 #   run carry [".wpd"]: cp .wpd/* /root/stash/ && source benchmarks/gpu_setup.sh && ...
 set -eu
-[ -f .wp3/warp.name ] || { echo "run ../shared/tools/stage-device-wheels.sh first" >&2; exit 2; }
+[ -f .wp3/warp.name ] || { echo "stage the warp wheel into .wp1 .wp2 .wp3 first" >&2; exit 2; }
 name=$(cat .wp3/warp.name)
 rm -rf .wpa .wpb .wpc .wpd .wpjoin && mkdir -p .wpa .wpb .wpc .wpd .wpjoin
 for d in /.wpa/ /.wpb/ /.wpc/ /.wpd/ /.wpjoin/; do

@@ -1,5 +1,5 @@
 """benchmarks/plan_param_errors.py: errors recomputed from the generator's plan equal those the
-pipeline wrote into metrics.json for the same run (a saved from-video run, session 25)."""
+pipeline wrote into metrics.json for the same run (a saved from-video run)."""
 
 from __future__ import annotations
 

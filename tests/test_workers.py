@@ -97,7 +97,7 @@ def _raise_diverged(frame: int) -> None:
 
 
 def test_errors_that_do_not_unpickle_still_reach_the_parent_by_name(tmp_path):
-    """Session 20: a job's SimulationDiverged pickled but did not unpickle, and the suite died."""
+    """A job's SimulationDiverged once pickled but did not unpickle, and the suite died."""
     from mosiv_framework.errors import SimulationDiverged
     from mosiv_framework.workers import run_jobs
 
