@@ -22,6 +22,9 @@ def _write(path: Path, value: object) -> None:
 
 
 def main(folder: str) -> int:
+    from mosiv_framework.logs import configure_from_environment
+
+    configure_from_environment()  # the job's log records reach its log like the parent's
     job = Path(folder)
     import_path, payload = pickle.loads((job / "job.pkl").read_bytes())
     sys.path[:0] = [p for p in import_path if p not in sys.path]

@@ -47,8 +47,15 @@ def gpu_list(gpus: str | Sequence[str] | None = None) -> list[str]:
     return listed
 
 
-def _pin_worker(counter, gpus: list[str]) -> None:
-    # Runs first in every worker, before any job imports torch, Warp or Taichi.
+def _start_worker(counter, gpus: list[str]) -> None:
+    # Runs first in every worker, before any job imports torch, Warp or Taichi. A spawned
+    # worker starts without the parent's logging set-up: it takes the level from the
+    # environment the CLI left it.
+    from mosiv_framework.logs import configure_from_environment
+
+    configure_from_environment()
+    if not gpus:
+        return
     with counter.get_lock():
         index = counter.value
         counter.value += 1
@@ -60,11 +67,9 @@ def worker_pool(jobs: int, *, gpus: str | Sequence[str] | None = None) -> Proces
     pinned to one GPU of :func:`gpu_list` in turn when that list is not empty."""
     context = multiprocessing.get_context("spawn")
     listed = gpu_list(gpus)
-    if not listed:
-        return ProcessPoolExecutor(max_workers=jobs, mp_context=context)
     counter = context.Value("i", 0)
     return ProcessPoolExecutor(
-        max_workers=jobs, mp_context=context, initializer=_pin_worker, initargs=(counter, listed)
+        max_workers=jobs, mp_context=context, initializer=_start_worker, initargs=(counter, listed)
     )
 
 
@@ -118,8 +123,8 @@ def run_jobs(
     run again after its process died.
 
     One process per job, not a pool: a pool's worker that dies breaks the whole pool, and
-    every job in it fails with no word of why (8 diagnosis entries, three times over, on two
-    H200s in session 19; 13 in session 15). Here a job whose process dies (a signal, a crash
+    every job in it fails with no word of why (8 diagnosis entries of one suite on two H200s
+    failed so, three runs in a row). Here a job whose process dies (a signal, a crash
     in native code: the child runs with ``-X faulthandler``) costs only itself, the signal is
     named, and it runs again, up to ``retries`` more times, from the work it had saved. A job
     that raised an ordinary exception is not retried. ``logs`` (key: file) appends each job's

@@ -12,10 +12,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import shutil
 import time
 from pathlib import Path
 from typing import Any
+
+logger = logging.getLogger(__name__)
 
 # flag (argparse dest) -> the option name every scene source uses for that setting
 SOURCE_FLAGS: dict[str, str] = {
@@ -241,7 +244,7 @@ def run_suite(args) -> int:
                 raise ConfigError(
                     f"{final} exists but is not a complete scene; remove it to regenerate it"
                 )
-            print(f"{head}: complete, skipped", flush=True)
+            logger.info("%s: complete, skipped", head)
         else:
             # the scene's seed derives from the suite seed and its position in SUITE_SCENES,
             # so --only subsets and resumed runs reproduce the same scenes
@@ -255,7 +258,7 @@ def run_suite(args) -> int:
             partial = scratch / code
             if partial.exists():
                 shutil.rmtree(partial)  # left by an interrupted run of this suite
-            print(f"{head}: generating (seed {seed})", flush=True)
+            logger.info("%s: generating (seed %d)", head, seed)
             start = time.perf_counter()
             source.generate(partial)
             partial.rename(final)
@@ -267,7 +270,7 @@ def run_suite(args) -> int:
                 "time_s": round(time.perf_counter() - start, 2),
             }
             atomic_write_json(index_path, index)
-            print(f"{head}: done in {index['scenes'][code]['time_s']:.1f} s", flush=True)
+            logger.info("%s: done in %.1f s", head, index["scenes"][code]["time_s"])
         if code not in index["scenes"]:  # complete on disk but made before this index existed
             index["scenes"][code] = {
                 "path": code,
