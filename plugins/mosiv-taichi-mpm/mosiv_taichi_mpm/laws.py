@@ -31,7 +31,7 @@ LAW_PARAMS: dict[str, tuple[str, ...]] = {
 MAX_LAW_PARAMS = 5
 
 SINGULAR_MIN = 1e-4  # s is clamped to this before log (Hencky strain)
-J_MIN = 1e-6  # J is clamped to this before log / negative powers (matches the torch reference)
+J_MIN = 1e-6  # J is clamped to this before log / negative powers (the torch reference: 1e-4)
 NORM_EPS = 1e-30  # added under square roots so their derivative stays finite at 0
 DEG = math.pi / 180.0
 

@@ -27,7 +27,7 @@ LAW_PARAM_NAMES: dict[str, tuple[str, ...]] = {
 }
 
 SINGULAR_MIN = wp.constant(1.0e-4)  # singular values are clamped to this before log (spec)
-J_MIN = wp.constant(1.0e-6)  # J is clamped to this before log(J) and J^-6 (same as the reference)
+J_MIN = wp.constant(1.0e-6)  # J is clamped to this before log(J) and J^-6 (torch reference: 1e-4)
 NORM_EPS = wp.constant(1.0e-30)  # under square roots: finite gradient of |0|
 DEG = wp.constant(0.017453292519943295)  # radians per degree
 
