@@ -25,8 +25,13 @@ def run_show(args) -> int:
 
 
 def run_validate(args) -> int:
-    from mosiv_framework.recipes import load_recipe
+    import sys
 
-    load_recipe(args.recipe, args.overrides)  # raises ConfigError listing every problem
+    from mosiv_framework.recipes import check_recipe
+
+    # raises ConfigError listing every problem; warnings: valid settings worth knowing about
+    _, warnings = check_recipe(args.recipe, args.overrides)
+    for warning in warnings:
+        print(f"{args.recipe}: warning: {warning}", file=sys.stderr)
     print(f"{args.recipe}: valid")
     return 0

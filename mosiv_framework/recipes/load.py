@@ -19,6 +19,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.recipes.interpolation import resolve_recipe
+from mosiv_framework.recipes.rules import cross_section_findings
 from mosiv_framework.recipes.schema import COMPONENT_SECTIONS, MULTI_COMPONENT_SECTIONS, Recipe
 from mosiv_framework.recipes.terms import check_physics_terms
 from mosiv_framework.registry import Registry, get_registry, validate_options
@@ -85,8 +86,19 @@ def _first_line(exc: BaseException) -> str:
     return lines[0] if lines else type(exc).__name__
 
 
-def validate_recipe(raw: Mapping[str, Any], registry: Registry) -> tuple[dict[str, Any], list[str]]:
-    """Check a raw recipe against the schema and the registry; returns (resolved, problems)."""
+def validate_recipe(
+    raw: Mapping[str, Any], registry: Registry, *, warnings: list[str] | None = None
+) -> tuple[dict[str, Any], list[str]]:
+    """Check a raw recipe against the schema, the registry and the rules between sections.
+
+    Args:
+        raw: the recipe as plain containers (``read_recipe_file``).
+        registry: the component registry.
+        warnings: if given, receives what is valid but worth saying (e.g. where the simulator
+            settings cap a stiffness, see ``mosiv_framework.recipes.stiffness``).
+    Returns:
+        (resolved recipe with defaults filled in, every problem found).
+    """
     problems: list[str] = []
     resolved: dict[str, Any] = {}
     sections = {f.name: f for f in dataclasses.fields(Recipe)}
@@ -115,18 +127,33 @@ def validate_recipe(raw: Mapping[str, Any], registry: Registry) -> tuple[dict[st
         resolved["scene"]["source"] = _check_component(
             "scene.source", "scene_source", source, registry, problems
         )
+    if not problems:  # the rules between sections assume each section is sound
+        more, notes = cross_section_findings(resolved, registry)
+        problems.extend(more)
+        if warnings is not None:
+            warnings.extend(notes)
     return resolved, problems
+
+
+def check_recipe(
+    path: str | Path, overrides: Sequence[str] = (), *, registry: Registry | None = None
+) -> tuple[DictConfig, list[str]]:
+    """``load_recipe`` that also returns the warnings (for ``mosiv recipe validate``)."""
+    raw = read_recipe_file(path, overrides)
+    warnings: list[str] = []
+    resolved, problems = validate_recipe(raw, registry or get_registry(), warnings=warnings)
+    if problems:
+        raise ConfigError([f"{path}: {p}" for p in problems])
+    return OmegaConf.create(resolved), warnings
 
 
 def load_recipe(
     path: str | Path, overrides: Sequence[str] = (), *, registry: Registry | None = None
 ) -> DictConfig:
-    """Read, override and validate a recipe; raise ConfigError with every problem found."""
-    raw = read_recipe_file(path, overrides)
-    resolved, problems = validate_recipe(raw, registry or get_registry())
-    if problems:
-        raise ConfigError([f"{path}: {p}" for p in problems])
-    return OmegaConf.create(resolved)
+    """Read, override and validate a recipe; raise ConfigError with every problem found.
+    Warnings are left to the pipeline, which checks the stiffness caps against the scene it
+    reads (``mosiv_framework.recipes.stiffness.check_stiffness``)."""
+    return check_recipe(path, overrides, registry=registry)[0]
 
 
 def _check_section(name: str, schema: type, value: Any, problems: list[str]) -> dict[str, Any]:

@@ -278,6 +278,13 @@ class SynthSource(SceneSource):
     def __init__(self, options: SynthOptions) -> None:
         self.options = options
 
+    def declared(self) -> tuple[World, list[str] | None]:
+        """The World and object families scene.json will declare, known without generating
+        (recipe validation checks the simulator's stiffness cap against them); families None
+        when they are drawn at random."""
+        world = World(DOMAIN_LOWER, DOMAIN_UPPER, DECLARED_GRAVITY, GROUND_HEIGHT, self.options.fps)
+        return world, list(self.options.materials) or None
+
     def generate(self, out_dir: Path) -> Path:
         """Plan, simulate, render and write the scene into ``out_dir`` (must be empty or new)."""
         from tqdm import tqdm
