@@ -92,19 +92,22 @@ def _header(fh, rel: str, key: str, size: int, report: Report) -> tuple | None:
     return shape, fortran, dtype
 
 
-def _read_members(path: Path, rel: str, report: Report) -> dict[str, np.ndarray]:
+def _read_members(path: Path, rel: str, report: Report) -> tuple[dict[str, np.ndarray], set]:
+    """The arrays that could be read, and the keys of every .npy member (read or not)."""
     arrays: dict[str, np.ndarray] = {}
+    keys: set[str] = set()
     try:
         archive = zipfile.ZipFile(path)
     except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
         report.add(rel, f"cannot be read as .npz (not a valid zip archive: {exc})")
-        return arrays
+        return arrays, keys
     with archive:
         for info in archive.infolist():
             key = info.filename.removesuffix(".npy")
             if key == info.filename or info.is_dir():
                 report.add(rel, f"member {info.filename!r} is not a .npy array")
                 continue
+            keys.add(key)
             try:
                 with archive.open(info) as fh:
                     if _header(fh, rel, key, info.file_size, report) is None:
@@ -116,7 +119,7 @@ def _read_members(path: Path, rel: str, report: Report) -> dict[str, np.ndarray]
                 arrays[key] = arr if arr.flags.writeable else arr.copy()
             except Exception as exc:  # zip, zlib or header corruption: a property of the file
                 report.add(rel, f"{key}: cannot be read ({type(exc).__name__}: {exc})")
-    return arrays
+    return arrays, keys
 
 
 def read_points(root: Path, report: Report, meta: Meta) -> dict[str, np.ndarray]:
@@ -130,12 +133,12 @@ def read_points(root: Path, report: Report, meta: Meta) -> dict[str, np.ndarray]
             reason += " (gt/ exists, so it must hold points.npz)"
         report.add(POINTS, reason)
         return {}
-    arrays = _read_members(root / POINTS, POINTS, report)
+    arrays, keys = _read_members(root / POINTS, POINTS, report)
     if meta.object_ids is not None:
         expected = {f"obj_{k}" for k in meta.object_ids}
-        for key in sorted(expected - set(arrays)):
+        for key in sorted(expected - keys):
             report.add(POINTS, f"{key}: missing (one array per object of scene.json)")
-        for key in sorted(set(arrays) - expected):
+        for key in sorted(keys - expected):
             report.add(
                 POINTS, f"{key}: not an object of scene.json (expected keys {sorted(expected)})"
             )
