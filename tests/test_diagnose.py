@@ -11,6 +11,7 @@ nothing.
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from pathlib import Path
 
@@ -39,7 +40,7 @@ def _run_and_diagnose(
     if conceal:
         overrides.append(f"scene.source.conceal='{conceal}'")
     run_pipeline(load_recipe(RECIPE, overrides), run_dir=root)
-    return root, diagnose_run(root, budget="small", say=lambda m: None)
+    return root, diagnose_run(root, budget="small")
 
 
 @pytest.fixture(scope="module")
@@ -256,7 +257,7 @@ def test_concealed_plasticity_of_an_elastic_body_is_found(plastic):
     assert "scene.json" in change and "object 1" in change and "plasticine" in change
 
 
-def test_a_diagnosis_cut_off_resumes_after_its_saved_steps(wind, tmp_path, monkeypatch):
+def test_a_diagnosis_cut_off_resumes_after_its_saved_steps(wind, tmp_path, monkeypatch, caplog):
     # a device lease that ends mid-diagnosis must not cost the refits that had finished
     import mosiv_framework.diagnose.diagnosis as diagnosis_module
     from mosiv_framework.diagnose.steps import FOLDER
@@ -271,7 +272,7 @@ def test_a_diagnosis_cut_off_resumes_after_its_saved_steps(wind, tmp_path, monke
     with monkeypatch.context() as patch:
         patch.setattr(diagnosis_module, "converge_candidates", lease_ends)
         with pytest.raises(RuntimeError, match="lease ended"):
-            diagnose_run(root, budget="small", say=lambda m: None)
+            diagnose_run(root, budget="small")
     saved = sorted(p.stem for p in (root / FOLDER).glob("*.pt"))
     refitted = [f"refit-{s['name']}" for s in wind[1]["screening"][:3]]
     assert {"locate", "screen", "refit-null", *refitted} <= set(saved)
@@ -280,9 +281,9 @@ def test_a_diagnosis_cut_off_resumes_after_its_saved_steps(wind, tmp_path, monke
     # the second attempt recomputes none of them, and decides exactly as an uncut diagnosis
     for name in ("locate", "screen", "refit"):
         monkeypatch.setattr(diagnosis_module, name, lease_ends)
-    messages = []
-    resumed = diagnose_run(root, budget="small", say=messages.append)
-    assert any("resumed from the saved steps" in m and "refit-null" in m for m in messages)
+    with caplog.at_level(logging.INFO, logger="mosiv_framework.diagnose"):
+        resumed = diagnose_run(root, budget="small")
+    assert any("resumed from the saved steps" in m and "refit-null" in m for m in caplog.messages)
     assert not (root / FOLDER).exists()  # a finished diagnosis keeps no steps
     assert {"locate", "screen", "refit-null"} <= set(resumed["resumed_steps"])
     assert (

@@ -372,7 +372,7 @@ def test_suite_resumes_scored_entries_and_rejects_unknown_names(tmp_path):
     )
     (tmp_path / entry.name).mkdir()
     (tmp_path / entry.name / "score.json").write_text(json.dumps(asdict(stored)))
-    summary = run_suite(tmp_path, small=True, only=[entry.name], say=lambda m: None)
+    summary = run_suite(tmp_path, small=True, only=[entry.name])
     assert summary["scores"] == [asdict(stored)]
     assert summary["missing"] == []
     assert summary["correct_first_rate"] == 1.0
@@ -381,9 +381,40 @@ def test_suite_resumes_scored_entries_and_rejects_unknown_names(tmp_path):
     # a score of a format this version cannot read is refused, not misread
     (tmp_path / entry.name / "score.json").write_text(json.dumps({"format": "x/2"}))
     with pytest.raises(FormatError, match="score.json: field 'format' is 'x/2'"):
-        run_suite(tmp_path, small=True, only=[entry.name], say=lambda m: None)
+        run_suite(tmp_path, small=True, only=[entry.name])
     with pytest.raises(ConfigError, match="valid"):
-        run_suite(tmp_path, small=True, only=["no-such-entry"], say=lambda m: None)
+        run_suite(tmp_path, small=True, only=["no-such-entry"])
+
+
+def test_a_scored_entry_carries_its_format_and_is_resumed_from_it(tmp_path, monkeypatch):
+    """run_entry writes score.json with its format; a second call reads it back instead of
+    running anything."""
+    from mosiv_framework.diagnose import suite
+    from mosiv_framework.diagnose.formats import SCORE_FORMAT
+
+    entry = next(e for e in suite.suite_entries(small=True) if not e.conceal)
+    diagnosis = {
+        "verdict": "no missing physics",
+        "accepted": None,
+        "evidence": [],
+        "errors": {},
+        "where": {"signal_to_noise": 1.5},
+    }
+    # the pipeline's part here: the run folder
+    monkeypatch.setattr(suite, "run_pipeline", lambda recipe, run_dir: run_dir.mkdir())
+    monkeypatch.setattr(suite, "diagnose_run", lambda run_dir, budget: diagnosis)
+    monkeypatch.setattr(suite, "read_scene", lambda path: type("S", (), {"gt_effects": list})())
+    recipe = suite.DEFAULT_RECIPES[True]
+    score = suite.run_entry(entry, tmp_path, recipe, "small")
+    saved = json.loads((tmp_path / entry.name / "score.json").read_text())
+    assert saved["format"] == SCORE_FORMAT and saved["name"] == entry.name
+    assert score.correct and score.signal_to_noise == 1.5
+
+    def nothing_runs(*args, **kwargs):
+        raise AssertionError("a scored entry is resumed from its score.json")
+
+    monkeypatch.setattr(suite, "run_pipeline", nothing_runs)
+    assert suite.run_entry(entry, tmp_path, recipe, "small") == score
 
 
 def test_a_prepared_suite_runs_the_pipeline_and_diagnoses_nothing(tmp_path, monkeypatch):
@@ -399,9 +430,7 @@ def test_a_prepared_suite_runs_the_pipeline_and_diagnoses_nothing(tmp_path, monk
 
     monkeypatch.setattr(suite, "diagnose_run", no_diagnosis)
     names = [e.name for e in suite.suite_entries(small=True)[:2]]
-    summary = suite.run_suite(
-        tmp_path, small=True, only=names, prepare_only=True, say=lambda m: None
-    )
+    summary = suite.run_suite(tmp_path, small=True, only=names, prepare_only=True)
     assert summary == {"prepared": sorted(names)}
     assert sorted(ran) == sorted(tmp_path / n for n in names)
     assert not list(tmp_path.glob("*/score.json")) and not (tmp_path / "suite.json").exists()

@@ -4,6 +4,7 @@ unbroken prefix of them is reused. The end-to-end resume is in test_diagnose.py.
 from __future__ import annotations
 
 import json
+import logging
 
 from omegaconf import OmegaConf
 
@@ -49,34 +50,34 @@ def test_the_key_follows_what_a_refit_depends_on_but_not_the_device(tmp_path) ->
     assert key != _key(run)  # the run was identified again
 
 
-def test_saved_steps_are_reused_only_as_an_unbroken_prefix(tmp_path) -> None:
+def test_saved_steps_are_reused_only_as_an_unbroken_prefix(tmp_path, caplog) -> None:
     run = _run(tmp_path)
     calls = []
 
     def compute(name):
         return lambda: calls.append(name) or {"value of": name}
 
-    first = DiagnosisSteps(run, "k1", say=lambda m: None)
+    first = DiagnosisSteps(run, "k1")
     for name in ("locate", "screen", "refit-null"):
         first.get(name, compute(name))
     assert calls == ["locate", "screen", "refit-null"] and first.resumed == []
 
-    again = DiagnosisSteps(run, "k1", say=lambda m: None)
+    again = DiagnosisSteps(run, "k1")
     assert again.get("locate", compute("locate")) == {"value of": "locate"}
     assert again.resumed == ["locate"] and calls == ["locate", "screen", "refit-null"]
 
     # the screening's file is unreadable: it and every later step are computed again
     (run.path(FOLDER) / "screen.pt").write_bytes(b"not a torch file")
-    messages = []
-    broken = DiagnosisSteps(run, "k1", say=messages.append)
-    for name in ("locate", "screen", "refit-null"):
-        broken.get(name, compute(name))
+    broken = DiagnosisSteps(run, "k1")
+    with caplog.at_level(logging.WARNING, logger="mosiv_framework.diagnose.steps"):
+        for name in ("locate", "screen", "refit-null"):
+            broken.get(name, compute(name))
     assert broken.resumed == ["locate"]
     assert calls[-2:] == ["screen", "refit-null"]
-    assert any("could not read the saved step screen" in m for m in messages)
+    assert any("could not read the saved step screen" in m for m in caplog.messages)
 
     # another key (another budget or identified model) reuses nothing
-    other = DiagnosisSteps(run, "k2", say=lambda m: None)
+    other = DiagnosisSteps(run, "k2")
     other.get("locate", compute("locate"))
     assert other.resumed == [] and calls[-1] == "locate"
     other.clear()

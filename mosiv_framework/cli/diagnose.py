@@ -76,7 +76,8 @@ def add_parsers(sub) -> None:
     suite.add_argument(
         "--min-effect",
         type=float,
-        help="resolution floors a term's own effect on the fit frames must reach (0: off, the default)",
+        help="resolution floors a term's own effect on the fit frames must reach "
+        "(0: off, the default)",
     )
     suite.add_argument(
         "--plot",
@@ -91,25 +92,23 @@ def diagnose(args) -> int:
     from mosiv_framework.diagnose import diagnose_run
 
     overrides = {"device": args.device} if args.device else None
-    summary = diagnose_run(
-        args.run_dir,
-        budget=args.budget,
-        simulator_overrides=overrides,
-        say=lambda m: print(f"[diagnose] {m}", flush=True),
-    )
-    print(f"[diagnose] report: {args.run_dir}/diagnosis.md")
+    # progress is logged; the command's result, the verdict and where the report is, is printed
+    summary = diagnose_run(args.run_dir, budget=args.budget, simulator_overrides=overrides)
+    accepted = summary.get("accepted")
+    print(f"verdict: {summary['verdict']}" + (f" ({accepted['name']})" if accepted else ""))
+    print(f"report: {args.run_dir}/diagnosis.md")
     return 0 if summary["verdict"] else 1
 
 
 def diagnose_suite(args) -> int:
-    from mosiv_framework.diagnose.suite import run_suite
+    from mosiv_framework.diagnose.suite import run_suite, table
 
     if args.replay:
         return _replay(args)
     if args.plot:
         raise ConfigError("--plot draws a replayed suite: give it with --replay")
 
-    run_suite(
+    summary = run_suite(
         args.out,
         small=args.small,
         recipe=args.recipe,
@@ -119,8 +118,11 @@ def diagnose_suite(args) -> int:
         gpus=args.gpus,
         overrides=args.overrides,
         prepare_only=args.prepare_only,
-        say=lambda m: print(m, flush=True),
     )
+    if args.prepare_only:
+        print(f"prepared for diagnosis: {', '.join(summary['prepared']) or 'none'}")
+    else:
+        print(table(summary))
     return 0
 
 

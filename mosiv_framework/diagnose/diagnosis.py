@@ -15,6 +15,7 @@ includes each standing candidate's own effect (``effect``) against the null's re
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -22,7 +23,7 @@ from pathlib import Path
 import torch
 
 from mosiv_framework.diagnose.candidates import build_candidates
-from mosiv_framework.diagnose.context import load_run
+from mosiv_framework.diagnose.context import RunContext, load_run
 from mosiv_framework.diagnose.decide import (
     DecideOptions,
     apply_effect_test,
@@ -47,6 +48,8 @@ from mosiv_framework.diagnose.reidentify import ReidentifyOptions, reidentify
 from mosiv_framework.diagnose.report import write_report
 from mosiv_framework.diagnose.steps import DiagnosisSteps, diagnosis_key
 from mosiv_framework.errors import ConfigError, SimulationDiverged
+
+log = logging.getLogger(__name__)
 
 #: multiples of the screening's estimates that further refit starts begin at
 START_FACTORS = (1.0, 0.5, 1.5, 2.0, 0.25)
@@ -214,26 +217,47 @@ def _converge(ctx, null, fits, *, fit_frames, options):
     return null, fits
 
 
-def diagnose_run(
-    run_dir: str | Path,
-    *,
-    budget: str | Budget = "small",
-    simulator_overrides: dict | None = None,
-    say=print,
-) -> dict:
-    """Diagnose a finished run folder; writes diagnosis.json / diagnosis.md there and returns
-    the diagnosis as a dict."""
+@dataclass
+class _Plan:
+    """What every phase of one diagnosis shares: the loaded run, the budget, the frame split,
+    the saved steps and the clock its progress messages give the time of."""
+
+    ctx: RunContext
+    budget: Budget
+    fit_frames: list[int]
+    heldout: list[int]
+    steps: DiagnosisSteps
+    t_start: float
+
+    @property
+    def frames(self) -> dict:
+        """The frame split as the report records it."""
+        return {
+            "fit": self.fit_frames,
+            "heldout": self.heldout,
+            "observed": self.ctx.observed_frames,
+        }
+
+    @property
+    def refit_options(self) -> RefitOptions:
+        return RefitOptions(
+            iterations=self.budget.iterations,
+            settle=self.budget.settle,
+            polish=self.budget.polish,
+            velocity_lr=self.budget.velocity_lr,
+        )
+
+    def say(self, message: str, *, level: int = logging.INFO) -> None:
+        """A progress message with the seconds since the diagnosis began."""
+        log.log(level, "%s [%.0f s]", message, time.perf_counter() - self.t_start)
+
+
+def _plan(run_dir, budget: str | Budget, simulator_overrides: dict | None) -> _Plan:
+    """Load the run, resolve the budget against its recipe, split its frames and open the
+    saved steps under a key of all of these."""
     t_start = time.perf_counter()
-    report = say
-
-    def say(message: str) -> None:
-        report(f"{message} [{time.perf_counter() - t_start:.0f} s]")
-
     ctx = load_run(run_dir, simulator_overrides=simulator_overrides)
-    section = ctx.recipe.get("diagnose", None)
-    budget = resolve_budget(budget, section)
-    allowed_names = list(section.terms) if section is not None and section.terms else None
-    excluded_names = set(section.exclude) if section is not None else set()
+    budget = resolve_budget(budget, ctx.recipe.get("diagnose", None))
     fit_frames, heldout = split_frames(ctx.observed_frames, ctx.n_frames, budget.heldout_fraction)
     key = diagnosis_key(
         ctx.run_dir,
@@ -243,161 +267,231 @@ def diagnose_run(
         recipe=ctx.recipe,
         simulator_overrides=simulator_overrides,
     )
-    steps = DiagnosisSteps(ctx.run_dir, key, say=say)
+    steps = DiagnosisSteps(ctx.run_dir, key)
+    return _Plan(ctx, budget, fit_frames, heldout, steps, t_start)
 
-    say(f"locating the mismatch over {ctx.observed_frames} observed frames")
-    location = steps.get("locate", lambda: locate(ctx))
+
+def _select_candidates(ctx: RunContext) -> tuple[list, list[str]]:
+    """The built-in candidates the recipe's ``diagnose`` section allows (``terms``, if given)
+    and does not exclude (``exclude``), and why each other one was skipped."""
+    section = ctx.recipe.get("diagnose", None)
+    allowed = list(section.terms) if section is not None and section.terms else None
+    excluded = set(section.exclude) if section is not None else set()
+    candidates, skipped = build_candidates(ctx)
+    if allowed is not None:
+        skipped += [
+            f"{c.name}: not in the recipe's diagnose.terms"
+            for c in candidates
+            if c.name not in allowed
+        ]
+        candidates = [c for c in candidates if c.name in allowed]
+    skipped += [
+        f"{c.name}: in the recipe's diagnose.exclude" for c in candidates if c.name in excluded
+    ]
+    candidates = [c for c in candidates if c.name not in excluded]
+    return candidates, skipped
+
+
+def _screen_candidates(plan: _Plan, location, candidates: list) -> list:
+    """The screening of ``candidates`` in the flagged regimes, best first (a saved step)."""
+    plan.say(f"screening {len(candidates)} candidate effects in regimes {location.flagged_regimes}")
+    return plan.steps.get(
+        "screen",
+        lambda: screen(
+            plan.ctx,
+            candidates,
+            flagged_regimes=location.flagged_regimes,
+            fit_frames=plan.fit_frames,
+            residuals=location.residuals,
+            regimes=location.regimes,
+        ),
+    )
+
+
+def _refit_models(plan: _Plan, location, kept: list) -> tuple:
+    """(null, fits): the null model and each kept candidate refitted from the run's identified
+    state, each a saved step."""
+    ctx, options = plan.ctx, plan.refit_options
+    plan.say(f"refitting the null model and {[s.candidate.name for s in kept]}")
+    null_start = regression_estimate(
+        ctx, None, location.residuals, location.regimes, plan.fit_frames
+    )
+    null = plan.steps.get(
+        "refit-null",
+        lambda: refit(
+            ctx,
+            None,
+            fit_frames=plan.fit_frames,
+            starts=null_starts(null_start),
+            options=options,
+        ),
+    )
+    fits = [
+        plan.steps.get(
+            f"refit-{s.candidate.name}",
+            lambda s=s: refit(
+                ctx,
+                s.candidate,
+                fit_frames=plan.fit_frames,
+                starts=refit_starts(s, plan.budget.starts, far_start=plan.budget.far_start),
+                options=options,
+            ),
+        )
+        for s in kept
+    ]
+    return null, fits
+
+
+def _identify_afresh(plan: _Plan, null, fits: list, kept: list) -> tuple:
+    """(null, fits), each replaced by the model identified afresh on the fit frames with the
+    run's schedule where that fits better (``_better``), each a saved step."""
+    ctx, fit_frames = plan.ctx, plan.fit_frames
+    plan.say("identifying the null model and each candidate afresh on the fit frames")
+    schedule = ReidentifyOptions.from_recipe(ctx.recipe.identify)
+    null = plan.steps.get(
+        "fresh-null", lambda: _better(null, ctx, None, None, fit_frames, schedule)
+    )
+    fits = [
+        plan.steps.get(
+            f"fresh-{s.candidate.name}",
+            lambda fit=fit, s=s: _better(
+                fit, ctx, s.candidate, refit_starts(s, 1)[0][0], fit_frames, schedule
+            ),
+        )
+        for fit, s in zip(fits, kept)
+    ]
+    fresh = [f.name for f in [null, *fits] if f.reidentified]
+    plan.say(f"identified afresh, better than refitted: {fresh or 'none'}")
+    return null, fits
+
+
+def _converge_models(plan: _Plan, null, fits: list) -> tuple:
+    """(null, fits) after ``_converge`` (a saved step), with what moved said."""
+    null, fits = plan.steps.get(
+        "converged",
+        lambda: _converge(
+            plan.ctx, null, fits, fit_frames=plan.fit_frames, options=plan.refit_options
+        ),
+    )
+    continued = [f"{f.name} from {f.started_from}" for f in fits if f.started_from]
+    if continued:
+        plan.say(f"refitted again from the best model's shared parameters: {continued}")
+    if null.started_from is not None:
+        plan.say(f"the null model refitted again from {null.started_from}'s shared parameters")
+    for fit in [null, *fits]:  # kept as evidence (``model.predict``), not a crash
+        if fit.diverged is not None:
+            plan.say(
+                f"the prediction of {fit.name} diverged: {fit.diverged}", level=logging.WARNING
+            )
+    return null, fits
+
+
+def _judge(plan: _Plan, null, fits: list, rule: DecideOptions) -> dict:
+    """The evidence for each candidate against the null (``decide``), the interval test on
+    those passing the held-out and BIC tests, then the own-effect test on those still
+    standing; also the error tables, the null's resolution floor and the accepted fit with
+    its interval."""
+    ctx = plan.ctx
+    evidence, model_errors = decide(
+        ctx, null, fits, fit_frames=plan.fit_frames, heldout_frames=plan.heldout, options=rule
+    )
+    floor_raw = resolution_floor(ctx, null.params)
+    # every candidate that passed the held-out and BIC tests gets its interval (recorded,
+    # and tested where the rule requires it to exclude zero)
+    by_name = {f.name: f for f in fits}
+    bounds = {
+        e.name: coefficient_interval(ctx, by_name[e.name], fit_frames=plan.fit_frames)
+        for e in evidence
+        if e.passes_heldout and e.passes_bic
+    }
+    evidence = apply_interval_test(
+        evidence, {n: [list(p) for p in zip(*b)] for n, b in bounds.items()}, rule
+    )
+    # and every candidate still standing has its own effect measured against the floor
+    effects = {
+        e.name: measure_effect(ctx, by_name[e.name], plan.frames) for e in evidence if e.accepted
+    }
+    floor = summarise_floor(floor_raw, plan.frames)
+    evidence = apply_effect_test(
+        evidence, {n: v for n, v in effects.items() if v is not None}, floor, rule
+    )
+    accepted = by_name[evidence[0].name] if evidence and evidence[0].accepted else None
+    return {
+        "evidence": evidence,
+        "errors": model_errors,
+        "resolution_floor": floor_raw,
+        "accepted": accepted,
+        "interval": bounds[accepted.name] if accepted is not None else None,
+    }
+
+
+def _investigate(plan: _Plan, location, rule: DecideOptions) -> dict:
+    """Steps 2-4 on a significant residual: candidates, screening, refits, decision."""
+    candidates, skipped = _select_candidates(plan.ctx)
+    screens = _screen_candidates(plan, location, candidates)
+    kept = choose_refits(screens, plan.budget.max_candidates)
+    null, fits = _refit_models(plan, location, kept)
+    if plan.budget.reidentify:
+        null, fits = _identify_afresh(plan, null, fits, kept)
+    null, fits = _converge_models(plan, null, fits)
+    return {
+        "screens": screens,
+        "fits": fits,
+        "skipped_candidates": skipped,
+        "null": null,
+        **_judge(plan, null, fits, rule),
+    }
+
+
+def diagnose_run(
+    run_dir: str | Path,
+    *,
+    budget: str | Budget = "small",
+    simulator_overrides: dict | None = None,
+) -> dict:
+    """Diagnose a finished run folder; writes diagnosis.json / diagnosis.md there and returns
+    the diagnosis as a dict. Progress is logged (INFO) by this module's logger.
+
+    Args:
+        run_dir: a folder written by ``mosiv run``.
+        budget: a name of ``BUDGETS`` or a ``Budget``; the recipe's ``diagnose`` section may
+            change it (``resolve_budget``).
+        simulator_overrides: simulator options replacing the recipe's (e.g. the device).
+    """
+    plan = _plan(run_dir, budget, simulator_overrides)
+    ctx = plan.ctx
+    plan.say(f"locating the mismatch over {ctx.observed_frames} observed frames")
+    location = plan.steps.get("locate", lambda: locate(ctx))
     before = frame_errors(ctx, ctx.identified_rollout())
+    rule = DecideOptions(bootstrap=plan.budget.bootstrap)
     result = {
         "run_dir": str(ctx.run_dir.root),
-        "frames": {"fit": fit_frames, "heldout": heldout, "observed": ctx.observed_frames},
+        "frames": plan.frames,
         "location": location.summary,
-        "budget": budget.__dict__,
+        "budget": plan.budget.__dict__,
+        "rule": dict(rule.__dict__),
     }
-    screens, fits, evidence, errors, accepted = [], [], [], {"identified": before}, None
-    rule = DecideOptions(bootstrap=budget.bootstrap)
-    result["rule"] = dict(rule.__dict__)
+    found = {"screens": [], "fits": [], "evidence": [], "errors": {}, "accepted": None}
     if location.significant:
-        candidates, skipped = build_candidates(ctx)
-        if allowed_names is not None:
-            skipped += [
-                f"{c.name}: not in the recipe's diagnose.terms"
-                for c in candidates
-                if c.name not in allowed_names
-            ]
-            candidates = [c for c in candidates if c.name in allowed_names]
-        skipped += [
-            f"{c.name}: in the recipe's diagnose.exclude"
-            for c in candidates
-            if c.name in excluded_names
-        ]
-        candidates = [c for c in candidates if c.name not in excluded_names]
-        say(f"screening {len(candidates)} candidate effects in regimes {location.flagged_regimes}")
-        screens = steps.get(
-            "screen",
-            lambda: screen(
-                ctx,
-                candidates,
-                flagged_regimes=location.flagged_regimes,
-                fit_frames=fit_frames,
-                residuals=location.residuals,
-                regimes=location.regimes,
-            ),
+        found = _investigate(plan, location, rule)
+        result.update(
+            resolution_floor=found["resolution_floor"],
+            skipped_candidates=found["skipped_candidates"],
+            null=found["null"],
         )
-        kept = choose_refits(screens, budget.max_candidates)
-        refit_options = RefitOptions(
-            iterations=budget.iterations,
-            settle=budget.settle,
-            polish=budget.polish,
-            velocity_lr=budget.velocity_lr,
-        )
-        say(f"refitting the null model and {[s.candidate.name for s in kept]}")
-        null_start = regression_estimate(
-            ctx, None, location.residuals, location.regimes, fit_frames
-        )
-        null = steps.get(
-            "refit-null",
-            lambda: refit(
-                ctx,
-                None,
-                fit_frames=fit_frames,
-                starts=null_starts(null_start),
-                options=refit_options,
-            ),
-        )
-        fits = [
-            steps.get(
-                f"refit-{s.candidate.name}",
-                lambda s=s: refit(
-                    ctx,
-                    s.candidate,
-                    fit_frames=fit_frames,
-                    starts=refit_starts(s, budget.starts, far_start=budget.far_start),
-                    options=refit_options,
-                ),
-            )
-            for s in kept
-        ]
-        if budget.reidentify:
-            say("identifying the null model and each candidate afresh on the fit frames")
-            schedule = ReidentifyOptions.from_recipe(ctx.recipe.identify)
-            null = steps.get(
-                "fresh-null", lambda: _better(null, ctx, None, None, fit_frames, schedule)
-            )
-            fits = [
-                steps.get(
-                    f"fresh-{s.candidate.name}",
-                    lambda fit=fit, s=s: _better(
-                        fit, ctx, s.candidate, refit_starts(s, 1)[0][0], fit_frames, schedule
-                    ),
-                )
-                for fit, s in zip(fits, kept)
-            ]
-            fresh = [f.name for f in [null, *fits] if f.reidentified]
-            say(f"identified afresh, better than refitted: {fresh or 'none'}")
-        null, fits = steps.get(
-            "converged",
-            lambda: _converge(ctx, null, fits, fit_frames=fit_frames, options=refit_options),
-        )
-        continued = [f"{f.name} from {f.started_from}" for f in fits if f.started_from]
-        if continued:
-            say(f"refitted again from the best model's shared parameters: {continued}")
-        if null.started_from is not None:
-            say(f"the null model refitted again from {null.started_from}'s shared parameters")
-        for fit in [null, *fits]:  # kept as evidence (``model.predict``), not a crash
-            if fit.diverged is not None:
-                say(f"the prediction of {fit.name} diverged: {fit.diverged}")
-        evidence, model_errors = decide(
-            ctx,
-            null,
-            fits,
-            fit_frames=fit_frames,
-            heldout_frames=heldout,
-            options=rule,
-        )
-        errors.update(model_errors)
-        result["resolution_floor"] = resolution_floor(ctx, null.params)
-        # every candidate that passed the held-out and BIC tests gets its interval (recorded,
-        # and tested where the rule requires it to exclude zero)
-        by_name = {f.name: f for f in fits}
-        bounds = {
-            e.name: coefficient_interval(ctx, by_name[e.name], fit_frames=fit_frames)
-            for e in evidence
-            if e.passes_heldout and e.passes_bic
-        }
-        evidence = apply_interval_test(
-            evidence, {n: [list(p) for p in zip(*b)] for n, b in bounds.items()}, rule
-        )
-        # and every candidate still standing has its own effect measured against the floor
-        effects = {
-            e.name: measure_effect(ctx, by_name[e.name], result["frames"])
-            for e in evidence
-            if e.accepted
-        }
-        floor = summarise_floor(result["resolution_floor"], result["frames"])
-        evidence = apply_effect_test(
-            evidence, {n: v for n, v in effects.items() if v is not None}, floor, rule
-        )
-        if evidence and evidence[0].accepted:
-            accepted = by_name[evidence[0].name]
-            accepted_interval = bounds[accepted.name]
-        result["skipped_candidates"] = skipped
-        result["null"] = null
-    result["verdict"] = verdict(location.significant, evidence)
-    result["screening"] = [s.to_json() for s in screens]
-    result["evidence"] = [e.to_json() for e in evidence]
-    result["fits"] = fits
-    result["accepted"] = accepted
-    result["interval"] = accepted_interval if accepted is not None else None
-    result["errors"] = errors
-    result["time_s"] = time.perf_counter() - t_start
-    result["resumed_steps"] = steps.resumed
-    if steps.resumed:
-        say(f"resumed from the saved steps {steps.resumed}")
+    result["verdict"] = verdict(location.significant, found["evidence"])
+    result["screening"] = [s.to_json() for s in found["screens"]]
+    result["evidence"] = [e.to_json() for e in found["evidence"]]
+    result["fits"] = found["fits"]
+    result["accepted"] = found["accepted"]
+    result["interval"] = found.get("interval")
+    result["errors"] = {"identified": before, **found["errors"]}
+    result["time_s"] = time.perf_counter() - plan.t_start
+    result["resumed_steps"] = plan.steps.resumed
+    if plan.steps.resumed:
+        plan.say(f"resumed from the saved steps {plan.steps.resumed}")
     summary = write_report(ctx, location, result)
-    steps.clear()
-    say(
-        f"verdict: {summary['verdict']}"
-        + (f" ({summary['accepted']['name']})" if summary.get("accepted") else "")
-    )
+    plan.steps.clear()
+    accepted = summary.get("accepted")
+    plan.say(f"verdict: {summary['verdict']}" + (f" ({accepted['name']})" if accepted else ""))
     return summary

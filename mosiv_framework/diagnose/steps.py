@@ -3,8 +3,8 @@
 A full diagnosis refits and re-identifies five models one after another: about 20 minutes per
 scene on a shared H200 (docs/BENCHMARKS.md), and a machine lost mid-diagnosis would lose all of
 it. Each expensive step (the location, the screening, each model's refit, each fresh
-identification and the converging refits) is saved under ``RUN/diagnose/steps/`` as soon as it finishes, with
-a key of everything it depends on; a later ``mosiv diagnose`` of the same run, budget and
+identification and the converging refits) is saved under ``RUN/diagnose/steps/`` as soon as it
+finishes, with a key of everything it depends on (``STEP_FORMAT`` among it); a later ``mosiv diagnose`` of the same run, budget and
 identified model takes it from there instead of computing it again.
 
 The saved steps are removed once the report is written: they are for resuming, not a second
@@ -14,6 +14,7 @@ record, so that diagnosing a finished run again still recomputes it.
 from __future__ import annotations
 
 import hashlib
+import logging
 import shutil
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -24,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from mosiv_framework.pipeline.rundir import RunDir, fingerprint
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 #: bump when a saved step's meaning or its classes' fields change (``model.Fit``,
 #: ``hypothesise.Screen``, ``locate``'s result), so that old files are recomputed, not misread
@@ -77,8 +79,8 @@ class DiagnosisSteps:
     computed again can differ from the one the saved refits started from).
     """
 
-    def __init__(self, run_dir: RunDir, key: str, *, say: Callable[[str], None] = print):
-        self.run_dir, self.key, self.say = run_dir, key, say
+    def __init__(self, run_dir: RunDir, key: str):
+        self.run_dir, self.key = run_dir, key
         self.resumed: list[str] = []
         self._computing = False
 
@@ -90,7 +92,7 @@ class DiagnosisSteps:
             try:  # on the CPU: a step saved beside a GPU serves a CPU-only machine as well
                 saved = torch.load(path, map_location="cpu", weights_only=False)
             except Exception as exc:  # e.g. a file of another code version: compute it again
-                self.say(f"  could not read the saved step {step} ({exc}); computing it again")
+                log.warning("could not read the saved step %s (%s); computing it again", step, exc)
             else:
                 if isinstance(saved, dict) and saved.get("key") == self.key:
                     self.resumed.append(step)

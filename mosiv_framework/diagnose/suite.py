@@ -11,6 +11,7 @@ removed from the screened library (the right answer there is "unexplained").
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import statistics
@@ -24,6 +25,8 @@ from mosiv_framework.pipeline import run_pipeline
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.scene import read_scene
 from mosiv_framework.workers import run_jobs
+
+log = logging.getLogger(__name__)
 
 #: the recipe the suite's scenes run with unless another is given
 DEFAULT_RECIPES = {
@@ -201,23 +204,25 @@ def entry_overrides(entry: Entry, run_dir: Path) -> list[str]:
 
 
 def run_entry(
-    entry: Entry, out: Path, recipe_path: Path, budget: str, say=print, prepare_only=False
+    entry: Entry, out: Path, recipe_path: Path, budget: str, prepare_only: bool = False
 ) -> Score | None:
     """Generate, run, diagnose and score one entry into ``out/entry.name``.
 
     The score is written atomically to ``score.json`` last, so a suite stopped part-way resumes
     from the entries without one (the pipeline itself resumes its finished stages).
-    ``prepare_only``: stop after the pipeline (None is returned), see ``run_suite``.
+    ``prepare_only``: stop after the pipeline (None is returned), see ``run_suite``. Also the
+    job of a worker process (``run_suite`` with ``jobs`` > 1), whose log records go to the
+    entry's ``suite.log``.
     """
     run_dir = out / entry.name
     done = run_dir / "score.json"
     if done.exists():
         return load_score(done)
-    say(f"[suite] {entry.name}: {entry.conceal or 'control'} on {entry.materials}")
+    log.info("entry %s: %s on %s", entry.name, entry.conceal or "control", entry.materials)
     run_pipeline(load_recipe(recipe_path, entry_overrides(entry, run_dir)), run_dir=run_dir)
     if prepare_only:
         return None
-    diagnosis = diagnose_run(run_dir, budget=budget, say=lambda m: say(f"[suite]   {m}"))
+    diagnosis = diagnose_run(run_dir, budget=budget)
     effects = read_scene(run_dir / "scene").gt_effects()  # scoring only, after diagnosis
     score = score_entry(entry, diagnosis, effects)
     tmp = done.with_suffix(".json.tmp")
@@ -235,21 +240,6 @@ def load_score(path: Path) -> Score:
     return Score(**data)
 
 
-def _run_entry_logged(
-    entry: Entry, out: Path, recipe_path: Path, budget: str, prepare_only: bool = False
-) -> Score | None:
-    """A worker process's job: one entry; its output (``run_jobs`` sends it to the entry's
-    ``suite.log``) flushed line by line, so a process that dies leaves its last words there."""
-    return run_entry(
-        entry,
-        out,
-        recipe_path,
-        budget,
-        say=lambda m: print(m, flush=True),
-        prepare_only=prepare_only,
-    )
-
-
 def run_suite(
     out: str | Path,
     *,
@@ -262,9 +252,9 @@ def run_suite(
     gpus: str | None = None,
     overrides: list[str] | None = None,
     prepare_only: bool = False,
-    say=print,
 ) -> dict:
-    """Generate, run, diagnose and score every entry into ``out``; returns the summary.
+    """Generate, run, diagnose and score every entry into ``out``; returns the summary
+    (``summarise``, with ``missing``), also written to suite.json, suite.md and suite.png.
 
     ``only`` restricts the suite to the named entries; ``jobs`` > 1 runs entries in that many
     worker processes (one per entry, so each initialises its own simulator device), spread over
@@ -274,66 +264,88 @@ def run_suite(
     recomputed.
 
     ``prepare_only`` generates and runs the entries' pipelines (synthesis, identification,
-    evaluation) without diagnosing them, and returns ``{"prepared": [names]}``. Why: those stages are
-    about a third of an entry's time, and a suite prepared on one machine is diagnosed on
-    another from its finished stages, provided ``out`` is the same path there (the scene's
-    path is part of every stage's key).
+    evaluation) without diagnosing them, and returns ``{"prepared": [names]}``. Why: those
+    stages are about a third of an entry's time, and a suite prepared on one machine is
+    diagnosed on another from its finished stages, provided ``out`` is the same path there (the
+    scene's path is part of every stage's key).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     recipe_path = Path(recipe) if recipe is not None else DEFAULT_RECIPES[small]
     budget = budget or ("small" if small else "full")
-    entries = list(entries if entries is not None else suite_entries(small))
+    entries = _chosen_entries(
+        list(entries if entries is not None else suite_entries(small)),
+        only=only,
+        overrides=overrides,
+        recipe_path=recipe_path,
+        out=out,
+    )
+    jobs_by_name = {e.name: (e, out, recipe_path, budget, prepare_only) for e in entries}
+    if jobs <= 1:
+        results = {name: run_entry(*args) for name, args in jobs_by_name.items()}
+    else:
+        results = _run_in_workers(jobs_by_name, out, workers=jobs, gpus=gpus)
+    if prepare_only:  # None: prepared, not diagnosed
+        return {"prepared": sorted(name for name, score in results.items() if score is None)}
+    return _write_summary(out, entries, {n: s for n, s in results.items() if s is not None})
+
+
+def _chosen_entries(
+    entries: list[Entry],
+    *,
+    only: list[str] | None,
+    overrides: list[str] | None,
+    recipe_path: Path,
+    out: Path,
+) -> list[Entry]:
+    """``entries`` restricted to ``only`` (unknown names refused with the valid ones), each
+    with ``overrides`` added to its own; the recipe with them is loaded once here, rather than
+    failing every entry the same way."""
     if only:
         known = {e.name for e in entries}
         unknown = sorted(set(only) - known)
         if unknown:
             raise ConfigError(f"suite entries {unknown} do not exist; valid: {sorted(known)}")
         entries = [e for e in entries if e.name in only]
-    if overrides:  # checked once here, rather than failing every entry the same way
+    if overrides:
         entries = [replace(e, overrides=(*e.overrides, *overrides)) for e in entries]
         if entries:
             load_recipe(recipe_path, entry_overrides(entries[0], out / entries[0].name))
-    scores: dict[str, Score] = {}
-    prepared: list[str] = []
+    return entries
 
-    def record(name: str, score: Score | None) -> None:  # None: prepared, not diagnosed
-        if score is None:
-            prepared.append(name)
-        else:
-            scores[name] = score
 
-    if jobs <= 1:
-        for entry in entries:
-            record(entry.name, run_entry(entry, out, recipe_path, budget, say, prepare_only))
-    else:
-        by_name = {e.name: e for e in entries}
+def _run_in_workers(
+    jobs_by_name: dict[str, tuple], out: Path, *, workers: int, gpus: str | None
+) -> dict[str, Score | None]:
+    """``run_entry`` of every entry in worker processes (``workers.run_jobs``), each logging to
+    its entry's ``suite.log``; the results of the entries that finished."""
+    finished: dict[str, Score | None] = {}
 
-        def done(name: str, score: Score | None) -> None:
-            say(f"[suite] {name} done ({len(scores) + len(prepared) + 1}/{len(entries)})")
-            record(name, score)
+    def done(name: str, score: Score | None) -> None:
+        finished[name] = score
+        log.info("%s done (%d/%d)", name, len(finished), len(jobs_by_name))
 
-        def failed(name: str, error: Exception) -> None:
-            say(f"[suite] {name} FAILED: {error!r} (log: {out / name}/suite.log)")
+    def failed(name: str, error: Exception) -> None:
+        log.error("%s FAILED: %r (log: %s)", name, error, out / name / "suite.log")
 
-        run_jobs(
-            _run_entry_logged,
-            {
-                name: (entry, out, recipe_path, budget, prepare_only)
-                for name, entry in by_name.items()
-            },
-            workers=jobs,
-            gpus=gpus,
-            logs={name: out / name / "suite.log" for name in by_name},
-            on_result=done,
-            on_error=failed,
-            on_retry=lambda name, died: say(
-                f"[suite] {died}; running {name} again from its finished stages"
-            ),
-        )
-    if prepare_only:
-        say(f"[suite] prepared for diagnosis: {', '.join(sorted(prepared)) or 'none'}")
-        return {"prepared": sorted(prepared)}
+    run_jobs(
+        run_entry,
+        jobs_by_name,
+        workers=workers,
+        gpus=gpus,
+        logs={name: out / name / "suite.log" for name in jobs_by_name},
+        on_result=done,
+        on_error=failed,
+        on_retry=lambda name, died: log.warning(
+            "%s; running %s again from its finished stages", died, name
+        ),
+    )
+    return finished
+
+
+def _write_summary(out: Path, entries: list[Entry], scores: dict[str, Score]) -> dict:
+    """The summary of the scored entries (in suite order; the others ``missing``), written to
+    suite.json, suite.md and, if any was scored, suite.png."""
     ordered = [scores[e.name] for e in entries if e.name in scores]
     summary = summarise(ordered)
     summary["missing"] = [e.name for e in entries if e.name not in scores]
@@ -344,7 +356,6 @@ def run_suite(
         from mosiv_framework.diagnose.suite_plot import plot_suite
 
         plot_suite(summary, out / "suite.png")
-    say(table(summary))
     return summary
 
 
@@ -385,7 +396,8 @@ def table(summary: dict) -> str:
         return f"{100 * x:.0f} %" if pct else f"{x:.3g}"
 
     lines = [
-        "| scene | concealed | SNR | verdict | accepted | correct | coef. error | future-error reduction |",
+        "| scene | concealed | SNR | verdict | accepted | correct | coef. error "
+        "| future-error reduction |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for s in summary["scores"]:
@@ -398,7 +410,8 @@ def table(summary: dict) -> str:
         "",
         f"correct term first (SNR >= 3): {f(summary['correct_first_rate'], True)}; "
         f"false discoveries on controls: {f(summary['control_false_discovery_rate'], True)}; "
-        f"out-of-library reported unexplained: {f(summary['outside_reported_unexplained_rate'], True)}; "
+        "out-of-library reported unexplained: "
+        f"{f(summary['outside_reported_unexplained_rate'], True)}; "
         f"median coefficient error: {f(summary['median_coefficient_error'], True)}; "
         f"median future-error reduction: {f(summary['median_future_reduction'], True)}",
     ]
