@@ -2,9 +2,9 @@
 
 - On a free body, a steady extra acceleration a moves every particle by a t^2 / 2 after t
   seconds, whatever the material: the measured displacement matches the time-discrete form of
-  that (n substeps of symplectic Euler) to 0.1 %, and the Chamfer of the shifted body is twice its square (each point's
-  nearest neighbour in the other cloud is its own image while the shift is below half the
-  particle spacing).
+  that (n substeps of symplectic Euler) to 0.1 %, and the Chamfer of the shifted body is twice
+  its square (each point's nearest neighbour in the other cloud is its own image while the
+  shift is below half the particle spacing).
 - The decision fails a candidate whose effect is below ``min_effect`` resolution floors and
   lets the next one through; a replay applies the same test to the recorded effects, and files
   that ran without it replay without it.

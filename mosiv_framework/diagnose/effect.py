@@ -5,15 +5,16 @@ The evidence tests ask whether a candidate's refit predicts the held-out frames 
 null's; they do not ask how much the effect itself moves the bodies. On two control scenes of
 the full suite a term with a tiny coefficient passed every test: a gravity change of 0.1 % and
 a wind of 0.044 m/s^2 (the terms took up an offset of the initial velocities that
-identification started from, see ``pipeline.params``). The resolution floor (``floor``) says how far the same model's prediction moves when its
-particles are resampled at a fraction of their spacing; the idea tested here was that an
+identification started from, see ``pipeline.params``). The resolution floor (``floor``) says
+how far the same model's prediction moves when its particles are resampled at a fraction of
+their spacing; the idea tested here was that an
 effect moving the bodies less than that is not one the particle model can resolve.
 
 This module measures the effect in the floor's units (per-frame Chamfer between the two
 rollouts, summed over objects, in mm^2) and as the largest RMS particle displacement over the
 observed frames (mm), which the report states in words. Measured on the saved suite entries
-(benchmarks/term_effect.py), it does not separate the two false discoveries from true effects: a true
-restitution moved the bodies less (up to 4 mm) than a false wind (11 mm), so the decision
+(benchmarks/term_effect.py), it does not separate the two false discoveries from true effects:
+a true restitution moved the bodies less (up to 4 mm) than a false wind (11 mm), so the decision
 records it and tests it only when asked (``DecideOptions.min_effect``).
 """
 

@@ -116,113 +116,173 @@ def refit(
 
     Each of ``starts`` (coefficient vector, initial-velocity change per object or None;
     default: zero and none) begins a fit; the first start that brings a velocity change (an
-    empty one too) settles the shared parameters first (``RefitOptions.settle``). The coefficient is
-    optimised as theta = scale * u with scale the larger of |start| and the candidate's natural
-    step, so one learning rate suits coefficients of any unit. Returns the best start whose
-    prediction over all frames succeeds (``predict``); a start whose rollouts all diverge is
-    skipped. The free parameters start at ``base`` (default: the run's identified values).
+    empty one too) settles the shared parameters first (``RefitOptions.settle``). The
+    coefficient is optimised as theta = scale * u with scale the larger of |start| and the
+    candidate's natural step, so one learning rate suits coefficients of any unit. Returns the
+    best start whose prediction over all frames succeeds (``predict``); a start whose rollouts
+    all diverge is skipped. The free parameters start at ``base`` (default: the run's
+    identified values).
     """
-    horizon = max(fit_frames)
     if not starts:
         starts = [(torch.zeros(0) if candidate is None else candidate.zero(), None)]
     ends: list[Fit] = []  # each start's best point
-    tried: list[tuple[list[float], float]] = []
     settled = False
     for start, velocity_change in starts:
-        vector = ctx.parameter_vector(base)
-        if velocity_change is not None:
-            with torch.no_grad():
-                for k, dv in velocity_change.items():
-                    vector.velocity[k].add_(dv)
-        if candidate is not None:
-            theta_start = candidate.clamp(start.detach().float())
-            scale = torch.maximum(theta_start.abs(), candidate.step)
-            u = (theta_start / scale).clone().requires_grad_(True)
-        else:
-            scale = torch.ones(0)
-            u = torch.zeros(0, requires_grad=True)
-        groups = [
-            {"params": list(vector.velocity.values()), "lr": options.velocity_lr},
-            {"params": list(vector.normalized.values()), "lr": options.param_lr},
-        ]
-        if candidate is not None:
-            groups.append({"params": [u], "lr": options.coefficient_lr})
-        optimizer = torch.optim.Adam([g for g in groups if g["params"]])
-        leaves = [p for g in optimizer.param_groups for p in g["params"]]
-        best_start, best_grads = (math.inf, None), None
-        history = []
         # the regression start (it brings a velocity change) first settles the shared parameters
         settle = 0
         if candidate is not None and velocity_change is not None and not settled:
             settle, settled = options.settle, True
-        main = settle + options.iterations
-        for step in range(main + options.polish + 1):  # the last pass only scores
-            optimizer.zero_grad()
-            params = assemble(vector, candidate, u, scale)
-            try:
-                traj = ctx.simulate(params, frames=horizon)
-            except SimulationDiverged:
-                if step < main or not options.polish or best_grads is None:
-                    break
-                traj = None  # a polishing step too long for the simulator: take it back
-            if traj is not None:
-                loss = ctx.loss(traj, fit_frames)
-                value = float(loss.detach())
-                history.append(value)
-                improved = value < best_start[0]
-                if improved:
-                    best_start = (value, snapshot(vector, u))
-                loss.backward()
-                if step < settle:
-                    u.grad = None  # Adam skips a leaf without a gradient: the coefficient holds
-                if not gradients_finite(leaves):
-                    break  # a NaN step would poison every later one: the start ends at its best
-                if improved:
-                    best_grads = [None if p.grad is None else p.grad.clone() for p in leaves]
-            if options.polish and step >= main and (traj is None or not improved):
-                # polishing: back to the best point, and half the step from there; Adam starts
-                # afresh, so that step is the gradient's sign per coordinate, which lowers the
-                # loss once it is short enough (the moments of steps that overshot need not)
-                restore(vector, u, best_start[1])
-                for leaf, grad in zip(leaves, best_grads):
-                    leaf.grad = None if grad is None else grad.clone()
-                optimizer.state.clear()
-                for group in optimizer.param_groups:
-                    group["lr"] *= 0.5
-            optimizer.step()
-            with torch.no_grad():
-                for leaf in vector.normalized.values():
-                    leaf.clamp_(0.0, 1.0)
-                if candidate is not None:
-                    u.copy_(candidate.clamp(u * scale) / scale)
-        if best_start[1] is None:
-            continue
-        restore(vector, u, best_start[1])
-        theta = (u * scale).detach() if candidate is not None else torch.zeros(0)
-        tried.append((theta.tolist(), best_start[0]))
-        ends.append(
-            Fit(
-                "null" if candidate is None else candidate.name,
-                candidate,
-                assemble(vector, candidate, u, scale).detached(),
-                theta,
-                best_start[0],
-                count_free(vector) + (candidate.dim if candidate is not None else 0),
-                history=history,
-                shared=vector.physical().detached(),
-            )
+        end = _fit_start(
+            ctx,
+            candidate,
+            start,
+            velocity_change,
+            fit_frames=fit_frames,
+            base=base,
+            settle=settle,
+            options=options,
         )
+        if end is not None:
+            ends.append(end)
     if not ends:
         raise SimulationDiverged(
             object_id=-1,
             frame=-1,
             substep=-1,
-            reason=f"every refit start of {candidate.name if candidate else 'the null model'} diverged",
+            reason=f"every refit start of {_model_name(candidate)} diverged",
             advice="lower the refit learning rates or raise the simulator's substeps",
         )
     best = predict(ctx, sorted(ends, key=lambda f: f.loss))  # stable: the first start on ties
-    best.starts = tried
+    best.starts = [(end.theta.tolist(), end.loss) for end in ends]
     return best
+
+
+def _model_name(candidate: Candidate | None) -> str:
+    return candidate.name if candidate is not None else "the null model"
+
+
+def _fit_start(
+    ctx: RunContext,
+    candidate: Candidate | None,
+    start: torch.Tensor,
+    velocity_change: dict | None,
+    *,
+    fit_frames: list[int],
+    base: SimulationParams | None,
+    settle: int,
+    options: RefitOptions,
+) -> Fit | None:
+    """One start of ``refit``: its descent (``_descend``) and the best point it reached, as a
+    fit; None if not even its first rollout succeeded."""
+    vector = ctx.parameter_vector(base)
+    if velocity_change is not None:
+        with torch.no_grad():
+            for k, dv in velocity_change.items():
+                vector.velocity[k].add_(dv)
+    if candidate is not None:
+        theta_start = candidate.clamp(start.detach().float())
+        scale = torch.maximum(theta_start.abs(), candidate.step)
+        u = (theta_start / scale).clone().requires_grad_(True)
+    else:
+        scale = torch.ones(0)
+        u = torch.zeros(0, requires_grad=True)
+    loss, best, history = _descend(
+        ctx, candidate, vector, u, scale, fit_frames=fit_frames, settle=settle, options=options
+    )
+    if best is None:
+        return None
+    restore(vector, u, best)
+    theta = (u * scale).detach() if candidate is not None else torch.zeros(0)
+    return Fit(
+        "null" if candidate is None else candidate.name,
+        candidate,
+        assemble(vector, candidate, u, scale).detached(),
+        theta,
+        loss,
+        count_free(vector) + (candidate.dim if candidate is not None else 0),
+        history=history,
+        shared=vector.physical().detached(),
+    )
+
+
+def _optimizer(vector: ParameterVector, candidate, u, options: RefitOptions):
+    """Adam over the velocities, the normalised parameters and (with a candidate) ``u``, each
+    group at its own learning rate."""
+    groups = [
+        {"params": list(vector.velocity.values()), "lr": options.velocity_lr},
+        {"params": list(vector.normalized.values()), "lr": options.param_lr},
+    ]
+    if candidate is not None:
+        groups.append({"params": [u], "lr": options.coefficient_lr})
+    return torch.optim.Adam([g for g in groups if g["params"]])
+
+
+def _descend(
+    ctx: RunContext,
+    candidate: Candidate | None,
+    vector: ParameterVector,
+    u: torch.Tensor,
+    scale: torch.Tensor,
+    *,
+    fit_frames: list[int],
+    settle: int,
+    options: RefitOptions,
+) -> tuple[float, dict | None, list[float]]:
+    """Adam from the leaves' current values: ``settle`` steps with the coefficient held, the
+    ``iterations``, then ``polish`` backtracking steps (``RefitOptions``). Returns the lowest
+    loss, the ``snapshot`` where it was reached (None if no rollout succeeded) and the loss of
+    every step."""
+    horizon = max(fit_frames)
+    optimizer = _optimizer(vector, candidate, u, options)
+    leaves = [p for g in optimizer.param_groups for p in g["params"]]
+    best_start, best_grads = (math.inf, None), None
+    history = []
+    main = settle + options.iterations
+    for step in range(main + options.polish + 1):  # the last pass only scores
+        optimizer.zero_grad()
+        params = assemble(vector, candidate, u, scale)
+        try:
+            traj = ctx.simulate(params, frames=horizon)
+        except SimulationDiverged:
+            if step < main or not options.polish or best_grads is None:
+                break
+            traj = None  # a polishing step too long for the simulator: take it back
+        if traj is not None:
+            loss = ctx.loss(traj, fit_frames)
+            value = float(loss.detach())
+            history.append(value)
+            improved = value < best_start[0]
+            if improved:
+                best_start = (value, snapshot(vector, u))
+            loss.backward()
+            if step < settle:
+                u.grad = None  # Adam skips a leaf without a gradient: the coefficient holds
+            if not gradients_finite(leaves):
+                break  # a NaN step would poison every later one: the start ends at its best
+            if improved:
+                best_grads = [None if p.grad is None else p.grad.clone() for p in leaves]
+        if options.polish and step >= main and (traj is None or not improved):
+            _back_to_best(optimizer, vector, u, best_start[1], leaves, best_grads)
+        optimizer.step()
+        with torch.no_grad():
+            for leaf in vector.normalized.values():
+                leaf.clamp_(0.0, 1.0)
+            if candidate is not None:
+                u.copy_(candidate.clamp(u * scale) / scale)
+    return best_start[0], best_start[1], history
+
+
+def _back_to_best(optimizer, vector, u, best: dict, leaves: list, best_grads: list) -> None:
+    """Polishing after a step that did not lower the loss: back to the best point, and half the
+    step from there. Adam starts afresh, so that step is the gradient's sign per coordinate,
+    which lowers the loss once it is short enough (the moments of steps that overshot need
+    not)."""
+    restore(vector, u, best)
+    for leaf, grad in zip(leaves, best_grads):
+        leaf.grad = None if grad is None else grad.clone()
+    optimizer.state.clear()
+    for group in optimizer.param_groups:
+        group["lr"] *= 0.5
 
 
 def predict(ctx: RunContext, ranked: list[Fit]) -> Fit:
@@ -298,7 +358,8 @@ def converge_null(
     model too, so a null that did not reach them is under-converged, and every candidate would
     win the held-out test against it by optimisation alone (without this step, three of six
     controls of the full suite were rejected by the information criterion only). The null
-    becomes the better of itself and a refit begun at the best switched-off candidate (``replaces``).
+    becomes the better of itself and a refit begun at the best switched-off candidate
+    (``replaces``).
     """
     # a null whose prediction diverged is continued from the best candidate state whatever
     # its fit loss: one that predicts every frame replaces it (``replaces``)
@@ -338,8 +399,8 @@ def converge_candidates(
     without this step: a candidate contains the null (its coefficients at zero), so at its
     optimum it fits at least as well, yet 31 of 101 candidate refits fitted worse, even when
     continued from the null alone; and linear and quadratic drag, hard to tell apart, were
-    named the wrong way round on three of four drag scenes. The mirror of ``converge_null``: every model may start from the best state any
-    model found. A continued candidate replaces its refit only where it fits better (or
+    named the wrong way round on three of four drag scenes. The mirror of ``converge_null``:
+    every model may start from the best state any model found. A continued candidate replaces its refit only where it fits better (or
     predicts all frames where that refit's prediction diverged, see ``replaces``).
     """
     # the best state is one that predicts every frame: a diverged fit's shared parameters

@@ -140,7 +140,10 @@ def reidentify(
             object_id=-1,
             frame=-1,
             substep=-1,
-            reason=f"every re-identification rollout of {candidate.name if candidate else 'the null model'} diverged",
+            reason=(
+                "every re-identification rollout of "
+                f"{candidate.name if candidate else 'the null model'} diverged"
+            ),
             advice="lower identify.param_lr or raise the simulator's substeps",
         )
     params = assemble(vector, candidate, u, scale).detached()
