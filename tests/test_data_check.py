@@ -285,3 +285,34 @@ def test_missing_scene_folder(tmp_path):
     assert len(problems) == 1 and "does not exist" in problems[0].reason
     lines = []
     assert run_check(tmp_path / "nowhere", out=lines.append) == 1
+
+
+def test_scene_path_is_a_file(tmp_path):
+    """scene.path naming a file gets one clear line, and nothing is created beside it."""
+    a_file = tmp_path / "scene.json"
+    a_file.write_text("{}")
+    lines = []
+    assert run_check(a_file, out=lines.append) == 1
+    assert "is a file, not a scene folder" in lines[0] and str(a_file) in lines[0]
+    assert [p.name for p in tmp_path.iterdir()] == ["scene.json"]
+
+
+def test_cli_reports_gt_and_frame_problems_without_traceback(scene, capsys):
+    """`mosiv data check` runs validate_scene's rules: a frame that is a folder, a pickled
+    gt array and an object with 3 of 4 gt frames are each listed, with exit code 1."""
+    from mosiv_framework.cli.main import main
+
+    frame = scene / "rgb" / "cam_02" / "0001.png"
+    frame.unlink()
+    frame.mkdir()
+    with np.load(scene / "gt" / "points.npz") as npz:
+        arrays = dict(npz)
+    arrays["obj_1"] = np.array([{"x": 1}], dtype=object)
+    arrays["obj_2"] = arrays["obj_2"][:3]
+    np.savez(scene / "gt" / "points.npz", **arrays)
+    assert main(["data", "check", str(scene)]) == 1
+    out = capsys.readouterr()
+    assert "Traceback" not in out.out + out.err
+    assert "rgb/cam_02/0001.png: is a folder; expected a PNG file" in out.out
+    assert "gt/points.npz: obj_1: dtype object holds Python objects" in out.out
+    assert "gt/points.npz: obj_2: 3 frames, scene.json has n_frames = 4" in out.out

@@ -209,3 +209,34 @@ def test_read_errors_name_the_file(example, tmp_path):
 def test_example_refuses_a_non_empty_folder(example):
     with pytest.raises(FileExistsError, match="not empty"):
         write_example_scene(example)
+
+
+def test_readers_turn_bad_files_into_scene_format_errors(example, tmp_path):
+    """After read_scene, a gt file that breaks (or a scene changed under the reader) is a
+    SceneFormatError naming the file, never a numpy, zipfile, OSError or JSON traceback."""
+    root = Path(shutil.copytree(example, tmp_path / "scene"))
+    scene = read_scene(root)
+    points = root / "gt" / "points.npz"
+    points.write_bytes(points.read_bytes()[:100])
+    with pytest.raises(SceneFormatError, match="gt/points.npz: cannot be read as .npz"):
+        scene.gt_points()
+    (root / "gt" / "effects.json").write_text("{not json")
+    with pytest.raises(SceneFormatError, match="gt/effects.json: is not valid JSON"):
+        scene.gt_effects()
+    (root / "gt" / "params.json").unlink()
+    (root / "gt" / "params.json").mkdir()
+    with pytest.raises(SceneFormatError, match="gt/params.json: is a folder"):
+        scene.gt_params()
+
+
+def test_read_scene_names_files_that_change_while_read(example, tmp_path, monkeypatch):
+    root = Path(shutil.copytree(example, tmp_path / "scene"))
+    from mosiv_framework.scene import io as scene_io
+
+    def vanished(path):
+        raise FileNotFoundError(2, "No such file or directory", str(root / "cameras.json"))
+
+    monkeypatch.setattr(scene_io, "_build_scene", vanished)
+    with pytest.raises(SceneFormatError, match="changed while being read") as err:
+        read_scene(root)
+    assert str(root / "cameras.json") in str(err.value)
