@@ -18,6 +18,7 @@ from omegaconf import OmegaConf
 
 from mosiv_framework.interfaces import Simulator
 from mosiv_framework.pipeline import run_pipeline
+from mosiv_framework.pipeline.formats import read_history
 from mosiv_framework.recipes import validate_recipe
 from mosiv_framework.registry import Component, Registry, hookimpl, manager
 from mosiv_framework.types import Trajectory
@@ -103,7 +104,7 @@ def test_pipeline_recovers_ballistic_motion_and_resumes(tmp_path, registry):
     assert metrics["future"]["cd_mm2"] < 1.0
     for k, err in metrics["param_error"].items():
         assert err["initial_velocity"]["rel_error"] < 0.02, (k, err)
-    history = json.loads((run / "identify/history.json").read_text())
+    history = read_history(run / "identify/history.json")
     horizons = [h["horizon"] for h in history]
     assert horizons[0] == 2 and horizons[-1] == 3 and horizons == sorted(horizons)  # curriculum
 
@@ -124,6 +125,47 @@ def test_pipeline_recovers_ballistic_motion_and_resumes(tmp_path, registry):
     # the starting point's loss, 10 iterations, the evaluation rollout
     assert Ballistic.calls == 12
     assert (run / "reconstruction.pt").stat().st_mtime_ns == before
+
+
+def test_run_files_carry_their_format_and_older_files_still_resume(tmp_path, registry):
+    from mosiv_framework.pipeline import formats
+
+    recipe = make_recipe(tmp_path, registry, velocity_iterations=6)
+    run = tmp_path / "run"
+    run_pipeline(recipe, run_dir=run)
+    expected = {
+        "metrics.json": formats.METRICS,
+        "identified.json": formats.IDENTIFIED,
+        "identify/history.json": formats.HISTORY,
+        "stages/reconstruct.json": formats.STAGE,
+        "stages/identify.json": formats.STAGE,
+        "stages/evaluate.json": formats.STAGE,
+    }
+    for name, fmt in expected.items():
+        assert json.loads((run / name).read_text())["format"] == fmt, name
+    assert (run / "recipe.yaml").read_text().splitlines()[0] == f"# {formats.RECIPE}"
+
+    # the layout written before the field existed: no "format", the history a bare list
+    for name in expected:
+        data = json.loads((run / name).read_text())
+        if name == "identify/history.json":
+            data = data["entries"]
+        else:
+            del data["format"]
+        (run / name).write_text(json.dumps(data))
+    assert read_history(run / "identify/history.json")
+    Ballistic.calls = 0
+    run_pipeline(recipe, run_dir=run)
+    assert Ballistic.calls == 0  # every stage resumed from the older files
+
+    # a layout from a newer MOSIV is refused, naming the file, field, value and what is read
+    metrics = json.loads((run / "metrics.json").read_text())
+    (run / "metrics.json").write_text(json.dumps({**metrics, "format": "mosiv-metrics/9"}))
+    with pytest.raises(formats.FormatError) as err:
+        run_pipeline(recipe, run_dir=run)
+    message = str(err.value)
+    for part in ("metrics.json", "'format'", "'mosiv-metrics/9'", "'mosiv-metrics/1'"):
+        assert part in message, (part, message)
 
 
 def test_interrupted_identification_resumes_from_checkpoint(tmp_path, registry, monkeypatch):
@@ -148,7 +190,7 @@ def test_interrupted_identification_resumes_from_checkpoint(tmp_path, registry, 
     run_pipeline(recipe, run_dir=tmp_path / "run")
     # checkpoint after iteration 20: 10 more iterations + the evaluation rollout
     assert Ballistic.calls == 11
-    history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
+    history = read_history(tmp_path / "run" / "identify/history.json")
     assert [h["iteration"] for h in history] == list(range(30))
 
 
@@ -175,7 +217,7 @@ def test_a_diverged_rollout_steps_back_and_continues(tmp_path, registry, monkeyp
     Ballistic.calls = 0
     monkeypatch.setattr(Ballistic, "rollout", _diverging_on_calls((6, 7), object_id=1))
     metrics = run_pipeline(make_recipe(tmp_path, registry), run_dir=tmp_path / "run")
-    history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
+    history = read_history(tmp_path / "run" / "identify/history.json")
     assert [h["iteration"] for h in history if "diverged" in h] == [5, 6]
     # each consecutive failure steps one accepted iterate further back: to where iteration 4
     # started (logged after iteration 3's step), then to where iteration 3 started
@@ -194,7 +236,7 @@ def test_a_phase_whose_every_step_back_diverges_stops_at_its_best_iterate(
     Ballistic.calls = 0
     monkeypatch.setattr(Ballistic, "rollout", _diverging_on_calls(failing, object_id=2))
     metrics = run_pipeline(make_recipe(tmp_path, registry), run_dir=tmp_path / "run")
-    history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
+    history = read_history(tmp_path / "run" / "identify/history.json")
     assert [h["iteration"] for h in history if "diverged" in h] == list(range(10, 16))
     stopped = [h for h in history if "stopped_early" in h]
     assert [h["iteration"] for h in stopped] == [16] and "object 2" in stopped[0]["stopped_early"]
@@ -234,7 +276,7 @@ def test_resync_refits_a_wrong_initial_velocity_during_the_parameter_phase(
         errors[every] = max(
             e["initial_velocity"]["rel_error"] for e in metrics["param_error"].values()
         )
-        history = json.loads((run / "identify/history.json").read_text())
+        history = read_history(run / "identify/history.json")
         resyncs = [h for h in history if h["phase"] == "resync"]
         assert [h["iteration"] for h in resyncs] == ([4, 8] if every else [])
         for h in resyncs:  # the best iterate is kept: never worse than where it started
@@ -267,7 +309,7 @@ def test_a_non_finite_gradient_steps_back_like_a_divergence(tmp_path, registry, 
     Ballistic.calls = 0
     monkeypatch.setattr(Ballistic, "rollout", _with_extra_term(poison))
     metrics = run_pipeline(make_recipe(tmp_path, registry), run_dir=tmp_path / "run")
-    history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
+    history = read_history(tmp_path / "run" / "identify/history.json")
     stepped_back = [h for h in history if "diverged" in h]
     assert [h["iteration"] for h in stepped_back] == [4, 5]
     assert all("non-finite gradient of v0.obj" in h["diverged"] for h in stepped_back)
@@ -292,7 +334,7 @@ def test_a_parameter_without_gradient_holds_still(tmp_path, registry, monkeypatc
     monkeypatch.setattr(Ballistic, "rollout", _with_extra_term(stiffness_matters_early))
     recipe = make_recipe(tmp_path, registry, velocity_iterations=0, param_iterations=12)
     run_pipeline(recipe, run_dir=tmp_path / "run")
-    history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
+    history = read_history(tmp_path / "run" / "identify/history.json")
     e_values = [h["values"]["objects"]["1"]["params"]["E"] for h in history if "loss" in h]
     assert e_values[0] != e_values[2]  # it did move while it mattered
     assert len(set(e_values[2:])) == 1  # and holds still from then on
@@ -305,7 +347,7 @@ def test_the_parameter_curriculum_starts_after_the_free_flight(tmp_path, registr
     monkeypatch.setattr(identification, "free_flight_frames", lambda *a, **k: 3)
     recipe = make_recipe(tmp_path, registry, param_iterations=6, horizon_start=1)
     run_pipeline(recipe, run_dir=tmp_path / "run")
-    history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
+    history = read_history(tmp_path / "run" / "identify/history.json")
     velocity = [h["horizon"] for h in history if h["phase"] == "velocity"]
     params = [h["horizon"] for h in history if h["phase"] == "params"]
     assert (min(velocity), max(velocity)) == (1, 2)

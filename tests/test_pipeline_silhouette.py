@@ -3,7 +3,6 @@ gradient against central differences, and the silhouette loss running inside the
 
 from __future__ import annotations
 
-import json
 import math
 
 import pytest
@@ -88,6 +87,7 @@ def test_splat_gradient_matches_central_differences():
 def test_silhouette_loss_runs_in_the_pipeline(tmp_path, monkeypatch):
     from mosiv_framework.interfaces import Simulator
     from mosiv_framework.pipeline import run_pipeline
+    from mosiv_framework.pipeline.formats import read_history
     from mosiv_framework.recipes import validate_recipe
     from mosiv_framework.registry import Component, Registry, hookimpl, manager
     from mosiv_framework.types import Trajectory
@@ -128,7 +128,7 @@ def test_silhouette_loss_runs_in_the_pipeline(tmp_path, monkeypatch):
     resolved, problems = validate_recipe(raw, reg)
     assert problems == []
     metrics = run_pipeline(OmegaConf.create(resolved), run_dir=tmp_path / "run")
-    history = json.loads((tmp_path / "run" / "identify/history.json").read_text())
+    history = read_history(tmp_path / "run" / "identify/history.json")
     assert all(set(h["terms"]) == {"chamfer", "silhouette"} for h in history)
     # the recorded masks and the splatted particles agree for the true motion
     assert all(h["terms"]["silhouette"] < 0.05 for h in history)

@@ -11,6 +11,7 @@ from omegaconf import OmegaConf
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.losses import WeightedSum
+from mosiv_framework.pipeline import formats
 from mosiv_framework.pipeline.evaluate import plot_history, plot_parameters
 from mosiv_framework.pipeline.identify import identify
 from mosiv_framework.pipeline.library import library_params, pick_prototypes
@@ -95,8 +96,8 @@ def identify_stage(recipe, scene, particles, reconstruction, simulator, sim_opti
     if library:
         fit = dict(simulator=simulator, particles=sim_particles, objective=objective)
         _choose_prototypes(section, scene, targets, vector, identified_json, rd, **fit)
-    rd.save_json("identify/history.json", history)
-    rd.save_json("identified.json", identified_json)
+    rd.save_json("identify/history.json", formats.stamped_entries(formats.HISTORY, history))
+    rd.save_json("identified.json", formats.stamped(formats.IDENTIFIED, identified_json))
     plot_history(history, rd.path("identify/loss.png"))
     plot_parameters(history, rd.path("identify/parameters.png"))
     return ParameterVector.from_json(identified_json)
@@ -178,7 +179,7 @@ def _choose_prototypes(
         entry["family"] = proto.family
         entry["params"] = {n: float(v) for n, v in sorted(params.objects[k].values.items())}
     identified_json["library"] = {str(k): p.name for k, p in choice.items()}
-    rd.save_json("identify/library.json", tried)
+    rd.save_json("identify/library.json", formats.stamped_entries(formats.LIBRARY, tried))
     log.info("library choice: %s", ", ".join(f"object {k}: {p.name}" for k, p in choice.items()))
 
 

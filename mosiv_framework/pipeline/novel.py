@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.laws import get_law
+from mosiv_framework.pipeline.formats import PARAMS, stamped
 from mosiv_framework.pipeline.params import (
     GROUND_FRICTION,
     ParameterVector,
@@ -251,6 +252,7 @@ def simulate_novel(
             fps=run.scene.fps,
         ),
     }
-    (out_dir / "params.json").write_text(json.dumps(params_json(params), indent=2) + "\n")
+    document = stamped(PARAMS, params_json(params))
+    (out_dir / "params.json").write_text(json.dumps(document, indent=2) + "\n")
     written["params"] = out_dir / "params.json"
     return written

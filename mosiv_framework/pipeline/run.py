@@ -16,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.pipeline.evaluate import evaluate_run
+from mosiv_framework.pipeline.formats import recipe_header
 from mosiv_framework.pipeline.identification import check_terms_supported, identify_stage
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.pipeline.rundir import RunDir, fingerprint
@@ -51,7 +52,7 @@ def run_pipeline(recipe: DictConfig, *, run_dir: Path) -> dict:
     t_start = time.perf_counter()
     rd = RunDir(run_dir)
     plain = OmegaConf.to_container(recipe, resolve=True)
-    rd.write_bytes("recipe.yaml", OmegaConf.to_yaml(recipe).encode())
+    rd.write_bytes("recipe.yaml", recipe_header() + OmegaConf.to_yaml(recipe).encode())
     scene = ensure_scene(recipe.scene, rd)
     log.info(
         "scene %r: %d objects, %d cameras, %d frames (%d observed)",

@@ -17,6 +17,8 @@ from typing import Any
 
 import torch
 
+from mosiv_framework.pipeline.formats import STAGE, check_format, formats_of, stamped
+
 
 def fingerprint(*parts: Any) -> str:
     """A short stable hash of JSON-serialisable configuration pieces."""
@@ -47,7 +49,11 @@ class RunDir:
         return self.write_bytes(name, (json.dumps(data, indent=2, default=float) + "\n").encode())
 
     def load_json(self, name: str) -> Any:
-        return json.loads(self.path(name).read_text())
+        """The JSON file ``name``; a run file of a format this version cannot read raises
+        FormatError (see ``mosiv_framework.pipeline.formats``)."""
+        data = json.loads(self.path(name).read_text())
+        supported = formats_of(name)
+        return data if supported is None else check_format(data, supported, path=self.path(name))
 
     def save_torch(self, name: str, obj: Any) -> Path:
         buffer = io.BytesIO()
@@ -58,8 +64,8 @@ class RunDir:
         return torch.load(self.path(name), weights_only=False)
 
     def stage_done(self, stage: str, config_hash: str) -> bool:
-        marker = self.path(f"stages/{stage}.json")
-        return marker.is_file() and json.loads(marker.read_text()).get("config") == config_hash
+        name = f"stages/{stage}.json"
+        return self.path(name).is_file() and self.load_json(name).get("config") == config_hash
 
     def mark_done(self, stage: str, config_hash: str, **info: Any) -> None:
-        self.save_json(f"stages/{stage}.json", {"config": config_hash, **info})
+        self.save_json(f"stages/{stage}.json", stamped(STAGE, {"config": config_hash, **info}))
