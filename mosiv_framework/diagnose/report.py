@@ -158,33 +158,49 @@ def _frame_ranges(frames: list[int]) -> str:
     return ", ".join(f"{r[0]}-{r[-1]}" if len(r) > 1 else f"{r[0]}" for r in runs)
 
 
+#: the flagged object's location entries the summary's ``where`` repeats
+WHERE_KEYS = (
+    "window",
+    "onset_frame",
+    "signal_to_noise",
+    "noise_floor_m",
+    "jitter_m",
+    "sampling_m",
+    "targets_tracked",
+    "direction_fraction",
+)
+
+
 def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
     """Write diagnosis.json, diagnosis.md and the plots; returns the JSON-ready summary."""
     rd = ctx.run_dir
     rd.path("diagnose").mkdir(exist_ok=True)
     plot_location(location, fps=ctx.fps, path=rd.path("diagnose/residuals.png"))
+    summary = _summary(location, result, ctx.observed_frames)
+    trajectories = _null_trajectories(ctx, result.get("null"))
+    fit = result["accepted"]
+    if fit is not None:
+        summary["accepted"] = _accepted_record(ctx, fit, result["interval"])
+        trajectories[f"with {fit.name}"] = fit.trajectory
+    plot_paths(ctx, trajectories, rd.path("diagnose/paths.png"))
+    rd.save_json("diagnosis.json", summary)
+    rd.write_bytes("diagnosis.md", _markdown(summary).encode())
+    return summary
+
+
+def _summary(location: Location, result: dict, observed: int) -> dict:
+    """diagnosis.json without the accepted term (``accepted`` None)."""
     errors = result["errors"]
-    observed = ctx.observed_frames
-    summary = {
+    null = result.get("null")
+    flagged = location.summary["objects"][str(location.flagged_object)]
+    return {
         "format": DIAGNOSIS_FORMAT,
         "verdict": result["verdict"],
         "where": {
             "object": location.flagged_object,
             "regimes": location.flagged_regimes,
             "significant": location.significant,
-            **{
-                key: location.summary["objects"][str(location.flagged_object)][key]
-                for key in (
-                    "window",
-                    "onset_frame",
-                    "signal_to_noise",
-                    "noise_floor_m",
-                    "jitter_m",
-                    "sampling_m",
-                    "targets_tracked",
-                    "direction_fraction",
-                )
-            },
+            **{key: flagged[key] for key in WHERE_KEYS},
         },
         "location": location.summary,
         "frames": result["frames"],
@@ -196,56 +212,55 @@ def write_report(ctx: RunContext, location: Location, result: dict) -> dict:
         # the [object, frame] tables themselves, so another decision rule can be replayed on
         # a finished diagnosis without refitting anything
         "frame_errors_mm2": {name: saved_table(e) for name, e in errors.items()},
-        "null_parameters": result["null"].n_params if result.get("null") is not None else None,
+        "null_parameters": null.n_params if null is not None else None,
         # the decision rule (``DecideOptions``) the evidence was judged by, for a replay
         "rule": result.get("rule"),
         # a candidate's name where the null was refitted again from its switched-off parameters
-        "null_started_from": (
-            result["null"].started_from if result.get("null") is not None else None
-        ),
+        "null_started_from": null.started_from if null is not None else None,
         # whether the null kept was identified afresh (``reidentify``) rather than refitted
-        "null_reidentified": (
-            result["null"].reidentified if result.get("null") is not None else False
-        ),
+        "null_reidentified": null.reidentified if null is not None else False,
         # where the null's prediction over all frames diverged (``model.Fit.diverged``)
-        "null_diverged": result["null"].diverged if result.get("null") is not None else None,
-        # how far the null's prediction moves on resampled particles (``floor.py``): recorded,
-        # not yet part of the rule, so that a replay can weigh the held-out drops against it
+        "null_diverged": null.diverged if null is not None else None,
+        # how far the null's prediction moves on resampled particles (``floor.py``): the unit
+        # of the own-effect test, recorded so that a replay can apply it
         "resolution_floor_mm2": summarise_floor(result.get("resolution_floor"), result["frames"]),
         "accepted": None,
         # time of this attempt; the steps it took from an earlier, cut-off one (``steps.py``)
         "time_s": result["time_s"],
         "resumed_steps": result.get("resumed_steps", []),
     }
+
+
+def _null_trajectories(ctx: RunContext, null) -> dict:
+    """The paths plot's rollouts before the accepted term: the identified model and the null
+    refit (drawn up to where it diverged, if it did)."""
     trajectories = {"identified": ctx.identified_rollout()}
-    null = result.get("null")
     if null is not None and null.trajectory is not None:
         trajectories["refit without new physics"] = null.trajectory
-    elif null is not None and null.reached is not None:  # drawn up to where it diverged
+    elif null is not None and null.reached is not None:
         trajectories["refit without new physics (diverged)"] = null.reached
-    fit = result["accepted"]
-    if fit is not None:
-        lower, upper = result["interval"]
-        summary["accepted"] = {
-            "name": fit.name,
-            "description": fit.candidate.description,
-            "coefficients": dict(zip(fit.candidate.coefficient_names, fit.theta.tolist())),
-            "interval_95": {
-                n: [lo, hi] for n, lo, hi in zip(fit.candidate.coefficient_names, lower, upper)
-            },
-            "units": dict(zip(fit.candidate.coefficient_names, fit.candidate.units)),
-            "value": fit.candidate.physical(fit.theta),
-            "starts": [{"theta": th, "fit_loss_m2": loss} for th, loss in fit.starts],
-            "param_shift": _param_shift(ctx.identified, fit.params),
-            "recipe_change": recipe_change(
-                fit, OmegaConf.to_container(ctx.recipe, resolve=True).get("physics_terms")
-            ),
-        }
-        trajectories[f"with {fit.name}"] = fit.trajectory
-    plot_paths(ctx, trajectories, rd.path("diagnose/paths.png"))
-    rd.save_json("diagnosis.json", summary)
-    rd.write_bytes("diagnosis.md", _markdown(summary).encode())
-    return summary
+    return trajectories
+
+
+def _accepted_record(ctx: RunContext, fit, interval) -> dict:
+    """diagnosis.json's ``accepted``: the term, its coefficients with their 95 % interval
+    (``interval``: lower and upper per coefficient), the shift of the run's parameters and
+    the recipe change that adds it."""
+    names = fit.candidate.coefficient_names
+    lower, upper = interval
+    return {
+        "name": fit.name,
+        "description": fit.candidate.description,
+        "coefficients": dict(zip(names, fit.theta.tolist())),
+        "interval_95": {n: [lo, hi] for n, lo, hi in zip(names, lower, upper)},
+        "units": dict(zip(names, fit.candidate.units)),
+        "value": fit.candidate.physical(fit.theta),
+        "starts": [{"theta": th, "fit_loss_m2": loss} for th, loss in fit.starts],
+        "param_shift": _param_shift(ctx.identified, fit.params),
+        "recipe_change": recipe_change(
+            fit, OmegaConf.to_container(ctx.recipe, resolve=True).get("physics_terms")
+        ),
+    }
 
 
 def _fmt(x, spec: str = ".4g") -> str:
@@ -257,160 +272,181 @@ def _pct(x) -> str:
 
 
 def _markdown(s: dict) -> str:
-    where = s["where"]
-    lines = [
+    """diagnosis.md: where the model misses, what was left out (if a term was accepted), the
+    errors, the evidence and the screening."""
+    lines = _where_lines(s["where"], s["verdict"])
+    if s["accepted"] is not None:
+        lines += _accepted_lines(s["accepted"])
+    lines += _error_lines(s["errors"])
+    if s["evidence"]:
+        lines += _evidence_lines(s)
+    if s["screening"]:
+        lines += _screening_lines(s["screening"])
+    return "\n".join(lines)
+
+
+def _where_lines(where: dict, verdict: str) -> list[str]:
+    sampling = (
+        "none, targets tracked"
+        if where["targets_tracked"]
+        else f"{where['sampling_m'] * 1e3:.3g} mm"
+    )
+    directions = ", ".join(f"{d} {100 * f:.0f} %" for d, f in where["direction_fraction"].items())
+    return [
         "# Diagnosis",
         "",
-        f"**Verdict: {s['verdict']}.**",
+        f"**Verdict: {verdict}.**",
         "",
         "## Where",
         f"Object {where['object']} carries the largest unexplained error: centroid residual "
         f"{where['signal_to_noise']:.3g} x its noise floor ({where['noise_floor_m'] * 1e3:.3g} mm: "
-        f"frame jitter {where['jitter_m'] * 1e3:.3g} mm, centroid sampling "
-        + (
-            "none, targets tracked"
-            if where["targets_tracked"]
-            else f"{where['sampling_m'] * 1e3:.3g} mm"
-        )
-        + "), "
+        f"frame jitter {where['jitter_m'] * 1e3:.3g} mm, centroid sampling {sampling}), "
         f"from frame {where['onset_frame']} (change point) to {where['window'][1]}, in regimes "
-        f"{', '.join(where['regimes'])}. Residual by direction: "
-        + ", ".join(f"{d} {100 * f:.0f} %" for d, f in where["direction_fraction"].items())
-        + ".",
+        f"{', '.join(where['regimes'])}. Residual by direction: {directions}.",
         "",
         "![residuals](diagnose/residuals.png)",
         "",
     ]
-    acc = s["accepted"]
-    if acc is not None:
-        lines += [
-            "## What was left out",
-            f"{acc['description']} (`{acc['name']}`):",
-            "",
-            "| coefficient | value | 95 % interval | unit |",
-            "|---|---|---|---|",
-        ]
-        for name, value in acc["coefficients"].items():
-            lo, hi = acc["interval_95"][name]
-            lines.append(f"| {name} | {value:.4g} | [{lo:.4g}, {hi:.4g}] | {acc['units'][name]} |")
-        lines += ["", "Shift of the original parameters when refitted with it:", ""]
-        lines += [
-            "| object | parameter | before | after | relative change |",
-            "|---|---|---|---|---|",
-        ]
-        for k, rows in acc["param_shift"].items():
-            if k == "ground_friction":
-                continue
-            for name, row in rows.items():
-                if name == "initial_velocity":
-                    b = ", ".join(f"{x:.3g}" for x in row["before"])
-                    a = ", ".join(f"{x:.3g}" for x in row["after"])
-                    lines.append(f"| {k} | v0 (m/s) | {b} | {a} | {row['rel_change']:.2%} |")
-                else:
-                    lines.append(
-                        f"| {k} | {name} | {row['before']:.4g} | {row['after']:.4g} | {row['rel_change']:.2%} |"
-                    )
-        lines += [
-            "",
-            "Recipe change that adds it:",
-            "",
-            "```yaml",
-            acc["recipe_change"].rstrip(),
-            "```",
-            "",
-        ]
+
+
+def _accepted_lines(acc: dict) -> list[str]:
+    lines = [
+        "## What was left out",
+        f"{acc['description']} (`{acc['name']}`):",
+        "",
+        "| coefficient | value | 95 % interval | unit |",
+        "|---|---|---|---|",
+    ]
+    for name, value in acc["coefficients"].items():
+        lo, hi = acc["interval_95"][name]
+        lines.append(f"| {name} | {value:.4g} | [{lo:.4g}, {hi:.4g}] | {acc['units'][name]} |")
+    lines += ["", "Shift of the original parameters when refitted with it:", ""]
     lines += [
+        "| object | parameter | before | after | relative change |",
+        "|---|---|---|---|---|",
+    ]
+    for k, rows in acc["param_shift"].items():
+        if k == "ground_friction":
+            continue
+        for name, row in rows.items():
+            if name == "initial_velocity":
+                b = ", ".join(f"{x:.3g}" for x in row["before"])
+                a = ", ".join(f"{x:.3g}" for x in row["after"])
+                lines.append(f"| {k} | v0 (m/s) | {b} | {a} | {row['rel_change']:.2%} |")
+            else:
+                lines.append(
+                    f"| {k} | {name} | {row['before']:.4g} | {row['after']:.4g} "
+                    f"| {row['rel_change']:.2%} |"
+                )
+    return lines + [
+        "",
+        "Recipe change that adds it:",
+        "",
+        "```yaml",
+        acc["recipe_change"].rstrip(),
+        "```",
+        "",
+    ]
+
+
+def _error_lines(errors: dict) -> list[str]:
+    lines = [
         "## Errors (mean Chamfer against the run's targets, mm^2)",
         "",
         "| model | observed | future |",
         "|---|---|---|",
     ]
-    for name, e in s["errors"].items():
+    for name, e in errors.items():
         lines.append(f"| {name} | {_fmt(e['observed_cd_mm2'])} | {_fmt(e['future_cd_mm2'])} |")
-    lines += ["", "![paths](diagnose/paths.png)", ""]
-    if s["evidence"]:
+    return lines + ["", "![paths](diagnose/paths.png)", ""]
+
+
+def _evidence_lines(s: dict) -> list[str]:
+    floor = s.get("resolution_floor_mm2")
+    lines = ["## Evidence (against the null model refitted with the same budget)", ""]
+    if floor:
         lines += [
-            "## Evidence (against the null model refitted with the same budget)",
+            "Resolution floor (the null's prediction on resampled particles against its "
+            f"own, in excess of frame 0): {_fmt(floor['fit'])} mm^2 on the fit frames, "
+            f"{_fmt(floor['heldout'])} mm^2 on the held-out frames.",
             "",
-            *(
-                [
-                    f"Resolution floor (the null's prediction on resampled particles against its "
-                    f"own, in excess of frame 0): {_fmt(s['resolution_floor_mm2']['fit'])} mm^2 on the fit frames, "
-                    f"{_fmt(s['resolution_floor_mm2']['heldout'])} mm^2 on the held-out frames.",
-                    "",
-                ]
-                if s.get("resolution_floor_mm2")
-                else []
-            ),
-            f"Every model was refitted on frames {_frame_ranges(s['frames']['fit'])} and judged "
-            f"on the held-out frames {_frame_ranges(s['frames']['heldout'])}."
-            + (
-                f" The null model was refitted again from {s['null_started_from']}'s refit "
-                "with its effect switched off, which fitted better than the null's own refit."
-                if s.get("null_started_from")
-                else ""
-            )
-            + (
-                " The null model kept is the one identified afresh on the fit frames, which "
-                "fitted better than its refit."
-                if s.get("null_reidentified") and not s.get("null_started_from")
-                else ""
-            )
-            + (
-                f" The null model's prediction diverged ({s['null_diverged']}): the candidates "
-                "are judged only on the held-out frames it reached."
-                if s.get("null_diverged")
-                else ""
-            ),
-            "",
-            "| candidate | refitted coefficients | 95 % interval | held-out drop | bootstrap sd "
-            "| dBIC | held-out | BIC | own effect, fit frames (mm^2) | accepted |",
-            "|---|---|---|---|---|---|---|---|---|---|",
         ]
-        for e in s["evidence"]:
-            theta = ", ".join(f"{x:.3g}" for x in e["theta"]) if e.get("theta") else "-"
-            # a candidate refitted again from the best model's shared parameters (its own refit
-            # fitted worse, see ``model.converge_candidates``)
-            mark = f" (from {e['started_from']})" if e.get("started_from") else ""
-            if e.get("reidentified") and not e.get("started_from"):
-                mark = " (identified afresh)"  # see ``reidentify``
-            interval = (
-                ", ".join(f"[{lo:.3g}, {hi:.3g}]" for lo, hi in e["interval"])
-                if e.get("interval")
-                else "-"
-            )
-            if not e.get("passes_interval", True):
-                interval += " (includes zero)"
-            held = "pass" if e["passes_heldout"] else "fail"
-            if e.get("diverged"):
-                held += " (prediction diverged)"
-            lines.append(
-                f"| {e['name']}{mark} | {theta} | {interval} | {_pct(e['heldout_drop'])} | "
-                f"{_pct(e['heldout_spread'])} | "
-                f"{_fmt(e['delta_bic'], '.3g')} | {held} | "
-                f"{'pass' if e['passes_bic'] else 'fail'} | {_effect_cell(e)} | "
-                f"{'yes' if e['accepted'] else 'no'} |"
-            )
-        lines.append("")
-        # why a candidate whose prediction blew up was not accepted, in the simulator's words
-        lines += [
-            f"- `{e['name']}` was not accepted: its prediction diverged ({e['diverged']})."
-            for e in s["evidence"]
-            if e.get("diverged")
-        ]
-        if any(e.get("diverged") for e in s["evidence"]):
-            lines.append("")
-    if s["screening"]:
-        lines += [
-            "## Screening",
-            "",
-            "| candidate | allowed | predicted drop | score | note |",
-            "|---|---|---|---|---|",
-        ]
-        for r in s["screening"]:
-            lines.append(
-                f"| {r['name']} | {'yes' if r['allowed'] else 'no'} | {r['predicted_drop_fraction']:.2%} | "
-                f"{_fmt(r['score'])} | {r['note']} |"
-            )
-        lines.append("")
-    return "\n".join(lines)
+    lines += [
+        _how_judged(s),
+        "",
+        "| candidate | refitted coefficients | 95 % interval | held-out drop | bootstrap sd "
+        "| dBIC | held-out | BIC | own effect, fit frames (mm^2) | accepted |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    lines += [_evidence_row(e) for e in s["evidence"]]
+    lines.append("")
+    # why a candidate whose prediction blew up was not accepted, in the simulator's words
+    diverged = [e for e in s["evidence"] if e.get("diverged")]
+    lines += [
+        f"- `{e['name']}` was not accepted: its prediction diverged ({e['diverged']})."
+        for e in diverged
+    ]
+    return lines + ([""] if diverged else [])
+
+
+def _how_judged(s: dict) -> str:
+    """Which frames the models were refitted and judged on, and which null was kept."""
+    text = (
+        f"Every model was refitted on frames {_frame_ranges(s['frames']['fit'])} and judged "
+        f"on the held-out frames {_frame_ranges(s['frames']['heldout'])}."
+    )
+    if s.get("null_started_from"):
+        text += (
+            f" The null model was refitted again from {s['null_started_from']}'s refit "
+            "with its effect switched off, which fitted better than the null's own refit."
+        )
+    elif s.get("null_reidentified"):
+        text += (
+            " The null model kept is the one identified afresh on the fit frames, which "
+            "fitted better than its refit."
+        )
+    if s.get("null_diverged"):
+        text += (
+            f" The null model's prediction diverged ({s['null_diverged']}): the candidates "
+            "are judged only on the held-out frames it reached."
+        )
+    return text
+
+
+def _evidence_row(e: dict) -> str:
+    theta = ", ".join(f"{x:.3g}" for x in e["theta"]) if e.get("theta") else "-"
+    # a candidate refitted again from the best model's shared parameters (its own refit
+    # fitted worse, see ``model.converge_candidates``)
+    mark = f" (from {e['started_from']})" if e.get("started_from") else ""
+    if e.get("reidentified") and not e.get("started_from"):
+        mark = " (identified afresh)"  # see ``reidentify``
+    interval = (
+        ", ".join(f"[{lo:.3g}, {hi:.3g}]" for lo, hi in e["interval"]) if e.get("interval") else "-"
+    )
+    if not e.get("passes_interval", True):
+        interval += " (includes zero)"
+    held = "pass" if e["passes_heldout"] else "fail"
+    if e.get("diverged"):
+        held += " (prediction diverged)"
+    return (
+        f"| {e['name']}{mark} | {theta} | {interval} | {_pct(e['heldout_drop'])} | "
+        f"{_pct(e['heldout_spread'])} | "
+        f"{_fmt(e['delta_bic'], '.3g')} | {held} | "
+        f"{'pass' if e['passes_bic'] else 'fail'} | {_effect_cell(e)} | "
+        f"{'yes' if e['accepted'] else 'no'} |"
+    )
+
+
+def _screening_lines(screening: list[dict]) -> list[str]:
+    lines = [
+        "## Screening",
+        "",
+        "| candidate | allowed | predicted drop | score | note |",
+        "|---|---|---|---|---|",
+    ]
+    for r in screening:
+        lines.append(
+            f"| {r['name']} | {'yes' if r['allowed'] else 'no'} "
+            f"| {r['predicted_drop_fraction']:.2%} | {_fmt(r['score'])} | {r['note']} |"
+        )
+    return lines + [""]
