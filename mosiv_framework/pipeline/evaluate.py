@@ -1,6 +1,6 @@
 """Evaluation: roll the identified model over observed and future frames and score it.
 
-Writes ``metrics.json`` in the shape of DESIGN.md section 5.4 and plots a person would rather
+Writes ``metrics.json`` in the shape docs/ARCHITECTURE.md gives ("metrics.json") and plots a person would rather
 look at than read: per-object centroid paths (prediction vs reference) and the loss curve.
 """
 

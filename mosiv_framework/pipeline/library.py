@@ -1,6 +1,6 @@
 """The discrete-library baseline: pick each object's material from fixed prototypes.
 
-The OmniPhysGS-style comparison of DESIGN.md section 5: instead of refining continuous
+The OmniPhysGS-style comparison (docs/ARCHITECTURE.md, Stage III): instead of refining continuous
 parameters, every object gets one entry of a small, fixed table of material prototypes, chosen
 by the observed-frame loss of a full rollout. No parameter is ever adjusted continuously, so the
 baseline is exactly as good as its table's nearest entry.

@@ -50,7 +50,7 @@ def initial_velocity_from_points(
     / 2 after n steps, i.e. c0 + (v0 + g h / 2) t + g t^2 / 2: the line's slope is v0 + g h / 2,
     so g h / 2 is taken off. Without it, the velocities handed to that simulator are off by
     g h / 2 (3.4 mm/s at 24 fps and 60 substeps), which identification did not fully remove and
-    a diagnosis then took for a gravity change (sessions 15-17, every control scene).
+    a diagnosis then took for a gravity change (in every control scene of the diagnosis suite).
     """
     g = torch.tensor(gravity, dtype=torch.float64)
     out = {}
