@@ -1,7 +1,8 @@
 """Evaluation: roll the identified model over observed and future frames and score it.
 
-Writes ``metrics.json`` in the shape docs/ARCHITECTURE.md gives ("metrics.json") and plots a person would rather
-look at than read: per-object centroid paths (prediction vs reference) and the loss curve.
+Writes ``metrics.json`` in the layout docs/ARCHITECTURE.md gives ("metrics.json") and plots a
+person would rather look at than read: per-object centroid paths (prediction vs reference) and
+the loss curve.
 """
 
 from __future__ import annotations
