@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import tempfile
+from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 
@@ -85,6 +86,53 @@ def _camera_record(cam, cid: str, resolution: int) -> Camera:
     )  # fmt: skip
 
 
+@dataclass
+class _Plan:
+    """Everything decided in numpy before Genesis is touched (see ``_plan``)."""
+
+    name: str
+    shapes: list[str]
+    families: list[str]
+    meshes: list
+    params: list[dict[str, float]]
+    frame_c: int  # the frame at which the objects meet
+    effects: list
+    gravity: np.ndarray  # the true gravity (a concealed "gravity" effect replaces the declared)
+    wind: np.ndarray | float
+    layout: P.Layout
+
+
+def _plan(opts: GenesisOptions, rng: np.random.Generator) -> _Plan:
+    """Shapes, materials, sizes, parameters, collision frame, effects and layout, drawn from
+    ``rng`` in a fixed order (the same seed gives the same scene)."""
+    k = opts.n_objects
+    shapes = opts.shapes or [str(s) for s in rng.choice(P.SHAPE_NAMES, k, replace=False)]
+    families = opts.materials or [str(m) for m in rng.choice(P.GENESIS_FAMILIES, k)]
+    sizes = rng.uniform(*P.SIZE_LIMITS, size=k)
+    meshes = [P.make_mesh(s, float(z), P.random_rotation(rng)) for s, z in zip(shapes, sizes)]
+    params = [P.sample_params(f, rng) for f in families]
+    frame_c = opts.collision_frame or int(
+        rng.integers(max(2, opts.observed_frames // 3), max(3, opts.observed_frames // 2) + 1)
+    )
+    effects = parse_conceal(opts.conceal, kinds=GENESIS_KINDS)
+    gravity = np.array(
+        next(
+            (e.params["acceleration"] for e in effects if e.kind == "gravity"),
+            P.DECLARED_GRAVITY,
+        )
+    )
+    wind = next((np.array(e.params["acceleration"]) for e in effects if e.kind == "wind"), 0.0)
+    layout = P.plan_layout(
+        [m.vertices for m in meshes],
+        radii=[float(np.max(np.linalg.norm(m.vertices, axis=1))) for m in meshes],
+        collision_time=frame_c / opts.fps,
+        acceleration=gravity + wind,
+        rng=rng,
+    )
+    name = opts.scene_name or f"{'-'.join(families)}-{opts.seed:04d}"
+    return _Plan(name, shapes, families, meshes, params, frame_c, effects, gravity, wind, layout)
+
+
 class GenesisSource(SceneSource):
     """Generates one scene per ``generate`` call with the Genesis engine."""
 
@@ -98,133 +146,156 @@ class GenesisSource(SceneSource):
         opts = self.options
         gs = _genesis(opts.backend)
         rng = np.random.default_rng(opts.seed)
-        k = opts.n_objects
-        shapes = opts.shapes or [str(s) for s in rng.choice(P.SHAPE_NAMES, k, replace=False)]
-        families = opts.materials or [str(m) for m in rng.choice(P.GENESIS_FAMILIES, k)]
-        sizes = rng.uniform(*P.SIZE_LIMITS, size=k)
-        meshes = [P.make_mesh(s, float(z), P.random_rotation(rng)) for s, z in zip(shapes, sizes)]
-        params = [P.sample_params(f, rng) for f in families]
-        frame_c = opts.collision_frame or int(
-            rng.integers(max(2, opts.observed_frames // 3), max(3, opts.observed_frames // 2) + 1)
-        )
-        effects = parse_conceal(opts.conceal, kinds=GENESIS_KINDS)
-        gravity = np.array(
-            next(
-                (e.params["acceleration"] for e in effects if e.kind == "gravity"),
-                P.DECLARED_GRAVITY,
-            )
-        )
-        wind = next((np.array(e.params["acceleration"]) for e in effects if e.kind == "wind"), 0.0)
-        layout = P.plan_layout(
-            [m.vertices for m in meshes],
-            radii=[float(np.max(np.linalg.norm(m.vertices, axis=1))) for m in meshes],
-            collision_time=frame_c / opts.fps,
-            acceleration=gravity + wind,
-            rng=rng,
-        )
-        name = opts.scene_name or f"{'-'.join(families)}-{opts.seed:04d}"
-        pad = MPM_BOUNDARY_CELLS / opts.grid_density  # m
-
-        scene = gs.Scene(
-            sim_options=gs.options.SimOptions(
-                dt=1.0 / opts.fps, substeps=opts.substeps, gravity=tuple(gravity)
-            ),
-            mpm_options=gs.options.MPMOptions(
-                lower_bound=tuple(np.array(P.DOMAIN_LOWER) - pad),
-                upper_bound=tuple(np.array(P.DOMAIN_UPPER) + pad),
-                grid_density=opts.grid_density,
-                particle_size=opts.particle_size,
-            ),
-            vis_options=gs.options.VisOptions(
-                segmentation_level="entity",
-                show_world_frame=False,
-                background_color=P.BACKGROUNDS[int(rng.integers(len(P.BACKGROUNDS)))],
-            ),
-            show_viewer=False,
-            renderer=gs.renderers.Rasterizer(),
-        )
-        scene.add_entity(gs.morphs.Plane(pos=(0.0, 0.0, P.GROUND_HEIGHT)))
-        entities = []
+        plan = _plan(opts, rng)
+        scene = _empty_scene(gs, opts, plan.gravity, rng)
         with tempfile.TemporaryDirectory() as tmp:
-            for i, (mesh, start) in enumerate(zip(meshes, layout.starts), start=1):
-                path = Path(tmp) / f"object_{i}.obj"
-                mesh.export(path)
-                entities.append(
-                    scene.add_entity(
-                        material=_material(gs, families[i - 1], params[i - 1]),
-                        morph=gs.morphs.Mesh(file=str(path), scale=1.0, pos=tuple(start)),
-                        surface=gs.surfaces.Default(
-                            color=P.COLORS[shapes[i - 1]],
-                            vis_mode=_vis_mode(opts.vis_mode, families[i - 1]),
-                        ),
-                    )
-                )
-            for e in effects:  # gravity acts through SimOptions above
-                if e.kind == "wind":
-                    a = np.array(e.params["acceleration"])
-                    field = gs.force_fields.Constant(
-                        direction=tuple(a / max(np.linalg.norm(a), 1e-12)),
-                        strength=float(np.linalg.norm(a)),
-                    )
-                elif e.kind in ("linear_drag", "quadratic_drag"):
-                    kw = "linear" if e.kind == "linear_drag" else "quadratic"
-                    field = gs.force_fields.Drag(**{kw: e.params["coefficient"]})
-                else:
-                    continue
-                scene.add_force_field(field)
-                field.activate()
-            azimuth0 = float(rng.uniform(0.0, 2.0 * np.pi))
-            target = np.asarray(P.LOOK_AT)
-            gcams = [
-                scene.add_camera(
-                    res=(opts.resolution, opts.resolution),
-                    pos=tuple(target + P.CAMERA_DISTANCE * d),
-                    lookat=P.LOOK_AT,
-                    up=(0.0, 0.0, 1.0),
-                    fov=P.FOV_DEG,
-                    GUI=False,
-                )
-                for d in hemisphere_directions(opts.n_cameras, azimuth0=azimuth0)
-            ]
+            entities = _add_objects(gs, scene, opts, plan, Path(tmp))
+            _add_force_fields(gs, scene, plan.effects)
+            gcams = _add_cameras(scene, opts, rng)
             scene.build()
         cameras = [_camera_record(c, f"cam_{i:02d}", opts.resolution) for i, c in enumerate(gcams)]
-        # aim from where Genesis actually sampled the particles
-        t_c = frame_c / opts.fps
-        starts = [_positions(e).mean(axis=0) for e in entities]
-        velocities = [
-            launch_velocity(s, t, t_c, gravity + wind) for s, t in zip(starts, layout.targets)
-        ]
-        for entity, v in zip(entities, velocities):
-            entity.set_velocity(np.broadcast_to(v, (entity.n_particles, 3)).astype(np.float32))
-
+        starts, velocities = _aim(entities, opts, plan)
         writer = SceneWriter(
-            out_dir, name=name, fps=opts.fps, n_frames=opts.n_frames,
+            out_dir, name=plan.name, fps=opts.fps, n_frames=opts.n_frames,
             observed_frames=opts.observed_frames,
-            objects=[SceneObject(i, s, f) for i, (s, f) in enumerate(zip(shapes, families), 1)],
+            objects=[
+                SceneObject(i, s, f) for i, (s, f) in enumerate(zip(plan.shapes, plan.families), 1)
+            ],
             cameras=cameras, domain_lower=P.DOMAIN_LOWER, domain_upper=P.DOMAIN_UPPER,
             gravity=P.DECLARED_GRAVITY, ground_height=P.GROUND_HEIGHT,
         )  # fmt: skip
-        points: dict[int, list[np.ndarray]] = {i: [] for i in range(1, k + 1)}
-        for t in range(opts.n_frames):
-            if t > 0:
-                scene.step()
-            for i, entity in enumerate(entities, start=1):
-                points[i].append(_positions(entity))
-            lut = _mask_lut(scene, entities)
-            for cam, gcam in zip(cameras, gcams):
-                rgb, _, seg, _ = gcam.render(rgb=True, segmentation=True)
-                mask = lut[np.clip(np.asarray(seg, dtype=np.int64), 0, len(lut) - 1)]
-                writer.write_frame(cam.id, t, rgb=np.asarray(rgb, dtype=np.uint8), mask=mask)
-            if opts.progress:
-                print(f"genesis {name}: frame {t + 1}/{opts.n_frames}", flush=True)
+        points = _record(scene, entities, list(zip(cameras, gcams)), writer, opts, plan.name)
         writer.write_gt(
             points={i: np.stack(p) for i, p in points.items()},
             params=_gt_document(
-                shapes, families, params, starts, velocities, opts, layout, frame_c
+                plan.shapes,
+                plan.families,
+                plan.params,
+                starts,
+                velocities,
+                opts,
+                plan.layout,
+                plan.frame_c,
             ),
-            effects=[e.to_json() for e in effects] if effects else None,
+            effects=[e.to_json() for e in plan.effects] if plan.effects else None,
         )
         return writer.finish()
+
+
+def _empty_scene(gs, opts: GenesisOptions, gravity: np.ndarray, rng: np.random.Generator):
+    """The Genesis scene with its MPM box (grown by ``MPM_BOUNDARY_CELLS``), a background
+    colour drawn from ``rng``, and the table plane."""
+    pad = MPM_BOUNDARY_CELLS / opts.grid_density  # m
+    scene = gs.Scene(
+        sim_options=gs.options.SimOptions(
+            dt=1.0 / opts.fps, substeps=opts.substeps, gravity=tuple(gravity)
+        ),
+        mpm_options=gs.options.MPMOptions(
+            lower_bound=tuple(np.array(P.DOMAIN_LOWER) - pad),
+            upper_bound=tuple(np.array(P.DOMAIN_UPPER) + pad),
+            grid_density=opts.grid_density,
+            particle_size=opts.particle_size,
+        ),
+        vis_options=gs.options.VisOptions(
+            segmentation_level="entity",
+            show_world_frame=False,
+            background_color=P.BACKGROUNDS[int(rng.integers(len(P.BACKGROUNDS)))],
+        ),
+        show_viewer=False,
+        renderer=gs.renderers.Rasterizer(),
+    )
+    scene.add_entity(gs.morphs.Plane(pos=(0.0, 0.0, P.GROUND_HEIGHT)))
+    return scene
+
+
+def _add_objects(gs, scene, opts: GenesisOptions, plan: _Plan, tmp: Path) -> list:
+    """One MPM entity per object from its mesh (exported to ``tmp``, which must outlive
+    ``scene.build``) at its planned start."""
+    entities = []
+    for i, (mesh, start) in enumerate(zip(plan.meshes, plan.layout.starts), start=1):
+        path = tmp / f"object_{i}.obj"
+        mesh.export(path)
+        family = plan.families[i - 1]
+        entities.append(
+            scene.add_entity(
+                material=_material(gs, family, plan.params[i - 1]),
+                morph=gs.morphs.Mesh(file=str(path), scale=1.0, pos=tuple(start)),
+                surface=gs.surfaces.Default(
+                    color=P.COLORS[plan.shapes[i - 1]],
+                    vis_mode=_vis_mode(opts.vis_mode, family),
+                ),
+            )
+        )
+    return entities
+
+
+def _add_force_fields(gs, scene, effects) -> None:
+    """Concealed wind and drag as Genesis force fields (gravity acts through SimOptions)."""
+    for e in effects:
+        if e.kind == "wind":
+            a = np.array(e.params["acceleration"])
+            field = gs.force_fields.Constant(
+                direction=tuple(a / max(np.linalg.norm(a), 1e-12)),
+                strength=float(np.linalg.norm(a)),
+            )
+        elif e.kind in ("linear_drag", "quadratic_drag"):
+            kw = "linear" if e.kind == "linear_drag" else "quadratic"
+            field = gs.force_fields.Drag(**{kw: e.params["coefficient"]})
+        else:
+            continue
+        scene.add_force_field(field)
+        field.activate()
+
+
+def _add_cameras(scene, opts: GenesisOptions, rng: np.random.Generator) -> list:
+    """``n_cameras`` cameras on a hemisphere around the look-at point, the first azimuth drawn
+    from ``rng``."""
+    azimuth0 = float(rng.uniform(0.0, 2.0 * np.pi))
+    target = np.asarray(P.LOOK_AT)
+    return [
+        scene.add_camera(
+            res=(opts.resolution, opts.resolution),
+            pos=tuple(target + P.CAMERA_DISTANCE * d),
+            lookat=P.LOOK_AT,
+            up=(0.0, 0.0, 1.0),
+            fov=P.FOV_DEG,
+            GUI=False,
+        )
+        for d in hemisphere_directions(opts.n_cameras, azimuth0=azimuth0)
+    ]
+
+
+def _aim(entities, opts: GenesisOptions, plan: _Plan):
+    """Launch each object from where Genesis actually sampled its particles so that it reaches
+    its planned target at the collision frame; returns (start centroids, velocities)."""
+    t_c = plan.frame_c / opts.fps
+    starts = [_positions(e).mean(axis=0) for e in entities]
+    acceleration = plan.gravity + plan.wind
+    velocities = [
+        launch_velocity(s, t, t_c, acceleration) for s, t in zip(starts, plan.layout.targets)
+    ]
+    for entity, v in zip(entities, velocities):
+        entity.set_velocity(np.broadcast_to(v, (entity.n_particles, 3)).astype(np.float32))
+    return starts, velocities
+
+
+def _record(scene, entities, cameras, writer, opts: GenesisOptions, name: str) -> dict:
+    """Step one frame at a time, writing every (camera, Genesis camera) pair's RGB and mask;
+    returns object id -> per-frame particle positions."""
+    points: dict[int, list[np.ndarray]] = {i: [] for i in range(1, opts.n_objects + 1)}
+    for t in range(opts.n_frames):
+        if t > 0:
+            scene.step()
+        for i, entity in enumerate(entities, start=1):
+            points[i].append(_positions(entity))
+        lut = _mask_lut(scene, entities)
+        for cam, gcam in cameras:
+            rgb, _, seg, _ = gcam.render(rgb=True, segmentation=True)
+            mask = lut[np.clip(np.asarray(seg, dtype=np.int64), 0, len(lut) - 1)]
+            writer.write_frame(cam.id, t, rgb=np.asarray(rgb, dtype=np.uint8), mask=mask)
+        if opts.progress:
+            print(f"genesis {name}: frame {t + 1}/{opts.n_frames}", flush=True)
+    return points
 
 
 def _positions(entity) -> np.ndarray:
