@@ -49,19 +49,29 @@ def _first_line(exc: BaseException) -> str:
     return lines[0] if lines else type(exc).__name__
 
 
-def interpolation_problems(cfg: DictConfig | ListConfig) -> list[str]:
-    """Syntax errors and refused resolvers in ``cfg``'s unresolved strings, one per key."""
+def syntax_problems(raw: Any) -> list[str]:
+    """Strings of plain nested containers that are not valid interpolations, one per key."""
     from omegaconf import grammar_parser
 
     problems = []
+    for key, value in _leaves(raw):
+        if isinstance(value, str) and "${" in value:
+            try:
+                grammar_parser.parse(value)
+            except OmegaConfBaseException as exc:
+                reason = _first_line(exc)
+                problems.append(f"{key}={value!r}: not a valid interpolation ({reason})")
+    return problems
+
+
+def interpolation_problems(cfg: DictConfig | ListConfig) -> list[str]:
+    """Syntax errors and refused resolvers in ``cfg``'s unresolved strings, one per key."""
     raw = OmegaConf.to_container(cfg, resolve=False)
+    problems = syntax_problems(raw)
+    if problems:
+        return problems
     for key, value in _leaves(raw):
         if not isinstance(value, str) or "${" not in value:
-            continue
-        try:
-            grammar_parser.parse(value)
-        except OmegaConfBaseException as exc:
-            problems.append(f"{key}={value!r}: not a valid interpolation ({_first_line(exc)})")
             continue
         for name in _RESOLVER_CALL.findall(value):
             if name in ENVIRONMENT_RESOLVERS:

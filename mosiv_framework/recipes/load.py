@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from mosiv_framework.errors import ConfigError
-from mosiv_framework.recipes.interpolation import resolve_recipe
+from mosiv_framework.recipes.interpolation import resolve_recipe, syntax_problems
 from mosiv_framework.recipes.rules import cross_section_findings
 from mosiv_framework.recipes.schema import COMPONENT_SECTIONS, MULTI_COMPONENT_SECTIONS, Recipe
 from mosiv_framework.recipes.terms import check_physics_terms
@@ -65,8 +65,10 @@ def _load_yaml(path: Path) -> DictConfig:
         data = OmegaConf.load(io.StringIO(text)) if isinstance(node, yaml.MappingNode) else None
     except yaml.YAMLError as exc:  # yaml errors carry the line and column
         raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
-    except OmegaConfBaseException as exc:  # e.g. keys that are not strings or numbers
-        raise ConfigError(f"{path}: {_first_line(exc)}") from exc
+    except OmegaConfBaseException as exc:  # a bad interpolation, a key of an odd type
+        # the YAML itself parsed: name the keys whose strings are not valid interpolations
+        named = syntax_problems(yaml.safe_load(text))
+        raise ConfigError([f"{path}: {p}" for p in named] or f"{path}: {_first_line(exc)}") from exc
     if node is None or (isinstance(node, yaml.ScalarNode) and node.tag.endswith(":null")):
         raise ConfigError(
             f"{path}: the recipe file is empty (no sections); a recipe names at least its scene "

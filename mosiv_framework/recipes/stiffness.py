@@ -28,6 +28,7 @@ from typing import Any
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.laws import LAWS, get_law
+from mosiv_framework.recipes.schema import IdentifySection
 
 
 @dataclass(frozen=True)
@@ -89,7 +90,7 @@ def stiffness_findings(recipe: Mapping[str, Any], facts: SceneFacts) -> tuple[li
 
     simulator, identify = recipe.get("simulator") or {}, recipe.get("identify") or {}
     grid, substeps = simulator.get("grid"), simulator.get("substeps")
-    cfl = identify.get("stiffness_cfl", 0.0)
+    cfl = identify.get("stiffness_cfl", IdentifySection.stiffness_cfl)
     if not (_is_count(grid) and _is_count(substeps) and cfl > 0 and facts.fps > 0):
         return [], []  # no grid, no cap: nothing the recipe limits
     known = facts.families is not None
