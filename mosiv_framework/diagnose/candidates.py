@@ -188,109 +188,129 @@ def _is_vector(spec) -> bool:
 
 
 def build_candidates(ctx: RunContext) -> tuple[list[Candidate], list[str]]:
-    """Every effect the run's simulator can add; returns (candidates, reasons for skipped ones)."""
-    registry = get_registry()
-    supported = set(getattr(ctx.simulator, "supported_terms", frozenset()))
-    gravity = tuple(float(x) for x in ctx.world.gravity)
-    out, skipped = [], []
-    for component in registry.components("physics_term"):
-        term = component.factory()
-        if term.name not in supported:
-            skipped.append(f"{term.name}: simulator {ctx.simulator_name!r} does not implement it")
-            continue
-        if term.name in ctx.identified.terms:
-            skipped.append(f"{term.name}: already part of the fitted model")
-            continue
-        if term.name == "gravity":
-            if sum(g * g for g in gravity) == 0.0:
-                skipped.append("gravity: the scene declares none, so no direction to rescale")
-                continue
-            spec = term.params[0]
-            g_norm = sum(g * g for g in gravity) ** 0.5
-            scale = 0.01 * (spec.upper - spec.lower)
-            out.append(
-                Candidate(
-                    "gravity",
-                    "gravity",
-                    ["magnitude_change"],
-                    [spec.unit],
-                    # |g| may range over [0, the spec's bound]
-                    torch.tensor([-g_norm]),
-                    torch.tensor([spec.upper - g_norm]),
-                    torch.tensor([scale]),
-                    term.regimes,
-                    "gravity magnitude other than declared",
-                    term,
-                    {"gravity": gravity},
-                )
-            )
-            continue
-        names, units, lower, upper, step = [], [], [], [], []
-        for spec in term.params:
-            size = 3 if _is_vector(spec) else 1
-            for axis in range(size):
-                names.append(f"{spec.name}.{'xyz'[axis]}" if size == 3 else spec.name)
-                units.append(spec.unit)
-                lower.append(spec.lower)
-                upper.append(spec.upper)
-                # probe 1 % of the admissible range: visible in the loss, small enough for
-                # the quadratic model of the probe to hold
-                step.append(0.01 * (spec.upper - spec.lower))
-        out.append(
-            Candidate(
-                term.name,
-                "term",
-                names,
-                units,
-                torch.tensor(lower),
-                torch.tensor(upper),
-                torch.tensor(step),
-                term.regimes,
-                term.description or term.name,
-                term,
-            )
-        )
+    """Every effect the run's simulator can add; returns (candidates, reasons for skipped ones).
+
+    The registered physics terms the simulator implements and the model does not hold yet,
+    then a change of table friction, of body-body friction and of a body's plasticity where
+    the run did not identify them.
+    """
+    skipped: list[str] = []
+    out = _term_candidates(ctx, skipped)
     free = set(ctx.parameter_vector().normalized)
     if ctx.world.ground_height is not None:
         if "ground_friction" in free:
             skipped.append("ground_friction: already identified by the run")
         else:
-            mu = float(ctx.identified.ground_friction)
-            out.append(
-                Candidate(
-                    "ground_friction",
-                    "ground_friction",
-                    ["ground_friction_change"],
-                    ["1"],
-                    torch.tensor([GROUND_FRICTION.lower - mu]),
-                    torch.tensor([GROUND_FRICTION.upper - mu]),
-                    torch.tensor([0.01 * (GROUND_FRICTION.upper - GROUND_FRICTION.lower)]),
-                    GROUND_REGIMES,
-                    "table Coulomb friction other than assumed",
-                    base={"ground_friction": mu},
-                )
-            )
+            out.append(_ground_friction_candidate(ctx))
     if len(ctx.object_ids) > 1:
         if any(key.endswith(".friction") for key in free):
             skipped.append("object_friction: already identified by the run")
         else:
-            mus = [float(p.values["friction"]) for p in ctx.identified.objects.values()]
-            out.append(
-                Candidate(
-                    "object_friction",
-                    "object_friction",
-                    ["friction_change"],
-                    ["1"],
-                    torch.tensor([FRICTION.lower - min(mus)]),
-                    torch.tensor([FRICTION.upper - max(mus)]),
-                    torch.tensor([0.01 * (FRICTION.upper - FRICTION.lower)]),
-                    CONTACT_REGIMES,
-                    "object-object Coulomb friction other than assumed",
-                    base={"friction": mus},
-                )
-            )
+            out.append(_object_friction_candidate(ctx))
     out += _plasticity_candidates(ctx, skipped)
     return out, skipped
+
+
+def _term_candidates(ctx: RunContext, skipped: list[str]) -> list[Candidate]:
+    """A candidate per registered physics term the run's simulator implements and its model
+    lacks; the reason for each other one is appended to ``skipped``."""
+    supported = set(getattr(ctx.simulator, "supported_terms", frozenset()))
+    gravity = tuple(float(x) for x in ctx.world.gravity)
+    out = []
+    for component in get_registry().components("physics_term"):
+        term = component.factory()
+        if term.name not in supported:
+            skipped.append(f"{term.name}: simulator {ctx.simulator_name!r} does not implement it")
+        elif term.name in ctx.identified.terms:
+            skipped.append(f"{term.name}: already part of the fitted model")
+        elif term.name != "gravity":
+            out.append(_term_candidate(term))
+        elif sum(g * g for g in gravity) == 0.0:
+            skipped.append("gravity: the scene declares none, so no direction to rescale")
+        else:
+            out.append(_gravity_candidate(term, gravity))
+    return out
+
+
+def _gravity_candidate(term, gravity: tuple[float, ...]) -> Candidate:
+    """A change of gravity's magnitude along its declared direction."""
+    spec = term.params[0]
+    g_norm = sum(g * g for g in gravity) ** 0.5
+    return Candidate(
+        "gravity",
+        "gravity",
+        ["magnitude_change"],
+        [spec.unit],
+        # |g| may range over [0, the spec's bound]
+        torch.tensor([-g_norm]),
+        torch.tensor([spec.upper - g_norm]),
+        torch.tensor([0.01 * (spec.upper - spec.lower)]),
+        term.regimes,
+        "gravity magnitude other than declared",
+        term,
+        {"gravity": gravity},
+    )
+
+
+def _term_candidate(term) -> Candidate:
+    """A physics term's parameters as coefficients (a vector parameter as three)."""
+    names, units, lower, upper, step = [], [], [], [], []
+    for spec in term.params:
+        size = 3 if _is_vector(spec) else 1
+        for axis in range(size):
+            names.append(f"{spec.name}.{'xyz'[axis]}" if size == 3 else spec.name)
+            units.append(spec.unit)
+            lower.append(spec.lower)
+            upper.append(spec.upper)
+            # probe 1 % of the admissible range: visible in the loss, small enough for
+            # the quadratic model of the probe to hold
+            step.append(0.01 * (spec.upper - spec.lower))
+    return Candidate(
+        term.name,
+        "term",
+        names,
+        units,
+        torch.tensor(lower),
+        torch.tensor(upper),
+        torch.tensor(step),
+        term.regimes,
+        term.description or term.name,
+        term,
+    )
+
+
+def _ground_friction_candidate(ctx: RunContext) -> Candidate:
+    """A change of the table's Coulomb friction from the run's value, within its bounds."""
+    mu = float(ctx.identified.ground_friction)
+    return Candidate(
+        "ground_friction",
+        "ground_friction",
+        ["ground_friction_change"],
+        ["1"],
+        torch.tensor([GROUND_FRICTION.lower - mu]),
+        torch.tensor([GROUND_FRICTION.upper - mu]),
+        torch.tensor([0.01 * (GROUND_FRICTION.upper - GROUND_FRICTION.lower)]),
+        GROUND_REGIMES,
+        "table Coulomb friction other than assumed",
+        base={"ground_friction": mu},
+    )
+
+
+def _object_friction_candidate(ctx: RunContext) -> Candidate:
+    """One change of every body's friction, keeping each within the parameter's bounds."""
+    mus = [float(p.values["friction"]) for p in ctx.identified.objects.values()]
+    return Candidate(
+        "object_friction",
+        "object_friction",
+        ["friction_change"],
+        ["1"],
+        torch.tensor([FRICTION.lower - min(mus)]),
+        torch.tensor([FRICTION.upper - max(mus)]),
+        torch.tensor([0.01 * (FRICTION.upper - FRICTION.lower)]),
+        CONTACT_REGIMES,
+        "object-object Coulomb friction other than assumed",
+        base={"friction": mus},
+    )
 
 
 def _plasticity_candidates(ctx: RunContext, skipped: list[str]) -> list[Candidate]:

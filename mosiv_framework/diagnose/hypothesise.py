@@ -357,7 +357,14 @@ def screen(
     residuals: dict | None = None,
     regimes: dict[int, list[str]] | None = None,
 ) -> list[Screen]:
-    """Screen ``candidates`` on the loss over ``fit_frames``; returns them best first."""
+    """Screen ``candidates`` on the loss over ``fit_frames``; returns them best first.
+
+    A candidate acting in none of ``flagged_regimes`` is not screened. A candidate with a
+    ladder (``Candidate.ladder``) is read off its rungs (``_screen_ladder``); every other one
+    from the loss's gradient at zero, a probe one natural step along the descent direction and
+    a walk further out (``_screen_by_gradient``). ``residuals`` and ``regimes`` (the location's)
+    add the free-flight regression's estimate where a candidate has one.
+    """
     allowed = [c for c in candidates if c.regimes & set(flagged_regimes)]
     out = [
         Screen(c, False, [], c.zero(), 0.0, -math.inf, f"acts only in {sorted(c.regimes)}")
@@ -366,95 +373,133 @@ def screen(
     ]
     if not allowed:
         return out
-    horizon = max(fit_frames)
     n = len(fit_frames) * len(ctx.object_ids)
     laddered = [c for c in allowed if c.ladder is not None]
     by_gradient = [c for c in allowed if c.ladder is None]
+    base, thetas = _loss_at_zero(ctx, by_gradient, fit_frames)
+    out += [_screen_ladder(ctx, c, base, n=n, fit_frames=fit_frames) for c in laddered]
+    reference = base  # what a velocity change alone reaches: candidates get no credit for it
+    if residuals is not None and regimes is not None:
+        reference = _velocity_only_loss(ctx, base, residuals, regimes, fit_frames)
+    for c, theta in zip(by_gradient, thetas):
+        out.append(
+            _screen_by_gradient(
+                ctx,
+                c,
+                theta.grad.detach().clone(),
+                base,
+                reference,
+                n=n,
+                fit_frames=fit_frames,
+                residuals=residuals,
+                regimes=regimes,
+            )
+        )
+    out.sort(key=lambda s: s.score, reverse=True)
+    return out
+
+
+def _loss_at_zero(
+    ctx: RunContext, by_gradient: list[Candidate], fit_frames: list[int]
+) -> tuple[float, list[torch.Tensor]]:
+    """The loss of the run's identified model over the fit frames, and each of ``by_gradient``
+    's zero coefficient with the loss's gradient in ``.grad`` (one rollout for all)."""
     thetas = [c.zero().requires_grad_(True) for c in by_gradient]
     params = ctx.identified.detached()
     for c, theta in zip(by_gradient, thetas):
         params = c.apply(params, theta)
     with torch.set_grad_enabled(bool(by_gradient)):
-        loss0 = ctx.loss(ctx.simulate(params, frames=horizon), fit_frames)
+        loss0 = ctx.loss(ctx.simulate(params, frames=max(fit_frames)), fit_frames)
     if by_gradient:
         loss0.backward()
-    base = float(loss0.detach())
-    out += [_screen_ladder(ctx, c, base, n=n, fit_frames=fit_frames) for c in laddered]
-    reference = base  # what a velocity change alone reaches: candidates get no credit for it
-    if residuals is not None and regimes is not None:
-        null = regression_estimate(ctx, None, residuals, regimes, fit_frames)
-        if null is not None:
-            try:
-                with torch.no_grad():
-                    moved = shifted_velocities(ctx.identified, null[1])
-                    loss = float(ctx.loss(ctx.rollout(moved, frames=horizon), fit_frames))
-                reference = min(base, loss) if math.isfinite(loss) else base
-            except SimulationDiverged:
-                pass
-    for c, theta in zip(by_gradient, thetas):
-        g = theta.grad.detach().clone()
-        # descent direction preconditioned by each coefficient's natural size, then one
-        # natural step long
-        direction = -g * c.step**2
-        at_lower = (direction < 0) & (c.lower >= 0)
-        at_upper = (direction > 0) & (c.upper <= 0)
-        direction[at_lower | at_upper] = 0.0
-        size = float((direction / c.step).norm())
-        if size == 0.0:
-            out.append(_screen_flat(ctx, c, base, g, n=n, fit_frames=fit_frames))
-            continue
-        direction = direction / size
-        slope = float(g @ direction)
-        try:
-            probe = ctx.loss(
-                ctx.rollout(c.apply(ctx.identified, direction), frames=horizon), fit_frames
-            )
-        except SimulationDiverged as exc:
-            out.append(
-                Screen(c, True, g.tolist(), c.zero(), 0.0, -math.inf, f"probe diverged: {exc}")
-            )
-            continue
-        curvature = 2.0 * (float(probe) - base - slope)
-        limit = _max_step(c, direction)
-        if curvature > 0:
-            step = min(-slope / curvature, limit)
-            predicted = base + slope * step + 0.5 * curvature * step**2
-        else:  # concave: the quadratic model has no minimum; the probe is what is known
-            step, predicted = 1.0, float(probe)
-        walk_note = ""
-        far, far_loss = _walk_out(ctx, c, direction, limit, fit_frames=fit_frames)
-        top = _walk_end(limit)
-        if far_loss < predicted:
-            step, predicted = far, far_loss
-            walk_note = f"walked {far:.3g} steps along the descent direction; "
-        drop = base - predicted
-        fraction = max(0.0, drop / base) if base > 0 else 0.0
-        regression, gain, note = None, None, walk_note
-        if residuals is not None and regimes is not None:
-            regression = regression_estimate(ctx, c, residuals, regimes, fit_frames)
-            gain = regression_gain(ctx, c, residuals, regimes, fit_frames)
-        if regression is not None:
-            by_regression = regression_drop(
-                ctx, c, regression, reference=reference, fit_frames=fit_frames
-            )
-            note += f"probe drop {fraction:.3g}, regression drop {by_regression:.3g}"
-            fraction = max(fraction, by_regression)
-        out.append(
-            Screen(
-                c,
-                True,
-                g.tolist(),
-                (step * direction).detach(),
-                fraction,
-                bic_gain(fraction, n=n, dim=c.dim),
-                note,
-                regression=regression,
-                regression_gain=gain,
-                far=None if top is None else (top * direction).detach(),
-            )
+    return float(loss0.detach()), thetas
+
+
+def _velocity_only_loss(
+    ctx: RunContext, base: float, residuals: dict, regimes: dict, fit_frames: list[int]
+) -> float:
+    """The lower of ``base`` and the loss with the initial-velocity change the null model's
+    centroid regression implies (``base`` where there is none or its rollout fails)."""
+    null = regression_estimate(ctx, None, residuals, regimes, fit_frames)
+    if null is None:
+        return base
+    try:
+        with torch.no_grad():
+            moved = shifted_velocities(ctx.identified, null[1])
+            loss = float(ctx.loss(ctx.rollout(moved, frames=max(fit_frames)), fit_frames))
+    except SimulationDiverged:
+        return base
+    return min(base, loss) if math.isfinite(loss) else base
+
+
+def _screen_by_gradient(
+    ctx: RunContext,
+    c: Candidate,
+    g: torch.Tensor,
+    base: float,
+    reference: float,
+    *,
+    n: int,
+    fit_frames: list[int],
+    residuals: dict | None,
+    regimes: dict | None,
+) -> Screen:
+    """One candidate screened from the gradient ``g`` of the loss at zero: the quadratic model
+    through a probe one natural step along the descent direction, a walk further out, and
+    (with ``residuals``) the regression estimate, whichever predicts the larger drop."""
+    # descent direction preconditioned by each coefficient's natural size, then one
+    # natural step long
+    direction = -g * c.step**2
+    at_lower = (direction < 0) & (c.lower >= 0)
+    at_upper = (direction > 0) & (c.upper <= 0)
+    direction[at_lower | at_upper] = 0.0
+    size = float((direction / c.step).norm())
+    if size == 0.0:
+        return _screen_flat(ctx, c, base, g, n=n, fit_frames=fit_frames)
+    direction = direction / size
+    slope = float(g @ direction)
+    try:
+        probe = ctx.loss(
+            ctx.rollout(c.apply(ctx.identified, direction), frames=max(fit_frames)), fit_frames
         )
-    out.sort(key=lambda s: s.score, reverse=True)
-    return out
+    except SimulationDiverged as exc:
+        return Screen(c, True, g.tolist(), c.zero(), 0.0, -math.inf, f"probe diverged: {exc}")
+    curvature = 2.0 * (float(probe) - base - slope)
+    limit = _max_step(c, direction)
+    if curvature > 0:
+        step = min(-slope / curvature, limit)
+        predicted = base + slope * step + 0.5 * curvature * step**2
+    else:  # concave: the quadratic model has no minimum; the probe is what is known
+        step, predicted = 1.0, float(probe)
+    note = ""
+    far, far_loss = _walk_out(ctx, c, direction, limit, fit_frames=fit_frames)
+    top = _walk_end(limit)
+    if far_loss < predicted:
+        step, predicted = far, far_loss
+        note = f"walked {far:.3g} steps along the descent direction; "
+    fraction = max(0.0, (base - predicted) / base) if base > 0 else 0.0
+    regression, gain = None, None
+    if residuals is not None and regimes is not None:
+        regression = regression_estimate(ctx, c, residuals, regimes, fit_frames)
+        gain = regression_gain(ctx, c, residuals, regimes, fit_frames)
+    if regression is not None:
+        by_regression = regression_drop(
+            ctx, c, regression, reference=reference, fit_frames=fit_frames
+        )
+        note += f"probe drop {fraction:.3g}, regression drop {by_regression:.3g}"
+        fraction = max(fraction, by_regression)
+    return Screen(
+        c,
+        True,
+        g.tolist(),
+        (step * direction).detach(),
+        fraction,
+        bic_gain(fraction, n=n, dim=c.dim),
+        note,
+        regression=regression,
+        regression_gain=gain,
+        far=None if top is None else (top * direction).detach(),
+    )
 
 
 #: a regression gain (BIC decrease) this large is "very strong" evidence (Kass and Raftery

@@ -337,49 +337,17 @@ def locate(
     traj = ctx.identified_rollout() if traj is None else traj
     residuals = object_residuals(ctx, traj, frames)
     spacing = particle_spacing(ctx.particles.volumes)
-    grid = ctx.recipe.simulator.get("grid", None)
-    dx = ctx.world.extent / float(grid) if grid else spacing
     gravity = np.asarray(ctx.world.gravity, dtype=np.float64)
     up = (
         -gravity / np.linalg.norm(gravity) if np.linalg.norm(gravity) > 0 else np.array([0, 0, 1.0])
     )
-    regimes = label_regimes(
-        traj.positions[:frames],
-        traj.object_ids,
-        fps=ctx.fps,
-        ground_height=ctx.world.ground_height,
-        contact_distance=max(1.5 * spacing, dx),
-        rest_speed=0.5 * spacing * ctx.fps,
-        up=tuple(up),
-    )
+    regimes = _regimes(ctx, traj, frames, spacing=spacing, up=up)
     floors, onsets, per_object = {}, {}, {}
     for k, res in residuals.items():
-        noise = estimate_noise(res.centroid, ctx.targets[k][:frames].double().numpy())
-        floors[k] = noise.floor
-        magnitude = np.linalg.norm(res.centroid, axis=1)
-        onsets[k] = hinge_change_point(magnitude)[0]
-        window = list(range(onsets[k], frames))
-        rms = float(np.sqrt((magnitude[1:] ** 2).mean())) if frames > 1 else 0.0
-        directions = decompose_direction(
-            res.centroid[window], res.sim_velocity[window], up=up, min_speed=0.5 * spacing * ctx.fps
+        targets = ctx.targets[k][:frames].double().numpy()
+        per_object[str(k)], floors[k], onsets[k] = _object_summary(
+            res, targets, regimes[k], frames=frames, min_speed=0.5 * spacing * ctx.fps, up=up
         )
-        directions["internal"] = float(
-            np.clip(res.internal[window] - res.internal[0], 0.0, None).sum()
-        )
-        total = sum(directions.values()) or 1.0
-        counts = {r: regimes[k][onsets[k] :].count(r) for r in REGIMES}
-        per_object[str(k)] = {
-            "centroid_rms_m": rms,
-            **noise.to_json(),
-            "signal_to_noise": rms / max(floors[k], 1e-12),
-            "chamfer_m2": res.chamfer.tolist(),
-            "centroid_residual_m": res.centroid.tolist(),
-            "onset_frame": onsets[k],
-            "window": [onsets[k], frames - 1],
-            "regimes": regimes[k],
-            "window_regimes": {r: n for r, n in counts.items() if n},
-            "direction_fraction": {d: e / total for d, e in directions.items()},
-        }
     snr = {k: per_object[str(k)]["signal_to_noise"] for k in residuals}
     flagged = max(snr, key=snr.get)
     significant = snr[flagged] > SIGNIFICANCE
@@ -399,17 +367,7 @@ def locate(
         "objects": per_object,
     }
     if silhouettes is not None:
-        summary["silhouette"] = {
-            "views": silhouettes["views"],
-            "per_view_excess": {
-                str(k): (silhouettes["residual"][k] - silhouettes["floor"][k]).mean(0).tolist()
-                for k in residuals
-            },
-            "spread_across_views": {
-                str(k): float((silhouettes["residual"][k] - silhouettes["floor"][k]).std(1).mean())
-                for k in residuals
-            },
-        }
+        summary["silhouette"] = _silhouette_summary(silhouettes, residuals)
     return Location(
         residuals,
         regimes,
@@ -421,6 +379,77 @@ def locate(
         silhouettes,
         summary,
     )
+
+
+def _regimes(
+    ctx: RunContext, traj: Trajectory, frames: int, *, spacing: float, up: np.ndarray
+) -> dict[int, list[str]]:
+    """``label_regimes`` of the rollout's first ``frames`` frames, with contact closer than the
+    larger of 1.5 particle spacings and a grid cell, and rest below half a spacing per frame."""
+    grid = ctx.recipe.simulator.get("grid", None)
+    dx = ctx.world.extent / float(grid) if grid else spacing
+    return label_regimes(
+        traj.positions[:frames],
+        traj.object_ids,
+        fps=ctx.fps,
+        ground_height=ctx.world.ground_height,
+        contact_distance=max(1.5 * spacing, dx),
+        rest_speed=0.5 * spacing * ctx.fps,
+        up=tuple(up),
+    )
+
+
+def _object_summary(
+    res: ObjectResiduals,
+    targets: np.ndarray,
+    regimes: list[str],
+    *,
+    frames: int,
+    min_speed: float,
+    up: np.ndarray,
+) -> tuple[dict, float, int]:
+    """(the location summary's entry for one object, its noise floor, its onset frame): the
+    residual against the noise floor, the change point where it begins, the regimes after it
+    and the residual's split by direction."""
+    noise = estimate_noise(res.centroid, targets)
+    magnitude = np.linalg.norm(res.centroid, axis=1)
+    onset = hinge_change_point(magnitude)[0]
+    window = list(range(onset, frames))
+    rms = float(np.sqrt((magnitude[1:] ** 2).mean())) if frames > 1 else 0.0
+    directions = decompose_direction(
+        res.centroid[window], res.sim_velocity[window], up=up, min_speed=min_speed
+    )
+    directions["internal"] = float(np.clip(res.internal[window] - res.internal[0], 0.0, None).sum())
+    total = sum(directions.values()) or 1.0
+    counts = {r: regimes[onset:].count(r) for r in REGIMES}
+    entry = {
+        "centroid_rms_m": rms,
+        **noise.to_json(),
+        "signal_to_noise": rms / max(noise.floor, 1e-12),
+        "chamfer_m2": res.chamfer.tolist(),
+        "centroid_residual_m": res.centroid.tolist(),
+        "onset_frame": onset,
+        "window": [onset, frames - 1],
+        "regimes": regimes,
+        "window_regimes": {r: n for r, n in counts.items() if n},
+        "direction_fraction": {d: e / total for d, e in directions.items()},
+    }
+    return entry, noise.floor, onset
+
+
+def _silhouette_summary(silhouettes: dict, residuals: dict) -> dict:
+    """The silhouettes' excess over their floor per view, and its spread across views."""
+    return {
+        "views": silhouettes["views"],
+        "per_view_excess": {
+            str(k): (silhouettes["residual"][k] - silhouettes["floor"][k]).mean(0).tolist()
+            for k in residuals
+        },
+        "spread_across_views": {
+            str(k): float((silhouettes["residual"][k] - silhouettes["floor"][k]).std(1).mean())
+            for k in residuals
+        },
+    }
 
 
 def plot_location(location: Location, *, fps: float, path) -> None:

@@ -400,8 +400,9 @@ def converge_candidates(
     optimum it fits at least as well, yet 31 of 101 candidate refits fitted worse, even when
     continued from the null alone; and linear and quadratic drag, hard to tell apart, were
     named the wrong way round on three of four drag scenes. The mirror of ``converge_null``:
-    every model may start from the best state any model found. A continued candidate replaces its refit only where it fits better (or
-    predicts all frames where that refit's prediction diverged, see ``replaces``).
+    every model may start from the best state any model found. A continued candidate replaces
+    its refit only where it fits better (or predicts all frames where that refit's prediction
+    diverged, see ``replaces``).
     """
     # the best state is one that predicts every frame: a diverged fit's shared parameters
     # blow up after the fit frames, and a diverged fit is continued whatever its loss

@@ -4,8 +4,9 @@ A full diagnosis refits and re-identifies five models one after another: about 2
 scene on a shared H200 (docs/BENCHMARKS.md), and a machine lost mid-diagnosis would lose all of
 it. Each expensive step (the location, the screening, each model's refit, each fresh
 identification and the converging refits) is saved under ``RUN/diagnose/steps/`` as soon as it
-finishes, with a key of everything it depends on (``STEP_FORMAT`` among it); a later ``mosiv diagnose`` of the same run, budget and
-identified model takes it from there instead of computing it again.
+finishes, with a key of everything it depends on (``STEP_FORMAT`` among it); a later
+``mosiv diagnose`` of the same run, budget and identified model takes it from there instead of
+computing it again.
 
 The saved steps are removed once the report is written: they are for resuming, not a second
 record, so that diagnosing a finished run again still recomputes it.
