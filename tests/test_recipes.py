@@ -126,3 +126,39 @@ def test_recipe_show_prints_resolved_recipe(capsys):
     assert main(["recipe", "show", str(RECIPES / "quickstart.yaml"), "identify.seed=3"]) == 0
     shown = OmegaConf.create(capsys.readouterr().out)
     assert shown.identify.seed == 3 and shown.simulator.name == "warp-mpm"
+
+
+def test_stiffness_cap_reads_an_existing_scene_before_its_source(tmp_path):
+    """scene.json, when present, gives the frame rate, domain and families the cap is checked
+    against; at twice the quickstart's 24 fps the 8-substep cap is four times lower still."""
+    import json
+
+    from mosiv_framework.recipes import check_recipe
+
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    objects = [{"id": 1, "name": "a", "material": "elastic"}]
+    domain = {"lower": [-0.4, -0.4, 0.0], "upper": [0.4, 0.4, 0.6]}
+    (scene / "scene.json").write_text(json.dumps({"fps": 48, "domain": domain, "objects": objects}))
+    overrides = [f"scene.path={scene}", "simulator.substeps=8"]
+    with pytest.raises(ConfigError) as err:
+        check_recipe(RECIPES / "quickstart.yaml", overrides)
+    (problem,) = err.value.problems
+    assert "caps E of object 1 (elastic) at 19,200 Pa" in problem  # 4,800 Pa x (48/24)^2
+    assert "48 fps" in problem
+
+
+def test_random_families_make_the_cap_a_warning(tmp_path):
+    """A source that draws the families at random: a low cap is reported per family as a
+    warning, since the scene may hold none of them."""
+    from mosiv_framework.recipes import check_recipe
+
+    overrides = [
+        f"scene.path={tmp_path / 'scene'}",
+        "scene.source.materials=random",
+        "simulator.substeps=8",
+    ]
+    _, warnings = check_recipe(RECIPES / "quickstart.yaml", overrides)
+    assert any(
+        "elastic or plasticine or snow objects (drawn at random) at 4,800 Pa" in w for w in warnings
+    ), warnings

@@ -64,3 +64,26 @@ def test_identify_choices_are_checked_and_named():
     text = "\n".join(err.value.problems)
     assert "identify.method='guess': valid values are ['gradient', 'library']" in text
     assert "identify.velocity_window='some'" in text and "identify.param_lr=0" in text
+
+
+@pytest.mark.parametrize(
+    "name", sorted(str(p.relative_to(RECIPES)) for p in RECIPES.rglob("*.yaml"))
+)
+def test_shipped_recipe_passes_the_cross_section_rules(name):
+    """No shipped recipe (diagnosis ones included) trips a rule between sections: the only
+    warnings are stiffness caps, each above the 5e4 Pa the synthetic scenes are drawn around
+    (a cap below the start is an error, so it would not load at all)."""
+    from mosiv_framework.recipes import check_recipe
+
+    recipe, warnings = check_recipe(RECIPES / name)
+    assert recipe.simulator.name
+    for warning in warnings:
+        assert warning.startswith(f"simulator.substeps={recipe.simulator.substeps} caps "), warning
+        cap = float(warning.split(" at ")[1].split()[0].replace(",", ""))
+        assert cap >= 5e4, warning
+
+
+def test_shipped_recipes_use_no_environment_resolvers():
+    """A run stores its resolved recipe; nothing shipped may read the environment into it."""
+    for path in RECIPES.rglob("*.yaml"):
+        assert "${oc." not in path.read_text(), path
