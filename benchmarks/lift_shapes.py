@@ -286,21 +286,7 @@ def main(argv=None) -> dict:
     if args.generate_only:
         generate_all(scenes_dir, preset, generate_device, jobs)
         return {}
-    missing = [
-        (i, o)
-        for i, o in jobs
-        if not (scene_folder(scenes_dir, i, preset, o) / "scene.json").is_file()
-    ]
-    if missing:
-        # one child per missing seed offset keeps the generator's memory out of this process
-        for offset in sorted({o for _, o in missing}):
-            child = [sys.executable, __file__, "--generate-only", "--device", generate_device]
-            child += ["--scenes-dir", str(scenes_dir), "--out", str(args.out)]
-            child += ["--scenes", ",".join(str(i) for i, o in missing if o == offset)]
-            child += ["--seed-offsets", str(offset)]
-            subprocess.run(child + (["--tiny"] if args.tiny else []), check=True)
-
-    from mosiv_framework.scene import read_scene
+    generate_missing(args, scenes_dir, preset, generate_device, jobs)
 
     fit_options = {
         **PRESETS[preset]["fit"],
@@ -310,70 +296,14 @@ def main(argv=None) -> dict:
         **json.loads(args.gauss_options),
     }
     lift_options = {**PRESETS[preset]["lift"], **json.loads(args.lift_options)}
-    spacing = PRESETS[preset]["scene"]["particle_spacing"]
     extra_cells = [float(c) for c in args.also_cells.split(",") if c.strip()]
     results = []
     for n, (i, offset) in enumerate(jobs):
+        print(f"[{n + 1}/{len(jobs)}] ", end="", flush=True)
         folder = scene_folder(scenes_dir, i, preset, offset)
-        scene = read_scene(folder)
-        shapes = list(SCENES[i][:2])
-        seed = SCENES[i][2] + offset
-        print(
-            f"[{n + 1}/{len(jobs)}] {'+'.join(shapes)} seed {seed}: fitting gauss-dynamic",
-            flush=True,
-        )
-        recon, fit_s, fit_gpu = fit_gauss(scene, fit_options, args.device)
-        training = recon.extras["training"]
-        if args.save_reconstructions:
-            from mosiv_gauss.reconstructor import save_reconstruction
-
-            save_reconstruction(recon, args.out / folder.name)
-        print(
-            f"  fit {fit_s:.0f} s, {recon.extras['n_gaussians']} Gaussians, training PSNR "
-            f"{training['psnr_mean']:.1f} dB; lifting",
-            flush=True,
-        )
-        score = lift_scene(recon, scene, lift_options, gt_spacing=spacing)
-        also = {
-            str(cell): lift_scene(
-                recon, scene, {**lift_options, "cell_size": cell}, gt_spacing=spacing
-            )
-            for cell in extra_cells
-        }
         results.append(
-            {
-                "scene": str(folder),
-                "shapes": shapes,
-                "seed": seed,
-                "fit_s": fit_s,
-                "fit_peak_gpu_gb": fit_gpu,
-                "n_gaussians": recon.extras["n_gaussians"],
-                "training_psnr_db": training["psnr_mean"],
-                "lift": score,
-                "also_cells": also,
-            }
+            measure_scene(args, folder, i, offset, preset, fit_options, lift_options, extra_cells)
         )
-        objs = ", ".join(
-            f"{o['name']}: vol {100 * o['volume_error']:+.1f}% IoU {o['iou']:.3f}"
-            for o in score["objects"].values()
-        )
-        print(
-            f"  lift {score['lift_s']:.1f} s, {score['particles']} particles; {objs}; gap "
-            f"{score['min_gap_cells']:.2f} cells; PSNR {score['psnr']['full']:.1f} dB "
-            f"(objects {score['psnr']['objects']:.1f} dB)",
-            flush=True,
-        )
-        for cell, extra in also.items():
-            objs = ", ".join(
-                f"{o['name']}: vol {100 * o['volume_error']:+.1f}% IoU {o['iou']:.3f}"
-                for o in extra["objects"].values()
-            )
-            print(f"  lift at {cell} m: {extra['particles']} particles; {objs}", flush=True)
-    header = (
-        f"lift_shapes ({preset} preset, device {args.device}"
-        + (f", {torch.cuda.get_device_name()}" if args.device.startswith("cuda") else "")
-        + f", host {platform.node()}, {torch.get_num_threads()} CPU threads)"
-    )
     summary = {
         "preset": preset,
         "device": args.device,
@@ -384,6 +314,96 @@ def main(argv=None) -> dict:
         "n_frames": N_FRAMES,
         "scenes": results,
     }
+    write_summary(args, summary, extra_cells)
+    return summary
+
+
+def generate_missing(args, scenes_dir: Path, preset: str, generate_device: str, jobs) -> None:
+    """Generate the scenes of ``jobs`` not yet in ``scenes_dir``: one child per missing seed
+    offset keeps the generator's memory out of this process."""
+    missing = [
+        (i, o)
+        for i, o in jobs
+        if not (scene_folder(scenes_dir, i, preset, o) / "scene.json").is_file()
+    ]
+    for offset in sorted({o for _, o in missing}):
+        child = [sys.executable, __file__, "--generate-only", "--device", generate_device]
+        child += ["--scenes-dir", str(scenes_dir), "--out", str(args.out)]
+        child += ["--scenes", ",".join(str(i) for i, o in missing if o == offset)]
+        child += ["--seed-offsets", str(offset)]
+        subprocess.run(child + (["--tiny"] if args.tiny else []), check=True)
+
+
+def measure_scene(args, folder, i, offset, preset, fit_options, lift_options, extra_cells) -> dict:
+    """Fit gauss-dynamic to one scene, lift it (also at each of ``extra_cells``), score it;
+    returns the scene's result record."""
+    from mosiv_framework.scene import read_scene
+
+    scene = read_scene(folder)
+    shapes = list(SCENES[i][:2])
+    seed = SCENES[i][2] + offset
+    spacing = PRESETS[preset]["scene"]["particle_spacing"]
+    print(f"{'+'.join(shapes)} seed {seed}: fitting gauss-dynamic", flush=True)
+    recon, fit_s, fit_gpu = fit_gauss(scene, fit_options, args.device)
+    training = recon.extras["training"]
+    if args.save_reconstructions:
+        from mosiv_gauss.reconstructor import save_reconstruction
+
+        save_reconstruction(recon, args.out / folder.name)
+    print(
+        f"  fit {fit_s:.0f} s, {recon.extras['n_gaussians']} Gaussians, training PSNR "
+        f"{training['psnr_mean']:.1f} dB; lifting",
+        flush=True,
+    )
+    score = lift_scene(recon, scene, lift_options, gt_spacing=spacing)
+    also = {
+        str(cell): lift_scene(recon, scene, {**lift_options, "cell_size": cell}, gt_spacing=spacing)
+        for cell in extra_cells
+    }
+    print_lift(score, also)
+    return {
+        "scene": str(folder),
+        "shapes": shapes,
+        "seed": seed,
+        "fit_s": fit_s,
+        "fit_peak_gpu_gb": fit_gpu,
+        "n_gaussians": recon.extras["n_gaussians"],
+        "training_psnr_db": training["psnr_mean"],
+        "lift": score,
+        "also_cells": also,
+    }
+
+
+def _objects_line(score: dict) -> str:
+    return ", ".join(
+        f"{o['name']}: vol {100 * o['volume_error']:+.1f}% IoU {o['iou']:.3f}"
+        for o in score["objects"].values()
+    )
+
+
+def print_lift(score: dict, also: dict) -> None:
+    """One line of the lift's scores, and one per extra cell size."""
+    print(
+        f"  lift {score['lift_s']:.1f} s, {score['particles']} particles; {_objects_line(score)}; "
+        f"gap {score['min_gap_cells']:.2f} cells; PSNR {score['psnr']['full']:.1f} dB "
+        f"(objects {score['psnr']['objects']:.1f} dB)",
+        flush=True,
+    )
+    for cell, extra in also.items():
+        print(
+            f"  lift at {cell} m: {extra['particles']} particles; {_objects_line(extra)}",
+            flush=True,
+        )
+
+
+def write_summary(args, summary: dict, extra_cells: list[float]) -> None:
+    """lift_shapes.json and the markdown tables (one per lift cell size) into ``args.out``."""
+    results, lift_options = summary["scenes"], summary["lift_options"]
+    header = (
+        f"lift_shapes ({summary['preset']} preset, device {args.device}"
+        + (f", {torch.cuda.get_device_name()}" if args.device.startswith("cuda") else "")
+        + f", host {platform.node()}, {torch.get_num_threads()} CPU threads)"
+    )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "lift_shapes.json").write_text(
         json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8"
@@ -396,7 +416,6 @@ def main(argv=None) -> dict:
         table = markdown(relifted, header + f", the same fits lifted at cell {1000 * cell:g} mm")
         (args.out / f"lift_shapes_cell{1000 * cell:g}mm.md").write_text(table, encoding="utf-8")
         print(table)
-    return summary
 
 
 if __name__ == "__main__":
