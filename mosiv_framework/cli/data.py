@@ -180,8 +180,10 @@ def _flags(args, names) -> dict[str, Any]:
 
 
 def run_synth(args) -> int:
+    from mosiv_framework.cli.stages import check_writable_folder
     from mosiv_framework.registry import get_registry
 
+    check_writable_folder(args.out_dir, "OUT_DIR")
     options = source_options(args.source, _flags(args, SOURCE_FLAGS), args.options)
     source = get_registry().create("scene_source", args.source, options)
     path = source.generate(Path(args.out_dir))
@@ -214,11 +216,15 @@ def scene_is_complete(path: Path) -> bool:
 
 
 def run_suite(args) -> int:
+    from mosiv_framework.cli.main import resume_from
+    from mosiv_framework.cli.stages import check_writable_folder
     from mosiv_framework.errors import ConfigError
     from mosiv_framework.registry import get_registry
     from mosiv_framework.scene.io import atomic_write_json
 
     out = Path(args.out_dir)
+    check_writable_folder(out, "OUT_DIR")
+    resume_from(args, out, "the scenes already finished", "suite folder")
     plan = suite_plan(args.only)
     flags = _flags(args, ("seed", "resolution", "cameras", "frames"))
     base_seed = args.seed if args.seed is not None else 0
@@ -363,8 +369,12 @@ def write_previews(scene_dir: Path, out: Path, *, masks: bool, step: int = 1) ->
 
 
 def run_show(args) -> int:
+    from mosiv_framework.cli.stages import check_writable_folder
+
     scene_dir = Path(args.scene_dir)
     out = Path(args.out) if args.out else scene_dir / "preview"
+    if args.out:  # the default lies in the scene folder, which the scene check covers
+        check_writable_folder(out, "--out")
     written = write_previews(scene_dir, out, masks=args.masks, step=args.step)
     print(f"wrote {written[0]} and {len(written) - 1} GIF(s) in {out}")
     return 0

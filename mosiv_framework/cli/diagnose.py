@@ -89,8 +89,11 @@ def add_parsers(sub) -> None:
 
 
 def diagnose(args) -> int:
+    from mosiv_framework.cli.main import resume_from
+    from mosiv_framework.cli.stages import require_run_folder
     from mosiv_framework.diagnose import diagnose_run
 
+    resume_from(args, require_run_folder(args.run_dir), "the last saved diagnosis step")
     overrides = {"device": args.device} if args.device else None
     # progress is logged; the command's result, the verdict and where the report is, is printed
     summary = diagnose_run(args.run_dir, budget=args.budget, simulator_overrides=overrides)
@@ -107,6 +110,11 @@ def diagnose_suite(args) -> int:
         return _replay(args)
     if args.plot:
         raise ConfigError("--plot draws a replayed suite: give it with --replay")
+    from mosiv_framework.cli.main import resume_from
+    from mosiv_framework.cli.stages import check_writable_folder
+
+    check_writable_folder(args.out, "OUT")
+    resume_from(args, args.out, "its finished entries and stages", "suite folder")
 
     summary = run_suite(
         args.out,
@@ -140,6 +148,9 @@ def _replay(args) -> int:
         "min_effect": args.min_effect,
     }
     options = DecideOptions(**{k: v for k, v in given.items() if v is not None})
+    from mosiv_framework.cli.stages import require_folder
+
+    require_folder(args.out, "suite folder", "the OUT of a finished `mosiv diagnose-suite`")
     summary = replay_suite(args.out, options, small=args.small)
     print(f"replayed under {summary['rule']}")
     print(table(summary))

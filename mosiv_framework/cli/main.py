@@ -7,15 +7,42 @@ Global options, before the sub-command: ``-v``/``--verbose`` (DEBUG log records,
 logger's name), ``-q``/``--quiet`` (warnings and errors only; ``-qq``: errors only),
 ``--version``. Log records go to stderr as ``[mosiv] message``; what a command was asked for
 (tables, JSON, paths it wrote) goes to stdout.
+
+Errors end the command with one message on stderr, ``mosiv COMMAND: error: ...``, and the exit
+status of their kind (``mosiv_framework.errors.EXIT_CODES``, docs/CLI.md); a traceback is shown
+only with ``-v``. Ctrl-C ends with one line naming the folder a rerun resumes from.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
+import shlex
 import sys
+import traceback
+from pathlib import Path
 
-from mosiv_framework.errors import MosivError
+from mosiv_framework.errors import (
+    EXIT_INTERNAL,
+    EXIT_INTERRUPTED,
+    EXIT_OUTPUT,
+    MosivError,
+)
+
+#: what an OSError's number means for the path it names, and what to do about it
+_OS_ADVICE: dict[int, str] = {
+    errno.EACCES: "permission denied; choose another folder or make this one writable",
+    errno.EPERM: "operation not permitted; choose another folder or fix its permissions",
+    errno.EROFS: "the file system is read-only; choose a folder on a writable disk",
+    errno.ENOTDIR: "a part of this path is a file, not a folder",
+    errno.EISDIR: "this is a folder where a file is expected",
+    errno.EEXIST: "this exists already as a file where a folder is expected",
+    errno.ELOOP: "this is a symbolic link loop",
+    errno.ENOENT: "no such file or folder",
+    errno.ENOSPC: "no space left on the disk",
+    errno.ENAMETOOLONG: "the name is too long for the file system",
+}
 
 
 class _VersionAction(argparse.Action):
@@ -85,17 +112,90 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line ``argv`` (default: ``sys.argv[1:]``); returns the exit status."""
     from mosiv_framework.logs import configure_logging, level_from_flags
 
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt:
+        print("mosiv: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     configure_logging(level_from_flags(args.verbose, args.quiet))
     logging.getLogger(__name__).debug("command line: %s", sys.argv if argv is None else argv)
     try:
         return int(args.handler(args) or 0)
+    except KeyboardInterrupt:
+        print(interrupted_message(args), file=sys.stderr)
+        return EXIT_INTERRUPTED
     except MosivError as exc:
-        print(f"mosiv {args.command}: error:\n{exc}", file=sys.stderr)
-        return 2
+        return _fail(args, error_message(exc), exc.exit_code)
+    except OSError as exc:
+        if exc.filename is None:  # not about a path the user gave: a bug or the system
+            return _internal(args, argv, exc)
+        return _fail(args, os_error_message(exc), EXIT_OUTPUT)
+    except Exception as exc:  # noqa: BLE001 -- the last line of defence: no bare traceback
+        return _internal(args, argv, exc)
+
+
+def resume_from(
+    args, folder: str | Path, what: str = "the last finished stage", kind: str = "run folder"
+) -> None:
+    """Record on ``args`` the folder a rerun of the command resumes from, named on Ctrl-C as
+    ``kind`` (what the folder is) with ``what`` a rerun takes up again."""
+    args.resume_folder = Path(folder)
+    args.resume_what = what
+    args.resume_kind = kind
+
+
+def interrupted_message(args) -> str:
+    """The one line printed on Ctrl-C: where a rerun of the same command resumes."""
+    folder = getattr(args, "resume_folder", None)
+    if folder is None:
+        return f"mosiv {args.command}: interrupted; rerun the same command to start it again"
+    return (
+        f"mosiv {args.command}: interrupted; rerun the same command to resume from "
+        f"{args.resume_what} ({args.resume_kind}: {folder})"
+    )
+
+
+def error_message(exc: MosivError) -> str:
+    """The message of a MosivError: one line, or one line per problem under a count."""
+    problems = getattr(exc, "problems", None) or [str(exc)]
+    if len(problems) == 1:
+        return problems[0]
+    return f"{len(problems)} problems:\n" + "\n".join(f"- {p}" for p in problems)
+
+
+def os_error_message(exc: OSError) -> str:
+    """``PATH: what went wrong; what to do`` for an OSError about a path."""
+    paths = " -> ".join(repr(str(f)) for f in (exc.filename, exc.filename2) if f is not None)
+    advice = _OS_ADVICE.get(exc.errno, exc.strerror or type(exc).__name__)
+    return f"{paths}: {advice}"
+
+
+def _fail(args, message: str, code: int) -> int:
+    if args.verbose:
+        traceback.print_exc()
+    print(f"mosiv {args.command}: error: {message}", file=sys.stderr)
+    return code
+
+
+def _internal(args, argv: list[str] | None, exc: BaseException) -> int:
+    if args.verbose:
+        traceback.print_exc()
+        hint = "the traceback above shows where; please report it"
+    else:
+        words = sys.argv[1:] if argv is None else list(argv)
+        # -q before the command would clash with the -v put in front
+        head = words.index(args.command) if args.command in words else 0
+        words = [w for w in words[:head] if w.lstrip("-q") and w != "--quiet"] + words[head:]
+        hint = f"rerun as `mosiv -v {shlex.join(words)}` to see the traceback"
+    print(
+        f"mosiv {args.command}: internal error: {type(exc).__name__}: {exc}; {hint}",
+        file=sys.stderr,
+    )
+    return EXIT_INTERNAL
 
 
 if __name__ == "__main__":

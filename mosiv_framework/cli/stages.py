@@ -1,12 +1,16 @@
 """Pipeline commands: ``mosiv run``, ``eval``, ``simulate`` (``diagnose`` lives in diagnose.py).
 
 Each command says plainly when the stage it needs is not available in this installation,
-rather than failing somewhere deep inside.
+rather than failing somewhere deep inside. Paths are checked before anything runs: a folder to
+read must exist (nothing is created in its place), a folder to write must be writable.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+from mosiv_framework.errors import ConfigError, OutputError, SceneFormatError
 
 
 def add_parsers(sub) -> None:
@@ -49,11 +53,61 @@ def add_parsers(sub) -> None:
     sim.set_defaults(handler=run_simulate)
 
 
+def require_folder(path: str | Path, what: str, valid: str) -> Path:
+    """``path`` if it is an existing folder; else ConfigError naming it as ``what`` and saying
+    what is ``valid``. Nothing is created: a command reading a folder never makes one."""
+    folder = Path(path)
+    if folder.is_dir():
+        return folder
+    state = "is a file, not a folder" if folder.exists() else "does not exist"
+    if folder.is_symlink() and not folder.exists():
+        state = "is a broken symbolic link"
+    raise ConfigError(f"{what} {str(path)!r} {state}; give {valid}")
+
+
+def require_run_folder(path: str | Path) -> Path:
+    """``path`` if it is an existing folder; else ConfigError naming it (nothing is created)."""
+    return require_folder(path, "run folder", "a folder written by `mosiv run` (its output.dir)")
+
+
+def check_writable_folder(path: str | Path, what: str) -> None:
+    """OutputError unless ``path`` is, or can be made, a writable folder; ``what`` names it
+    in the message (e.g. ``output.dir``). Nothing is created."""
+    target = Path(path)
+    existing = target
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        where = "" if existing == target else f" ({str(existing)!r} on its path)"
+        raise OutputError(
+            f"{what}={str(target)!r}: is a file{where}, not a folder; give a folder path to write to"
+        )
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise OutputError(
+            f"{what}={str(target)!r}: {str(existing)!r} is not writable by this user; choose "
+            f"another folder or change its permissions"
+        )
+
+
+def check_scene_path(path: str | Path) -> None:
+    """SceneFormatError if ``scene.path`` names a file (a folder to read or generate into)."""
+    if Path(path).exists() and not Path(path).is_dir():
+        raise SceneFormatError(
+            f"scene.path={str(path)!r}: is a file, not a scene folder; give the folder that "
+            f"holds scene.json, cameras.json, rgb/ and masks/ (or a new folder for scene.source "
+            f"to generate the scene into)"
+        )
+
+
 def run_recipe(args) -> int:
+    from mosiv_framework.cli.main import resume_from
     from mosiv_framework.pipeline import run_pipeline
     from mosiv_framework.recipes import load_recipe
 
     recipe = load_recipe(args.recipe, args.overrides)
+    check_scene_path(recipe.scene.path)
+    check_writable_folder(recipe.output.dir, "output.dir")
+    resume_from(args, recipe.output.dir)
     run_pipeline(recipe, run_dir=Path(recipe.output.dir))
     return 0
 
@@ -62,7 +116,7 @@ def run_eval(args) -> int:
     from mosiv_framework.pipeline import evaluate_run, simulator_refiner
     from mosiv_framework.pipeline.novel import load_finished_run
 
-    run = load_finished_run(args.run_dir)
+    run = load_finished_run(require_run_folder(args.run_dir))
     metrics = evaluate_run(
         recipe=run.recipe,
         scene=run.scene,
@@ -85,7 +139,7 @@ def run_eval(args) -> int:
 def run_simulate(args) -> int:
     from mosiv_framework.pipeline.novel import edit_params, load_finished_run, simulate_novel
 
-    run = load_finished_run(args.run_dir)
+    run = load_finished_run(require_run_folder(args.run_dir))
     params = edit_params(run.identified, swap=args.swap, sets=args.sets, velocities=args.velocities)
     label = (
         "-".join(
@@ -96,6 +150,7 @@ def run_simulate(args) -> int:
         or "identified"
     )
     out = Path(args.out) if args.out else run.run_dir.path(f"simulate/{label}")
+    check_writable_folder(out, "--out")
     written = simulate_novel(run, params, frames=args.frames, out_dir=out, size=args.size)
     for what, path in written.items():
         print(f"{what}: {path}")
