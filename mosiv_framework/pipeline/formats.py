@@ -15,7 +15,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from mosiv_framework.errors import MosivError
+from mosiv_framework.errors import EXIT_OUTPUT, MosivError
 
 FIELD = "format"
 
@@ -40,6 +40,8 @@ STAGE_FORMATS: tuple[str, ...] = (STAGE,)  # stages/<stage>.json, the completion
 
 class FormatError(MosivError):
     """A run file declares a format this version of MOSIV cannot read."""
+
+    exit_code = EXIT_OUTPUT  # a file of the run folder cannot be read (docs/CLI.md)
 
 
 def formats_of(name: str) -> tuple[str, ...] | None:
