@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from mosiv_framework.errors import MosivError
+
 #: diagnosis.json (``report.write_report``; read by ``replay``)
 DIAGNOSIS_FORMAT = "mosiv-diagnosis/1"
 #: the summary of a scored diagnosis suite, suite.json (``suite.run_suite``)
@@ -21,8 +23,9 @@ SCORE_FORMAT = "mosiv-diagnose-score/1"
 FIELD = "format"
 
 
-class FormatError(ValueError):
-    """A file's ``format`` field names a format this version of MOSIV cannot read."""
+class FormatError(MosivError, ValueError):
+    """A file's ``format`` field names a format this version of MOSIV cannot read (a user's
+    error, reported by the CLI without a traceback)."""
 
 
 def file_format(data: dict, source: str | Path, supported: tuple[str, ...]) -> str | None:
