@@ -337,46 +337,57 @@ def carve_object(
         views_missed=options.mask_views_missed,
     )
     if options.virtual_views:
-        drawn = widened_radii(radii.float(), widen) if widen > 0 else radii.float()
-        centre = 0.5 * (means.min(dim=0).values + means.max(dim=0).values)
-        reach = float((means - centre).norm(dim=1).max()) + 3.0 * float(drawn.max())
-        single = GaussianFrames(
-            means[None].float(),
-            drawn[None],
-            colors.float(),
-            opacities.float(),
-            torch.ones(means.shape[0], dtype=torch.int64),
+        kept = _virtual_view_test(
+            samples, kept, means, radii, colors, opacities, renderer, options, agreement, widen
         )
-        tolerance = 0.0 if options.depth_tolerance is None else options.depth_tolerance
-        # the surface is crossed half-way through the first layer of Gaussians, which stops
-        # about as much light as one typical Gaussian: half of the median opacity (0.5 for
-        # opaque Gaussians seeded from points; trained Gaussians that fill the volume with
-        # semi-transparent ones reach half the ray's opacity only a layer or more inside)
-        fraction = (
-            0.5 * float(opacities.float().median())
-            if options.surface_fraction is None
-            else options.surface_fraction
-        )
-        views = virtual_cameras(
-            centre, reach, n=options.virtual_views, resolution=options.virtual_resolution
-        )
-        candidates = torch.nonzero(kept).squeeze(1)  # only test what the masks left
-        votes = depth_consistent(
-            samples[candidates],
-            single,
-            renderer,
-            views,
-            alpha_threshold=options.alpha_threshold,
-            depth_tolerance=tolerance,
-            layer=0.5 * options.cell_size,
-            surface_fraction=fraction,
-            front_radii=radii.float() if widen > 0 else None,
-        )
-        # a view that sees into the object through a gap of the reconstruction (say its
-        # unobserved underside) is outvoted by the others
-        ok = votes >= math.ceil(agreement * len(views) - 1e-9)
-        kept = torch.zeros_like(kept).index_fill(0, candidates[ok], True)
     return CarveResult(box, samples, kept)
+
+
+def _virtual_view_test(
+    samples, kept, means, radii, colors, opacities, renderer, options, agreement, widen
+) -> Tensor:
+    """``kept`` narrowed to the samples that the Gaussians, rendered from
+    ``options.virtual_views`` virtual cameras around them (radii widened by ``widen`` m), show
+    inside in at least the fraction ``agreement`` of the views."""
+    drawn = widened_radii(radii.float(), widen) if widen > 0 else radii.float()
+    centre = 0.5 * (means.min(dim=0).values + means.max(dim=0).values)
+    reach = float((means - centre).norm(dim=1).max()) + 3.0 * float(drawn.max())
+    single = GaussianFrames(
+        means[None].float(),
+        drawn[None],
+        colors.float(),
+        opacities.float(),
+        torch.ones(means.shape[0], dtype=torch.int64),
+    )
+    tolerance = 0.0 if options.depth_tolerance is None else options.depth_tolerance
+    # the surface is crossed half-way through the first layer of Gaussians, which stops about as
+    # much light as one typical Gaussian: half of the median opacity (0.5 for opaque Gaussians
+    # seeded from points; trained Gaussians that fill the volume with semi-transparent ones
+    # reach half the ray's opacity only a layer or more inside)
+    fraction = (
+        0.5 * float(opacities.float().median())
+        if options.surface_fraction is None
+        else options.surface_fraction
+    )
+    views = virtual_cameras(
+        centre, reach, n=options.virtual_views, resolution=options.virtual_resolution
+    )
+    candidates = torch.nonzero(kept).squeeze(1)  # only test what the masks left
+    votes = depth_consistent(
+        samples[candidates],
+        single,
+        renderer,
+        views,
+        alpha_threshold=options.alpha_threshold,
+        depth_tolerance=tolerance,
+        layer=0.5 * options.cell_size,
+        surface_fraction=fraction,
+        front_radii=radii.float() if widen > 0 else None,
+    )
+    # a view that sees into the object through a gap of the reconstruction (say its unobserved
+    # underside) is outvoted by the others
+    ok = votes >= math.ceil(agreement * len(views) - 1e-9)
+    return torch.zeros_like(kept).index_fill(0, candidates[ok], True)
 
 
 def recorded_masks(scene) -> list[Tensor]:

@@ -9,6 +9,7 @@ seeded from its frame-0 points (``seed``). Renderers come from the registry, nev
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -22,6 +23,8 @@ from mosiv_lift.density import refine_density
 from mosiv_lift.emit import emit_particles
 from mosiv_lift.options import TRAINED_AGREEMENT, GaussiansLifterOptions
 from mosiv_lift.seed import default_point_radius, gaussians_from_points
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -109,57 +112,17 @@ class GaussiansLifter(Lifter):
         agreement = opts.virtual_agreement
         if agreement is None:
             agreement = 1.0 if reconstruction.gaussians is None else TRAINED_AGREEMENT
-        generator = torch.Generator().manual_seed(opts.seed)
-        masks = recorded_masks(scene)
+        carving = _Carving(
+            scene=scene,
+            masks=recorded_masks(scene),
+            renderer=renderer,
+            generator=torch.Generator().manual_seed(opts.seed),
+            agreement=agreement,
+            trained=reconstruction.gaussians is not None,
+        )
         grids, surfaces, report = {}, {}, {"objects": {}}
         for k in reconstruction.object_list:
-            mine = gaussians.object_ids == k
-            if not mine.any():
-                raise ValueError(f"the reconstruction has no Gaussians of object {k}")
-            means = gaussians.means[0][mine]
-            widen = opts.widen_radius
-            if widen is None:  # close the gaps between trained Gaussians (options.py)
-                trained = reconstruction.gaussians is not None
-                widen = default_point_radius({k: means}) if trained and len(means) > 1 else 0.0
-            carved = carve_object(
-                means,
-                gaussians.radii[0][mine],
-                gaussians.colors[mine],
-                gaussians.opacities[mine],
-                object_id=k,
-                scene=scene,
-                masks=masks,
-                renderer=renderer,
-                options=opts,
-                generator=generator,
-                agreement=agreement,
-                widen=widen,
-            )
-            grid = _refine(carved, opts) if carved.kept.any() else None
-            fallback = None
-            if grid is None or not grid.occupied.any():
-                # the Gaussians' depth test left no cell more inside than outside (Gaussians
-                # of this object sitting elsewhere, or too few of them: a paper-size sand-sand
-                # scene); the recorded masks of frame 0 still bound the object
-                fallback = (
-                    f"lifted from the recorded masks alone: the Gaussians' depth test kept "
-                    f"{int(carved.kept.sum())} of {carved.samples.shape[0]} samples, too few to fill "
-                    "any cell"
-                )
-                print(f"[lift] object {k}: {fallback}", flush=True)
-                carved, grid = self._carve_masks_only(k, scene, masks, generator, carved)
-            report["objects"][k] = {
-                "samples": int(carved.samples.shape[0]),
-                "kept": int(carved.kept.sum()),
-                "cells": int(grid.occupied.sum()),
-                "widen_radius": float(widen),
-            }
-            if fallback is not None:
-                report["objects"][k]["fallback"] = fallback
-            grids[k] = grid
-            # the surface that settles contested cells: the Gaussians, or when they could not
-            # be trusted, the centres of the cells the masks gave the object
-            surfaces[k] = means if fallback is None else _cell_centres(grid)
+            grids[k], surfaces[k], report["objects"][k] = self._lift_object(k, gaussians, carving)
         emission = emit_particles(
             grids,
             surfaces,
@@ -193,6 +156,74 @@ class GaussiansLifter(Lifter):
             {k: materials[k] for k in reconstruction.object_list},
             appearance=appearance,
         )
+
+    def _lift_object(self, k: int, gaussians: GaussianFrames, carving: _Carving):
+        """Object ``k``'s density grid, the surface that settles its contested cells, and its
+        entry of the lift report."""
+        opts = self.options
+        mine = gaussians.object_ids == k
+        if not mine.any():
+            raise ValueError(f"the reconstruction has no Gaussians of object {k}")
+        means = gaussians.means[0][mine]
+        widen = opts.widen_radius
+        if widen is None:  # close the gaps between trained Gaussians (options.py)
+            trained = carving.trained
+            widen = default_point_radius({k: means}) if trained and len(means) > 1 else 0.0
+        carved = carve_object(
+            means,
+            gaussians.radii[0][mine],
+            gaussians.colors[mine],
+            gaussians.opacities[mine],
+            object_id=k,
+            scene=carving.scene,
+            masks=carving.masks,
+            renderer=carving.renderer,
+            options=opts,
+            generator=carving.generator,
+            agreement=carving.agreement,
+            widen=widen,
+        )
+        grid = _refine(carved, opts) if carved.kept.any() else None
+        fallback = None
+        if grid is None or not grid.occupied.any():
+            # the Gaussians' depth test left no cell more inside than outside (Gaussians of this
+            # object sitting elsewhere, or too few of them: a paper-size sand-sand scene); the
+            # recorded masks of frame 0 still bound the object
+            fallback = (
+                f"lifted from the recorded masks alone: the Gaussians' depth test kept "
+                f"{int(carved.kept.sum())} of {carved.samples.shape[0]} samples, too few to fill "
+                "any cell"
+            )
+            log.warning("object %s: %s", k, fallback)
+            carved, grid = self._carve_masks_only(
+                k, carving.scene, carving.masks, carving.generator, carved
+            )
+        entry = {
+            "samples": int(carved.samples.shape[0]),
+            "kept": int(carved.kept.sum()),
+            "cells": int(grid.occupied.sum()),
+            "widen_radius": float(widen),
+        }
+        if fallback is not None:
+            entry["fallback"] = fallback
+        # the surface that settles contested cells: the Gaussians, or when they could not be
+        # trusted, the centres of the cells the masks gave the object
+        surface = means if fallback is None else _cell_centres(grid)
+        return grid, surface, entry
+
+
+@dataclass
+class _Carving:
+    """What carving every object of one lift shares: the scene, its recorded masks of frame 0,
+    the renderer, one random generator (drawn from object after object), the agreement the
+    virtual views need, and whether the Gaussians were trained (not seeded from points)."""
+
+    scene: object
+    masks: object
+    renderer: object
+    generator: torch.Generator
+    agreement: float
+    trained: bool
 
 
 def _refine(carved, options):

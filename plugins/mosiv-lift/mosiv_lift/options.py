@@ -116,6 +116,17 @@ class GaussiansLifterOptions:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        problems = self._sampling_problems() + self._view_problems() + self._binding_problems()
+        if problems:
+            raise ConfigError([f"lifter gaussians: {p}" for p in problems])
+        self.renderer_options = dict(self.renderer_options)
+        if isinstance(self.density, dict) or hasattr(self.density, "items"):
+            self.density = {int(k): float(v) for k, v in self.density.items()}
+        else:
+            self.density = float(self.density)
+
+    def _sampling_problems(self) -> list[str]:
+        """Problems of the grid, sampling and mask options."""
         problems: list[str] = []
         if not _is_number(self.cell_size) or self.cell_size <= 0:
             problems.append(f"cell_size={self.cell_size!r}: must be a positive length (m)")
@@ -141,6 +152,11 @@ class GaussiansLifterOptions:
             problems.append(
                 f"mask_dilation_px={self.mask_dilation_px!r}: must be an integer in 0..16"
             )
+        return problems
+
+    def _view_problems(self) -> list[str]:
+        """Problems of the virtual-view depth test's options."""
+        problems: list[str] = []
         if not _is_int(self.virtual_views) or not (
             self.virtual_views == 0 or self.virtual_views >= 4
         ):
@@ -175,6 +191,11 @@ class GaussiansLifterOptions:
             not _is_number(self.virtual_agreement) or not 0 < self.virtual_agreement <= 1
         ):
             problems.append(f"virtual_agreement={self.virtual_agreement!r}: must lie in (0, 1]")
+        return problems
+
+    def _binding_problems(self) -> list[str]:
+        """Problems of the density, binding, renderer and budget options."""
+        problems: list[str] = []
         problems += _density_problems(self.density)
         if self.point_radius is not None and (
             not _is_number(self.point_radius) or self.point_radius <= 0
@@ -190,13 +211,7 @@ class GaussiansLifterOptions:
             problems.append(f"max_samples={self.max_samples!r}: must be an integer >= 1000")
         if not _is_int(self.seed):
             problems.append(f"seed={self.seed!r}: must be an integer")
-        if problems:
-            raise ConfigError([f"lifter gaussians: {p}" for p in problems])
-        self.renderer_options = dict(self.renderer_options)
-        if isinstance(self.density, dict) or hasattr(self.density, "items"):
-            self.density = {int(k): float(v) for k, v in self.density.items()}
-        else:
-            self.density = float(self.density)
+        return problems
 
     @property
     def sub_lattice(self) -> int:
