@@ -81,7 +81,7 @@ def test_wind_coefficient_and_future_error(wind):
     effect = read_scene(root / "scene").gt_effects()[0]
     assert effect["kind"] == "wind"
     error = coefficient_error(diagnosis["accepted"], effect)
-    assert error < 0.15, diagnosis["accepted"]["value"]  # issue 9 target: median <= 15 %
+    assert error < 0.15, diagnosis["accepted"]["value"]  # the target: median <= 15 %
     lo, hi = diagnosis["accepted"]["interval_95"]["acceleration.x"]
     assert lo < diagnosis["accepted"]["coefficients"]["acceleration.x"] < hi
     errors = diagnosis["errors"]

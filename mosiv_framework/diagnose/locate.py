@@ -22,8 +22,8 @@ from mosiv_framework.diagnose.context import RunContext
 from mosiv_framework.types import Trajectory
 
 REGIMES = ("free_flight", "object_contact", "ground_contact", "rest")
-#: a residual counts as significant when its RMS exceeds this many noise floors (issue 9's
-#: "effect at least 3x the noise floor")
+#: a residual counts as significant when its RMS exceeds this many noise floors (an effect
+#: worth looking for is at least 3x the noise floor; docs/DIAGNOSIS.md)
 SIGNIFICANCE = 3.0
 
 

@@ -8,7 +8,7 @@ suite the refitted true law still fitted 5-130 mm^2 over the fit frames, against
 0.4-1.6 mm^2 for the controls' runs, and which of linear or quadratic drag came out ahead was
 decided by where each refit stopped.
 
-Re-identification replays the run's own schedule (paper section 3.5, ``pipeline.identify``)
+Re-identification replays the run's own schedule (docs/ARCHITECTURE.md, ``pipeline.identify``)
 with the candidate switched on, which is what a user adding the effect to the recipe and
 running again would get: initial velocities from the centroids, law parameters at their
 defaults, then

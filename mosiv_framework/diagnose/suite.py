@@ -54,7 +54,7 @@ class Entry:
 
 
 def suite_entries(small: bool) -> list[Entry]:
-    """The small suite (CPU, minutes) or the full one (issue 9's proof)."""
+    """The small suite (CPU, minutes) or the full one (the scores in docs/RESULTS.md)."""
     if small:
         return [
             Entry("wind", "wind:acceleration=2.5,0,0"),
