@@ -144,8 +144,8 @@ def test_suite_covers_the_paper_pairs_and_indexes_them(pairs_registry, tmp_path,
         assert entry["materials"] == [abbreviation[c] for c in code.split("-")]
     seeds = [s["seed"] for s in index["scenes"].values()]
     assert len(set(seeds)) == len(seeds)  # every scene its own seed
-    out = capsys.readouterr().out
-    assert f"[1/{len(data_cli.SUITE_SCENES)}] E-P" in out and "done in" in out
+    progress = capsys.readouterr().err  # progress is logged to stderr; stdout holds results
+    assert f"[1/{len(data_cli.SUITE_SCENES)}] E-P" in progress and "done in" in progress
 
 
 def test_suite_resumes_after_a_crash_without_redoing_finished_scenes(
