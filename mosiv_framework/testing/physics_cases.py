@@ -281,6 +281,23 @@ GRADIENT_SCENE_OVERRIDES: dict[str, dict[str, float]] = {"snow": {"hardening": 2
 FD_STEP_FACTORS = (1.0 / 3.0, 1.0, 3.0)
 
 
+#: Relative tolerance of autograd against the averaged central differences, per quantity (a
+#: parameter's name without its object: "v0", "rho", "friction", "ground_friction" or a law
+#: parameter). The initial velocity, the density and the friction coefficients act through
+#: smooth maps over the difference steps: 3% (largest error measured on either backend: 1.9%,
+#: the sliding component of v0, where ground friction switches nodes between stick and slip).
+#: Law parameters act through return maps whose kinks the steps straddle: 5% (largest measured:
+#: 3.8%, snow's nu).
+FD_REL_TOL = {"v0": 0.03, "rho": 0.03, "friction": 0.03, "ground_friction": 0.03}
+FD_REL_TOL_LAW = 0.05
+
+
+def fd_tolerance(name: str) -> float:
+    """FD_REL_TOL of a named parameter tensor ("v0.obj1", "obj2.E", "ground_friction")."""
+    quantity = "v0" if name.startswith("v0.") else name.split(".")[-1]
+    return FD_REL_TOL.get(quantity, FD_REL_TOL_LAW)
+
+
 def central_difference(
     loss_of: Callable[[torch.Tensor], float], base: torch.Tensor, i: int, h: float
 ):
@@ -303,9 +320,10 @@ def _compare_with_differences(
 ) -> dict:
     """Autograd vs averaged central differences of _rollout_loss for the tensors ``names``.
 
-    Each component must agree within 5% of its difference plus a floor: ``floor_rel`` of the
-    largest difference within the same tensor (a relative error of a component that nearly
-    vanishes by symmetry is meaningless) and 1e-6 of the loss (float32 round-off).
+    Each component must agree within fd_tolerance(name) of its difference plus a floor:
+    ``floor_rel`` of the largest difference within the same tensor (a relative error of a
+    component that nearly vanishes by symmetry is meaningless) and 1e-6 of the loss (float32
+    round-off).
     """
     named = dict(params.named_tensors())
     leaves = {n: named[n].detach().clone().requires_grad_(True) for n in names}
@@ -329,10 +347,11 @@ def _compare_with_differences(
             key = f"{n}[{i}]" if base.numel() > 1 else n
             pairs[key] = (grad.reshape(-1)[i].item(), central_difference(loss_of, base, i, h))
         floor = floor_rel * max(abs(fd) for _ad, fd in pairs.values()) + 1e-6 * abs(loss.item())
+        rtol = fd_tolerance(n)
         bad += [
-            f"{key}: autograd {ad:.5g} vs finite difference {fd:.5g}"
+            f"{key}: autograd {ad:.5g} vs finite difference {fd:.5g} (tolerance {rtol:.0%})"
             for key, (ad, fd) in pairs.items()
-            if abs(ad - fd) > 0.05 * abs(fd) + floor
+            if abs(ad - fd) > rtol * abs(fd) + floor
         ]
         report.update(pairs)
     assert not bad, f"{label} gradients disagree with central differences:\n" + "\n".join(bad)
@@ -341,7 +360,7 @@ def _compare_with_differences(
 
 def gradient_check(make_simulator: MakeSimulator, family: str, *, rel_step: float = 1e-2) -> dict:
     """Autograd gradients of a rollout loss w.r.t. every law parameter, rho, the initial
-    velocity and ground friction agree with central finite differences within 5%.
+    velocity and ground friction agree with central finite differences within fd_tolerance.
 
     A block of ``family`` is thrown onto the ground (sliding and deforming) for 3 frames.
     Central differences use relative steps around ``rel_step`` (float32 needs them well above
@@ -366,8 +385,9 @@ def gradient_check(make_simulator: MakeSimulator, family: str, *, rel_step: floa
 def collision_gradient_check(make_simulator: MakeSimulator, *, rel_step: float = 1e-2) -> dict:
     """Two balls (elastic, plasticine) collide obliquely in mid-air in multi-field mode, gravity
     and ground off: gradients of a rollout loss w.r.t. both initial velocities, both friction
-    coefficients and one law parameter of each agree with central differences within 5% (plus
-    1e-3 of the largest gradient, for components that nearly vanish by symmetry).
+    coefficients and one law parameter of each agree with central differences within
+    fd_tolerance (plus 1e-3 of the largest gradient, for components that nearly vanish by
+    symmetry).
 
     This is the path single-body checks never reach: per-object fields, contact normals from
     mass gradients, the centre-of-mass velocity and the Coulomb projection between fields.
