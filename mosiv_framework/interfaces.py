@@ -11,10 +11,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 
 from mosiv_framework.laws.base import ConstitutiveLaw, ParamSpec
 from mosiv_framework.types import (
+    Frames,
     GaussianFrames,
     GeometryFrames,
     ParticleSet,
@@ -36,6 +38,7 @@ __all__ = [
     "RenderOutput",
     "Renderer",
     "SceneSource",
+    "Segmenter",
     "Simulator",
 ]
 
@@ -171,3 +174,15 @@ class SceneSource(ABC):
     @abstractmethod
     def generate(self, out_dir: Path) -> Path:
         """Write one scene into ``out_dir`` and return its path."""
+
+
+class Segmenter(ABC):
+    """Multi-view video -> per-camera instance masks with identities shared by all cameras.
+
+    Object k in one camera's masks is object k in every other camera and every frame, so the
+    masks can stand in for the ``masks/`` of a ``mosiv-scene/1`` scene (docs/SCENE_FORMAT.md).
+    """
+
+    @abstractmethod
+    def segment(self, frames: Frames) -> dict[str, np.ndarray]:
+        """Instance-id masks: camera id -> uint8 array [T, H, W] (0 background, k = object k)."""

@@ -8,8 +8,13 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
+
+if TYPE_CHECKING:  # the scene module is heavier (image I/O); only its Camera type is needed here
+    from mosiv_framework.scene import Camera
 
 Tensor = torch.Tensor
 
@@ -255,3 +260,42 @@ class Reconstruction:
     @property
     def object_list(self) -> list[int]:
         return sorted(self.points)
+
+
+@dataclass
+class Frames:
+    """Multi-view video handed to a Segmenter (real recordings or rendered scenes).
+
+    rgb: camera id -> uint8 [T, H, W, 3], all cameras with the same T; cameras: camera id ->
+    ``Camera`` (world-to-camera, metres, z up) for the same ids; n_objects: how many objects the
+    scene holds, if known; domain: ((x0, y0, z0), (x1, y1, z1)) box (m) that holds the objects
+    over the whole clip, if known (segmenters that carve a visual hull need it).
+    """
+
+    rgb: dict[str, np.ndarray]
+    cameras: dict[str, Camera]
+    n_objects: int | None = None
+    domain: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+
+    def __post_init__(self) -> None:
+        if set(self.rgb) != set(self.cameras):
+            raise ValueError(
+                f"frames and cameras name different cameras: {sorted(self.rgb)} vs "
+                f"{sorted(self.cameras)}"
+            )
+        lengths = {cam: np.shape(video)[0] for cam, video in self.rgb.items()}
+        if len(set(lengths.values())) > 1:
+            raise ValueError(f"cameras have different frame counts: {lengths}")
+        for cam, video in self.rgb.items():
+            if np.ndim(video) != 4 or np.shape(video)[-1] != 3:
+                raise ValueError(
+                    f"camera {cam!r}: rgb must be [T, H, W, 3], got {list(np.shape(video))}"
+                )
+
+    @property
+    def camera_ids(self) -> list[str]:
+        return sorted(self.rgb)
+
+    @property
+    def n_frames(self) -> int:
+        return int(next(iter(self.rgb.values())).shape[0]) if self.rgb else 0

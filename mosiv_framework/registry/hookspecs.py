@@ -56,6 +56,10 @@ class MosivHookSpecs:
     def mosiv_scene_sources(self, register: Register) -> None:
         """Register SceneSource components (scene generators and converters)."""
 
+    @hookspec
+    def mosiv_segmenters(self, register: Register) -> None:
+        """Register Segmenter components (multi-view video -> instance masks)."""
+
 
 #: component kind -> the hook that registers it
 HOOK_OF_KIND: dict[str, str] = {
@@ -67,4 +71,5 @@ HOOK_OF_KIND: dict[str, str] = {
     "renderer": "mosiv_renderers",
     "physics_term": "mosiv_physics_terms",
     "scene_source": "mosiv_scene_sources",
+    "segmenter": "mosiv_segmenters",
 }

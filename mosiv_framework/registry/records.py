@@ -16,6 +16,7 @@ KINDS: tuple[str, ...] = (
     "renderer",
     "physics_term",
     "scene_source",
+    "segmenter",
 )
 
 
