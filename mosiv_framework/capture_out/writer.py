@@ -1,0 +1,181 @@
+"""A ``mosiv-scene/1`` folder written the way a multi-camera capture rig delivers a recording.
+
+Layout of the capture folder::
+
+    capture.json               fps, units, up axis, distortion, per camera: video, start offset
+    videos/<camera_id>.mp4     H.264 (yuv420p) through the distorting lens, no masks
+    sparse/0/cameras.txt       COLMAP text model (OPENCV or RADIAL, with the distortion)
+    sparse/0/images.txt        world-to-camera pose per camera, in the rig's units and up axis
+    sparse/0/points3D.txt      empty
+    reference_gt/              only with ``with_reference``: the scene's gt/ for benchmarking
+
+What a rig does not know stays out: instance masks, object count and materials, the ground
+plane and every ground truth. ``offsets`` drops leading frames per camera, as unsynchronised
+cameras that started late; capture.json records each camera's first frame, which is the time
+offset ``start_frame / fps`` of its video.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from mosiv_framework.capture_out.colmap import RigFrame, write_colmap_text
+from mosiv_framework.capture_out.distortion import Distortion, distort_image
+from mosiv_framework.errors import ConfigError, OutputError
+
+CAPTURE_FORMAT = "mosiv-capture/1"
+#: H.264 constant rate factor: 0 lossless .. 51 worst; 18 is visually lossless for most content
+DEFAULT_CRF = 18
+
+
+def parse_offsets(text: str | None, camera_ids: list[str]) -> dict[str, int]:
+    """``"cam_01=2,cam_03=1"`` -> camera id -> leading frames to drop (0 for cameras not named)."""
+    offsets = {cam: 0 for cam in camera_ids}
+    for item in [p.strip() for p in (text or "").split(",") if p.strip()]:
+        cam, sep, value = item.partition("=")
+        if not sep or cam not in offsets:
+            raise ConfigError(
+                f"--offsets {item!r}: give CAMERA=FRAMES with a camera of the scene "
+                f"({', '.join(camera_ids)})"
+            )
+        try:
+            offsets[cam] = int(value)
+        except ValueError:
+            raise ConfigError(f"--offsets {item!r}: FRAMES must be an integer") from None
+        if offsets[cam] < 0:
+            raise ConfigError(f"--offsets {item!r}: FRAMES must be >= 0")
+    return offsets
+
+
+def _even(frame: np.ndarray) -> np.ndarray:
+    """Pad the bottom row / right column by repetition to even sizes, as yuv420p needs; padding
+    at the far edges leaves cx, cy (measured from the top-left corner) valid."""
+    h, w = frame.shape[:2]
+    return np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+
+
+def encode_h264(frames: list[np.ndarray], path: Path, *, fps: float, crf: int) -> tuple[int, int]:
+    """Write uint8 [H, W, 3] frames as an H.264 yuv420p mp4; returns its (width, height)."""
+    import imageio_ffmpeg
+
+    frames = [_even(f) for f in frames]
+    h, w = frames[0].shape[:2]
+    writer = imageio_ffmpeg.write_frames(
+        str(path),
+        (w, h),
+        fps=fps,
+        codec="libx264",
+        pix_fmt_in="rgb24",
+        pix_fmt_out="yuv420p",
+        quality=None,  # the CRF below sets the quality
+        macro_block_size=1,  # never rescale: the intrinsics refer to these pixels
+        output_params=["-crf", str(int(crf))],
+    )
+    writer.send(None)
+    for frame in frames:
+        writer.send(np.ascontiguousarray(frame))
+    writer.close()
+    return w, h
+
+
+def _check_out(out: Path) -> None:
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        state = "is a file" if not out.is_dir() else "is a non-empty folder"
+        raise OutputError(
+            f"capture folder {str(out)!r} {state}; give a new or empty folder (nothing is "
+            "overwritten)"
+        )
+
+
+def write_capture(
+    scene_dir: str | Path,
+    out: str | Path,
+    *,
+    rig: RigFrame | None = None,
+    distortion: Distortion | None = None,
+    camera_model: str = "OPENCV",
+    crf: int = DEFAULT_CRF,
+    offsets: str | None = None,
+    with_reference: bool = False,
+) -> Path:
+    """Write the scene at ``scene_dir`` as a capture into the new or empty folder ``out``:
+    ``rig`` its units and up axis (default metres, z up), ``distortion`` the lens (default none).
+
+    Returns ``out``. Raises SceneFormatError for an invalid scene, ConfigError for bad options,
+    OutputError when ``out`` is refused."""
+    from mosiv_framework.scene import read_scene
+
+    rig = rig or RigFrame()
+    distortion = distortion or Distortion()
+    scene = read_scene(scene_dir)
+    out = Path(out)
+    _check_out(out)
+    if not 0 <= int(crf) <= 51:
+        raise ConfigError(f"--crf {crf}: H.264 takes a constant rate factor from 0 to 51")
+    starts = parse_offsets(offsets, scene.camera_ids)
+    too_late = [c for c, s in starts.items() if s >= scene.n_frames]
+    if too_late:
+        raise ConfigError(
+            f"--offsets drops every one of the {scene.n_frames} frames of {', '.join(too_late)}"
+        )
+    (out / "videos").mkdir(parents=True, exist_ok=True)
+    entries, sizes, names = [], [], []
+    for cam in scene.cameras:
+        frames = [
+            distort_image(
+                scene.rgb(cam.id, t), distortion, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy
+            )
+            for t in range(starts[cam.id], scene.n_frames)
+        ]
+        video = f"videos/{cam.id}.mp4"
+        size = encode_h264(frames, out / video, fps=scene.fps, crf=crf)
+        sizes.append(size)
+        names.append(f"{cam.id}.mp4")
+        entries.append(
+            {
+                "id": cam.id,
+                "video": video,
+                "colmap_image": names[-1],
+                "width": size[0],
+                "height": size[1],
+                "n_frames": len(frames),
+                "start_frame": starts[cam.id],
+                "start_time_s": starts[cam.id] / scene.fps,
+            }
+        )
+    write_colmap_text(
+        out / "sparse" / "0",
+        scene.cameras,
+        names=names,
+        sizes=sizes,
+        distortion=distortion,
+        model=camera_model,
+        rig=rig,
+    )
+    meta = {
+        "format": CAPTURE_FORMAT,
+        "fps": scene.fps,
+        "units": rig.units,
+        "up": rig.up,
+        "colmap": "sparse/0",
+        "camera_model": camera_model,
+        "distortion": {
+            "model": "opencv (k1, k2 radial; p1, p2 tangential)",
+            "k1": distortion.k1,
+            "k2": distortion.k2,
+            "p1": distortion.p1,
+            "p2": distortion.p2,
+        },
+        "crf": int(crf),
+        "cameras": entries,
+    }
+    if with_reference and scene.has_gt:
+        shutil.copytree(scene.root / "gt", out / "reference_gt")
+        # the ground truth stays in the scene's own frame: an importer maps it, not the rig
+        meta["reference_gt"] = {"path": "reference_gt", "frame": "scene: metres, z up"}
+    (out / "capture.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return out
