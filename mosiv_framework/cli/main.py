@@ -78,7 +78,7 @@ def version_text() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from mosiv_framework.cli import bench, data, diagnose, parity, plugins, recipe, stages
+    from mosiv_framework.cli import bench, data, diagnose, parity, plugins, recipe, stages, view
 
     parser = argparse.ArgumentParser(
         prog="mosiv",
@@ -108,6 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
     parity.add_parser(sub)
     stages.add_parsers(sub)
     diagnose.add_parsers(sub)
+    view.add_parser(sub)
     return parser
 
 
