@@ -193,7 +193,7 @@ def test_a_permission_error_deep_inside_names_the_path(capsys, tmp_path, monkeyp
 
     denied = tmp_path / "run" / "recipe.yaml"
 
-    def refuse(recipe, *, run_dir):
+    def refuse(recipe, *, run_dir, force):
         raise PermissionError(13, "Permission denied", str(denied))
 
     monkeypatch.setattr(pipeline, "run_pipeline", refuse)
@@ -234,7 +234,7 @@ def test_generators_refuse_an_output_that_is_a_file(argv, capsys, tmp_path):
 def test_each_error_kind_ends_with_its_documented_status(error, capsys, tmp_path, monkeypatch):
     import mosiv_framework.pipeline as pipeline
 
-    def raise_it(recipe, *, run_dir):
+    def raise_it(recipe, *, run_dir, force):
         raise error
 
     monkeypatch.setattr(pipeline, "run_pipeline", raise_it)
@@ -247,7 +247,7 @@ def test_each_error_kind_ends_with_its_documented_status(error, capsys, tmp_path
 def test_an_unexpected_error_is_one_line_pointing_to_verbose(capsys, tmp_path, monkeypatch):
     import mosiv_framework.pipeline as pipeline
 
-    def bug(recipe, *, run_dir):
+    def bug(recipe, *, run_dir, force):
         raise ZeroDivisionError("division by zero")
 
     monkeypatch.setattr(pipeline, "run_pipeline", bug)

@@ -17,6 +17,12 @@ def add_parsers(sub) -> None:
     run = sub.add_parser("run", help="run a recipe end to end (resumes a finished stage)")
     run.add_argument("recipe")
     run.add_argument("overrides", nargs="*", help="key=value overrides, e.g. scene.path=my_scene")
+    run.add_argument(
+        "--force",
+        action="store_true",
+        help="with output.resume=false, remove the previous run's files from output.dir and "
+        "start afresh (only files a run writes; anything else there is kept)",
+    )
     run.set_defaults(handler=run_recipe)
 
     ev = sub.add_parser("eval", help="evaluate a finished run folder again (metrics, plots)")
@@ -108,7 +114,7 @@ def run_recipe(args) -> int:
     check_scene_path(recipe.scene.path)
     check_writable_folder(recipe.output.dir, "output.dir")
     resume_from(args, recipe.output.dir)
-    run_pipeline(recipe, run_dir=Path(recipe.output.dir))
+    run_pipeline(recipe, run_dir=Path(recipe.output.dir), force=args.force)
     return 0
 
 

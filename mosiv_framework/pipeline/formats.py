@@ -7,6 +7,10 @@ is version 1) and rejects a format it does not know, naming the file, the field,
 the formats it supports, rather than misreading a newer layout. ``identify/history.json`` and
 ``identify/library.json`` hold lists: their versioned layout is an object with the format and
 the list under ``entries``.
+
+``run.json`` marks a folder as a run folder (see ``mosiv_framework.pipeline.rundir``).
+``identified.json`` may hold ``warnings``: what the recipe's settings cap (e.g. a stiffness
+ceiling below a law's bound), as the run logged them.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ LIBRARY = "mosiv-library/1"
 STAGE = "mosiv-stage/1"
 PARAMS = "mosiv-params/1"
 RECIPE = "mosiv-recipe/1"
+RUN = "mosiv-run/1"
 
 #: run-folder file -> the formats its readers understand (the first is the one written)
 FILE_FORMATS: dict[str, tuple[str, ...]] = {
@@ -34,6 +39,7 @@ FILE_FORMATS: dict[str, tuple[str, ...]] = {
     "identify/history.json": (HISTORY,),
     "identify/library.json": (LIBRARY,),
     "params.json": (PARAMS,),
+    "run.json": (RUN,),
 }
 STAGE_FORMATS: tuple[str, ...] = (STAGE,)  # stages/<stage>.json, the completion markers
 

@@ -64,9 +64,14 @@ def stage_objective(recipe, scene, particles):
     return objective
 
 
-def identify_stage(recipe, scene, particles, reconstruction, simulator, sim_options, rd, key):
+def identify_stage(
+    recipe, scene, particles, reconstruction, simulator, sim_options, rd, key, *, warnings=()
+):
     """Velocities, then parameters (gradient) or prototypes (library); writes identified.json,
-    identify/history.json and the identification plots. Returns detached SimulationParams."""
+    identify/history.json and the identification plots. Returns detached SimulationParams.
+
+    ``warnings``: what the recipe's settings cap (``check_stiffness``), stored under
+    ``warnings`` in identified.json so the results say how they were limited."""
     section = recipe.identify
     objective = stage_objective(recipe, scene, particles)
     targets = reconstruction.points
@@ -92,6 +97,8 @@ def identify_stage(recipe, scene, particles, reconstruction, simulator, sim_opti
         else None,
     )
     identified_json = vector.to_json()
+    if warnings:
+        identified_json["warnings"] = list(warnings)
     _note_stopped_early(history, identified_json)
     if library:
         fit = dict(simulator=simulator, particles=sim_particles, objective=objective)

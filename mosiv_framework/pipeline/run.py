@@ -1,14 +1,20 @@
 """``mosiv run``: scene -> reconstruct -> lift -> identify -> evaluate, each stage resumable.
 
+Before anything is written the run checks its output folder (a new or empty folder, or a run
+folder: ``mosiv_framework.pipeline.rundir``), generates the scene if the recipe says how,
+validates the scene and the recipe's stiffness caps against it. Only then does it write
+recipe.yaml and run.json; a run that fails before any stage finished takes them back.
+
 Every stage's result is saved in the run folder with a fingerprint of the recipe sections it
-depends on (and of the stages before it); a rerun skips stages whose fingerprint matches and
-recomputes the rest.
+depends on (and of the stages before it) and a digest of the scene's files; a rerun skips
+stages whose fingerprint and digest match and recomputes the rest.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -19,11 +25,20 @@ from mosiv_framework.pipeline.evaluate import evaluate_run
 from mosiv_framework.pipeline.formats import recipe_header
 from mosiv_framework.pipeline.identification import check_terms_supported, identify_stage
 from mosiv_framework.pipeline.params import ParameterVector
-from mosiv_framework.pipeline.rundir import RunDir, fingerprint
+from mosiv_framework.pipeline.rundir import (
+    OutputFolder,
+    RunDir,
+    RunRecord,
+    fingerprint,
+    scene_digest,
+)
+from mosiv_framework.recipes import check_stiffness
 from mosiv_framework.registry import get_registry
-from mosiv_framework.scene import read_scene
+from mosiv_framework.scene import read_scene, require_valid_scene
 
 log = logging.getLogger(__name__)
+
+STAGES = ("reconstruct", "lift", "identify", "evaluate")
 
 
 def component(section) -> tuple[str, dict]:
@@ -32,28 +47,152 @@ def component(section) -> tuple[str, dict]:
     return options.pop("name"), options
 
 
-def ensure_scene(scene_section, run_dir: RunDir):
-    """Read the scene, generating it first with ``scene.source`` when the folder is missing."""
+def generate_scene(scene_section) -> bool:
+    """Generate the scene with ``scene.source`` when ``scene.path`` holds no scene.json;
+    returns whether it did."""
     path = Path(scene_section.path)
-    if not (path / "scene.json").is_file():
-        if scene_section.source is None:
-            raise ConfigError(
-                f"scene.path {str(path)!r} holds no scene.json and the recipe names no "
-                f"scene.source to generate one"
-            )
-        name, options = component(scene_section.source)
-        log.info("generating scene with %r into %s", name, path)
-        get_registry().create("scene_source", name, options).generate(path)
-    return read_scene(path)
+    if (path / "scene.json").is_file():
+        return False
+    if scene_section.source is None:
+        raise ConfigError(
+            f"scene.path {str(path)!r} holds no scene.json and the recipe names no "
+            f"scene.source to generate one"
+        )
+    name, options = component(scene_section.source)
+    log.info("generating scene with %r into %s", name, path)
+    get_registry().create("scene_source", name, options).generate(path)
+    return True
 
 
-def run_pipeline(recipe: DictConfig, *, run_dir: Path) -> dict:
-    """Run every stage of ``recipe`` into ``run_dir``; returns the metrics."""
+def ensure_scene(scene_section, run_dir: RunDir | None = None):
+    """Read the scene, generating it first with ``scene.source`` when the folder is missing."""
+    generate_scene(scene_section)
+    return read_scene(Path(scene_section.path))
+
+
+def needs_ground_truth(plain: dict) -> bool | None:
+    """True when a component reads the scene's ground truth (the oracle reconstructor, the
+    gt-points lifter): the scene must then hold valid gt/; None lets the check decide."""
+    reads_gt = plain["reconstructor"]["name"] == "oracle" or plain["lifter"]["name"] == "gt-points"
+    return True if reads_gt else None
+
+
+def prepare_scene(recipe: DictConfig, plain: dict):
+    """The scene, generated if needed and validated in full, and the warnings of the recipe's
+    stiffness caps in it (an impossible cap raises ConfigError). Nothing of the run is written
+    yet, so a scene or recipe the run cannot use leaves no run folder behind."""
+    generate_scene(recipe.scene)
+    path = Path(plain["scene"]["path"])
+    require_valid_scene(path, need_ground_truth=needs_ground_truth(plain))
+    scene = read_scene(path)
+    warnings = check_stiffness(plain, world=scene.world, families=scene.materials)
+    for warning in warnings:
+        log.warning("%s", warning)
+    return scene, warnings
+
+
+def stage_keys(plain: dict) -> dict[str, str]:
+    """Each stage's configuration fingerprint, chained: a stage's key covers the stages
+    before it."""
+    key = fingerprint(plain["scene"]["path"], plain["reconstructor"])
+    keys = {"reconstruct": key}
+    keys["lift"] = key = fingerprint(key, plain["lifter"])
+    key = fingerprint(key, plain["simulator"], plain["losses"], plain["identify"])
+    if plain.get("physics_terms"):  # only then, so runs made without terms keep their key
+        key = fingerprint(key, plain["physics_terms"])
+    keys["identify"] = key
+    keys["evaluate"] = fingerprint(key, plain["evaluate"])
+    return keys
+
+
+@dataclass
+class Progress:
+    """Where the stages record themselves: the run folder, run.json, each stage's key and the
+    digest of the scene every stage reads."""
+
+    rd: RunDir
+    record: RunRecord
+    keys: dict[str, str]
+    digest: str
+
+    def done(self, stage: str) -> bool:
+        """Whether ``stage`` finished with this configuration on this scene."""
+        finished = self.rd.stage_done(stage, self.keys[stage], self.digest)
+        if finished:
+            self.record.stage_done(stage)
+        return finished
+
+    def mark(self, stage: str, **info) -> None:
+        self.rd.mark_done(stage, self.keys[stage], self.digest, **info)
+        self.record.stage_done(stage)
+
+    def announce_changes(self) -> None:
+        """Say so when the scene changed under finished stages, and where the run restarts."""
+        states = {s: self.rd.stage_state(s, self.keys[s], self.digest) for s in STAGES}
+        if "changed" in states.values():
+            first = next(s for s in STAGES if states[s] != "done")
+            log.info("scene changed since the last run: rerunning from %s", first)
+
+
+def run_pipeline(recipe: DictConfig, *, run_dir: Path, force: bool = False) -> dict:
+    """Run every stage of ``recipe`` into ``run_dir``; returns the metrics.
+
+    Args:
+        recipe: the validated recipe.
+        run_dir: the run folder (``output.dir``): new, empty, or a run folder to resume.
+        force: with ``output.resume=false``, remove the previous run's files there first
+            (only the files a run writes; anything else in the folder is kept).
+    Raises:
+        OutputError: the folder is not the run's to write, or holds a run and
+            ``output.resume=false`` without ``force``.
+    """
     t_start = time.perf_counter()
-    rd = RunDir(run_dir)
     plain = OmegaConf.to_container(recipe, resolve=True)
+    folder = OutputFolder(run_dir, scene_path=plain["scene"]["path"])
+    resume = bool((plain.get("output") or {}).get("resume", True))
+    if not resume and not force:
+        folder.start_afresh(force=False)  # refuses a folder holding a run; removes nothing
+    if resume and force:
+        log.warning("--force has no effect with output.resume=true: the run resumes")
+    try:
+        scene, warnings = prepare_scene(recipe, plain)
+        removed = folder.start_afresh(force=True) if not resume else []
+        if removed:
+            log.info("output.resume=false: removed the previous run's %s", ", ".join(removed))
+        progress = open_run(recipe, plain, folder, scene)
+        metrics = run_stages(recipe, plain, scene, progress, warnings, started=t_start)
+    except BaseException:
+        folder.undo()
+        raise
+    log.info(
+        "done: observed cd %.3g mm^2%s; results in %s",
+        metrics["observed"]["cd_mm2"],
+        f", future cd {metrics['future']['cd_mm2']:.3g} mm^2" if metrics["future"] else "",
+        progress.rd.root,
+    )
+    return metrics
+
+
+def open_run(recipe: DictConfig, plain: dict, folder: OutputFolder, scene) -> Progress:
+    """Write recipe.yaml and run.json into the run folder; the stages' progress."""
+    rd = RunDir(folder.root)
+    if folder.kind == "earlier run":
+        log.info("%s: a run folder made before run.json existed; adding run.json", rd.root)
     rd.write_bytes("recipe.yaml", recipe_header() + OmegaConf.to_yaml(recipe).encode())
-    scene = ensure_scene(recipe.scene, rd)
+    digest = scene_digest(scene.root)
+    record = RunRecord(
+        rd,
+        folder.record,
+        recipe=fingerprint(plain),
+        scene=str(plain["scene"]["path"]),
+        digest=digest,
+    )
+    record.save()
+    return Progress(rd, record, stage_keys(plain), digest)
+
+
+def run_stages(recipe, plain, scene, progress: Progress, warnings, *, started) -> dict:
+    """The four stages, each resumed when its marker matches; returns the metrics."""
     log.info(
         "scene %r: %d objects, %d cameras, %d frames (%d observed)",
         scene.name,
@@ -62,58 +201,62 @@ def run_pipeline(recipe: DictConfig, *, run_dir: Path) -> dict:
         scene.n_frames,
         scene.observed_frames,
     )
-    key = fingerprint(plain["scene"]["path"], plain["reconstructor"])
-    reconstruction = reconstruct_stage(recipe, scene, rd, key)
-    key = fingerprint(key, plain["lifter"])
-    particles = lift_stage(recipe, scene, reconstruction, rd, key)
+    progress.announce_changes()
+    rd = progress.rd
+    reconstruction = reconstruct_stage(recipe, scene, progress)
+    particles = lift_stage(recipe, scene, reconstruction, progress)
 
     simulator, sim_options = build_simulator(recipe.simulator)
     check_terms_supported(plain.get("physics_terms") or {}, simulator, recipe.simulator.name)
-    key = fingerprint(key, plain["simulator"], plain["losses"], plain["identify"])
-    if plain.get("physics_terms"):  # only then, so runs made without terms keep their key
-        key = fingerprint(key, plain["physics_terms"])
-    if rd.stage_done("identify", key):
+    if progress.done("identify"):
         identified = ParameterVector.from_json(rd.load_json("identified.json"))
     else:
+        # the checkpoint of an interrupted identification resumes only on the same scene
+        checkpoint_key = fingerprint(progress.keys["identify"], progress.digest)
         identified = identify_stage(
-            recipe, scene, particles, reconstruction, simulator, sim_options, rd, key
+            recipe,
+            scene,
+            particles,
+            reconstruction,
+            simulator,
+            sim_options,
+            rd,
+            checkpoint_key,
+            warnings=warnings,
         )
-        rd.mark_done("identify", key)
+        progress.mark("identify")
 
-    key = fingerprint(key, plain["evaluate"])
     stages = dict(scene=scene, particles=particles, reconstruction=reconstruction)
-    metrics = evaluate_stage(recipe, stages, identified, simulator, rd, key, started=t_start)
-    log.info(
-        "done: observed cd %.3g mm^2%s; results in %s",
-        metrics["observed"]["cd_mm2"],
-        f", future cd {metrics['future']['cd_mm2']:.3g} mm^2" if metrics["future"] else "",
-        rd.root,
-    )
-    return metrics
+    return evaluate_stage(recipe, stages, identified, simulator, progress, started=started)
 
 
-def reconstruct_stage(recipe, scene, rd: RunDir, key: str):
+def reconstruct_stage(recipe, scene, progress: Progress):
     """Stage I: the recipe's reconstructor fitted to the scene (reconstruction.pt)."""
-    if rd.stage_done("reconstruct", key):
+    rd = progress.rd
+    if progress.done("reconstruct"):
         return rd.load_torch("reconstruction.pt")
     name, options = component(recipe.reconstructor)
     log.info("reconstructing with %r", name)
     reconstructor = get_registry().create("reconstructor", name, options)
+    before = set(p.name for p in rd.root.iterdir())
     reconstruction = reconstructor.fit(scene, run_dir=rd.root)
+    # what the reconstructor saved of its own in the run folder is the run's too
+    progress.record.add_files(p.name for p in rd.root.iterdir() if p.name not in before)
     rd.save_torch("reconstruction.pt", reconstruction)
-    rd.mark_done("reconstruct", key)
+    progress.mark("reconstruct")
     return reconstruction
 
 
-def lift_stage(recipe, scene, reconstruction, rd: RunDir, key: str):
+def lift_stage(recipe, scene, reconstruction, progress: Progress):
     """Stage II: the reconstruction lifted to simulation particles (particles.pt)."""
-    if rd.stage_done("lift", key):
+    rd = progress.rd
+    if progress.done("lift"):
         return rd.load_torch("particles.pt")
     name, options = component(recipe.lifter)
     log.info("lifting with %r", name)
     particles = get_registry().create("lifter", name, options).lift(reconstruction, scene)
     rd.save_torch("particles.pt", particles)
-    rd.mark_done("lift", key, particles=len(particles))
+    progress.mark("lift", particles=len(particles))
     return particles
 
 
@@ -143,12 +286,13 @@ def simulator_refiner(section):
     return refined
 
 
-def evaluate_stage(recipe, stages: dict, identified, simulator, rd: RunDir, key: str, *, started):
+def evaluate_stage(recipe, stages: dict, identified, simulator, progress: Progress, *, started):
     """Evaluation over observed and future frames (metrics.json, plots, videos).
 
     A resumed run, such as a suite entry run again after its diagnosis was cut short, keeps its
     metrics, plots and videos rather than rolling out again."""
-    if rd.stage_done("evaluate", key) and rd.path("metrics.json").is_file():
+    rd = progress.rd
+    if rd.path("metrics.json").is_file() and progress.done("evaluate"):
         return rd.load_json("metrics.json")
     log.info("evaluating over observed and future frames")
     metrics = evaluate_run(
@@ -160,5 +304,5 @@ def evaluate_stage(recipe, stages: dict, identified, simulator, rd: RunDir, key:
         started=started,
         refine=simulator_refiner(recipe.simulator),
     )
-    rd.mark_done("evaluate", key)
+    progress.mark("evaluate")
     return metrics
