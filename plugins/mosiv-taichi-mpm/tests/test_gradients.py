@@ -1,23 +1,32 @@
 """Rollout gradients against central finite differences (within 5%).
 
 The shared ``gradient_check`` covers every law parameter, rho, the initial velocity and ground
-friction for one object thrown onto the ground; two more checks cover contact friction between
-objects and the body-force term parameters. Families are limited to two (one without, one with
-the hand-written SVD adjoint) to keep the suite within minutes on 2 CPU cores.
+friction for one object of each law thrown onto the ground; the shared
+``collision_gradient_check`` covers multi-field contact between two objects (the same checks as
+on warp-mpm); one more check covers contact friction and the body-force term parameters.
 """
 
 import pytest
 import torch
 
+from mosiv_framework.laws import FAMILIES
 from mosiv_framework.testing import physics_cases
 from mosiv_framework.testing.shapes import block, combine, default_params
 from mosiv_framework.types import World
 
 
-@pytest.mark.parametrize("family", ["elastic", "plasticine"])
+@pytest.mark.parametrize("family", FAMILIES)
 def test_shared_gradient_check(family, simulator_factory):
     report = physics_cases.gradient_check(simulator_factory, family)
+    print(family, report)
     assert any(abs(ad) > 0 for ad, _fd in report.values())
+
+
+def test_collision_gradient_check(simulator_factory):
+    # per-object fields, contact normals and the Coulomb projection between fields
+    report = physics_cases.collision_gradient_check(simulator_factory)
+    print("collision", report)
+    assert abs(report["obj2.friction"][0]) > 0, "contact friction of ball 2 has no gradient"
 
 
 def _central_difference(loss_of, value: torch.Tensor, h: float) -> torch.Tensor:
