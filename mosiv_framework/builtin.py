@@ -1,4 +1,5 @@
-"""The core's own plugin: constitutive laws, losses, physics terms and the example scene source.
+"""The core's own plugin: constitutive laws, losses, physics terms, the example scene source
+and the classical segmenter.
 
 Registered through the same entry point mechanism as any third-party plugin (``core`` in the
 group ``mosiv``), so the core has no privileged path.
@@ -101,5 +102,20 @@ def mosiv_scene_sources(register):
             factory=ExampleSceneSource,
             options=ExampleSceneOptions,
             description="two analytic spheres on ballistic paths (format fixture)",
+        )
+    )
+
+
+@hookimpl
+def mosiv_segmenters(register):
+    from mosiv_framework.segment import ClassicalOptions, ClassicalSegmenter
+
+    register(
+        Component(
+            "segmenter",
+            "classical",
+            factory=ClassicalSegmenter,
+            options=ClassicalOptions,
+            description="background subtraction + voxel visual hull + tracking (static cameras)",
         )
     )

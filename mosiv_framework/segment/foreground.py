@@ -1,0 +1,107 @@
+"""Per-camera foreground from a static background: background estimate, colour distance, a
+threshold (Otsu's or a set value) and morphological cleanup.
+
+Every function works on one camera's video, uint8 [T, H, W, 3]; distances are Euclidean in
+8-bit RGB units (0 .. 255 * sqrt(3)).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy import ndimage
+
+
+def estimate_background(video: np.ndarray, frames: Sequence[int] | None = None) -> np.ndarray:
+    """Static background of one camera, float32 [H, W, 3]: the per-pixel temporal median.
+
+    Args:
+        video: uint8 [T, H, W, 3].
+        frames: frame indices that show the empty scene (or mostly so); None uses every frame.
+            The median is right wherever each pixel shows the background in more than half of
+            the frames used, so a clip in which an object rests for most of it needs frames
+            that do not show it.
+    """
+    if frames is not None:
+        video = video[list(frames)]
+    return np.median(video.astype(np.float32), axis=0)
+
+
+def colour_distance(video: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """Per-pixel Euclidean RGB distance to the background, float32 [T, H, W]."""
+    diff = video.astype(np.float32) - background.astype(np.float32)[None]
+    return np.sqrt((diff * diff).sum(axis=-1))
+
+
+def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
+    """Otsu's threshold of ``values``: the cut that maximises the between-class variance of
+    the two classes below and above it (Otsu 1979). Returns the cut as a value of ``values``."""
+    values = np.asarray(values, dtype=np.float64).ravel()
+    hi = float(values.max()) if values.size else 0.0
+    if hi <= 0.0:
+        return 0.0
+    hist, edges = np.histogram(values, bins=bins, range=(0.0, hi))
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    weight_below = np.cumsum(hist)
+    weight_above = weight_below[-1] - weight_below
+    sum_below = np.cumsum(hist * centres)
+    mean_below = sum_below / np.maximum(weight_below, 1)
+    mean_above = (sum_below[-1] - sum_below) / np.maximum(weight_above, 1)
+    between = weight_below * weight_above * (mean_below - mean_above) ** 2
+    # the cut after bin i separates bins <= i from bins > i; empty bins between two modes give
+    # a plateau of equal scores, whose middle keeps the cut away from both modes' tails
+    best = np.flatnonzero(between >= between.max() * (1.0 - 1e-9))
+    return float(0.5 * (edges[best[0] + 1] + edges[best[-1] + 1]))
+
+
+def _disk(radius: int) -> np.ndarray:
+    """A 2D disk structuring element of ``radius`` pixels, as a [1, 2r+1, 2r+1] stack that acts
+    on each frame of a [T, H, W] video separately. Offsets with x^2 + y^2 <= r (r + 1) count,
+    so radius 1 is the full 3x3 square (a cross would cut the corners of every shape)."""
+    r = np.arange(-radius, radius + 1)
+    disk = (r[:, None] ** 2 + r[None, :] ** 2) <= radius * (radius + 1)
+    return disk[None]
+
+
+def clean_mask(mask: np.ndarray, *, open_px: int, close_px: int) -> np.ndarray:
+    """Morphological cleanup of a bool [T, H, W] foreground, frame by frame: opening removes
+    specks smaller than ``open_px``, closing bridges gaps up to ``close_px`` (both radii in
+    pixels, 0 skips the step), then holes enclosed by foreground are filled."""
+    out = mask
+    if open_px > 0:
+        out = ndimage.binary_opening(out, structure=_disk(open_px))
+    if close_px > 0:
+        # pad so the closing does not eat the foreground at the image border
+        pad = ((0, 0), (close_px, close_px), (close_px, close_px))
+        padded = np.pad(out, pad, mode="edge")
+        closed = ndimage.binary_closing(padded, structure=_disk(close_px))
+        out = closed[:, close_px:-close_px, close_px:-close_px]
+    holes = np.zeros((3, 3, 3), dtype=bool)
+    holes[1] = ndimage.generate_binary_structure(2, 1)
+    return ndimage.binary_fill_holes(out, structure=holes)
+
+
+def foreground(
+    video: np.ndarray,
+    background: np.ndarray,
+    *,
+    threshold: float | None,
+    min_threshold: float,
+    open_px: int,
+    close_px: int,
+) -> tuple[np.ndarray, float]:
+    """Foreground of one camera, bool [T, H, W], and the distance threshold used.
+
+    Args:
+        video: uint8 [T, H, W, 3]; background: float [H, W, 3].
+        threshold: RGB distance above which a pixel is foreground; None picks it with Otsu's
+            method on this camera's distances, raised to at least ``min_threshold`` so that
+            sensor noise alone (no object in view) is not split in two.
+        open_px, close_px: radii of the cleanup (see ``clean_mask``).
+    """
+    distance = colour_distance(video, background)
+    if threshold is None:
+        threshold = max(otsu_threshold(distance), min_threshold)
+    mask = distance > threshold
+    return clean_mask(mask, open_px=open_px, close_px=close_px), float(threshold)
