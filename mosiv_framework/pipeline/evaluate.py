@@ -322,7 +322,7 @@ def evaluate_run(
             traj,
             reference,
             camera=pick_camera(scene, recipe.evaluate.video_camera),
-            path=rd.path("videos/prediction_vs_reference.gif"),
+            path=rd.path(f"videos/prediction_vs_reference.{recipe.evaluate.video_format}"),
             size=recipe.evaluate.video_size,
             fps=recipe.evaluate.video_fps or scene.fps,
             observed_frames=scene.observed_frames,

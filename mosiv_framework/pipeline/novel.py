@@ -224,7 +224,8 @@ def simulate_novel(
     size: int = 256,
 ) -> dict[str, Path]:
     """Roll ``params`` out from the run's particles; write rollout.npz, params.json and
-    video.gif into ``out_dir``. Returns the written paths."""
+    video.gif (or .mp4, as evaluate.video_format says) into ``out_dir``. Returns the written
+    paths."""
     frames = run.scene.n_frames - 1 if frames is None else int(frames)
     if frames < 1:
         raise ConfigError(f"--frames {frames}: simulate at least 1 frame")
@@ -247,7 +248,7 @@ def simulate_novel(
         "video": write_rollout_video(
             traj,
             camera=pick_camera(run.scene, run.recipe.evaluate.get("video_camera", "")),
-            path=out_dir / "video.gif",
+            path=out_dir / f"video.{run.recipe.evaluate.get('video_format', 'gif')}",
             size=size,
             fps=run.scene.fps,
         ),

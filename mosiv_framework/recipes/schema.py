@@ -180,11 +180,22 @@ class EvaluateSection:
     video_camera: str = ""
     video_size: int = 256
     video_fps: float = 0.0
+    #: "gif", or "mp4" (H.264 through imageio-ffmpeg, far smaller for long or large videos)
+    video_format: str = "gif"
 
     @staticmethod
     def value_problems(values: dict[str, Any]) -> list[str]:
         """Values the type check cannot catch, each naming the key and what is valid."""
-        return _range_problems("evaluate", values, EVALUATE_RANGES)
+        problems = _range_problems("evaluate", values, EVALUATE_RANGES)
+        video_format = values.get("video_format", "gif")
+        if video_format not in VIDEO_FORMATS:
+            problems.append(
+                f"evaluate.video_format={video_format!r}: must be one of {', '.join(VIDEO_FORMATS)}"
+            )
+        return problems
+
+
+VIDEO_FORMATS = ("gif", "mp4")
 
 
 #: the exact EMD matches n sampled points by the Hungarian algorithm: n^2 distances in memory
