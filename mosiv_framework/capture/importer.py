@@ -1,0 +1,292 @@
+"""``import_recording``: a capture rig's recording -> a ``mosiv-scene/1`` folder.
+
+The steps, each in its own module: frames (``video``), cameras (``colmap``, ``nerfstudio``),
+time offsets (``offsets``), lens undistortion (``distortion``), the frame alignment
+(``align``: units, up axis, ground), masks from a registered segmenter, and the domain from the
+visual hull (``domain``). Everything is read and checked before OUT is created; the scene is
+written with ``SceneWriter``, validated with ``validate_scene``, and previewed as
+``preview/contact_sheet.png``; ``import.json`` records what the import decided.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mosiv_framework.capture import align as al
+from mosiv_framework.capture import domain as dom
+from mosiv_framework.capture import materials as mat
+from mosiv_framework.capture import offsets as off
+from mosiv_framework.capture import video
+from mosiv_framework.capture.common import CaptureError, SourceCamera
+from mosiv_framework.capture.distortion import undistort_frames
+from mosiv_framework.errors import OutputError, SceneFormatError
+
+logger = logging.getLogger(__name__)
+
+IMPORT_FORMAT = "mosiv-import/1"
+
+
+@dataclass
+class ImportSettings:
+    """What ``mosiv data import`` was asked for (docs/SCENE_FORMAT.md, "Importing a
+    recording"). Strings are parsed as the command-line flags of the same names."""
+
+    out: Path
+    frames_dir: Path
+    colmap: Path | None = None
+    transforms: Path | None = None
+    materials: str | None = None
+    objects_yaml: Path | None = None
+    offsets: str | None = None
+    units: str | None = None
+    up: str | None = None
+    ground: str | None = None
+    fps: float | None = None
+    observed: int | None = None
+    n_frames: int | None = None
+    segmenter: str = "classical"
+    segmenter_options: dict[str, Any] = field(default_factory=dict)
+    name: str | None = None
+    margin: float = 0.1
+    hull_voxels: int = 64
+    onset_k: float = 4.0
+
+
+def find_inputs(recording: str | Path) -> dict[str, Path]:
+    """Frames folder and camera file of a recording folder: frames in ``videos/``,
+    ``images/`` or the folder itself; cameras in ``sparse/0``, ``sparse``, ``colmap`` or
+    ``transforms.json``. Keys: ``frames_dir`` and one of ``colmap`` / ``transforms``."""
+    root = Path(recording)
+    if not root.is_dir():
+        raise CaptureError(f"recording folder {str(root)!r} does not exist or is not a folder")
+    found: dict[str, Path] = {"frames_dir": root}
+    for name in ("videos", "images", "frames"):
+        if (root / name).is_dir():
+            found["frames_dir"] = root / name
+            break
+    for name in ("sparse/0", "sparse", "colmap"):
+        d = root / name
+        if any((d / f).is_file() for f in ("cameras.txt", "cameras.bin")):
+            found["colmap"] = d
+            break
+    else:
+        if (root / "transforms.json").is_file():
+            found["transforms"] = root / "transforms.json"
+    return found
+
+
+def load_cameras(s: ImportSettings, known: set[str]) -> dict[str, SourceCamera]:
+    from mosiv_framework.capture.colmap import read_colmap
+    from mosiv_framework.capture.nerfstudio import read_nerfstudio
+
+    if (s.colmap is None) == (s.transforms is None):
+        raise CaptureError("give the cameras: either a COLMAP model (--colmap) or --transforms")
+    cams = read_colmap(s.colmap, known) if s.colmap else read_nerfstudio(s.transforms, known)
+    by_id = {c.id: c for c in cams}
+    missing = sorted(known - set(by_id))
+    if missing:
+        model = s.colmap or s.transforms
+        raise CaptureError(
+            f"{model}: no camera for the frames of {', '.join(missing)} (in {s.frames_dir}); "
+            "a camera's image name must be the video's name (see docs/SCENE_FORMAT.md)"
+        )
+    return by_id
+
+
+def load_frames(s: ImportSettings, sources, cams) -> tuple[dict[str, np.ndarray], float]:
+    """Every camera's frames (checked against its intrinsics' size) and the frame rate."""
+    videos, rates = {}, {}
+    for cid, src in sources.items():
+        frames, rates[cid] = video.read_frames(src)
+        k = cams[cid].intrinsics
+        if frames.shape[1:3] != (k.height, k.width):
+            raise CaptureError(
+                f"{src}: frames are {frames.shape[2]}x{frames.shape[1]} pixels, but "
+                f"{cams[cid].origin} gives camera {cid!r} {k.width}x{k.height}"
+            )
+        videos[cid] = frames
+    return videos, video.common_fps(rates, s.fps, s.frames_dir)
+
+
+def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bool]:
+    """(videos cut to a common time base, offsets, whether they were estimated)."""
+    if s.offsets is not None and yaml_offsets is not None:
+        raise CaptureError(f"offsets given twice (--offsets and {s.objects_yaml}); give one")
+    given, where = (s.offsets, "--offsets") if s.offsets is not None else (yaml_offsets, "")
+    cameras = sorted(videos)
+    offsets = off.parse_offsets(given, cameras, where or f"{s.objects_yaml}: offsets")
+    estimated = offsets is None
+    if estimated:
+        offsets = off.estimate_offsets(videos, k=s.onset_k)
+        logger.info("estimated time offsets (frames dropped): %s", offsets)
+    return off.apply_offsets(videos, offsets, s.n_frames), offsets, estimated
+
+
+def read_objects(s: ImportSettings):
+    if (s.materials is None) == (s.objects_yaml is None):
+        raise CaptureError("give the objects: either --materials elastic,sand or --objects FILE")
+    if s.materials is not None:
+        return mat.from_flag(s.materials), {}, None
+    return mat.read_objects_yaml(s.objects_yaml)
+
+
+def segment(s: ImportSettings, videos, cameras, n_objects: int, box) -> dict[str, np.ndarray]:
+    """Masks of the registered segmenter ``s.segmenter``, checked against the objects."""
+    from mosiv_framework.registry import get_registry
+    from mosiv_framework.types import Frames
+
+    seg = get_registry().create("segmenter", s.segmenter, s.segmenter_options)
+    domain = (tuple(map(float, box[0])), tuple(map(float, box[1])))
+    masks = seg.segment(Frames(rgb=videos, cameras=cameras, n_objects=n_objects, domain=domain))
+    found = max(int(m.max()) for m in masks.values())
+    if found != n_objects:
+        raise CaptureError(
+            f"segmenter {s.segmenter!r} found {found} object(s) but {n_objects} material(s) are "
+            "given; name every object's material, or tune the segmenter (--segmenter-option)"
+        )
+    return masks
+
+
+def _check_out(out: Path) -> None:
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        state = "is a file" if not out.is_dir() else "is a non-empty folder"
+        raise OutputError(
+            f"OUT {str(out)!r} {state}; give a new or empty folder (nothing is overwritten)"
+        )
+
+
+def _alignment(s: ImportSettings, cams: dict[str, SourceCamera]):
+    """(Alignment without the ground offset, up direction, ground: height (m) before the
+    offset, "none", or None to fit it)."""
+    up = al.parse_up(s.up)
+    up_given = up is not None
+    if up is None:
+        up = al.cameras_up(list(cams.values()))
+        logger.info("up direction from the cameras: %s", np.round(up, 4).tolist())
+    align = al.Alignment(al.parse_units(s.units), al.rotation_to_z(up))
+    ground = al.parse_ground(s.ground)
+    if isinstance(ground, tuple):
+        ground = al.ground_height_given(ground, align, up if up_given else _axis_up(ground, up))
+    return align, up, ground
+
+
+def _axis_up(ground: tuple[int, float], up: np.ndarray) -> np.ndarray:
+    """With an inferred up, --ground AXIS=... names the up axis: the inferred up is snapped to
+    that axis when within 10 degrees of it (else the plane is refused as not horizontal)."""
+    axis = np.zeros(3)
+    axis[ground[0]] = np.sign(up[ground[0]]) or 1.0
+    return axis if float(axis @ up) > np.cos(np.radians(10.0)) else up
+
+
+def _locate(s, videos, cameras, n_objects, box, ground):
+    """One segmenter pass over ``box``: (masks, lower, upper, ground) where the ground is
+    fitted under the hull when ``ground`` is None."""
+    masks = segment(s, videos, cameras, n_objects, box)
+    points, step = dom.voxel_grid(box[0], box[1], s.hull_voxels)
+    hull = dom.visual_hull(masks, cameras, points)
+    if ground is None:
+        ground = dom.fit_ground(hull, points, step)
+    height = None if ground == "none" else float(ground)
+    lo, hi = dom.hull_domain(hull, points, step, height, s.margin)
+    return masks, lo, hi, ground, step
+
+
+def _hull_frame(s, videos, cameras, origins, n_objects, ground):
+    """Masks, domain (lower, upper) and ground height (m, None = no ground), all before the
+    ground offset. Two segmenter passes: the first over the region the cameras look at locates
+    the objects; the second over the box around their hull (finer voxels) gives the masks,
+    the domain and the fitted ground that are kept."""
+    centre, half = dom.region(cameras)
+    dom.check_in_front(centre, cameras, origins, "centre of the region the cameras look at")
+    box = [centre - half, centre + half]
+    if isinstance(ground, float):
+        box[0][2] = max(box[0][2], ground)
+    _, lo, hi, fitted, step = _locate(s, videos, cameras, n_objects, box, ground)
+    if ground is None:  # leave room below a fitted ground for the finer hull to go lower
+        lo[2] = fitted - 2 * step
+    masks, lo, hi, ground, _ = _locate(s, videos, cameras, n_objects, (lo, hi), ground)
+    ground = None if ground == "none" else float(ground)
+    logger.info("ground: %s", "none" if ground is None else f"z = {ground:.4f} m")
+    return masks, lo, hi, ground
+
+
+def import_recording(s: ImportSettings) -> Path:
+    """Import the recording described by ``s`` into the new folder ``s.out``; returns it.
+
+    Raises CaptureError (a ConfigError) naming the file and field of bad input, OutputError for
+    unreadable files or a refused OUT, SceneFormatError if the written scene fails validation.
+    """
+    out = Path(s.out)
+    _check_out(out)
+    objects, hints, yaml_offsets = read_objects(s)
+    sources = video.find_sources(s.frames_dir)
+    cams = load_cameras(s, set(sources))
+    videos, fps = load_frames(s, sources, cams)
+    videos, offsets, estimated = synchronise(s, videos, yaml_offsets)
+    videos = {
+        c: undistort_frames(v, cams[c].intrinsics, cams[c].distortion) for c, v in videos.items()
+    }
+    align, up, ground = _alignment(s, cams)
+    origins = {cid: cam.origin for cid, cam in cams.items()}
+    cameras = {cid: align.camera(cam) for cid, cam in sorted(cams.items())}
+    masks, lo, hi, ground = _hull_frame(s, videos, cameras, origins, len(objects), ground)
+    shift = 0.0 if ground is None else ground  # the ground goes to z = 0
+    align.offset = np.array([0.0, 0.0, -shift])
+    lo, hi = lo + align.offset, hi + align.offset
+    cameras = {cid: align.camera(cam) for cid, cam in sorted(cams.items())}
+    dom.check_in_front((lo + hi) / 2, cameras, origins, "domain centre")
+    n = len(next(iter(videos.values())))
+    observed = _observed(s.observed, n)
+    record = {
+        "format": IMPORT_FORMAT,
+        "settings": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(s).items()},
+        "offsets": offsets,
+        "offsets_estimated": estimated,
+        "up_in_recording": up.tolist(),
+        "alignment": align.as_dict(),
+        "ground_fitted": s.ground is None,
+        "distortion": {c: cam.distortion.as_dict() for c, cam in cams.items()},
+        "hints": {str(k): v for k, v in hints.items()},
+    }
+    write(out, s.name or out.name, fps, observed, objects, cameras, videos, masks, (lo, hi),
+          None if ground is None else 0.0, record)  # fmt: skip
+    return out
+
+
+def _observed(observed: int | None, n: int) -> int:
+    if observed is None:
+        return max(1, n // 2)  # as ``mosiv data synth``: the first half is observed
+    if not 1 <= observed <= n:
+        raise CaptureError(f"--observed {observed}: must lie in 1..{n} (the imported frames)")
+    return int(observed)
+
+
+def write(out, name, fps, observed, objects, cameras, videos, masks, box, ground, record) -> None:
+    """Write, validate and preview the scene; ``record`` goes to import.json."""
+    from mosiv_framework.cli.data import contact_sheet
+    from mosiv_framework.scene import SceneWriter, atomic_write_json, read_scene, validate_scene
+
+    n = len(next(iter(videos.values())))
+    writer = SceneWriter(
+        out, name=name, fps=fps, n_frames=n, observed_frames=observed, objects=objects,
+        cameras=list(cameras.values()), domain_lower=box[0].tolist(),
+        domain_upper=box[1].tolist(), ground_height=ground,
+    )  # fmt: skip
+    for cid in cameras:
+        for t in range(n):
+            writer.write_frame(cid, t, rgb=videos[cid][t], mask=masks[cid][t])
+    atomic_write_json(out / "import.json", record)
+    writer.finish()
+    problems = validate_scene(out)
+    if problems:
+        raise SceneFormatError([f"{out / p}" for p in problems])
+    import imageio.v3 as iio
+
+    sheet = contact_sheet(read_scene(out), masks=True, step=max(1, -(-n // 8)))
+    (out / "preview").mkdir(exist_ok=True)
+    iio.imwrite(out / "preview" / "contact_sheet.png", sheet)

@@ -1,0 +1,137 @@
+"""Frames of a recording: one video file or one folder of images per camera.
+
+A frames folder holds, per camera, either a video (``<camera id>.mp4``, ``.mov``, ``.avi``,
+``.mkv``, ``.m4v``, ``.webm``) or a folder ``<camera id>/`` of images (``.png``, ``.jpg``,
+``.jpeg``, ``.bmp``, ``.tif``, ``.tiff``) taken in sorted file-name order. The camera id is the
+video's file stem or the folder's name.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from mosiv_framework.capture.common import CaptureError
+from mosiv_framework.errors import OutputError, StageNotAvailable
+
+logger = logging.getLogger(__name__)
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+def find_sources(folder: str | Path) -> dict[str, Path]:
+    """Camera id -> its video file or image folder in ``folder``; CaptureError when there are
+    none or when one id has both a video and a folder."""
+    root = Path(folder)
+    if not root.is_dir():
+        raise CaptureError(f"frames folder {str(root)!r} does not exist or is not a folder")
+    sources: dict[str, Path] = {}
+    for entry in sorted(root.iterdir()):
+        if entry.name.startswith("."):
+            continue
+        if entry.is_file() and entry.suffix.lower() in VIDEO_SUFFIXES:
+            key = entry.stem
+        elif entry.is_dir() and any(p.suffix.lower() in IMAGE_SUFFIXES for p in entry.iterdir()):
+            key = entry.name
+        else:
+            continue
+        if key in sources:
+            raise CaptureError(
+                f"{root}: camera {key!r} has two sources ({sources[key].name}, {entry.name}); "
+                "keep one"
+            )
+        sources[key] = entry
+    if not sources:
+        raise CaptureError(
+            f"{root}: holds no video ({', '.join(VIDEO_SUFFIXES)}) and no folder of images; "
+            "give one video or image folder per camera"
+        )
+    return sources
+
+
+def _rgb8(image: np.ndarray, where: str) -> np.ndarray:
+    """Any decoded image -> uint8 [H, W, 3]."""
+    img = np.asarray(image)
+    if img.dtype == np.uint16:
+        img = (img // 257).astype(np.uint8)
+    if img.dtype != np.uint8:
+        raise CaptureError(f"{where}: pixels are {img.dtype}; expected 8- or 16-bit images")
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    if img.ndim != 3 or img.shape[2] not in (3, 4):
+        raise CaptureError(f"{where}: shape {list(img.shape)} is not an RGB image")
+    return np.ascontiguousarray(img[..., :3])
+
+
+def read_video(path: Path) -> tuple[np.ndarray, float | None]:
+    """Frames uint8 [T, H, W, 3] and the frame rate of a video file (ffmpeg via imageio)."""
+    try:
+        import imageio.v2 as iio2
+        import imageio_ffmpeg  # noqa: F401 -- imageio's FFMPEG format needs it
+    except ImportError as exc:
+        raise StageNotAvailable(
+            f"{path}: reading videos needs imageio-ffmpeg (pip install imageio-ffmpeg)"
+        ) from exc
+    try:
+        reader = iio2.get_reader(str(path), format="FFMPEG")
+        try:
+            fps = reader.get_meta_data().get("fps")
+            frames = [_rgb8(f, str(path)) for f in reader]
+        finally:
+            reader.close()
+    except CaptureError:
+        raise
+    except Exception as exc:  # ffmpeg reports a broken file in many ways; all mean "unreadable"
+        raise OutputError(f"{path}: cannot be read as a video ({exc})") from exc
+    if not frames:
+        raise OutputError(f"{path}: cannot be read as a video (it holds no frames)")
+    return np.stack(frames), (float(fps) if fps else None)
+
+
+def read_image_folder(path: Path) -> np.ndarray:
+    """Frames uint8 [T, H, W, 3] of a folder of images, in sorted file-name order."""
+    import imageio.v3 as iio
+
+    files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    frames = []
+    for f in files:
+        try:
+            frames.append(_rgb8(iio.imread(f), str(f)))
+        except CaptureError:
+            raise
+        except Exception as exc:
+            raise OutputError(f"{f}: cannot be read as an image ({exc})") from exc
+        if frames[-1].shape != frames[0].shape:
+            raise CaptureError(
+                f"{f}: is {frames[-1].shape[1]}x{frames[-1].shape[0]} pixels, but {files[0].name} "
+                f"is {frames[0].shape[1]}x{frames[0].shape[0]}; a camera's frames share one size"
+            )
+    return np.stack(frames)
+
+
+def read_frames(source: Path) -> tuple[np.ndarray, float | None]:
+    """(frames uint8 [T, H, W, 3], fps or None) of one camera's video file or image folder."""
+    if source.is_dir():
+        return read_image_folder(source), None
+    return read_video(source)
+
+
+def common_fps(rates: dict[str, float | None], given: float | None, folder: Path) -> float:
+    """The recording's frame rate: ``given`` (``--fps``) if set, else the videos' own rate,
+    which must agree within 1 %."""
+    if given is not None:
+        if not given > 0:
+            raise CaptureError(f"--fps {given}: must be positive")
+        return float(given)
+    known = {cam: r for cam, r in rates.items() if r}
+    if not known:
+        raise CaptureError(f"{folder}: the frames carry no frame rate (image folders); give --fps")
+    lo, hi = min(known.values()), max(known.values())
+    if hi > 1.01 * lo:
+        raise CaptureError(
+            f"{folder}: the videos' frame rates differ ({known}); give --fps to choose one"
+        )
+    return float(np.median(list(known.values())))

@@ -1,0 +1,116 @@
+"""``mosiv data import OUT``: a capture rig's recording -> a ``mosiv-scene/1`` folder.
+
+The work is in ``mosiv_framework.capture``; this module maps the flags onto its
+``ImportSettings`` (docs/SCENE_FORMAT.md, "Importing a recording"; docs/CLI.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def _data_subparsers(sub) -> argparse._SubParsersAction:
+    """The sub-command action of ``mosiv data`` (its ACTION argument)."""
+    data = sub.choices["data"]
+    return next(a for a in data._actions if isinstance(a, argparse._SubParsersAction))
+
+
+def add_parser(sub) -> None:
+    """Register ``import`` under ``mosiv data`` (``sub``: the top-level sub-commands)."""
+    p = _data_subparsers(sub).add_parser(
+        "import", help="turn a recording (videos + COLMAP or nerfstudio cameras) into a scene"
+    )
+    p.add_argument("out_dir", help="folder to write the scene into (new or empty)")
+    src = p.add_argument_group("recording")
+    src.add_argument(
+        "--recording",
+        help="recording folder: frames in videos/ (or images/, frames/, the folder itself), "
+        "cameras in sparse/0, sparse, colmap (COLMAP) or transforms.json",
+    )
+    src.add_argument("--videos", help="folder with one video or image folder per camera")
+    src.add_argument("--colmap", help="COLMAP sparse model folder (text or binary)")
+    src.add_argument("--transforms", help="nerfstudio transforms.json")
+    src.add_argument("--fps", type=float, help="frame rate (default: the videos' own)")
+    src.add_argument(
+        "--offsets",
+        help="leading frames each camera drops, CAM:N,... ('none': synchronised; default: "
+        "estimated from motion onset)",
+    )
+    src.add_argument("--frames", type=int, help="keep the first N frames after the offsets")
+    world = p.add_argument_group("world frame")
+    world.add_argument("--units", help="length unit of the cameras: m, cm, mm, in, ... or m/unit")
+    world.add_argument("--up", help="up axis of the cameras' world: x, y, z, -y, or a,b,c")
+    world.add_argument(
+        "--ground", help="ground plane AXIS=VALUE in the recording's units, or none (default: fit)"
+    )
+    world.add_argument(
+        "--margin", type=float, default=0.1, help="domain margin, fraction of the hull's size"
+    )
+    world.add_argument("--hull-voxels", type=int, default=64, help="visual hull cells per side")
+    obj = p.add_argument_group("objects")
+    obj.add_argument("--materials", help="material family per object, e.g. elastic,sand")
+    obj.add_argument("--objects", help="YAML: objects (id -> material, name, hints), offsets")
+    obj.add_argument("--observed", type=int, help="observed frames (default: half)")
+    obj.add_argument("--name", help="scene name (default: OUT's folder name)")
+    obj.add_argument("--segmenter", default="classical", help="registered segmenter")
+    obj.add_argument(
+        "--segmenter-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an option of the segmenter (repeatable)",
+    )
+    p.set_defaults(handler=run_import)
+
+
+def settings_from_args(args):
+    """``ImportSettings`` of the parsed flags."""
+    from omegaconf import OmegaConf
+
+    from mosiv_framework.capture import ImportSettings, find_inputs
+    from mosiv_framework.errors import ConfigError
+
+    bad = [o for o in args.segmenter_option if "=" not in o]
+    if bad:
+        raise ConfigError([f"--segmenter-option {o!r}: not of the form key=value" for o in bad])
+    options = OmegaConf.to_container(OmegaConf.from_dotlist(args.segmenter_option))
+    found = find_inputs(args.recording) if args.recording else {}
+    frames_dir = args.videos or found.get("frames_dir")
+    if frames_dir is None:
+        raise ConfigError("give the frames: --recording DIR or --videos DIR")
+    explicit = args.colmap is not None or args.transforms is not None
+    return ImportSettings(
+        out=Path(args.out_dir),
+        frames_dir=Path(frames_dir),
+        colmap=Path(args.colmap) if args.colmap else (None if explicit else found.get("colmap")),
+        transforms=Path(args.transforms)
+        if args.transforms
+        else (None if explicit else found.get("transforms")),
+        materials=args.materials,
+        objects_yaml=Path(args.objects) if args.objects else None,
+        offsets=args.offsets,
+        units=args.units,
+        up=args.up,
+        ground=args.ground,
+        fps=args.fps,
+        observed=args.observed,
+        n_frames=args.frames,
+        segmenter=args.segmenter,
+        segmenter_options=options,
+        name=args.name,
+        margin=args.margin,
+        hull_voxels=args.hull_voxels,
+    )
+
+
+def run_import(args) -> int:
+    from mosiv_framework.capture import import_recording
+    from mosiv_framework.cli.stages import check_writable_folder
+    from mosiv_framework.scene import read_scene, summary
+
+    check_writable_folder(args.out_dir, "OUT_DIR")
+    out = import_recording(settings_from_args(args))
+    print(f"wrote scene {out}: {summary(read_scene(out))}")
+    print(f"preview: {out / 'preview' / 'contact_sheet.png'}")
+    return 0

@@ -1,0 +1,264 @@
+"""``mosiv data import``: a capture built here from a rendered scene (videos through a known
+lens, COLMAP text cameras in cm with y up, cameras that started late) comes back as the scene.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mosiv_framework.capture import ImportSettings, import_recording
+from mosiv_framework.capture.colmap import read_colmap
+from mosiv_framework.capture.distortion import (
+    Distortion,
+    Intrinsics,
+    distort_frames,
+    distort_points,
+    undistort_frames,
+    undistort_points,
+)
+from mosiv_framework.capture.nerfstudio import read_nerfstudio
+from mosiv_framework.scene import SceneObject, read_scene, validate_scene, write_scene
+from mosiv_framework.scene.example import _render, example_cameras
+
+pytest.importorskip("imageio_ffmpeg")
+
+SIZE, N_FRAMES, REST = 96, 28, 6
+RADIUS, SPEED = 0.1, 0.03  # m, m per frame
+LENS = Distortion(k1=-0.08, k2=0.01, p1=0.001, p2=-0.0005)
+LATE = {"cam_01": 2, "cam_03": 1}  # cameras that started late: leading frames they lack
+# the capture's world: centimetres, y up; scene (x, y, z) -> rig (x, z, -y) * 100
+Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+def sphere_paths() -> np.ndarray:
+    """[T, 2, 3] centres: two spheres at rest on the ground for REST frames, then sliding."""
+    t = np.clip(np.arange(N_FRAMES) - (REST - 1), 0, None)[:, None]
+    a = np.array([-0.2, -0.35, RADIUS]) + t * np.array([0.0, SPEED, 0.0])
+    b = np.array([0.2, 0.33, RADIUS]) + t * np.array([0.0, -SPEED, 0.0])
+    return np.stack([a, b], axis=1)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    cameras = example_cameras(n_cameras=4, size=SIZE)
+    paths = torch.as_tensor(sphere_paths())
+    radii = torch.tensor([RADIUS, RADIUS], dtype=torch.float64)
+    albedos = torch.tensor([(0.8, 0.15, 0.1), (0.1, 0.25, 0.8)], dtype=torch.float64)
+    rgb, masks = {}, {}
+    for cam in cameras:
+        o, d = cam.rays(dtype=torch.float64)
+        frames = [_render(o, d, paths[t], radii, albedos) for t in range(N_FRAMES)]
+        rgb[cam.id] = np.stack([f[0] for f in frames])
+        masks[cam.id] = np.stack([f[1] for f in frames])
+    return write_scene(
+        tmp_path_factory.mktemp("scene") / "s",
+        name="slide",
+        fps=24.0,
+        objects=[SceneObject(1, "a", "elastic"), SceneObject(2, "b", "sand")],
+        cameras=cameras,
+        rgb=rgb,
+        masks=masks,
+        domain_lower=(-0.5, -0.5, 0.0),
+        domain_upper=(0.5, 0.5, 1.0),
+    )
+
+
+def intrinsics(cam) -> Intrinsics:
+    return Intrinsics(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
+
+
+def quaternion(rot: np.ndarray) -> np.ndarray:
+    """Rotation -> (w, x, y, z), for rotations away from 180 degrees (w > 0)."""
+    w = math.sqrt(max(1.0 + np.trace(rot), 0.0)) / 2.0
+    return np.array(
+        [w, (rot[2, 1] - rot[1, 2]) / (4 * w), (rot[0, 2] - rot[2, 0]) / (4 * w),
+         (rot[1, 0] - rot[0, 1]) / (4 * w)]
+    )  # fmt: skip
+
+
+def write_colmap(folder: Path, cameras, poses: dict[str, np.ndarray], model: str = "OPENCV"):
+    folder.mkdir(parents=True, exist_ok=True)
+    cam_lines, img_lines = [], []
+    for i, cam in enumerate(cameras, start=1):
+        params = [cam.fx, cam.fy, cam.cx, cam.cy, LENS.k1, LENS.k2, LENS.p1, LENS.p2]
+        cam_lines.append(f"{i} {model} {cam.width} {cam.height} " + " ".join(map(repr, params)))
+        w2c = poses[cam.id]
+        q = quaternion(w2c[:3, :3])
+        nums = " ".join(repr(float(v)) for v in (*q, *w2c[:3, 3]))
+        img_lines += [f"{i} {nums} {i} {cam.id}.mp4", ""]
+    (folder / "cameras.txt").write_text("# cameras\n" + "\n".join(cam_lines) + "\n")
+    (folder / "images.txt").write_text("# images\n" + "\n".join(img_lines) + "\n")
+    (folder / "points3D.txt").write_text("")
+
+
+def rig_pose(w2c: np.ndarray) -> np.ndarray:
+    """A scene world-to-camera (m, z up) in the rig's world (cm, y up)."""
+    out = np.eye(4)
+    out[:3, :3] = w2c[:3, :3] @ Y_UP.T
+    out[:3, 3] = 100.0 * w2c[:3, 3]
+    return out
+
+
+def write_capture(scene_dir: Path, out: Path, late=LATE, drop_video: str | None = None) -> Path:
+    import imageio.v2 as iio2
+
+    scene = read_scene(scene_dir)
+    (out / "videos").mkdir(parents=True)
+    for cam in scene.cameras:
+        if cam.id == drop_video:
+            continue
+        frames = np.stack([scene.rgb(cam.id, t) for t in range(late.get(cam.id, 0), N_FRAMES)])
+        frames = distort_frames(frames, intrinsics(cam), LENS)
+        iio2.mimwrite(out / "videos" / f"{cam.id}.mp4", list(frames), fps=24, quality=10)
+    poses = {c.id: rig_pose(c.world_to_camera.numpy()) for c in scene.cameras}
+    write_colmap(out / "sparse" / "0", scene.cameras, poses)
+    return out
+
+
+@pytest.fixture(scope="module")
+def capture(scene, tmp_path_factory) -> Path:
+    return write_capture(scene, tmp_path_factory.mktemp("capture") / "c")
+
+
+def settings(capture: Path, out: Path, **kw) -> ImportSettings:
+    base = dict(
+        out=out, frames_dir=capture / "videos", colmap=capture / "sparse" / "0",
+        materials="elastic,sand", units="cm", up="y", ground="y=0",
+    )  # fmt: skip
+    base.update(kw)
+    return ImportSettings(**base)
+
+
+@pytest.fixture(scope="module")
+def imported(capture, tmp_path_factory) -> Path:
+    return import_recording(settings(capture, tmp_path_factory.mktemp("imp") / "scene"))
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float(10 * np.log10(255.0**2 / mse))
+
+
+# ------------------------------------------------------------------------------ lens model
+def test_undistort_points_inverts_distort_points():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-0.5, 0.5, size=(200, 2))
+    back = undistort_points(distort_points(xy, LENS), LENS)
+    assert np.max(np.abs(back - xy)) < 1e-9
+
+
+def test_undistort_frames_undoes_distort_frames(scene):
+    s = read_scene(scene)
+    cam = s.cameras[0]
+    frames = np.stack([s.rgb(cam.id, t) for t in range(3)])
+    lensed = distort_frames(frames, intrinsics(cam), LENS)
+    assert psnr(lensed, frames) < 30  # the lens moves pixels visibly
+    assert psnr(undistort_frames(lensed, intrinsics(cam), LENS), frames) > 30
+
+
+# ----------------------------------------------------------------------------- the import
+def test_import_recovers_cameras_frames_offsets(scene, imported):
+    import json
+
+    original, got = read_scene(scene), read_scene(imported)
+    assert validate_scene(imported) == []
+    assert got.camera_ids == original.camera_ids
+    for cam in original.cameras:
+        mine = got.camera(cam.id)
+        assert (mine.fx, mine.fy, mine.cx, mine.cy) == pytest.approx(
+            (cam.fx, cam.fy, cam.cx, cam.cy), abs=1e-9
+        )
+        assert torch.allclose(mine.world_to_camera, cam.world_to_camera, atol=1e-9)
+    record = json.loads((imported / "import.json").read_text())
+    # estimated drops: the earliest cameras lose what the late ones lack
+    late_most = max(LATE.values())
+    assert record["offsets"] == {c: late_most - LATE.get(c, 0) for c in original.camera_ids}
+    assert record["offsets_estimated"] is True
+    assert got.n_frames == N_FRAMES - late_most
+    for cam in original.camera_ids:
+        ref = np.stack([original.rgb(cam, t + late_most) for t in range(got.n_frames)])
+        mine = np.stack([got.rgb(cam, t) for t in range(got.n_frames)])
+        assert psnr(mine, ref) > 28, cam
+    assert got.ground_height == 0.0
+    paths = sphere_paths()[late_most:]
+    assert np.all(paths.min(axis=(0, 1)) - RADIUS >= np.array(got.domain_lower) - 1e-9)
+    assert np.all(paths.max(axis=(0, 1)) + RADIUS <= np.array(got.domain_upper))
+    assert (imported / "preview" / "contact_sheet.png").is_file()
+
+
+def test_masks_match_rendered_masks(scene, imported):
+    original, got = read_scene(scene), read_scene(imported)
+    shift = N_FRAMES - got.n_frames
+    for cam in original.camera_ids:
+        ref = np.stack([original.mask(cam, t + shift) for t in range(got.n_frames)])
+        mine = np.stack([got.mask(cam, t) for t in range(got.n_frames)])
+        iou = ((ref > 0) & (mine > 0)).sum() / ((ref > 0) | (mine > 0)).sum()
+        assert iou > 0.7, (cam, iou)
+
+
+def test_fitted_ground_and_inferred_up(scene, capture, tmp_path):
+    """No --up, no --ground: up from the cameras, the ground under the first frames' hull."""
+    out = import_recording(settings(capture, tmp_path / "s", up=None, ground=None))
+    original, got = read_scene(scene), read_scene(out)
+    for cam in original.cameras:
+        mine = got.camera(cam.id)
+        assert torch.allclose(mine.rotation, cam.rotation, atol=1e-6)
+        shift = (mine.camera_center - cam.camera_center).numpy()
+        # the spheres rest on the ground: the fitted ground lies within 3 cm of the true one
+        assert np.abs(shift[:2]).max() < 1e-6 and abs(shift[2]) < 0.03
+
+
+def test_given_offsets_and_objects_yaml(capture, tmp_path):
+    import json
+
+    yaml_path = tmp_path / "objects.yaml"
+    yaml_path.write_text(
+        "objects:\n  1: {material: elastic, name: red, initial_velocity: [0, 1, 0]}\n"
+        "  2: sand\noffsets: {cam_00: 2, cam_02: 2, cam_03: 1}\n"
+    )
+    out = import_recording(
+        settings(capture, tmp_path / "s", materials=None, objects_yaml=yaml_path)
+    )
+    record = json.loads((out / "import.json").read_text())
+    assert record["offsets_estimated"] is False
+    assert record["hints"] == {"1": {"initial_velocity": [0, 1, 0]}}
+    assert [o.name for o in read_scene(out).objects] == ["red", "object_2"]
+
+
+# ---------------------------------------------------------------------- other camera files
+def test_nerfstudio_cameras_match(scene, tmp_path):
+    import json
+
+    original = read_scene(scene)
+    frames = []
+    for cam in original.cameras:
+        c2w_gl = cam.camera_to_world.numpy() @ np.diag([1.0, -1.0, -1.0, 1.0])
+        frames.append(
+            {"file_path": f"images/{cam.id}.png", "transform_matrix": c2w_gl.tolist(),
+             "fl_x": cam.fx, "fl_y": cam.fy}
+        )  # fmt: skip
+    path = tmp_path / "transforms.json"
+    top = {"w": SIZE, "h": SIZE, "cx": SIZE / 2, "cy": SIZE / 2, "k1": LENS.k1, "frames": frames}
+    path.write_text(json.dumps(top))
+    cams = {c.id: c for c in read_nerfstudio(path, set(original.camera_ids))}
+    for cam in original.cameras:
+        assert np.allclose(cams[cam.id].world_to_camera, cam.world_to_camera.numpy(), atol=1e-9)
+        assert cams[cam.id].intrinsics.fx == cam.fx and cams[cam.id].distortion.k1 == LENS.k1
+
+
+def test_binary_colmap_model_reads_as_text(capture, tmp_path):
+    pycolmap = pytest.importorskip("pycolmap")
+    rec = pycolmap.Reconstruction(str(capture / "sparse" / "0"))
+    rec.write_binary(str(tmp_path))
+    known = {f"cam_{i:02d}" for i in range(4)}
+    text = {c.id: c for c in read_colmap(capture / "sparse" / "0", known)}
+    binary = {c.id: c for c in read_colmap(tmp_path, known)}
+    assert set(binary) == known
+    for cid, cam in text.items():
+        assert np.allclose(binary[cid].world_to_camera, cam.world_to_camera, atol=1e-9)
+        assert binary[cid].intrinsics == cam.intrinsics and binary[cid].distortion == cam.distortion
