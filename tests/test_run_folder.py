@@ -338,3 +338,20 @@ def test_a_run_folder_made_before_run_json_still_resumes(tmp_path, registry, sce
     assert Ballistic.calls == 0
     record = json.loads((run / "run.json").read_text())
     assert record["format"] == RUN and record["stages_done"][-1] == "evaluate"
+
+
+def test_a_folder_holding_only_a_runs_recipe_is_a_run_folder(tmp_path, registry, scene):
+    from mosiv_framework.errors import OutputError
+    from mosiv_framework.pipeline.formats import recipe_header
+
+    stopped, mine = tmp_path / "stopped", tmp_path / "mine"
+    recipe = loaded(registry, scene, stopped)
+    for folder, header in ((stopped, recipe_header()), (mine, b"")):
+        folder.mkdir()
+        (folder / "recipe.yaml").write_bytes(header + OmegaConf.to_yaml(recipe).encode())
+    run_pipeline(recipe, run_dir=stopped)  # a run stopped before its first stage finished
+    assert (stopped / "run.json").is_file() and (stopped / "metrics.json").is_file()
+    before = hashes(mine)
+    with pytest.raises(OutputError, match="'recipe.yaml'"):
+        run_pipeline(recipe, run_dir=mine)  # a recipe of the user's, not a run's
+    assert hashes(mine) == before

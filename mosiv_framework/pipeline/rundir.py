@@ -32,6 +32,7 @@ from mosiv_framework.pipeline.formats import (
     STAGE_FORMATS,
     check_format,
     formats_of,
+    recipe_header,
     stamped,
 )
 
@@ -174,10 +175,17 @@ def _listing(names: list[str]) -> str:
 
 
 def _earlier_run(root: Path) -> bool:
-    """Whether ``root`` holds the stage markers of a run made before run.json existed."""
+    """Whether ``root`` holds the stage markers of a run made before run.json existed, or
+    only run files with a recipe.yaml of the run format (such a run stopped before its first
+    stage finished)."""
     stages = root / "stages"
     if not stages.is_dir():
-        return False
+        recipe = root / "recipe.yaml"
+        try:
+            header = recipe.open("rb").readline() if recipe.is_file() else b""
+        except OSError:
+            return False
+        return header == recipe_header() and set(os.listdir(root)) <= set(RUN_FILES)
     for marker in stages.glob("*.json"):
         try:
             data = json.loads(marker.read_text())
