@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mosiv_framework.capture_out.colmap import RigFrame, write_colmap_text
+from mosiv_framework.capture_out.colmap import RigFrame, camera_line, write_colmap_text
 from mosiv_framework.capture_out.distortion import Distortion, distort_image
 from mosiv_framework.errors import ConfigError, OutputError
 
@@ -122,6 +122,11 @@ def write_capture(
         raise ConfigError(
             f"--offsets drops every one of the {scene.n_frames} frames of {', '.join(too_late)}"
         )
+    for cam in scene.cameras:  # before any video is written: a model that cannot describe
+        try:  # a camera must not leave a half-written capture behind
+            camera_line(0, cam, distortion, camera_model, (cam.width, cam.height))
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
     (out / "videos").mkdir(parents=True, exist_ok=True)
     entries, sizes, names = [], [], []
     for cam in scene.cameras:
