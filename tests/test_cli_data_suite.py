@@ -35,12 +35,14 @@ class PairOptions:
     n_frames: int = 2
     observed_frames: int = 1
     scene_name: str = ""
+    ranges: str = "paper"
 
 
 class PairSource(SceneSource):
     """Writes a blank scene that declares the requested materials; counts its calls."""
 
     calls: list[str] = []
+    ranges: list[str] = []  # the ranges option of each generated scene
     crash_on = ""  # materials whose generation crashes half-way (an interrupted run)
 
     def __init__(self, **options):
@@ -48,6 +50,7 @@ class PairSource(SceneSource):
 
     def generate(self, out_dir: Path) -> Path:
         PairSource.calls.append(self.o.materials)
+        PairSource.ranges.append(self.o.ranges)
         materials = self.o.materials.split(",")
         if len(materials) != self.o.n_objects:
             raise ConfigError(f"{len(materials)} materials for n_objects={self.o.n_objects}")
@@ -87,7 +90,7 @@ def pairs_registry(monkeypatch):
     reg = Registry()
     reg.add_plugin(_Plugin(), name="pairs-test")
     monkeypatch.setattr(registry_module, "get_registry", lambda **_: reg)
-    PairSource.calls = []
+    PairSource.calls, PairSource.ranges = [], []
     return reg
 
 
@@ -110,6 +113,20 @@ def test_flags_map_onto_source_options(pairs_registry):
         data_cli.source_options("pairs", {"seed": 1}, ["seed=2"])
     with pytest.raises(ConfigError, match="has no option 'conceal'"):
         data_cli.source_options("pairs", {"conceal": ["wind"]}, [])
+    assert data_cli.source_options("pairs", {"ranges": "wide"}, []) == {"ranges": "wide"}
+
+
+def test_ranges_flag_reaches_every_suite_scene_and_pins_the_suite(pairs_registry, tmp_path, capsys):
+    argv = ["data", "suite", str(tmp_path), "--source", "pairs", "--only", "E-P,S-S"]
+    assert main([*argv, "--ranges", "wide"]) == 0
+    assert PairSource.ranges == ["wide", "wide"]
+    assert json.loads((tmp_path / "suite.json").read_text())["settings"]["ranges"] == "wide"
+    # the paper ranges are another protocol: resuming the wide suite with them is refused
+    assert main(argv) == 2
+    assert "resume with the same settings" in capsys.readouterr().err
+    # a value argparse does not know is a usage error
+    with pytest.raises(SystemExit):
+        main([*argv, "--ranges", "huge"])
 
 
 def test_synth_command_with_flags_and_key_values_after_them(pairs_registry, tmp_path):

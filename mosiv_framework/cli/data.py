@@ -29,6 +29,7 @@ SOURCE_FLAGS: dict[str, str] = {
     "cameras": "n_cameras",
     "frames": "n_frames",
     "conceal": "conceal",
+    "ranges": "ranges",
 }
 # material abbreviations of the paper's tables (section 4, table captions): E elastic,
 # P plastic(ine), F fluid -- the appendix's Newtonian fluid, Genesis' "Liquid" -- and S sand
@@ -111,11 +112,20 @@ def add_parser(sub) -> None:
         "--step", type=int, default=1, help="contact sheet: every STEP-th frame (default 1)"
     )
     show.set_defaults(handler=run_show)
+    from mosiv_framework.cli.export import add_capture_parser
+
+    add_capture_parser(dsub)
 
 
 def _add_source_flags(p) -> None:
     p.add_argument("--source", default="synth", help="registered scene source (default: synth)")
     p.add_argument("--seed", type=int, help="random seed of the scene(s)")
+    p.add_argument(
+        "--ranges",
+        choices=("paper", "wide"),
+        help="material parameter ranges: paper (the paper's benchmark, default) or wide "
+        "(decades of stiffness, yield stress and viscosity)",
+    )
     p.add_argument("--resolution", type=int, help="image width = height (pixels)")
     p.add_argument("--cameras", type=int, help="number of cameras")
     p.add_argument(
@@ -226,7 +236,9 @@ def run_suite(args) -> int:
     check_writable_folder(out, "OUT_DIR")
     resume_from(args, out, "the scenes already finished", "suite folder")
     plan = suite_plan(args.only)
-    flags = _flags(args, ("seed", "resolution", "cameras", "frames"))
+    flags = _flags(args, ("seed", "resolution", "cameras", "frames", "ranges"))
+    if flags["ranges"] is None:  # so suites indexed before --ranges existed still resume
+        del flags["ranges"]
     base_seed = args.seed if args.seed is not None else 0
     settings = {"source": args.source, **flags, "seed": base_seed, "options": args.options}
     index_path = out / "suite.json"

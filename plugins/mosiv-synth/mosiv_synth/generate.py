@@ -29,11 +29,12 @@ from mosiv_framework.scene.io import SceneObject, SceneWriter
 from mosiv_framework.scene.protocol import hemisphere_cameras
 from mosiv_framework.types import ObjectParams, ParticleSet, SimulationParams, World
 from mosiv_synth.layout import Layout, plan_collision
-from mosiv_synth.materials import GROUND_FRICTION_RANGE, MATERIAL_RANGES, draw, sample_params
+from mosiv_synth.materials import MATERIAL_RANGES, RANGE_PRESETS, draw, range_table, sample_params
 from mosiv_synth.options import SynthOptions
 from mosiv_synth.render import Style, backdrop, draw_style, render_view
 from mosiv_synth.sampling import random_rotation, sample_inside
 from mosiv_synth.shapes import SHAPE_NAMES, make_shape
+from mosiv_synth.stability import required_substeps, stability_numbers
 from mosiv_synth.surface import particle_surface
 
 # The simulation box (m): the table (z = 0) spans it; 0.8 m across gives room for launches
@@ -99,7 +100,7 @@ def plan_scene(opts: SynthOptions) -> ScenePlan:
         sizes.append(float(np.max(mesh.extents)))
         rotations.append(rot)
         clouds.append(points - points.mean(axis=0))
-        params.append(sample_params(family, rng))
+        params.append(sample_params(family, rng, opts.ranges))
     effects = parse_conceal(opts.conceal)
     for effect in effects:
         if effect.kind == "object_friction":  # the truth, so gt/params.json records it
@@ -116,7 +117,7 @@ def plan_scene(opts: SynthOptions) -> ScenePlan:
         ground_height=GROUND_HEIGHT,
         rng=rng,
     )
-    nominal = draw(rng, GROUND_FRICTION_RANGE)
+    nominal = draw(rng, RANGE_PRESETS[opts.ranges][1])
     used = next((e.params["coefficient"] for e in effects if e.kind == "ground_friction"), nominal)
     cameras = hemisphere_cameras(
         opts.n_cameras, resolution=opts.resolution, azimuth0=float(rng.uniform(0, 2 * np.pi))
@@ -154,7 +155,7 @@ def simulate(plan: ScenePlan, opts: SynthOptions) -> np.ndarray:
     registered as ``opts.simulator``, with the concealed effects switched on."""
     from mosiv_framework.registry import get_registry
 
-    sim = get_registry().create("simulator", opts.simulator, dict(opts.simulator_options))
+    sim = get_registry().create("simulator", opts.simulator, simulator_options(plan, opts))
     unsupported = sorted(set(simulated_materials(plan)[0]) - set(sim.supported_laws))
     if unsupported:
         raise ConfigError(
@@ -187,6 +188,43 @@ def simulate(plan: ScenePlan, opts: SynthOptions) -> np.ndarray:
             frames=opts.n_frames - 1,
         )
     return traj.positions.detach().cpu().numpy().astype(np.float32)
+
+
+def simulator_options(plan: ScenePlan, opts: SynthOptions) -> dict:
+    """The simulator options the scene is generated with: the requested ones, and for the wide
+    preset at least the substeps ``stability.required_substeps`` asks for its draws."""
+    options = dict(opts.simulator_options)
+    if opts.ranges == "paper":  # stable at the protocol's settings; scenes reproduce as given
+        return options
+    dx, substeps = _grid_and_substeps(opts)
+    families, values = simulated_materials(plan)
+    options["substeps"] = required_substeps(
+        families, values, dx=dx, fps=opts.fps, requested=substeps
+    )
+    return options
+
+
+def _grid_and_substeps(opts: SynthOptions, options: dict | None = None) -> tuple[float, int]:
+    """Grid cell (m) and substeps of the simulator ``opts`` name, from ``options`` (default:
+    the requested ones) or the simulator's defaults (its grid counts cells along the domain's
+    longest side, as ``mosiv_framework.simulation.MPMOptions`` defines)."""
+    from mosiv_framework.registry import get_registry
+
+    options = dict(opts.simulator_options) if options is None else options
+    schema = get_registry().get("simulator", opts.simulator).options
+    defaults = {f.name: f.default for f in dataclasses.fields(schema)} if schema else {}
+    grid = int(options.get("grid", defaults.get("grid", 64)))
+    substeps = int(options.get("substeps", defaults.get("substeps", 100)))
+    extent = max(u - lo for lo, u in zip(DOMAIN_LOWER, DOMAIN_UPPER))
+    return extent / grid, substeps
+
+
+def stability_record(plan: ScenePlan, opts: SynthOptions) -> dict:
+    """Grid cell, substeps and the CFL and viscous numbers the scene was simulated with."""
+    dx, substeps = _grid_and_substeps(opts, simulator_options(plan, opts))
+    families, values = simulated_materials(plan)
+    numbers = stability_numbers(families, values, dx=dx, dt=1.0 / (opts.fps * substeps))
+    return {"dx_m": dx, "substeps": substeps, **numbers}
 
 
 def simulated_materials(plan: ScenePlan) -> tuple[list[str], list[dict[str, float]]]:
@@ -260,7 +298,8 @@ def gt_params_document(plan: ScenePlan, opts: SynthOptions) -> dict:
             "ground_friction": plan.ground_friction,
             "ground_friction_nominal": plan.ground_friction_nominal,
             "simulator": opts.simulator,
-            "simulator_options": dict(opts.simulator_options),
+            "simulator_options": simulator_options(plan, opts),
+            "stability": stability_record(plan, opts),
             "particle_spacing": opts.particle_spacing,
             "particle_volume": opts.particle_spacing**3,
             "collision_frame": plan.collision_frame,
@@ -268,6 +307,8 @@ def gt_params_document(plan: ScenePlan, opts: SynthOptions) -> dict:
             "collision_point": plan.layout.collision_point.tolist(),
             "seed": opts.seed,
         },
+        "ranges": opts.ranges,
+        "range_table": range_table(opts.ranges),
         "objects": objects,
     }
 

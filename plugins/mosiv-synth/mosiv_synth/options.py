@@ -13,7 +13,7 @@ from typing import Any
 from mosiv_framework.conceal import parse_conceal
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.scene.protocol import check_clip, name_list
-from mosiv_synth.materials import MATERIAL_RANGES
+from mosiv_synth.materials import MATERIAL_RANGES, RANGE_PRESETS
 from mosiv_synth.shapes import SHAPE_NAMES
 
 
@@ -27,7 +27,10 @@ class SynthOptions:
     n_cameras, n_frames, observed_frames, fps (1/s); particle_spacing: lattice spacing of the
     simulation particles (m); simulator: registered simulator name; simulator_options: its
     options (grid, substeps, device, ...); collision_frame: frame at which the objects first
-    touch (0 = choose from the seed); conceal: "KIND[:param=value,...]" effects separated by
+    touch (0 = choose from the seed); ranges: parameter ranges the materials are drawn from,
+    "paper" (the paper's benchmark) or "wide" (``mosiv_synth.materials.WIDE_RANGES``; the
+    simulator's substeps are raised where a stiff draw needs it, see ``mosiv_synth.stability``);
+    conceal: "KIND[:param=value,...]" effects separated by
     ";" or a list of them (see ``mosiv_framework.conceal``); seed: everything random derives from
     it; scene_name: scene name (empty = derived from materials and seed); progress: show a bar.
     """
@@ -44,6 +47,7 @@ class SynthOptions:
     simulator: str = "warp-mpm"
     simulator_options: dict[str, Any] = field(default_factory=dict)
     collision_frame: int = 0
+    ranges: str = "paper"
     conceal: Any = None
     seed: int = 0
     scene_name: str = ""
@@ -74,6 +78,8 @@ class SynthOptions:
                 f"collision_frame={self.collision_frame}: must be 0 (automatic) or in "
                 f"2..n_frames-1={self.n_frames - 1}"
             )
+        if self.ranges not in RANGE_PRESETS:
+            problems.append(f"ranges={self.ranges!r}: valid: {', '.join(RANGE_PRESETS)}")
         try:
             self.conceal = [e.spec() for e in parse_conceal(self.conceal)]
         except ValueError as exc:
