@@ -45,7 +45,8 @@ def add_capture_parser(dsub) -> None:
     )
     p.add_argument(
         "--distortion",
-        help="lens coefficients k1,k2 or k1,k2,p1,p2 of the OpenCV model (default none)",
+        help="lens coefficients k1,k2 or k1,k2,p1,p2 of the OpenCV model (default none); "
+        "a negative first one needs '=': --distortion=-0.2,0.05",
     )
     p.add_argument(
         "--camera-model",

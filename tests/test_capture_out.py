@@ -1,0 +1,182 @@
+"""``mosiv data capture``: a scene written as a capture rig delivers it.
+
+The example scene (ray-traced spheres) is written in centimetres with y up, through a barrel
+lens, with one camera starting late; the videos must decode to the right frame counts and sizes,
+the COLMAP text model must parse with pycolmap and give back the scene's cameras, and the lens
+model's inverse must undo its forward map.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from mosiv_framework.capture_out import (
+    Distortion,
+    RigFrame,
+    distort_image,
+    distort_normalized,
+    distort_pixels,
+    quaternion_to_rotation,
+    rotation_to_quaternion,
+    undistort_normalized,
+    undistort_pixels,
+)
+from mosiv_framework.cli.main import main
+from mosiv_framework.scene import read_scene, write_example_scene
+
+imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+pycolmap = pytest.importorskip("pycolmap")
+
+N_FRAMES = 5
+SIZE = 33  # odd on purpose: yuv420p needs even sizes, so the writer pads one row and column
+LENS = Distortion(k1=-0.25, k2=0.06)
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    return write_example_scene(
+        tmp_path_factory.mktemp("scene") / "scene", n_frames=N_FRAMES, n_cameras=3, size=SIZE
+    )
+
+
+@pytest.fixture(scope="module")
+def capture(scene_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("capture") / "cap"
+    argv = ["data", "capture", str(scene_dir), str(out), "--units", "cm", "--up", "y"]
+    argv += [f"--distortion={LENS.k1},{LENS.k2}", "--offsets", "cam_01=2", "--crf", "10"]
+    assert main(argv) == 0
+    return out
+
+
+def _decode(path):
+    reader = imageio_ffmpeg.read_frames(str(path))
+    meta = next(reader)
+    frames = [
+        np.frombuffer(f, np.uint8).reshape(meta["size"][1], meta["size"][0], 3) for f in reader
+    ]
+    return meta, frames
+
+
+def test_layout_has_no_masks_or_ground_truth(capture, scene_dir):
+    files = sorted(str(p.relative_to(capture)) for p in capture.rglob("*") if p.is_file())
+    assert files == [
+        "capture.json",
+        "sparse/0/cameras.txt",
+        "sparse/0/images.txt",
+        "sparse/0/points3D.txt",
+        "videos/cam_00.mp4",
+        "videos/cam_01.mp4",
+        "videos/cam_02.mp4",
+    ]
+    meta = json.loads((capture / "capture.json").read_text())
+    assert meta["fps"] == read_scene(scene_dir).fps
+    starts = {c["id"]: (c["start_frame"], c["n_frames"]) for c in meta["cameras"]}
+    assert starts == {"cam_00": (0, 5), "cam_01": (2, 3), "cam_02": (0, 5)}
+    assert (meta["units"], meta["up"], meta["distortion"]["k1"]) == ("cm", "y", LENS.k1)
+
+
+def test_videos_decode_to_the_frames_through_the_lens(capture, scene_dir):
+    scene = read_scene(scene_dir)
+    meta = json.loads((capture / "capture.json").read_text())
+    for entry in meta["cameras"]:
+        video_meta, frames = _decode(capture / entry["video"])
+        assert video_meta["codec"] == "h264" and video_meta["size"] == (SIZE + 1, SIZE + 1)
+        assert len(frames) == N_FRAMES - entry["start_frame"]
+        cam = scene.camera(entry["id"])
+        for i, frame in enumerate(frames):
+            t = entry["start_frame"] + i
+            expected = distort_image(
+                scene.rgb(cam.id, t), LENS, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy
+            )
+            # H.264 at crf 10 with 4:2:0 chroma: mean error of a few grey levels
+            err = np.abs(frame[:SIZE, :SIZE].astype(float) - expected).mean()
+            undistorted = np.abs(frame[:SIZE, :SIZE].astype(float) - scene.rgb(cam.id, t)).mean()
+            assert err < 4.0 and err < undistorted, (entry["id"], t, err, undistorted)
+
+
+def test_colmap_model_parses_and_gives_back_the_scene_cameras(capture, scene_dir):
+    scene = read_scene(scene_dir)
+    rec = pycolmap.Reconstruction(str(capture / "sparse" / "0"))
+    assert len(rec.cameras) == 3 and len(rec.images) == 3 and len(rec.points3D) == 0
+    rig = RigFrame("cm", "y")
+    for image in rec.images.values():
+        cam = scene.camera(image.name.removesuffix(".mp4"))
+        colmap_cam = rec.cameras[image.camera_id]
+        assert colmap_cam.model.name == "OPENCV"
+        assert (colmap_cam.width, colmap_cam.height) == (SIZE + 1, SIZE + 1)
+        np.testing.assert_allclose(
+            colmap_cam.params, [cam.fx, cam.fy, cam.cx, cam.cy, LENS.k1, LENS.k2, 0, 0]
+        )
+        pose = image.cam_from_world()
+        rig_w2c = np.eye(4)
+        rig_w2c[:3] = pose.matrix()
+        back = rig.scene_world_to_camera(rig_w2c)
+        np.testing.assert_allclose(back, cam.world_to_camera.numpy(), atol=1e-9)
+        # in the rig's world the camera centre is in cm with y up: the scene's z is its y
+        centre = -rig_w2c[:3, :3].T @ rig_w2c[:3, 3]
+        scene_centre = cam.camera_center.numpy()
+        np.testing.assert_allclose(centre, 100 * scene_centre[[0, 2, 1]] * [1, 1, -1], atol=1e-7)
+
+
+def test_radial_model_and_refusals(scene_dir, tmp_path, capsys):
+    out = tmp_path / "radial"
+    argv = ["data", "capture", str(scene_dir), str(out), "--camera-model", "RADIAL"]
+    assert main([*argv, "--distortion", "0.1,0.0"]) == 0
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert {c.model.name for c in rec.cameras.values()} == {"RADIAL"}
+    assert main([*argv, "--distortion", "0.1,0.0"]) == 6  # not empty now: refused
+    assert "non-empty folder" in capsys.readouterr().err
+    other = tmp_path / "tangential"
+    assert main(["data", "capture", str(scene_dir), str(other), "--camera-model", "RADIAL",
+                 "--distortion", "0.1,0,0.01,0"]) == 2  # fmt: skip
+    assert "RADIAL" in capsys.readouterr().err and not other.exists()
+    assert main(["data", "capture", str(scene_dir), str(other), "--offsets", "cam_09=1"]) == 2
+    assert "cam_09" in capsys.readouterr().err
+    assert main(["data", "capture", str(scene_dir), str(other), "--distortion", "0.1"]) == 2
+
+
+def test_with_reference_copies_gt_beside_the_capture(scene_dir, tmp_path):
+    out = tmp_path / "bench"
+    assert main(["data", "capture", str(scene_dir), str(out), "--with-reference"]) == 0
+    assert sorted(p.name for p in (out / "reference_gt").iterdir()) == ["params.json", "points.npz"]
+    assert not (out / "gt").exists()
+
+
+@pytest.mark.parametrize("lens", [LENS, Distortion(0.2, -0.05, 0.01, -0.02), Distortion()])
+def test_distortion_inverse_round_trips_below_a_thousandth_of_a_pixel(lens):
+    fx, fy, cx, cy = 300.0, 290.0, 160.5, 119.0
+    vv, uu = np.meshgrid(np.linspace(0, 240, 49), np.linspace(0, 320, 65), indexing="ij")
+    uv = np.stack([uu, vv], -1)
+    distorted = distort_pixels(uv, lens, fx=fx, fy=fy, cx=cx, cy=cy)
+    back = undistort_pixels(distorted, lens, fx=fx, fy=fy, cx=cx, cy=cy)
+    assert np.abs(back - uv).max() < 1e-3
+    # and the other way round: undistort, then distort
+    again = distort_pixels(undistort_pixels(uv, lens, fx=fx, fy=fy, cx=cx, cy=cy), lens,
+                           fx=fx, fy=fy, cx=cx, cy=cy)  # fmt: skip
+    assert np.abs(again - uv).max() < 1e-3
+
+
+def test_forward_model_matches_opencv_formula_by_hand():
+    """One point worked by hand: x = 0.3, y = -0.2, r^2 = 0.13."""
+    lens = Distortion(0.1, 0.01, 0.002, -0.003)
+    x, y, r2 = 0.3, -0.2, 0.13
+    radial = 1 + 0.1 * r2 + 0.01 * r2**2
+    xd = x * radial + 2 * 0.002 * x * y + -0.003 * (r2 + 2 * x * x)
+    yd = y * radial + 0.002 * (r2 + 2 * y * y) + 2 * -0.003 * x * y
+    np.testing.assert_allclose(distort_normalized(np.array([x, y]), lens), [xd, yd], rtol=1e-15)
+    np.testing.assert_allclose(undistort_normalized(np.array([xd, yd]), lens), [x, y], atol=1e-12)
+
+
+def test_quaternions_round_trip_for_every_branch():
+    rng = np.random.default_rng(0)
+    rotations = [np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(50)]
+    rotations = [r * np.linalg.det(r) for r in rotations]  # proper rotations only
+    # half-turns about each axis pick the x, y and z branches of Shepperd's method
+    rotations += [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1, 1])]
+    for rot in rotations:
+        q = rotation_to_quaternion(rot)
+        assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
+        np.testing.assert_allclose(quaternion_to_rotation(q), rot, atol=1e-12)
