@@ -109,6 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
     stages.add_parsers(sub)
     diagnose.add_parsers(sub)
     view.add_parser(sub)
+    from mosiv_framework.cli import export
+
+    export.add_parser(sub)
     return parser
 
 
