@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from mosiv_framework.capture import ImportSettings, import_recording
+from mosiv_framework.capture import CaptureError, ImportSettings, import_recording
 from mosiv_framework.capture.colmap import read_colmap
 from mosiv_framework.capture.distortion import (
     Distortion,
@@ -22,6 +22,7 @@ from mosiv_framework.capture.distortion import (
     undistort_points,
 )
 from mosiv_framework.capture.nerfstudio import read_nerfstudio
+from mosiv_framework.errors import OutputError
 from mosiv_framework.scene import SceneObject, read_scene, validate_scene, write_scene
 from mosiv_framework.scene.example import _render, example_cameras
 
@@ -262,3 +263,110 @@ def test_binary_colmap_model_reads_as_text(capture, tmp_path):
     for cid, cam in text.items():
         assert np.allclose(binary[cid].world_to_camera, cam.world_to_camera, atol=1e-9)
         assert binary[cid].intrinsics == cam.intrinsics and binary[cid].distortion == cam.distortion
+
+
+# ------------------------------------------------------------------------------- bad input
+def copy_capture(capture: Path, tmp_path: Path) -> Path:
+    import shutil
+
+    return Path(shutil.copytree(capture, tmp_path / "c"))
+
+
+def expect_error(s: ImportSettings, error, *words: str) -> None:
+    with pytest.raises(error) as info:
+        import_recording(s)
+    message = str(info.value)
+    for word in words:
+        assert word in message, (word, message)
+    assert not s.out.exists()  # everything is checked before OUT is created
+
+
+def test_unreadable_video_names_the_file(capture, tmp_path):
+    c = copy_capture(capture, tmp_path)
+    (c / "videos" / "cam_02.mp4").write_bytes(b"not a video at all")
+    expect_error(settings(c, tmp_path / "s"), OutputError, "cam_02.mp4", "cannot be read")
+
+
+def test_frame_counts_that_differ_after_offsets(capture, tmp_path):
+    expect_error(
+        settings(capture, tmp_path / "s", offsets="none"),
+        CaptureError, "different frame counts", "'cam_01': 26", "'cam_00': 28",
+    )  # fmt: skip
+
+
+def test_camera_without_frames(scene, tmp_path):
+    c = write_capture(scene, tmp_path / "c", drop_video="cam_03")
+    expect_error(settings(c, tmp_path / "s"), CaptureError, "images.txt", "cam_03", "no frames")
+
+
+def test_unknown_colmap_camera_model(capture, tmp_path):
+    c = copy_capture(capture, tmp_path)
+    path = c / "sparse" / "0" / "cameras.txt"
+    lines = path.read_text().splitlines()
+    lines[2] = lines[2].replace("OPENCV", "FOV").rsplit(" ", 3)[0]
+    path.write_text("\n".join(lines) + "\n")
+    expect_error(
+        settings(c, tmp_path / "s"),
+        CaptureError, "cameras.txt", "'FOV'", "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV",
+    )  # fmt: skip
+
+
+def test_pose_with_the_scene_behind_the_camera(scene, tmp_path):
+    s = read_scene(scene)
+    poses = {c.id: rig_pose(c.world_to_camera.numpy()) for c in s.cameras}
+    turn = np.diag([-1.0, 1.0, -1.0, 1.0])  # half a turn about the camera's y axis
+    poses["cam_02"] = turn @ poses["cam_02"]
+    c = copy_capture(write_capture(scene, tmp_path / "orig"), tmp_path)
+    write_colmap(c / "sparse" / "0", s.cameras, poses)
+    expect_error(settings(c, tmp_path / "s"), CaptureError, "images.txt", "'cam_02'", "behind")
+
+
+def test_refuses_a_non_empty_out(capture, tmp_path):
+    out = tmp_path / "s"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    with pytest.raises(OutputError, match="non-empty"):
+        import_recording(settings(capture, out))
+    assert (out / "keep.txt").read_text() == "mine"
+
+
+def test_cli_reports_bad_input_with_one_line(capture, tmp_path, capsys):
+    from mosiv_framework.cli.main import main
+
+    code = main(
+        ["data", "import", str(tmp_path / "s"), "--recording", str(capture), "--units", "cm",
+         "--up", "y", "--ground", "y=0", "--materials", "elastic,sand", "--offsets", "none"]
+    )  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.startswith("mosiv data: error: cameras have different frame counts")
+    assert "Traceback" not in err
+
+
+# ------------------------------------------------------------------ round trip with capture_out
+def test_round_trip_with_the_capture_writer(scene, tmp_path):
+    import json
+
+    from mosiv_framework.capture_out import Distortion as RigLens
+    from mosiv_framework.capture_out import write_capture as write_rig_capture
+    from mosiv_framework.capture_out.colmap import RigFrame
+
+    rig = write_rig_capture(
+        scene, tmp_path / "rig", rig=RigFrame(units="cm", up="y"),
+        distortion=RigLens(k1=LENS.k1, k2=LENS.k2, p1=LENS.p1, p2=LENS.p2), offsets="cam_02=3",
+    )  # fmt: skip
+    from mosiv_framework.capture import find_inputs
+
+    found = find_inputs(rig)
+    out = import_recording(
+        ImportSettings(out=tmp_path / "s", materials="elastic,sand", units="cm", up="y",
+                       ground="y=0", **found)
+    )  # fmt: skip
+    original, got = read_scene(scene), read_scene(out)
+    assert validate_scene(out) == []
+    for cam in original.cameras:
+        assert torch.allclose(got.camera(cam.id).world_to_camera, cam.world_to_camera, atol=1e-9)
+    record = json.loads((out / "import.json").read_text())
+    assert record["offsets"] == {c: 0 if c == "cam_02" else 3 for c in original.camera_ids}
+    ref = np.stack([original.rgb("cam_00", t + 3) for t in range(got.n_frames)])
+    assert psnr(np.stack([got.rgb("cam_00", t) for t in range(got.n_frames)]), ref) > 28
