@@ -104,6 +104,9 @@ def build_parser() -> argparse.ArgumentParser:
     plugins.add_parser(sub)
     recipe.add_parser(sub)
     data.add_parser(sub)
+    from mosiv_framework.cli import importing
+
+    importing.add_parser(sub)  # `data import`, under the data command
     bench.add_parser(sub)
     parity.add_parser(sub)
     stages.add_parsers(sub)
