@@ -334,3 +334,10 @@ def test_view_serves_until_ctrl_c_then_ends_with_130(run):
         "mosiv view: interrupted; rerun the same command to start it again"
     ]
     assert out.strip() == ""  # viser's own banner and "stopped" line stay off stdout
+
+
+def test_view_frame_outside_the_run_is_refused(run, capsys, data):
+    args = ["view", str(run), "--no-block", "--port", "0", "--frame", str(data.n_frames)]
+    assert main(args) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert f"--frame {data.n_frames}" in err and f"0 to {data.n_frames - 1}" in err

@@ -24,6 +24,7 @@ def add_parser(sub) -> None:
         help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0: every "
         "network interface)",
     )
+    view.add_argument("--frame", type=int, default=0, help="the frame shown first (default 0)")
     view.add_argument(
         "--no-block",
         action="store_true",
@@ -43,7 +44,10 @@ def view_run(args):
 
     if not 0 <= args.port <= 65535:
         raise ConfigError(f"--port {args.port}: give a port number from 0 to 65535 (0: any free)")
-    viewer = start_viewer(load_run(args.run_dir), host=args.host, port=args.port)
+    data = load_run(args.run_dir)
+    if not 0 <= args.frame < data.n_frames:
+        raise ConfigError(f"--frame {args.frame}: the run has frames 0 to {data.n_frames - 1}")
+    viewer = start_viewer(data, host=args.host, port=args.port, frame=args.frame)
     print(f"viewing {args.run_dir} at {viewer.url}" + ("" if args.no_block else " (Ctrl-C stops)"))
     if args.no_block:
         args.viewer = viewer

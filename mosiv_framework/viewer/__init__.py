@@ -14,12 +14,12 @@ from mosiv_framework.viewer.data import (
 )
 
 
-def start_viewer(data: ViewerData, *, host: str = "127.0.0.1", port: int = 8080):
-    """Serve ``data`` at ``http://host:port`` (the next free port if taken; 0: any free port);
-    returns the running ``viewer.app.Viewer`` (``.url``, ``.stop()``)."""
+def start_viewer(data: ViewerData, *, host: str = "127.0.0.1", port: int = 8080, frame: int = 0):
+    """Serve ``data`` at ``http://host:port`` (the next free port if taken; 0: any free port),
+    showing ``frame`` first; returns the running ``viewer.app.Viewer`` (``.url``, ``.stop()``)."""
     from mosiv_framework.viewer.app import Viewer
 
-    return Viewer(data, host=host, port=port)
+    return Viewer(data, host=host, port=port, frame=frame)
 
 
 __all__ = [

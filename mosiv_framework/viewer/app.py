@@ -20,10 +20,11 @@ from mosiv_framework.viewer.data import ViewerData
 
 
 def _point_size(data: ViewerData) -> float:
-    """About the spacing of the largest object's particles (m), so clouds look solid."""
+    """A little under the spacing of the largest object's particles (m): clouds look solid and
+    the reference points stay visible between the predicted ones."""
     biggest = max(data.predicted.values(), key=lambda p: p.shape[1])[0]
     extent = float((biggest.max(0) - biggest.min(0)).max())
-    return max(extent / max(1.0, biggest.shape[0] ** (1.0 / 3.0)), 1e-4)
+    return max(0.7 * extent / max(1.0, biggest.shape[0] ** (1.0 / 3.0)), 1e-4)
 
 
 class Viewer:
@@ -31,7 +32,9 @@ class Viewer:
     name), ``gui`` (panel handles by name); ``show_frame(t)`` moves every view to frame t and
     ``stop()`` ends the server."""
 
-    def __init__(self, data: ViewerData, *, host: str = "127.0.0.1", port: int = 8080):
+    def __init__(
+        self, data: ViewerData, *, host: str = "127.0.0.1", port: int = 8080, frame: int = 0
+    ):
         import viser
 
         self.data = data
@@ -45,9 +48,11 @@ class Viewer:
         self._stopped = threading.Event()
         self._lock = threading.RLock()  # the slider callback re-enters show_frame
         try:
+            # served to this machine or a local network: no share button (a public tunnel)
+            self.server.gui.configure_theme(control_width="large", show_share_button=False)
             self._build_scene()
             self._build_gui()
-            self.show_frame(0)
+            self.show_frame(frame)
         except BaseException:
             self.stop()
             raise
@@ -88,7 +93,8 @@ class Viewer:
                 fov=cam.fov_y,
                 aspect=cam.aspect,
                 scale=scale,
-                thickness=0.05 * scale,
+                thickness=1.5,
+                thickness_units="screen",
                 color=(60, 60, 60),
                 wxyz=tf.SO3.from_matrix(cam.rotation).wxyz,
                 position=cam.position,
@@ -103,8 +109,13 @@ class Viewer:
                 section_size=float(width) / 2,
                 position=(*((lower + upper) / 2)[:2], data.ground_height),
             )
-        top = (lower + upper) / 2 + np.asarray(data.up) * (upper - lower).max() / 2
-        self.nodes["/phase"] = scene.add_label("/phase", "", position=top, font_screen_scale=1.4)
+        # the phase label floats a little above the highest point the objects reach
+        points = np.concatenate([p.reshape(-1, 3) for p in data.predicted.values()])
+        up = np.asarray(data.up, dtype=float)
+        rise = float((points @ up).max() - points.mean(0) @ up) + 0.1 * float((upper - lower).max())
+        self.nodes["/phase"] = scene.add_label(
+            "/phase", "", position=points.mean(0) + rise * up, font_screen_scale=1.4
+        )
         if data.residuals is not None:
             for k in data.object_ids:
                 self.nodes[f"/residual/obj_{k}"] = scene.add_icosphere(
@@ -113,10 +124,11 @@ class Viewer:
         self._initial_camera(lower, upper)
 
     def _initial_camera(self, lower: np.ndarray, upper: np.ndarray) -> None:
-        """Look at the objects from the first scene camera (else from a corner of the box)."""
+        """Look at the objects from the direction of the first scene camera, a little nearer
+        (else from beyond a corner of the box)."""
         centre = np.concatenate([p.reshape(-1, 3) for p in self.data.predicted.values()]).mean(0)
         cams = self.data.cameras
-        eye = cams[0].position if cams else upper + (upper - lower)
+        eye = centre + 0.9 * (cams[0].position - centre) if cams else upper + (upper - lower)
         self.server.initial_camera.position = tuple(float(x) for x in eye)
         self.server.initial_camera.look_at = tuple(float(x) for x in centre)
 
