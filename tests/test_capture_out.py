@@ -110,7 +110,8 @@ def test_colmap_model_parses_and_gives_back_the_scene_cameras(capture, scene_dir
         np.testing.assert_allclose(
             colmap_cam.params, [cam.fx, cam.fy, cam.cx, cam.cy, LENS.k1, LENS.k2, 0, 0]
         )
-        pose = image.cam_from_world()
+        # a method in pycolmap >= 3.12, a property before
+        pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
         rig_w2c = np.eye(4)
         rig_w2c[:3] = pose.matrix()
         back = rig.scene_world_to_camera(rig_w2c)

@@ -91,6 +91,52 @@ def _check_out(out: Path) -> None:
         )
 
 
+def _check_options(scene, crf, offsets, distortion: Distortion, camera_model: str) -> dict:
+    """Every option checked before anything is written; returns the start frame per camera."""
+    if not 0 <= int(crf) <= 51:
+        raise ConfigError(f"--crf {crf}: H.264 takes a constant rate factor from 0 to 51")
+    starts = parse_offsets(offsets, scene.camera_ids)
+    too_late = [c for c, s in starts.items() if s >= scene.n_frames]
+    if too_late:
+        raise ConfigError(
+            f"--offsets drops every one of the {scene.n_frames} frames of {', '.join(too_late)}"
+        )
+    for cam in scene.cameras:  # before any video is written: a model that cannot describe
+        try:  # a camera must not leave a half-written capture behind
+            camera_line(0, cam, distortion, camera_model, (cam.width, cam.height))
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+    return starts
+
+
+def _write_videos(scene, out: Path, starts: dict, distortion: Distortion, crf: int) -> list[dict]:
+    """One H.264 video per camera through the lens; returns capture.json's camera entries."""
+    (out / "videos").mkdir(parents=True, exist_ok=True)
+    entries = []
+    for cam in scene.cameras:
+        frames = [
+            distort_image(
+                scene.rgb(cam.id, t), distortion, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy
+            )
+            for t in range(starts[cam.id], scene.n_frames)
+        ]
+        video = f"videos/{cam.id}.mp4"
+        size = encode_h264(frames, out / video, fps=scene.fps, crf=crf)
+        entries.append(
+            {
+                "id": cam.id,
+                "video": video,
+                "colmap_image": f"{cam.id}.mp4",
+                "width": size[0],
+                "height": size[1],
+                "n_frames": len(frames),
+                "start_frame": starts[cam.id],
+                "start_time_s": starts[cam.id] / scene.fps,
+            }
+        )
+    return entries
+
+
 def write_capture(
     scene_dir: str | Path,
     out: str | Path,
@@ -114,49 +160,13 @@ def write_capture(
     scene = read_scene(scene_dir)
     out = Path(out)
     _check_out(out)
-    if not 0 <= int(crf) <= 51:
-        raise ConfigError(f"--crf {crf}: H.264 takes a constant rate factor from 0 to 51")
-    starts = parse_offsets(offsets, scene.camera_ids)
-    too_late = [c for c, s in starts.items() if s >= scene.n_frames]
-    if too_late:
-        raise ConfigError(
-            f"--offsets drops every one of the {scene.n_frames} frames of {', '.join(too_late)}"
-        )
-    for cam in scene.cameras:  # before any video is written: a model that cannot describe
-        try:  # a camera must not leave a half-written capture behind
-            camera_line(0, cam, distortion, camera_model, (cam.width, cam.height))
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from None
-    (out / "videos").mkdir(parents=True, exist_ok=True)
-    entries, sizes, names = [], [], []
-    for cam in scene.cameras:
-        frames = [
-            distort_image(
-                scene.rgb(cam.id, t), distortion, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy
-            )
-            for t in range(starts[cam.id], scene.n_frames)
-        ]
-        video = f"videos/{cam.id}.mp4"
-        size = encode_h264(frames, out / video, fps=scene.fps, crf=crf)
-        sizes.append(size)
-        names.append(f"{cam.id}.mp4")
-        entries.append(
-            {
-                "id": cam.id,
-                "video": video,
-                "colmap_image": names[-1],
-                "width": size[0],
-                "height": size[1],
-                "n_frames": len(frames),
-                "start_frame": starts[cam.id],
-                "start_time_s": starts[cam.id] / scene.fps,
-            }
-        )
+    starts = _check_options(scene, crf, offsets, distortion, camera_model)
+    entries = _write_videos(scene, out, starts, distortion, crf)
     write_colmap_text(
         out / "sparse" / "0",
         scene.cameras,
-        names=names,
-        sizes=sizes,
+        names=[e["colmap_image"] for e in entries],
+        sizes=[(e["width"], e["height"]) for e in entries],
         distortion=distortion,
         model=camera_model,
         rig=rig,
