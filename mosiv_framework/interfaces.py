@@ -7,13 +7,15 @@ only ever talks to these interfaces; it never imports a plugin.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.laws.base import ConstitutiveLaw, ParamSpec
 from mosiv_framework.types import (
     Frames,
@@ -94,6 +96,36 @@ class Simulator(ABC):
     ) -> Trajectory:
         """Simulate ``frames`` video frames after frame 0; returns frames+1 states."""
 
+    def rollout_batch(
+        self,
+        particles: ParticleSet,
+        params_list: Sequence[SimulationParams],
+        *,
+        world: World,
+        frames: int,
+    ) -> list[Trajectory | SimulationDiverged]:
+        """Roll out one scene under several parameter sets ("members"); one result per member.
+
+        Member b's object families are those of ``params_list[b]`` (the particles' materials
+        are replaced for it, as the law screening does), so members may try different laws.
+        A member that diverges does not stop the others: its entry is the SimulationDiverged
+        (object_id, frame, substep) instead of a Trajectory. Input errors (ConfigError) are
+        raised for the whole call. Each Trajectory equals ``rollout`` of that member alone up
+        to float32 round-off.
+
+        This default loops over ``rollout`` (differentiable where ``rollout`` is); backends
+        override it to advance all members in one simulation (docs/BENCHMARKS.md, Batched
+        rollouts).
+        """
+        results: list[Trajectory | SimulationDiverged] = []
+        for params in params_list:
+            member = member_particles(particles, params)
+            try:
+                results.append(self.rollout(member, params, world=world, frames=frames))
+            except SimulationDiverged as err:
+                results.append(err)
+        return results
+
     def evaluate_law(
         self,
         family: str,
@@ -118,6 +150,18 @@ class Simulator(ABC):
     def peak_memory_bytes(self) -> int | None:
         """Peak device memory (bytes) used by the backend since the last reset, if known."""
         return None
+
+
+def member_particles(particles: ParticleSet, params: SimulationParams) -> ParticleSet:
+    """``particles`` with each object's family taken from ``params`` (objects that ``params``
+    does not name keep theirs): the particle set one member of ``rollout_batch`` simulates."""
+    materials = {
+        k: params.objects[k].family if k in params.objects else family
+        for k, family in particles.materials.items()
+    }
+    if materials == particles.materials:
+        return particles
+    return replace(particles, materials=materials)
 
 
 class Loss(ABC):
