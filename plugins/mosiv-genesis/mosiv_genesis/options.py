@@ -13,7 +13,7 @@ from typing import Any
 from mosiv_framework.conceal import parse_conceal
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.scene.protocol import check_clip, name_list
-from mosiv_genesis.plan import GENESIS_FAMILIES, SHAPE_NAMES
+from mosiv_genesis.plan import GENESIS_FAMILIES, RANGE_PRESETS, SHAPE_NAMES
 
 #: concealed effects Genesis can realise: drag and wind as its acceleration fields
 #: (gs.force_fields.Drag / Constant), gravity through SimOptions. Ground friction is not
@@ -29,7 +29,9 @@ class GenesisOptions:
     object (families: elastic, plasticine, newtonian, sand, snow -- Genesis' Elastic,
     ElastoPlastic, Liquid, Sand, Snow); resolution: image width = height (pixels); n_cameras;
     n_frames; observed_frames; fps (1/s); substeps: MPM substeps per frame (140 at 24 fps
-    gives dt = 3e-4 s, inside Genesis' stability hint ~0.02 s / grid_density at 64 cells/m); grid_density: MPM
+    gives dt = 3e-4 s, inside Genesis' stability hint ~0.02 s / grid_density at 64 cells/m;
+    raised where a stiff draw needs more, see ``plan.required_substeps``); ranges: parameter
+    ranges, "paper" or "wide" (``plan.WIDE_COMMON``, ``plan.WIDE_EXTRA``); grid_density: MPM
     grid cells per metre (1/m); particle_size: MPM particle spacing (m); collision_frame: frame
     of the mid-air collision (0 = from the seed); conceal: "KIND[:param=value,...]" effects
     (linear_drag, quadratic_drag, wind, gravity) separated by ";" or a list; vis_mode: how
@@ -47,6 +49,7 @@ class GenesisOptions:
     observed_frames: int = 15
     fps: float = 24.0
     substeps: int = 140
+    ranges: str = "paper"
     grid_density: float = 64.0
     particle_size: float = 0.01
     collision_frame: int = 0
@@ -74,6 +77,8 @@ class GenesisOptions:
             problems.append(f"fps={self.fps}, substeps={self.substeps}: must be positive")
         if not 0.003 <= self.particle_size <= 0.03:
             problems.append(f"particle_size={self.particle_size} m: must lie in [0.003, 0.03] m")
+        if self.ranges not in RANGE_PRESETS:
+            problems.append(f"ranges={self.ranges!r}: valid: {', '.join(RANGE_PRESETS)}")
         if self.grid_density <= 0:
             problems.append(f"grid_density={self.grid_density}: must be positive (cells/m)")
         if self.collision_frame != 0 and not 2 <= self.collision_frame < self.n_frames:

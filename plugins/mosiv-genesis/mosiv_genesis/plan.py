@@ -64,6 +64,31 @@ EXTRA = {
 }
 GENESIS_FAMILIES = tuple(EXTRA)
 
+# The wide preset (log-uniform where marked): two decades of Young's modulus, 1e4 Pa (soft gel)
+# to 1e6 Pa (rubber); Poisson ratio 0.15 (foam) to 0.4 (nearly incompressible); density 500
+# (wood, foam) to 2000 kg/m^3 (wet clay), as mosiv-synth's wide preset. Yield stress 1-30 kPa:
+# the soft end slumps under its own weight (~1-3 kPa at the base), the hard end yields only
+# in the stiffer draws' impacts. Sand 20 deg (glass beads) to 45 deg (crushed rock). Snow's
+# clamps over a factor ~2-3 around the paper's. Genesis' Liquid has no viscosity parameter: its
+# shear stress comes from E and nu, so the E decades also span its viscous response.
+WIDE_COMMON = {"E": (1.0e4, 1.0e6), "nu": (0.15, 0.4), "rho": (500.0, 2000.0)}
+WIDE_EXTRA = {
+    "elastic": {},
+    "plasticine": {"yield_stress": (1.0e3, 3.0e4)},
+    "sand": {"friction_angle": (20.0, 45.0)},
+    "newtonian": {},
+    "snow": {"yield_lower": (1.5e-2, 5.0e-2), "yield_higher": (3.0e-3, 1.0e-2)},
+}
+WIDE_LOG = ("E", "rho", "yield_stress")  # drawn log-uniformly in the wide preset
+RANGE_PRESETS = ("paper", "wide")
+# Genesis' MPM is explicit: a P-wave must cross less than half a cell per substep,
+# sqrt((lambda + 2 mu) / rho) dt / dx < 0.5; substeps are raised to reach CFL_TARGET below it
+CFL_BOUND = 0.5
+CFL_TARGET = 0.45
+# Genesis warns above its own step hint dt <= 0.02 s / grid_density (cells/m); substeps keep
+# to it as well (140 substeps at 24 fps on 64 cells/m do)
+GENESIS_DT_HINT = 0.02
+
 
 def make_mesh(name: str, size: float, rotation: np.ndarray):
     """Watertight trimesh of shape ``name``, largest extent ``size`` (m), rotated, centred."""
@@ -93,10 +118,55 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return q if np.linalg.det(q) > 0 else -q
 
 
-def sample_params(family: str, rng: np.random.Generator) -> dict[str, float]:
-    """Genesis material parameters of one object (uniform in each range)."""
-    ranges = {**COMMON, **EXTRA[family]}
-    return {name: float(rng.uniform(lo, hi)) for name, (lo, hi) in ranges.items()}
+def preset_ranges(family: str, preset: str = "paper") -> dict[str, tuple[float, float]]:
+    """(lower, upper) per Genesis parameter of ``family`` in ``preset`` ("paper" or "wide")."""
+    if preset == "wide":
+        return {**WIDE_COMMON, **WIDE_EXTRA[family]}
+    return {**COMMON, **EXTRA[family]}
+
+
+def sample_params(family: str, rng: np.random.Generator, preset: str = "paper") -> dict[str, float]:
+    """Genesis material parameters of one object: uniform in each paper range; in the wide
+    preset log-uniform for the parameters of ``WIDE_LOG``."""
+    out = {}
+    for name, (lo, hi) in preset_ranges(family, preset).items():
+        if preset == "wide" and name in WIDE_LOG:
+            out[name] = float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+        else:
+            out[name] = float(rng.uniform(lo, hi))
+    return out
+
+
+def range_table(preset: str) -> dict:
+    """The preset's ranges as gt/params.json records them: family -> name -> bounds."""
+    return {
+        fam: {
+            n: {"lower": lo, "upper": hi, "log": preset == "wide" and n in WIDE_LOG}
+            for n, (lo, hi) in preset_ranges(fam, preset).items()
+        }
+        for fam in GENESIS_FAMILIES
+    }
+
+
+def p_wave_speed(p: dict[str, float]) -> float:
+    """sqrt((lambda + 2 mu) / rho) (m/s) of Genesis parameters E, nu, rho (every family)."""
+    e, nu = p["E"], p["nu"]
+    return math.sqrt(e * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu)) / p["rho"])
+
+
+def cfl_number(params: list[dict[str, float]], *, grid_density: float, dt: float) -> float:
+    """The largest P-wave CFL number c dt / dx over the objects (dx = 1 / grid_density m)."""
+    return max(p_wave_speed(p) for p in params) * dt * grid_density
+
+
+def required_substeps(
+    params: list[dict[str, float]], *, grid_density: float, fps: float, requested: int
+) -> int:
+    """The fewest substeps per frame, at least ``requested``, whose CFL number stays below
+    ``CFL_TARGET`` for every object and whose step keeps to Genesis' hint ``GENESIS_DT_HINT``."""
+    need = cfl_number(params, grid_density=grid_density, dt=1.0 / fps) / CFL_TARGET
+    hint = grid_density / (GENESIS_DT_HINT * fps)
+    return max(int(requested), math.ceil(need), math.ceil(hint - 1e-9))
 
 
 def scene_format_params(family: str, p: dict[str, float]) -> dict[str, float]:

@@ -30,6 +30,9 @@ from mosiv_genesis.options import GENESIS_KINDS, GenesisOptions
 # box is grown by as much so that this boundary is the declared domain: its floor is the table
 # (Genesis' rigid plane does not stop MPM particles; the plane entity only draws the table)
 MPM_BOUNDARY_CELLS = 3
+# Genesis' MPM solves every body on one grid: bodies that touch share grid velocities and stick
+# (no friction coefficient between them); gt/params.json says so, for identification
+CONTACT_MODE = "single_grid"
 
 
 def _genesis(backend: str):
@@ -100,6 +103,7 @@ class _Plan:
     gravity: np.ndarray  # the true gravity (a concealed "gravity" effect replaces the declared)
     wind: np.ndarray | float
     layout: P.Layout
+    substeps: int  # MPM substeps per frame, raised from the requested ones for stiff draws
 
 
 def _plan(opts: GenesisOptions, rng: np.random.Generator) -> _Plan:
@@ -110,7 +114,7 @@ def _plan(opts: GenesisOptions, rng: np.random.Generator) -> _Plan:
     families = opts.materials or [str(m) for m in rng.choice(P.GENESIS_FAMILIES, k)]
     sizes = rng.uniform(*P.SIZE_LIMITS, size=k)
     meshes = [P.make_mesh(s, float(z), P.random_rotation(rng)) for s, z in zip(shapes, sizes)]
-    params = [P.sample_params(f, rng) for f in families]
+    params = [P.sample_params(f, rng, opts.ranges) for f in families]
     frame_c = opts.collision_frame or int(
         rng.integers(max(2, opts.observed_frames // 3), max(3, opts.observed_frames // 2) + 1)
     )
@@ -130,7 +134,12 @@ def _plan(opts: GenesisOptions, rng: np.random.Generator) -> _Plan:
         rng=rng,
     )
     name = opts.scene_name or f"{'-'.join(families)}-{opts.seed:04d}"
-    return _Plan(name, shapes, families, meshes, params, frame_c, effects, gravity, wind, layout)
+    substeps = P.required_substeps(
+        params, grid_density=opts.grid_density, fps=opts.fps, requested=opts.substeps
+    )
+    return _Plan(
+        name, shapes, families, meshes, params, frame_c, effects, gravity, wind, layout, substeps
+    )
 
 
 class GenesisSource(SceneSource):
@@ -147,7 +156,7 @@ class GenesisSource(SceneSource):
         gs = _genesis(opts.backend)
         rng = np.random.default_rng(opts.seed)
         plan = _plan(opts, rng)
-        scene = _empty_scene(gs, opts, plan.gravity, rng)
+        scene = _empty_scene(gs, opts, plan, rng)
         with tempfile.TemporaryDirectory() as tmp:
             entities = _add_objects(gs, scene, opts, plan, Path(tmp))
             _add_force_fields(gs, scene, plan.effects)
@@ -167,28 +176,19 @@ class GenesisSource(SceneSource):
         points = _record(scene, entities, list(zip(cameras, gcams)), writer, opts, plan.name)
         writer.write_gt(
             points={i: np.stack(p) for i, p in points.items()},
-            params=_gt_document(
-                plan.shapes,
-                plan.families,
-                plan.params,
-                starts,
-                velocities,
-                opts,
-                plan.layout,
-                plan.frame_c,
-            ),
+            params=_gt_document(plan, starts, velocities, opts),
             effects=[e.to_json() for e in plan.effects] if plan.effects else None,
         )
         return writer.finish()
 
 
-def _empty_scene(gs, opts: GenesisOptions, gravity: np.ndarray, rng: np.random.Generator):
-    """The Genesis scene with its MPM box (grown by ``MPM_BOUNDARY_CELLS``), a background
-    colour drawn from ``rng``, and the table plane."""
+def _empty_scene(gs, opts: GenesisOptions, plan: _Plan, rng: np.random.Generator):
+    """The Genesis scene with its MPM box (grown by ``MPM_BOUNDARY_CELLS``), the plan's
+    substeps and gravity, a background colour drawn from ``rng``, and the table plane."""
     pad = MPM_BOUNDARY_CELLS / opts.grid_density  # m
     scene = gs.Scene(
         sim_options=gs.options.SimOptions(
-            dt=1.0 / opts.fps, substeps=opts.substeps, gravity=tuple(gravity)
+            dt=1.0 / opts.fps, substeps=plan.substeps, gravity=tuple(plan.gravity)
         ),
         mpm_options=gs.options.MPMOptions(
             lower_bound=tuple(np.array(P.DOMAIN_LOWER) - pad),
@@ -315,21 +315,31 @@ def _mask_lut(scene, entities) -> np.ndarray:
     return lut
 
 
-def _gt_document(shapes, families, params, starts, velocities, opts, layout, frame_c) -> dict:
+def _gt_document(plan: _Plan, starts, velocities, opts: GenesisOptions) -> dict:
+    """gt/params.json: scene-format parameters per object, Genesis' own under
+    ``generator_params``; the grid, substeps, contact mode and ranges the engine ran with."""
     try:
         version = metadata.version("genesis-world")
     except metadata.PackageNotFoundError:
         version = "unknown"
+    shapes, families, params = plan.shapes, plan.families, plan.params
+    dt = 1.0 / (opts.fps * plan.substeps)
     return {
         "generator": f"mosiv-genesis (Genesis {version}, MPM, {opts.backend})",
         "generator_params": {
-            "substeps": opts.substeps,
+            "substeps": plan.substeps,
+            "substeps_requested": opts.substeps,
+            "cfl": P.cfl_number(params, grid_density=opts.grid_density, dt=dt),
             "grid_density": opts.grid_density,
+            "grid_cell_m": 1.0 / opts.grid_density,
+            "contact": CONTACT_MODE,
             "particle_size": opts.particle_size,
-            "collision_frame": frame_c,
-            "collision_point": layout.collision_point.tolist(),
+            "collision_frame": plan.frame_c,
+            "collision_point": plan.layout.collision_point.tolist(),
             "seed": opts.seed,
         },
+        "ranges": opts.ranges,
+        "range_table": P.range_table(opts.ranges),
         "objects": [
             {
                 "id": i,
