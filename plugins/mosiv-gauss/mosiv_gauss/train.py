@@ -402,6 +402,45 @@ def densify_and_prune(
     _reindex(model, optimizer, index, means=means, log_radii=log_r)
 
 
+def _schedule_learning_rates(step, iterations, optimizers, base_lrs, net_opt, warmup) -> None:
+    """Exponential decay of every learning rate to FINAL_LR_FRACTION of its start; the
+    networks' rates also ramp up linearly over the first ``warmup`` steps."""
+    decay = FINAL_LR_FRACTION ** (step / max(1, iterations))
+    for o, lrs in zip(optimizers, base_lrs, strict=True):
+        for g, lr in zip(o.param_groups, lrs, strict=True):
+            g["lr"] = lr * decay
+    if warmup > 0:  # keep the motion prior's fit through Adam's first steps
+        for g in net_opt.param_groups:
+            g["lr"] *= min(1.0, (step + 1) / warmup)
+
+
+def _training_loss(model, data, opts, background, order, generator) -> Tensor:
+    """Eq. 2 on one batch of views: the photometric loss, the shape terms and (with tracks)
+    the track anchor."""
+    batch = sample_views(data, opts.views_per_step, order, generator)
+    frames = sorted({t for t, _ in batch})
+    means, radii = model.at(frames)
+    loss = batch_view_loss(
+        means,
+        radii,
+        model.colors(),
+        model.opacities(),
+        model.object_ids,
+        frames,
+        batch,
+        data,
+        background,
+        opts,
+    )
+    loss = loss + shape_terms(
+        means, radii, frames, model.object_ids, data, opts, generator=generator
+    )
+    if opts.lambda_track > 0 and data.tracks is not None:
+        anchor = track_loss(means, frames, model.object_ids, data, tolerance=opts.track_tolerance)
+        loss = loss + opts.lambda_track * anchor
+    return loss
+
+
 def train_dynamic(
     model: DynamicGaussians,
     data: TrainingData,
@@ -428,37 +467,8 @@ def train_dynamic(
     grad_count = torch.zeros(model.n_gaussians, device=device)
     bar = _bar(range(opts.iterations), opts.progress, "gauss training")
     for step in bar:
-        # exponential decay of every learning rate to FINAL_LR_FRACTION of its start
-        decay = FINAL_LR_FRACTION ** (step / max(1, opts.iterations))
-        for o, lrs in zip(optimizers, base_lrs, strict=True):
-            for g, lr in zip(o.param_groups, lrs, strict=True):
-                g["lr"] = lr * decay
-        if warmup > 0:  # keep the motion prior's fit through Adam's first steps
-            for g in net_opt.param_groups:
-                g["lr"] *= min(1.0, (step + 1) / warmup)
-        batch = sample_views(data, opts.views_per_step, order, generator)
-        frames = sorted({t for t, _ in batch})
-        means, radii = model.at(frames)
-        loss = batch_view_loss(
-            means,
-            radii,
-            model.colors(),
-            model.opacities(),
-            model.object_ids,
-            frames,
-            batch,
-            data,
-            background,
-            opts,
-        )
-        loss = loss + shape_terms(
-            means, radii, frames, model.object_ids, data, opts, generator=generator
-        )
-        if opts.lambda_track > 0 and data.tracks is not None:
-            anchor = track_loss(
-                means, frames, model.object_ids, data, tolerance=opts.track_tolerance
-            )
-            loss = loss + opts.lambda_track * anchor
+        _schedule_learning_rates(step, opts.iterations, optimizers, base_lrs, net_opt, warmup)
+        loss = _training_loss(model, data, opts, background, order, generator)
         for o in optimizers:
             o.zero_grad(set_to_none=True)
         loss.backward()
