@@ -10,7 +10,7 @@ null (mm^2) is printed next to the floor. This shows whether the rule "a held-ou
 exceed the floor" would keep the true effects and reject the false acceptances. It refits
 nothing.
 
-    python benchmarks/resolution_floor.py --out /root/floor --jobs 5 --gpus 0 \\
+    python benchmarks/resolution_floor.py --out runs/floor --jobs 5 --gpus 0 \\
         --diagnoses benchmarks/data/diagnosis_suite \\
         control-1 outside-quadratic_drag material_damping-0 ground_friction-0 quadratic_drag-0
 """

@@ -13,7 +13,7 @@ then concatenates their ``table.md`` files, under the command that made each, in
 frames of which 9 observed; a few hours on 2 cores); ``--size paper`` the paper's (GPU).
 
     python benchmarks/results.py --size tiny --out runs/results --jobs 2
-    python3 benchmarks/results.py --size paper --out /root/results --jobs 4
+    python3 benchmarks/results.py --size paper --out runs/results --jobs 4
 """
 
 from __future__ import annotations
