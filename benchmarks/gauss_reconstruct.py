@@ -8,7 +8,7 @@ kept through the collision), wall time and peak memory. Non-interactive; example
 
     python benchmarks/gauss_reconstruct.py --device cuda --out runs/gauss_bench.json
     python benchmarks/gauss_reconstruct.py --scene runs/quickstart/scene --device cpu \\
-        --options '{"iterations": 300}' --out /tmp/g.json
+        --options '{"iterations": 300}' --out runs/gauss.json
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ prints, before and after, per object: the worst and mean mask IoU over frames, t
 mean Chamfer (mm^2) of the Gaussian centres to the true particles, and the contact-frame ratio.
 Cheaper than a refit: the trained model is reused, only the refinement runs. Example:
 
-    python benchmarks/gauss_refine_check.py --scene /tmp/g6/scene --recon /tmp/g6/base_recon \\
+    python benchmarks/gauss_refine_check.py --scene runs/g6/scene --recon runs/g6/base_recon \\
         --options '{"hull_resolution": 96, "views_per_step": 2, "lambda_hull": 0.01}' \\
         --variants '{"refine_iterations": 300}' '{"refine_iterations": 300, "lambda_refine_smooth": 0.1}'
 """
