@@ -77,7 +77,7 @@ class BackwardWorkspace:
     def __init__(self, run):
         n, dev = run.n, run.device
         self.work = [ParticleState(n, dev, requires_grad=True) for _ in range(run.substeps + 1)]
-        self.grid = Grid(run.layout, dev, requires_grad=True)
+        self.grid = Grid(run.layout, dev, requires_grad=True, batch=run.batch)
         self.carry = ParticleState(n, dev, requires_grad=True)
         self._graph = None
 

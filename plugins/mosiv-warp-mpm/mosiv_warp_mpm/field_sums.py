@@ -20,6 +20,7 @@ def field_sums(
     grid_vs: wp.array(dtype=wp.vec3),
     grid_gm: wp.array(dtype=wp.vec3),
     friction: wp.array(dtype=float),
+    first: int,
     node: int,
     per_field: int,
     n_fields: int,
@@ -27,7 +28,9 @@ def field_sums(
     mass_eps: float,
 ):
     # over fields f != skip with mass m_f > mass_eps at this node:
-    # (sum m_f [kg], sum m_f v_f [kg m/s], sum grad m_f [kg/m], sum m_f mu_f [kg], count)
+    # (sum m_f [kg], sum m_f v_f [kg m/s], sum grad m_f [kg/m], sum m_f mu_f [kg], count);
+    # node is field 0's flat index and friction[first + f] is field f's coefficient (first:
+    # the member's first object in a batched rollout, 0 otherwise)
     m_sum = float(0.0)  # noqa: UP018 (Warp needs dynamic variables in a dynamic loop)
     p_sum = wp.vec3()
     g_sum = wp.vec3()
@@ -40,7 +43,7 @@ def field_sums(
             m_sum += m
             p_sum += m * grid_vs[n]
             g_sum += grid_gm[n]
-            mu_sum += m * friction[f]
+            mu_sum += m * friction[first + f]
             count += 1
     return m_sum, p_sum, g_sum, mu_sum, count
 
@@ -51,6 +54,7 @@ def adj_field_sums(
     grid_vs: wp.array(dtype=wp.vec3),
     grid_gm: wp.array(dtype=wp.vec3),
     friction: wp.array(dtype=float),
+    first: int,
     node: int,
     per_field: int,
     n_fields: int,
@@ -69,8 +73,8 @@ def adj_field_sums(
         m = grid_m[n]
         if f != skip and m > mass_eps:
             wp.adjoint[grid_m][n] += (
-                adj_m_sum + wp.dot(adj_p_sum, grid_vs[n]) + adj_mu_sum * (friction[f])
+                adj_m_sum + wp.dot(adj_p_sum, grid_vs[n]) + adj_mu_sum * (friction[first + f])
             )
             wp.adjoint[grid_vs][n] += m * adj_p_sum
             wp.adjoint[grid_gm][n] += adj_g_sum
-            wp.adjoint[friction][f] += m * adj_mu_sum
+            wp.adjoint[friction][first + f] += m * adj_mu_sum

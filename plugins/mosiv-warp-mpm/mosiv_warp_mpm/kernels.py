@@ -3,6 +3,12 @@
 Grid arrays are flat: field f, node (i, j, k) lives at ((f * NX + i) * NY + j) * NZ + k, with
 NX, NY, NZ node counts. In multi-field mode field f is object index f; in single-field mode every
 object uses field 0. Kernels never write an array they read, so Warp's tape can replay them.
+
+Batched rollouts (batched.py) run B members of one scene in the same launches: particle p of
+member b carries object index o = b K + k (K objects per member), so the per-object tables hold
+B K rows, member-major, and object o's field is b F + f (F fields per member): B grids, one
+after the other in the flat arrays. Per-member scalars (body acceleration, drag, damping, ground
+coefficients) are indexed by b. A single rollout is the batch of one (b = 0).
 """
 
 from __future__ import annotations
@@ -113,6 +119,7 @@ def p2g(
     nodes: wp.vec3i,
     with_normals: int,
     ground_k: float,
+    objects_per_member: int,
     grid_m: wp.array(dtype=float),
     grid_mv: wp.array(dtype=wp.vec3),
     grid_gm: wp.array(dtype=wp.vec3),
@@ -127,7 +134,7 @@ def p2g(
     m = rho[o] * volume[p]
     inv_dx = 1.0 / dx
     tau = kirchhoff_stress(law_of[o], params[o], F[p], C[p], plastic_J[p])
-    tau = tau + kelvin_voigt_tau(damping[0], F[p], C[p])
+    tau = tau + kelvin_voigt_tau(damping[o // objects_per_member], F[p], C[p])
     affine = (-dt * 4.0 * inv_dx * inv_dx * volume[p]) * tau + m * C[p]
     xl = (x[p] - origin) * inv_dx
     base = cell_base(xl)
@@ -164,15 +171,18 @@ def grid_free_velocity(
     box_lo: wp.vec3i,
     box_dims: wp.vec3i,
     nodes: wp.vec3i,
+    fields_per_member: int,
     grid_vs: wp.array(dtype=wp.vec3),
 ):
     # v = mv/m + dt (g + wind - c_lin v - c_quad |v| v), on every field's nodes of the box
-    n = box_node(wp.tid(), box_lo, box_dims, nodes)
+    t = wp.tid()
+    n = box_node(t, box_lo, box_dims, nodes)
+    b = t // (box_dims[0] * box_dims[1] * box_dims[2] * fields_per_member)  # batch member
     m = grid_m[n]
     vf = wp.vec3()
     if m > MASS_EPS:
         vs = grid_mv[n] / m
-        a = accel[0] - drag[0] * vs - drag[1] * safe_norm(vs) * vs
+        a = accel[b] - drag[2 * b] * vs - drag[2 * b + 1] * safe_norm(vs) * vs
         vf = vs + dt * a
     grid_vs[n] = vf
 
@@ -236,17 +246,22 @@ def grid_boundaries(
     box_dims: wp.vec3i,
     grid_v: wp.array(dtype=wp.vec3),
 ):
-    # multi-field Coulomb contact, ground plane and slip walls at one spatial node of the box
-    c = box_ijk(wp.tid(), box_lo, box_dims)
+    # multi-field Coulomb contact, ground plane and slip walls at one spatial node of the box;
+    # one thread per (batch member, node), n_fields = fields per member
+    t = wp.tid()
+    box_count = box_dims[0] * box_dims[1] * box_dims[2]
+    b = t // box_count
+    c = box_ijk(t % box_count, box_lo, box_dims)
     i = c[0]
     j = c[1]
     k = c[2]
     per_field = nodes[0] * nodes[1] * nodes[2]
-    s = node_index(0, i, j, k, nodes)
+    first = b * n_fields  # the member's first field, and its first object in multi-field mode
+    s = node_index(first, i, j, k, nodes)
     # sums over fields go through field_sums: Warp cannot differentiate a local variable
     # accumulated in a loop over the run-time field count
     m_tot, p_tot, g_tot, mu_tot, count = field_sums(
-        grid_m, grid_vs, grid_gm, friction, s, per_field, n_fields, -1, MASS_EPS
+        grid_m, grid_vs, grid_gm, friction, first, s, per_field, n_fields, -1, MASS_EPS
     )
     for f in range(n_fields):
         n = f * per_field + s
@@ -258,15 +273,16 @@ def grid_boundaries(
                 # total cancels catastrophically when f dominates the node's mass (and rounds
                 # differently under CUDA's fused multiply-adds), which gave wild coefficients
                 m_other, p_other, g_other, mu_other, n_other = field_sums(
-                    grid_m, grid_vs, grid_gm, friction, s, per_field, n_fields, f, MASS_EPS
+                    grid_m, grid_vs, grid_gm, friction, first, s, per_field, n_fields, f, MASS_EPS
                 )
                 # outward normal of f against the others: normalize(gm_f - sum of the others' gm)
                 d = grid_gm[n] - g_other
                 normal = d / safe_norm(d)
-                mu = 0.5 * (friction[f] + mu_other / m_other)
+                mu = 0.5 * (friction[first + f] + mu_other / m_other)
                 v = coulomb_contact(v, p_tot / m_tot, normal, mu)
             if ground_on != 0 and float(k) <= ground_k:
-                v = ground_contact(v, grid_pm[n][2] / m, ground_friction[0], ground_restitution[0])
+                v_in = grid_pm[n][2] / m
+                v = ground_contact(v, v_in, ground_friction[b], ground_restitution[b])
             v = slip_walls(v, i, j, k, nodes)
         grid_v[n] = v
 

@@ -7,6 +7,8 @@ graph on GPUs) and how to back-propagate through one frame (see autograd.py for 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 import warp as wp
 
@@ -93,9 +95,12 @@ class MPMRun:
         obj_index: torch.Tensor,
         volumes: torch.Tensor,
         windowed: bool | None = None,
+        batch: int = 1,
     ):
         """``windowed``: whether grid kernels visit only the nodes around the particles
-        (``active_box``); default: on the CPU only."""
+        (``active_box``); default: on the CPU only. ``batch``: members simulated together
+        (batched.py); then ``families`` lists every member's objects, member-major, and
+        ``obj_index`` holds b K + k for a particle of member b (kernels.py)."""
         self.layout, self.world, self.substeps, self.device = layout, world, substeps, device
         if windowed is None:
             windowed = not wp.get_device(device).is_cuda
@@ -103,17 +108,19 @@ class MPMRun:
             raise ConfigError("a windowed grid needs the CPU: CUDA replays one captured graph")
         self.windowed = windowed
         self.whole_box = NodeBox.whole(layout)
-        self.object_ids = object_ids
+        self.object_ids, self.batch = object_ids, batch
         self.dt = 1.0 / (world.fps * substeps)
         self.n = int(obj_index.shape[0])
         k = len(object_ids)
         fields = list(range(k)) if layout.fields > 1 else [0] * k
-        self.tables = ObjectTables([LAW_IDS[f] for f in families], fields, device)
+        fields = [b * layout.fields + f for b in range(batch) for f in fields]
+        law_ids = [LAW_IDS[f] for f in families]
+        self.tables = ObjectTables(law_ids, fields, device, batch=batch)
         self.obj = wp.from_torch(obj_index.to(torch.int32).contiguous(), dtype=wp.int32)
         self.obj = wp.clone(self.obj, device=device)
         self.volume = wp.clone(wp.from_torch(volumes.float().contiguous()), device=device)
-        self.flag = wp.full(k, K.NO_FLAG, dtype=int, device=device)
-        self.grid = Grid(layout, device)
+        self.flag = wp.full(batch * k, K.NO_FLAG, dtype=int, device=device)
+        self.grid = Grid(layout, device, batch=batch)
         self.a = ParticleState(self.n, device)
         self.b = ParticleState(self.n, device)
         self.checkpoints: list[ParticleState] = []
@@ -152,20 +159,21 @@ class MPMRun:
             dim=self.n,
             inputs=[src.x, src.v, src.C, src.F, src.plastic_J, self.volume, self.obj]
             + [t.law_of, t.field_of, t.params, t.rho, t.damping, origin, lay.dx, self.dt, nodes]
-            + [int(lay.fields > 1), self.ground_k if self.ground_on else -1.0],
+            + [int(lay.fields > 1), self.ground_k if self.ground_on else -1.0, t.k],
             outputs=[grid.m, grid.mv, grid.gm, grid.pm],
             device=dev,
         )
         wp.launch(
             K.grid_free_velocity,
-            dim=lay.fields * box.count,
-            inputs=[grid.m, grid.mv, t.accel, t.drag, self.dt, box_lo, box_dims, nodes],
+            dim=self.batch * lay.fields * box.count,
+            inputs=[grid.m, grid.mv, t.accel, t.drag, self.dt, box_lo, box_dims, nodes]
+            + [lay.fields],
             outputs=[grid.vs],
             device=dev,
         )
         wp.launch(
             K.grid_boundaries,
-            dim=box.count,
+            dim=self.batch * box.count,
             inputs=[grid.m, grid.vs, grid.gm, grid.pm, lay.fields, t.friction, nodes]
             + [self.ground_on, self.ground_k, t.ground_friction, t.ground_restitution]
             + [box_lo, box_dims],
@@ -193,8 +201,9 @@ class MPMRun:
         if src is not self.a:  # odd substep count: the result sits in b
             self.a.copy_from(src)
 
-    def advance_frame(self, frame: int) -> None:
-        """Advance state ``a`` by one video frame; raise SimulationDiverged if it blew up.
+    def advance_frame(self, frame: int, *, check: bool = True) -> None:
+        """Advance state ``a`` by one video frame; raise SimulationDiverged if it blew up
+        (``check``; batched runs read ``divergences`` per member instead).
 
         On CUDA the frame's launches are captured once into a graph and replayed, so the
         substep loop costs no Python per substep.
@@ -207,13 +216,28 @@ class MPMRun:
             wp.capture_launch(self._graph)
         else:
             self._frame_launches()
-        self.check_divergence(frame)
+        if check:
+            self.check_divergence(frame)
 
     def check_divergence(self, frame: int) -> None:
-        """Raise SimulationDiverged for the earliest flagged substep of this frame."""
-        flags = self.flag.numpy()
+        """Raise SimulationDiverged for the earliest flagged substep of this frame (of the
+        first member that has one)."""
+        for err in self.divergences(frame):
+            if err is not None:
+                raise err
+
+    def divergences(self, frame: int) -> list[SimulationDiverged | None]:
+        """Per member: SimulationDiverged for its earliest flagged substep of this frame, or
+        None."""
+        flags = self.flag.numpy().reshape(self.batch, -1)
         if int(flags.min()) >= K.NO_FLAG:
-            return
+            return [None] * self.batch
+        return [
+            self._divergence(frame, b, row) if int(row.min()) < K.NO_FLAG else None
+            for b, row in enumerate(flags)
+        ]
+
+    def _divergence(self, frame: int, member: int, flags) -> SimulationDiverged:
         oi = int(flags.argmin())
         code = int(flags[oi])
         substep, reason = code // 4, code % 4
@@ -233,15 +257,15 @@ class MPMRun:
                 f"Increase substeps (now {self.substeps}) or use a coarser grid; very soft or very "
                 f"stiff parameters of object {obj_id} can also cause it."
             )
-        eta = float(self.tables.damping.numpy()[0])
+        eta = float(self.tables.damping.numpy()[member])
         if eta > 0:  # explicit viscous stability: dt < rho dx^2 / (6 eta)
-            rho = float(self.tables.rho.numpy()[oi])
+            rho = float(self.tables.rho.numpy()[member * len(self.object_ids) + oi])
             limit = rho * self.layout.dx**2 / (6.0 * eta)
             advice += (
                 f" With material_damping viscosity={eta:g} Pa s the explicit step needs "
                 f"dt < rho dx^2 / (6 eta) = {limit:.3g} s (now {self.dt:.3g} s)."
             )
-        raise SimulationDiverged(
+        return SimulationDiverged(
             object_id=obj_id, frame=frame, substep=substep, reason=why, advice=advice
         )
 
@@ -334,6 +358,20 @@ def pack_theta(
     return torch.cat(parts)
 
 
+def initial_velocities(
+    params: SimulationParams, object_ids: list[int], obj_index: torch.Tensor
+) -> torch.Tensor:
+    """Each particle's initial velocity [N, 3] (its object's), differentiable in params."""
+    dev = obj_index.device
+    v_obj = torch.stack(
+        [
+            torch.as_tensor(params.initial_velocity[k], dtype=torch.float32).to(dev)
+            for k in object_ids
+        ]
+    )
+    return v_obj[obj_index]
+
+
 def check_inputs(particles: ParticleSet, params: SimulationParams, world: World, frames: int):
     """Raise ConfigError listing every inconsistency between particles, params and world."""
     problems = []
@@ -405,6 +443,9 @@ class WarpMPMSimulator(Simulator):
         self._forward_key: tuple | None = None
         self._grad_run: MPMRun | None = None
         self._grad_key: tuple | None = None
+        # and one for batched forward rollouts (batched.py)
+        self._batch_run: MPMRun | None = None
+        self._batch_key: tuple | None = None
 
     @property
     def torch_device(self) -> torch.device:
@@ -465,7 +506,7 @@ class WarpMPMSimulator(Simulator):
         return tuple(torch.from_numpy(a.numpy()) for a in (tau, F_new, pj_new))
 
     # -- rollout ---------------------------------------------------------------------------
-    def _new_run(self, layout, world, ids, families, obj_index, volumes) -> MPMRun:
+    def _new_run(self, layout, world, ids, families, obj_index, volumes, batch=1) -> MPMRun:
         run = MPMRun(
             layout=layout,
             world=world,
@@ -476,10 +517,43 @@ class WarpMPMSimulator(Simulator):
             obj_index=obj_index,
             volumes=volumes,
             windowed=self.windowed_grid,
+            batch=batch,
         )
         if wp.get_device(self.device).is_cuda:
             run.peak_sampler = self._sample_peak
         return run
+
+    def scatter_layout(self, particles: ParticleSet, world: World) -> tuple:
+        """The grid layout and the particles in scatter order (GridLayout.scatter_order):
+        (layout, object ids, positions [N, 3], object index [N], volumes [N], and the inverse
+        permutation that puts outputs back in the caller's order), on the run's device."""
+        ids = particles.object_list
+        fields = len(ids) if self.options.contact == "multi_field" else 1
+        layout = GridLayout.for_world(world, grid=self.options.grid, fields=fields)
+        dev = wp.device_to_torch(self.device)
+        x0 = particles.positions.to(dev, torch.float32)
+        order = layout.scatter_order(x0)
+        inverse = torch.empty_like(order)
+        inverse[order] = torch.arange(order.numel(), device=dev)
+        # object id -> object index, vectorised (a Python loop costs ~0.2 s per 1M particles)
+        id_values = torch.tensor(ids, device=dev)
+        obj_index = torch.searchsorted(id_values, particles.object_ids.to(dev))[order]
+        volumes = particles.volumes.to(dev)[order]
+        return layout, ids, x0[order], obj_index, volumes, inverse
+
+    def rollout_batch(
+        self,
+        particles: ParticleSet,
+        params_list: Sequence[SimulationParams],
+        *,
+        world: World,
+        frames: int,
+    ) -> list[Trajectory | SimulationDiverged]:
+        """All members in one simulation (batched.py); under autograd with parameters that
+        require gradients, the differentiable per-member loop of the base class."""
+        from mosiv_warp_mpm.batched import rollout_batch
+
+        return rollout_batch(self, particles, params_list, world=world, frames=frames)
 
     def rollout(
         self, particles: ParticleSet, params: SimulationParams, *, world: World, frames: int
@@ -487,33 +561,13 @@ class WarpMPMSimulator(Simulator):
         from mosiv_warp_mpm.autograd import WarpRollout  # keeps the two modules one-way
 
         check_inputs(particles, params, world, frames)
-        ids = particles.object_list
-        fields = len(ids) if self.options.contact == "multi_field" else 1
-        layout = GridLayout.for_world(world, grid=self.options.grid, fields=fields)
-        dev = wp.device_to_torch(self.device)
-        out_dev = particles.positions.device
-
-        # Order particles for the scatter once (see GridLayout.scatter_order); outputs are
-        # un-permuted below.
-        x0 = particles.positions.to(dev, torch.float32)
-        order = layout.scatter_order(x0)
-        inverse = torch.empty_like(order)
-        inverse[order] = torch.arange(order.numel(), device=dev)
-        # object id -> object index, vectorised (a Python loop costs ~0.2 s per 1M particles)
-        id_values = torch.tensor(ids, device=dev)
-        object_ids = particles.object_ids.to(dev)
-        obj_index = torch.searchsorted(id_values, object_ids)[order]
-        v_obj = torch.stack(
-            [torch.as_tensor(params.initial_velocity[k], dtype=torch.float32).to(dev) for k in ids]
-        )
-        v0 = v_obj[obj_index]
+        layout, ids, x0s, obj_index, volumes, inverse = self.scatter_layout(particles, world)
+        dev, out_dev = x0s.device, particles.positions.device
+        v0 = initial_velocities(params, ids, obj_index)
         theta = pack_theta(params, ids, world.gravity, dev)
-
         families = [params.objects[k].family for k in ids]
-        volumes = particles.volumes.to(dev)[order]
-        x0s = x0[order]
         needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (x0s, v0, theta))
-        key = (layout, world, self.options.substeps, tuple(ids), tuple(families), len(order))
+        key = (layout, world, self.options.substeps, tuple(ids), tuple(families), len(x0s))
         if needs_grad:
             # A differentiable rollout owns its run until its backward pass has finished; a
             # run still waiting for one (a second rollout before backward, or an abandoned

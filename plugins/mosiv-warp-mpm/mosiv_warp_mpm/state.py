@@ -169,17 +169,19 @@ class NodeBox:
 
 class Grid:
     """Per-field node mass (kg), momentum (kg m/s), mass gradient (kg/m), free and final
-    velocities (m/s); flat arrays of GridLayout.size."""
+    velocities (m/s); flat arrays of GridLayout.size per batch member, ``batch`` grids one
+    after the other (kernels.py, batched rollouts)."""
 
-    def __init__(self, layout: GridLayout, device, *, requires_grad: bool = False):
+    def __init__(self, layout: GridLayout, device, *, requires_grad: bool = False, batch=1):
         kw = {"device": device, "requires_grad": requires_grad}
-        self.m = wp.zeros(layout.size, dtype=float, **kw)
-        self.mv = wp.zeros(layout.size, dtype=wp.vec3, **kw)
-        self.gm = wp.zeros(layout.size, dtype=wp.vec3, **kw)
-        self.pm = wp.zeros(layout.size, dtype=wp.vec3, **kw)
-        self.vs = wp.zeros(layout.size, dtype=wp.vec3, **kw)
-        self.v = wp.zeros(layout.size, dtype=wp.vec3, **kw)
-        self.layout, self.device = layout, device
+        size = batch * layout.size
+        self.m = wp.zeros(size, dtype=float, **kw)
+        self.mv = wp.zeros(size, dtype=wp.vec3, **kw)
+        self.gm = wp.zeros(size, dtype=wp.vec3, **kw)
+        self.pm = wp.zeros(size, dtype=wp.vec3, **kw)
+        self.vs = wp.zeros(size, dtype=wp.vec3, **kw)
+        self.v = wp.zeros(size, dtype=wp.vec3, **kw)
+        self.layout, self.device, self.batch = layout, device, batch
 
     def arrays(self) -> list[wp.array]:
         return [self.m, self.mv, self.gm, self.pm, self.vs, self.v]
@@ -199,7 +201,7 @@ class Grid:
             return
         wp.launch(
             clear_box,
-            dim=self.layout.fields * box.count,
+            dim=self.batch * self.layout.fields * box.count,
             inputs=[wp.vec3i(*box.lo), wp.vec3i(*box.dims), wp.vec3i(*self.layout.nodes)]
             + [*arrays, int(velocities)],
             device=self.device,
@@ -214,24 +216,31 @@ class ObjectTables:
     quadratic 1/m), ``damping`` [1] Kelvin-Voigt viscosity of ``material_damping`` (Pa s),
     ``ground_restitution`` [1] (dimensionless). The flat torch vector ``theta`` of the autograd
     function maps onto them in this order.
+
+    With ``batch`` = B members every table holds B of these blocks, member-major (per-object
+    tables B K rows, ``drag`` 2 B values), and ``law_ids``/``fields`` list all B K objects;
+    ``theta`` is then [B, P], one row per member.
     """
 
-    def __init__(self, law_ids: list[int], fields: list[int], device):
-        k = len(law_ids)
-        self.k = k
+    def __init__(self, law_ids: list[int], fields: list[int], device, *, batch: int = 1):
+        if len(law_ids) % batch:
+            raise ValueError(f"{len(law_ids)} object laws do not split into {batch} members")
+        k = len(law_ids) // batch
+        self.k, self.batch = k, batch
         self.law_of = wp.array(np.array(law_ids, dtype=np.int32), dtype=int, device=device)
         self.field_of = wp.array(np.array(fields, dtype=np.int32), dtype=int, device=device)
         kw = {"device": device, "requires_grad": True}
-        self.params = wp.zeros(k, dtype=vec5, **kw)
-        self.rho = wp.zeros(k, dtype=float, **kw)
-        self.friction = wp.zeros(k, dtype=float, **kw)
-        self.ground_friction = wp.zeros(1, dtype=float, **kw)
-        self.accel = wp.zeros(1, dtype=wp.vec3, **kw)
-        self.drag = wp.zeros(2, dtype=float, **kw)
-        self.damping = wp.zeros(1, dtype=float, **kw)
-        self.ground_restitution = wp.zeros(1, dtype=float, **kw)
+        self.params = wp.zeros(batch * k, dtype=vec5, **kw)
+        self.rho = wp.zeros(batch * k, dtype=float, **kw)
+        self.friction = wp.zeros(batch * k, dtype=float, **kw)
+        self.ground_friction = wp.zeros(batch, dtype=float, **kw)
+        self.accel = wp.zeros(batch, dtype=wp.vec3, **kw)
+        self.drag = wp.zeros(2 * batch, dtype=float, **kw)
+        self.damping = wp.zeros(batch, dtype=float, **kw)
+        self.ground_restitution = wp.zeros(batch, dtype=float, **kw)
 
     def _parts(self) -> list[tuple[wp.array, int]]:
+        """(table, its values per member) in theta's order."""
         k = self.k
         return [
             (self.params, k * N_SLOTS),
@@ -249,11 +258,12 @@ class ObjectTables:
         return k * N_SLOTS + 2 * k + 1 + 3 + 2 + 1 + 1
 
     def load(self, theta: torch.Tensor) -> None:
-        """Copy the flat float32 parameter vector into the Warp tables."""
-        flat = theta.detach().float().cpu().numpy()
+        """Copy the float32 parameter vector [P] (or [B, P], one row per member) into the
+        Warp tables."""
+        rows = theta.detach().float().cpu().numpy().reshape(self.batch, -1)
         at = 0
         for arr, size in self._parts():
-            arr.assign(flat[at : at + size].reshape(arr.numpy().shape))
+            arr.assign(rows[:, at : at + size].reshape(arr.numpy().shape))
             at += size
 
     def zero_grad(self) -> None:
@@ -262,6 +272,5 @@ class ObjectTables:
 
     def grad_theta(self) -> torch.Tensor:
         """The accumulated gradients as a flat float32 torch vector (CPU), theta's layout."""
-        return torch.from_numpy(
-            np.concatenate([arr.grad.numpy().reshape(-1) for arr, _ in self._parts()])
-        )
+        rows = [arr.grad.numpy().reshape(self.batch, -1) for arr, _ in self._parts()]
+        return torch.from_numpy(np.concatenate(rows, axis=1).reshape(-1))

@@ -1,0 +1,195 @@
+"""Batched rollouts (Simulator.rollout_batch): every member equals the single rollout of its
+parameters, a diverging member is reported without stopping the others, and the base class's
+loop returns what repeated rollouts return."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from mosiv_framework.errors import SimulationDiverged
+from mosiv_framework.interfaces import Simulator, member_particles
+from mosiv_framework.testing.shapes import block, combine, default_params
+from mosiv_framework.types import ObjectParams, SimulationParams, Trajectory, World
+
+WORLD = World((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), ground_height=0.02)
+#: float32 round-off allowed between a member and its single rollout (m and m/s); on the CPU
+#: they agree bit for bit, on a GPU P2G's atomic sums run in another order
+POSITION_TOL = 1e-5
+VELOCITY_TOL = 1e-4
+
+
+def two_blocks():
+    """Two 8x8x8 blocks (512 particles each) that collide and land: contact, ground, walls."""
+    left = block((0.20, 0.35, 0.05), (0.45, 0.60, 0.30), spacing=1.0 / 32, object_id=1)
+    right = block((0.50, 0.40, 0.05), (0.75, 0.65, 0.30), spacing=1.0 / 32, object_id=2)
+    return combine([left, right])
+
+
+def member(particles, families, overrides, velocity, *, ground_friction=0.3, terms=None):
+    """Params of one member: families per object (may differ from the particles' own)."""
+    parts = member_particles(
+        particles,
+        SimulationParams(
+            {k: ObjectParams(f, {}) for k, f in families.items()}, {}, torch.tensor(0.0)
+        ),
+    )
+    return default_params(
+        parts,
+        overrides=overrides,
+        velocities={1: velocity, 2: (0.0, 0.0, 0.0)},
+        ground_friction=ground_friction,
+        terms=terms,
+    )
+
+
+def members(particles):
+    return [
+        member(particles, {1: "elastic", 2: "elastic"}, {1: {"E": 3e4}}, (1.5, 0.0, 0.0)),
+        member(
+            particles,
+            {1: "plasticine", 2: "sand"},
+            {1: {"E": 8e4, "yield_stress": 800.0}, 2: {"friction_angle": 40.0}},
+            (2.0, 0.3, -0.5),
+            ground_friction=0.6,
+            terms={"linear_drag": {"coefficient": 0.5}, "material_damping": {"viscosity": 5.0}},
+        ),
+        member(
+            particles,
+            {1: "newtonian", 2: "snow"},
+            {1: {"viscosity": 2.0}, 2: {"E": 2e4}},
+            (1.0, -0.2, 0.0),
+            ground_friction=0.1,
+            terms={
+                "ground_restitution": {"coefficient": 0.5},
+                "wind": {"acceleration": [0.5, 0.0, 0.0]},
+            },
+        ),
+    ]
+
+
+def single(sim, particles, params, frames):
+    with torch.no_grad():
+        return sim.rollout(member_particles(particles, params), params, world=WORLD, frames=frames)
+
+
+def assert_same(batched: Trajectory, alone: Trajectory) -> None:
+    assert batched.positions.shape == alone.positions.shape
+    assert torch.equal(batched.object_ids, alone.object_ids)
+    # every frame, positions and velocities, each to its own tolerance
+    assert (batched.positions - alone.positions).abs().max() <= POSITION_TOL
+    assert (batched.velocities - alone.velocities).abs().max() <= VELOCITY_TOL
+
+
+@pytest.mark.parametrize(
+    ("count", "contact"), [(1, "multi_field"), (3, "multi_field"), (3, "single_field")]
+)
+def test_members_equal_their_single_rollouts(make_warp_simulator, count, contact) -> None:
+    sim = make_warp_simulator(grid=16, substeps=20, contact=contact)
+    particles = two_blocks()
+    params_list = members(particles)[:count]
+    with torch.no_grad():
+        out = sim.rollout_batch(particles, params_list, world=WORLD, frames=3)
+    assert len(out) == count
+    for b, params in enumerate(params_list):
+        alone = single(sim, particles, params, 3)
+        assert isinstance(out[b], Trajectory), f"member {b}: {out[b]}"
+        assert_same(out[b], alone)
+    if count == 3:  # the members really differ: a shared or swapped table would show here
+        spread = (out[0].positions[-1] - out[2].positions[-1]).abs().max()
+        assert spread > 10 * POSITION_TOL
+    # the run is reused by the next call of the same layout
+    run = sim._batch_run
+    with torch.no_grad():
+        again = sim.rollout_batch(particles, params_list, world=WORLD, frames=3)
+    assert sim._batch_run is run
+    assert all(torch.equal(a.positions, b.positions) for a, b in zip(again, out))
+
+
+def test_a_diverging_member_is_reported_and_the_others_go_on(make_warp_simulator) -> None:
+    sim = make_warp_simulator(grid=16, substeps=10)
+    particles = two_blocks()
+    good = members(particles)[0]
+    bad = member(particles, {1: "elastic", 2: "elastic"}, {2: {"E": 1e9}}, (1.5, 0.0, 0.0))
+    with torch.no_grad():
+        out = sim.rollout_batch(particles, [good, bad, good], world=WORLD, frames=3)
+    with pytest.raises(SimulationDiverged) as alone:
+        single(sim, particles, bad, 3)
+    err = out[1]
+    assert isinstance(err, SimulationDiverged)
+    expected = alone.value
+    where = (expected.object_id, expected.frame, expected.substep)
+    assert (err.object_id, err.frame, err.substep) == where
+    assert err.reason == expected.reason
+    reference = single(sim, particles, good, 3)
+    for b in (0, 2):
+        assert isinstance(out[b], Trajectory)
+        assert_same(out[b], reference)
+
+
+def test_no_members_and_bad_inputs(make_warp_simulator) -> None:
+    from mosiv_framework.errors import ConfigError
+
+    sim = make_warp_simulator(grid=16, substeps=10)
+    particles = two_blocks()
+    assert sim.rollout_batch(particles, [], world=WORLD, frames=2) == []
+    broken = members(particles)[0]
+    del broken.objects[2].values["E"]
+    with pytest.raises(ConfigError, match="missing parameter 'E'"):
+        sim.rollout_batch(particles, [members(particles)[0], broken], world=WORLD, frames=2)
+
+
+def test_with_gradients_it_is_the_differentiable_loop(make_warp_simulator) -> None:
+    sim = make_warp_simulator(grid=16, substeps=10)
+    particles = two_blocks()
+    grads = []
+    for batched in (True, False):
+        params = members(particles)[0]
+        E = params.objects[1].values["E"].requires_grad_(True)
+        if batched:
+            (traj,) = sim.rollout_batch(particles, [params], world=WORLD, frames=2)
+        else:
+            traj = sim.rollout(particles, params, world=WORLD, frames=2)
+        traj.positions[-1, :, 0].mean().backward()
+        grads.append(E.grad)
+    assert grads[0] is not None and float(grads[0].abs()) > 0.0
+    assert torch.equal(grads[0], grads[1])
+
+
+class FakeSimulator(Simulator):
+    """Free flight of every particle at its object's initial velocity, damped by E; diverges
+    when an object's E exceeds 1e8 (a stand-in for any backend without its own batching)."""
+
+    supported_laws = frozenset({"elastic", "plasticine"})
+
+    def rollout(self, particles, params, *, world, frames):
+        if particles.materials != {k: p.family for k, p in params.objects.items()}:
+            raise AssertionError("the member's families were not applied to its particles")
+        for k, p in params.objects.items():
+            if float(p.values["E"]) > 1e8:
+                raise SimulationDiverged(
+                    object_id=k, frame=1, substep=0, reason="too stiff", advice="lower E"
+                )
+        v = torch.stack([params.initial_velocity[int(k)] for k in particles.object_ids])
+        E = torch.stack([params.objects[int(k)].values["E"] for k in particles.object_ids])
+        t = torch.arange(frames + 1, dtype=torch.float32)[:, None, None] / world.fps
+        positions = particles.positions + t * v / (1.0 + E[:, None] * 1e-5)
+        return Trajectory(positions, particles.object_ids, world.fps)
+
+
+def test_default_loop_equals_repeated_rollouts() -> None:
+    sim = FakeSimulator()
+    particles = two_blocks()
+    params_list = [
+        member(particles, {1: "elastic", 2: "elastic"}, {1: {"E": 3e4}}, (1.0, 0.0, 0.0)),
+        member(particles, {1: "plasticine", 2: "elastic"}, {2: {"E": 1e9}}, (1.0, 0.0, 0.0)),
+        member(particles, {1: "elastic", 2: "plasticine"}, {1: {"E": 9e4}}, (0.0, 2.0, 0.0)),
+    ]
+    out = sim.rollout_batch(particles, params_list, world=WORLD, frames=4)
+    assert isinstance(out[1], SimulationDiverged) and out[1].object_id == 2
+    for b in (0, 2):
+        alone = sim.rollout(
+            member_particles(particles, params_list[b]), params_list[b], world=WORLD, frames=4
+        )
+        assert torch.equal(out[b].positions, alone.positions)
+    assert not torch.equal(out[0].positions, out[2].positions)
