@@ -16,9 +16,11 @@ several runs can mix them.
     python benchmarks/identify_suite.py --recipe recipes/paper.yaml --out runs/suite
     python benchmarks/identify_suite.py --recipe recipes/quickstart.yaml --pairs E-P,E-S \
         --out runs/suite-cpu    # a small run on CPU
-    python benchmarks/identify_suite.py --recipe recipes/paper.yaml --out runs/suite --jobs 10
+    python benchmarks/identify_suite.py --recipe recipes/paper.yaml --out runs/suite \
+        --jobs 10 --gpus-per-task 0.1
 
-With ``--jobs N`` each pair runs in its own process, N at a time, and the parent merges their
+With ``--jobs N`` (or ``--ray-address``) each pair runs in its own process, a Ray task,
+N at a time, sharing a GPU in ``--gpus-per-task`` fractions, and the parent merges their
 rows. On a GPU this pays: one paper-size identification leaves the device mostly idle between
 its small kernels, and ten pairs sharing an H200 finished (ours and the library) in 30 minutes
 (docs/BENCHMARKS.md, "Suites on a device machine"). Each pair's output goes to
@@ -35,7 +37,6 @@ import subprocess
 import sys
 import time
 import traceback
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -47,8 +48,9 @@ from mosiv_framework.pipeline.evaluate import score
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.registry import get_registry
+from mosiv_framework.scale import Task, run_tasks
+from mosiv_framework.scale.flags import add_scale_flags, scale_options
 from mosiv_framework.scene import read_scene
-from mosiv_framework.workers import environment_for
 
 #: the paper's letters for the four material families of its benchmark
 LETTERS = {"E": "elastic", "P": "plasticine", "F": "newtonian", "S": "sand"}
@@ -287,26 +289,23 @@ def run_parallel(
     out: Path,
     seed: int,
     extra: list[str],
-    jobs: int,
-    gpus: str | None = None,
+    scale: dict,
 ) -> dict:
-    """Each selected pair in its own process (this script with ``--part``), ``jobs`` at a
-    time; their rows merged with the earlier ones into ``out/table.json``."""
+    """Each selected pair as a Ray task (``run_tasks`` with ``scale``, the keyword arguments
+    of the ``--jobs``/``--ray-address``/``--gpus-per-task`` flags) running this script with
+    ``--part`` on the GPUs Ray gave it; their rows merged with the earlier ones into
+    ``out/table.json``."""
     (out / "parts").mkdir(parents=True, exist_ok=True)
-
-    def one(index: int, pair: str) -> int:
-        command = [sys.executable, __file__, "--recipe", str(recipe), "--pairs", pair]
-        command += ["--out", str(out), "--seed", str(seed), "--part", *extra]
-        with open(out / "parts" / f"{pair}.log", "w") as log:
-            env = environment_for(index, gpus=gpus)  # pinned to a GPU in turn, if listed
-            code = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT, env=env).returncode
-        print(f"[suite] {pair}: {'done' if code == 0 else f'FAILED (exit {code})'}", flush=True)
-        return code
-
+    tasks = []
     for pair in (pair for _, pair in selected):
         (out / "parts" / f"{pair}.json").unlink(missing_ok=True)  # no stale rows of a crash
-    with ThreadPoolExecutor(max_workers=jobs) as pool:
-        list(pool.map(one, *zip(*enumerate(pair for _, pair in selected))))
+        (out / "parts" / f"{pair}.log").unlink(missing_ok=True)  # the task appends to it
+        command = [sys.executable, __file__, "--recipe", str(recipe), "--pairs", pair]
+        command += ["--out", str(out), "--seed", str(seed), "--part", *extra]
+        tasks.append(Task(pair, _run_part, (command,), out / "parts" / f"{pair}.log"))
+    for name, outcome in run_tasks(tasks, **scale).items():
+        code = outcome.result if outcome.ok else repr(outcome.error)
+        print(f"[suite] {name}: {'done' if code == 0 else f'FAILED ({code})'}", flush=True)
     earlier = _earlier_rows(out)
     parts = [
         json.loads(f.read_text())["rows"]
@@ -314,6 +313,11 @@ def run_parallel(
         if f.is_file()
     ]
     return write_table(out, recipe=recipe, extra=extra, rows=merge_parts(earlier, parts))
+
+
+def _run_part(command: list[str]) -> int:
+    """One pair's process; it inherits the task's output file and ``CUDA_VISIBLE_DEVICES``."""
+    return subprocess.run(command).returncode
 
 
 def _ok(row: dict) -> bool:
@@ -471,20 +475,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pairs", default=None, help=f"comma-separated, of {','.join(PAIRS)}")
     parser.add_argument("--out", type=Path, default=Path("runs/identify_suite"))
     parser.add_argument("--seed", type=int, default=0, help="scene seed of the first pair")
-    parser.add_argument("--jobs", type=int, default=1, help="pairs run at once, one process each")
-    parser.add_argument(
-        "--gpus", help="CUDA ordinals the pairs are spread over, e.g. 0,1 (default $MOSIV_GPUS)"
-    )
+    add_scale_flags(parser, "pairs")
     parser.add_argument("--part", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("overrides", nargs="*", help="key=value recipe overrides for every run")
     args = parser.parse_args(argv)
-    if args.jobs < 1:
-        parser.error(f"--jobs {args.jobs}: must be at least 1")
+    scale = scale_options(args)
     selected = select_pairs(pairs=args.pairs, scenes=args.scenes)
     args.out.mkdir(parents=True, exist_ok=True)
     common = dict(recipe=args.recipe, selected=selected, out=args.out, seed=args.seed)
-    if args.jobs > 1 and len(selected) > 1 and not args.part:
-        result = run_parallel(**common, extra=args.overrides, jobs=args.jobs, gpus=args.gpus)
+    if scale["jobs"] != 1 and len(selected) > 1 and not args.part:
+        result = run_parallel(**common, extra=args.overrides, scale=scale)
     else:
         result = run_suite(**common, extra=args.overrides, part=args.part)
     print(markdown(result["rows"], result["summary"]))

@@ -27,7 +27,8 @@ from pathlib import Path
 
 from identify_suite import _fmt, _timed, errors_of
 
-from mosiv_framework.workers import worker_pool
+from mosiv_framework.scale import Task, run_tasks
+from mosiv_framework.scale.flags import add_scale_flags, scale_options
 
 #: the paper's noise levels (alpha, relative to each object's extent)
 LEVELS = (0.005, 0.02, 0.05)
@@ -91,25 +92,26 @@ def jobs_for(*, recipe: Path, out: Path, extra: list[str], threads: int, levels)
     return jobs
 
 
-def run_suite(
-    *, recipe: Path, out: Path, extra: list[str], jobs: int, threads: int, levels, gpus=None
-):
+def run_suite(*, recipe: Path, out: Path, extra: list[str], threads: int, levels, scale: dict):
+    """Every noise setting as a task of its own (``run_tasks`` with ``scale``, the keyword
+    arguments of the ``--jobs``/``--ray-address``/``--gpus-per-task`` flags)."""
     out.mkdir(parents=True, exist_ok=True)
     table = out / "table.json"
     rows = {r["name"]: r for r in json.loads(table.read_text())["rows"]} if table.is_file() else {}
     todo = jobs_for(recipe=recipe, out=out, extra=extra, threads=threads, levels=levels)
     # the reference runs alone first: it generates the scene every other setting reads
-    with worker_pool(jobs, gpus=gpus) as pool:  # spawned: no inherited torch or Warp state
-        for phase in (todo[:1], todo[1:]):
-            for job, result in zip(phase, pool.map(_run_one, phase)):
-                rows[job["name"]] = {
-                    "name": job["name"],
-                    "kind": job["kind"],
-                    "alpha": job["alpha"],
-                    **result,
-                }
-                print(f"[noise-suite] {job['name']}: {_brief(result)}", flush=True)
-                table.write_text(json.dumps({"rows": list(rows.values())}, indent=2) + "\n")
+    by_name = {job["name"]: job for job in todo}
+
+    def record(outcome) -> None:
+        job = by_name[outcome.name]
+        result = outcome.result if outcome.ok else {"error": repr(outcome.error)}
+        rows[job["name"]] = {"name": job["name"], "kind": job["kind"], "alpha": job["alpha"]}
+        rows[job["name"]].update(result)
+        print(f"[noise-suite] {job['name']}: {_brief(result)}", flush=True)
+        table.write_text(json.dumps({"rows": list(rows.values())}, indent=2) + "\n")
+
+    for phase in (todo[:1], todo[1:]):
+        run_tasks([Task(j["name"], _run_one, (j,)) for j in phase], on_done=record, **scale)
     ordered = sorted(rows.values(), key=lambda r: (r["kind"] != "none", r["kind"], r["alpha"]))
     result = {"recipe": str(recipe), "overrides": extra, "rows": ordered}
     table.write_text(json.dumps(result, indent=2) + "\n")
@@ -179,10 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--recipe", type=Path, default=Path("recipes/paper.yaml"))
     parser.add_argument("--out", type=Path, default=Path("runs/noise_suite"))
-    parser.add_argument("--jobs", type=int, default=1, help="settings run in parallel")
-    parser.add_argument(
-        "--gpus", help="CUDA ordinals the runs are spread over, e.g. 0,1 (default $MOSIV_GPUS)"
-    )
+    add_scale_flags(parser, "settings")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument(
         "--levels", default=",".join(f"{a:g}" for a in LEVELS), help="comma-separated alphas"
@@ -199,8 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         recipe=args.recipe,
         out=args.out,
         extra=args.overrides,
-        jobs=args.jobs,
-        gpus=args.gpus,
+        scale=scale_options(args),
         threads=args.threads,
         levels=levels,
     )

@@ -10,7 +10,7 @@ null (mm^2) is printed next to the floor. This shows whether the rule "a held-ou
 exceed the floor" would keep the true effects and reject the false acceptances. It refits
 nothing.
 
-    python benchmarks/resolution_floor.py --out runs/floor --jobs 5 --gpus 0 \\
+    python benchmarks/resolution_floor.py --out runs/floor --jobs 5 --gpus-per-task 0.2 \\
         --diagnoses benchmarks/data/diagnosis_suite \\
         control-1 outside-quadratic_drag material_damping-0 ground_friction-0 quadratic_drag-0
 """
@@ -25,7 +25,8 @@ import numpy as np
 
 from mosiv_framework.diagnose.report import loaded_table
 from mosiv_framework.diagnose.suite import DEFAULT_RECIPES, suite_entries
-from mosiv_framework.workers import run_jobs
+from mosiv_framework.scale import Task, run_tasks
+from mosiv_framework.scale.flags import add_scale_flags, scale_options
 
 
 def measure(entry, out: Path, recipe_path: Path, fractions: tuple[float, ...]) -> dict:
@@ -77,8 +78,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("entries", nargs="+", help="names of full-suite entries")
     parser.add_argument("--out", required=True, type=Path)
-    parser.add_argument("--jobs", type=int, default=1)
-    parser.add_argument("--gpus", default=None)
+    add_scale_flags(parser, "entries")
     parser.add_argument("--diagnoses", type=Path, default=None)
     parser.add_argument("--fractions", default="0.25,0.5")
     args = parser.parse_args()
@@ -88,14 +88,17 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"unknown entries {unknown}; valid: {sorted(known)}")
     args.out.mkdir(parents=True, exist_ok=True)
-    results = run_jobs(
-        measure,
-        {n: (known[n], args.out, DEFAULT_RECIPES[False], fractions) for n in args.entries},
-        workers=args.jobs,
-        gpus=args.gpus,
-        on_result=lambda name, r: print(f"{name}: floors {r['floors']}", flush=True),
-        on_error=lambda name, error: print(f"{name} FAILED: {error!r}", flush=True),
-    )
+    recipe = DEFAULT_RECIPES[False]
+    tasks = [Task(n, measure, (known[n], args.out, recipe, fractions)) for n in args.entries]
+
+    def report(outcome) -> None:
+        if outcome.ok:
+            print(f"{outcome.name}: floors {outcome.result['floors']}", flush=True)
+        else:
+            print(f"{outcome.name} FAILED: {outcome.error!r}", flush=True)
+
+    outcomes = run_tasks(tasks, on_done=report, **scale_options(args))
+    results = {name: o.result for name, o in outcomes.items() if o.ok}
     lines = [
         "| entry | floor fit (mm^2) | floor held-out (mm^2) | candidate | held-out drop (mm^2) | accepted |",
         "|---|---|---|---|---:|---|",

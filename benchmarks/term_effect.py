@@ -17,7 +17,7 @@ Output: OUT/NAME/diagnosis.json (the input with ``effect`` on those evidence row
 plus diagnosis.md and score.json copied, so ``mosiv diagnose-suite OUT --replay`` scores them.
 
     python benchmarks/term_effect.py benchmarks/data/diagnosis_suite/*/ \
-        --out runs/term_effect --jobs 8 --gpus 0,1,2,3
+        --out runs/term_effect --jobs 8 --gpus-per-task 0.5
 """
 
 from __future__ import annotations
@@ -39,8 +39,9 @@ from mosiv_framework.pipeline import _component, ensure_scene
 from mosiv_framework.pipeline.rundir import RunDir
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.registry import get_registry
+from mosiv_framework.scale import Task, run_tasks
+from mosiv_framework.scale.flags import add_scale_flags, scale_options
 from mosiv_framework.types import ObjectParams, SimulationParams
-from mosiv_framework.workers import run_jobs
 
 
 def prepare(entry, run_dir: Path) -> RunContext:
@@ -152,22 +153,15 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("entries", nargs="+", help="saved suite entry folders")
     parser.add_argument("--out", required=True)
-    parser.add_argument("--jobs", type=int, default=1)
-    parser.add_argument("--gpus", default=None)
+    add_scale_flags(parser, "entries")
     args = parser.parse_args(argv)
-    if args.jobs <= 1:
-        for entry in args.entries:
-            print(measure(entry, args.out), flush=True)
-        return 0
-    jobs = {Path(e).name: (e, args.out) for e in args.entries}
-    run_jobs(
-        measure,
-        jobs,
-        workers=args.jobs,
-        gpus=args.gpus,
-        on_result=lambda name, line: print(line, flush=True),
-        on_error=lambda name, error: print(f"{name}: FAILED {error!r}", flush=True),
-    )
+    tasks = [Task(Path(e).name, measure, (e, args.out)) for e in args.entries]
+
+    def report(outcome) -> None:
+        text = outcome.result if outcome.ok else f"{outcome.name}: FAILED {outcome.error!r}"
+        print(text, flush=True)
+
+    run_tasks(tasks, on_done=report, **scale_options(args))
     return 0
 
 

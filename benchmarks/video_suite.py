@@ -25,12 +25,12 @@ import shutil
 import statistics
 import time
 import traceback
-from concurrent.futures import as_completed
 from pathlib import Path
 
 from identify_suite import LETTERS, PAIRS, _fmt, _timed, errors_of, select_pairs
 
-from mosiv_framework.workers import worker_pool
+from mosiv_framework.scale import Task, run_tasks
+from mosiv_framework.scale.flags import add_scale_flags, scale_options
 
 #: (folder, label, granularity, loss terms): the object-wise Chamfer + silhouette is ours
 VARIANTS = (
@@ -168,28 +168,30 @@ def _jobs_for(selected, *, recipe, out, seed, extra, threads, variants):
     return first, rest
 
 
-def run_suite(
-    *, recipe, selected, out: Path, seed: int, extra, jobs: int, threads: int, variants, gpus=None
-):
+def run_suite(*, recipe, selected, out: Path, seed: int, extra, threads: int, variants, scale):
     """Every variant of every scene; rows merged with earlier ones in ``out/table.json``.
 
     The first variant of each scene runs Stage I-II; the scene's other variants wait for those
     stages (not for the first variant's identification) and then run beside it. All first
     variants are queued before any other, so with fewer ``jobs`` than runs no waiting run holds
-    a worker that a Stage I-II it waits for would need."""
+    a worker that a Stage I-II it waits for would need. ``scale``: the keyword arguments of
+    ``run_tasks`` from the ``--jobs``/``--ray-address``/``--gpus-per-task`` flags."""
     table = out / "table.json"
     rows = {r["scene"]: r for r in json.loads(table.read_text())["rows"]} if table.is_file() else {}
     first, rest = _jobs_for(
         selected, recipe=recipe, out=out, seed=seed, extra=extra, threads=threads, variants=variants
     )
-    with worker_pool(jobs, gpus=gpus) as pool:  # spawned: no inherited torch or Warp state
-        futures = {pool.submit(_run_one, job): job for job in first + rest}
-        for future in as_completed(futures):
-            job, result = futures[future], future.result()
-            row = rows.setdefault(job["scene"], {"scene": job["scene"], "pair": job["pair"]})
-            row[job["variant"]] = result
-            print(f"[video-suite] {job['scene']} {job['variant']}: {_brief(result)}", flush=True)
-            table.write_text(json.dumps({"rows": [rows[k] for k in sorted(rows)]}, indent=2))
+    by_name = {f"{job['scene']}/{job['variant']}": job for job in first + rest}
+
+    def record(outcome) -> None:
+        job = by_name[outcome.name]
+        result = outcome.result if outcome.ok else {"error": repr(outcome.error)}
+        row = rows.setdefault(job["scene"], {"scene": job["scene"], "pair": job["pair"]})
+        row[job["variant"]] = result
+        print(f"[video-suite] {job['scene']} {job['variant']}: {_brief(result)}", flush=True)
+        table.write_text(json.dumps({"rows": [rows[k] for k in sorted(rows)]}, indent=2))
+
+    run_tasks([Task(n, _run_one, (j,)) for n, j in by_name.items()], on_done=record, **scale)
     ordered = [rows[k] for k in sorted(rows)]
     summary = summarise(ordered)
     result = {"recipe": str(recipe), "overrides": extra, "rows": ordered, "summary": summary}
@@ -384,10 +386,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pairs", default=None, help=f"comma-separated, of {','.join(PAIRS)}")
     parser.add_argument("--out", type=Path, default=Path("runs/video_suite"))
     parser.add_argument("--seed", type=int, default=0, help="scene seed of the first pair")
-    parser.add_argument("--jobs", type=int, default=1, help="runs in parallel (processes)")
-    parser.add_argument(
-        "--gpus", help="CUDA ordinals the runs are spread over, e.g. 0,1 (default $MOSIV_GPUS)"
-    )
+    add_scale_flags(parser, "runs")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument(
         "--variants",
@@ -424,8 +423,7 @@ def main(argv: list[str] | None = None) -> int:
         out=args.out,
         seed=args.seed,
         extra=args.overrides,
-        jobs=args.jobs,
-        gpus=args.gpus,
+        scale=scale_options(args),
         threads=args.threads,
         variants=[known[n] for n in chosen],
     )

@@ -172,24 +172,3 @@ def test_version_includes_a_plugin_installed_later(with_test_plugins):
         check=True,
     )
     assert "  mosiv-example-plugin 0.0.1" in out.stdout.splitlines()
-
-
-def _log_two_levels(tag: str) -> str:
-    import logging
-
-    logging.getLogger("mosiv_framework.job").info("info from %s", tag)
-    logging.getLogger("mosiv_framework.job").warning("warning from %s", tag)
-    return tag
-
-
-@pytest.mark.parametrize("level, shown", [("INFO", True), ("WARNING", False)])
-def test_job_processes_log_at_the_level_the_cli_chose(level, shown, tmp_path, monkeypatch):
-    from mosiv_framework.workers import run_jobs
-
-    monkeypatch.setenv("MOSIV_LOG_LEVEL", level)  # what configure_logging leaves for children
-    log = tmp_path / "job.log"
-    results = run_jobs(_log_two_levels, {"a": ("a",)}, workers=1, logs={"a": log})
-    assert results == {"a": "a"}
-    text = log.read_text()
-    assert "[mosiv] warning: warning from a" in text
-    assert ("[mosiv] info from a" in text) is shown

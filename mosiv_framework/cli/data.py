@@ -102,6 +102,9 @@ def add_parser(sub) -> None:
         help=f"comma-separated subset of the scenes {','.join(SUITE_SCENES)} "
         "(E elastic, P plasticine, F newtonian fluid, S sand)",
     )
+    from mosiv_framework.scale.flags import add_scale_flags
+
+    add_scale_flags(suite, "scenes")
     suite.set_defaults(handler=run_suite)
 
     show = dsub.add_parser("show", help="contact sheet PNG and one GIF per camera of a scene")
@@ -230,6 +233,8 @@ def run_suite(args) -> int:
     from mosiv_framework.cli.stages import check_writable_folder
     from mosiv_framework.errors import ConfigError
     from mosiv_framework.registry import get_registry
+    from mosiv_framework.scale import Task, run_tasks
+    from mosiv_framework.scale.flags import scale_options
     from mosiv_framework.scene.io import atomic_write_json
 
     out = Path(args.out_dir)
@@ -254,6 +259,7 @@ def run_suite(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     scratch = out / ".partial"  # scenes being written; renamed into place once complete
     total_start = time.perf_counter()
+    tasks = []
     for i, (code, materials) in enumerate(plan, start=1):
         final = out / code
         head = f"[{i}/{len(plan)}] {code} ({', '.join(materials)})"
@@ -263,46 +269,66 @@ def run_suite(args) -> int:
                     f"{final} exists but is not a complete scene; remove it to regenerate it"
                 )
             logger.info("%s: complete, skipped", head)
-        else:
-            # the scene's seed derives from the suite seed and its position in SUITE_SCENES,
-            # so --only subsets and resumed runs reproduce the same scenes
-            seed = base_seed * 1000 + SUITE_SCENES.index(code)
-            flags_i = {**flags, "seed": seed, "materials": ",".join(materials)}
-            options = source_options(args.source, flags_i, list(args.options))
-            component = get_registry().get("scene_source", args.source)
-            if "scene_name" in _option_names(component):
-                options.setdefault("scene_name", f"{code}-{seed:04d}")
-            source = get_registry().create("scene_source", args.source, options)
-            partial = scratch / code
-            if partial.exists():
-                shutil.rmtree(partial)  # left by an interrupted run of this suite
-            logger.info("%s: generating (seed %d)", head, seed)
-            start = time.perf_counter()
-            source.generate(partial)
-            partial.rename(final)
-            index["scenes"][code] = {
-                "path": code,
-                "materials": materials,
-                "n_objects": len(materials),
-                "seed": seed,
-                "time_s": round(time.perf_counter() - start, 2),
+            # complete on disk but made before this index existed
+            index["scenes"].setdefault(code, _index_record(code, materials))
+            continue
+        # the scene's seed derives from the suite seed and its position in SUITE_SCENES,
+        # so --only subsets and resumed runs reproduce the same scenes
+        seed = base_seed * 1000 + SUITE_SCENES.index(code)
+        flags_i = {**flags, "seed": seed, "materials": ",".join(materials)}
+        options = source_options(args.source, flags_i, list(args.options))
+        component = get_registry().get("scene_source", args.source)
+        if "scene_name" in _option_names(component):
+            options.setdefault("scene_name", f"{code}-{seed:04d}")
+        job = (args.source, options, scratch / code, final, head)
+        tasks.append(Task(code, generate_suite_scene, job, out / "logs" / f"{code}.log"))
+    atomic_write_json(index_path, index)
+
+    def record(outcome) -> None:  # the index follows every finished scene, for resuming
+        if outcome.ok:
+            materials = dict(plan)[outcome.name]
+            index["scenes"][outcome.name] = {
+                **_index_record(outcome.name, materials),
+                **outcome.result,
             }
             atomic_write_json(index_path, index)
-            logger.info("%s: done in %.1f s", head, index["scenes"][code]["time_s"])
-        if code not in index["scenes"]:  # complete on disk but made before this index existed
-            index["scenes"][code] = {
-                "path": code,
-                "materials": materials,
-                "n_objects": len(materials),
-            }
-        atomic_write_json(index_path, index)
+
+    outcomes = run_tasks(tasks, on_done=record, **scale_options(args))
+    failed = [o.name for o in outcomes.values() if not o.ok]
+    retried = [o.name for o in outcomes.values() if o.retried]
     if scratch.is_dir() and not any(scratch.iterdir()):
         scratch.rmdir()
     print(
-        f"suite {out}: {len(plan)} scene(s) ready in {time.perf_counter() - total_start:.1f} s; "
-        f"index {index_path}"
+        f"suite {out}: {len(plan) - len(failed)} of {len(plan)} scene(s) ready in "
+        f"{time.perf_counter() - total_start:.1f} s; index {index_path}"
     )
+    if retried:
+        print(f"run again after their worker died: {', '.join(retried)}")
+    if failed:
+        print(f"failed (logs in {out / 'logs'}; rerun to resume): {', '.join(failed)}")
+        return 1
     return 0
+
+
+def _index_record(code: str, materials: list[str]) -> dict:
+    return {"path": code, "materials": materials, "n_objects": len(materials)}
+
+
+def generate_suite_scene(source: str, options: dict, partial: Path, final: Path, head: str) -> dict:
+    """Generate one suite scene into ``partial`` and move it to ``final`` once complete (a
+    scene folder is never half-written); returns its seed and time for the index. The body of
+    one task of ``mosiv data suite``, run here or on a Ray worker."""
+    from mosiv_framework.registry import get_registry
+
+    if partial.exists():
+        shutil.rmtree(partial)  # left by an interrupted run of this suite or a dead worker
+    logger.info("%s: generating (seed %d)", head, options["seed"])
+    start = time.perf_counter()
+    get_registry().create("scene_source", source, options).generate(partial)
+    partial.rename(final)
+    seconds = round(time.perf_counter() - start, 2)
+    logger.info("%s: done in %.1f s", head, seconds)
+    return {"seed": options["seed"], "time_s": seconds}
 
 
 # ------------------------------------------------------------------------------------- show

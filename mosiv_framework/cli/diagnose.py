@@ -46,14 +46,9 @@ def add_parsers(sub) -> None:
         metavar="KEY=VALUE",
         help="override every entry's recipe (repeatable), e.g. diagnose.refit_velocity_lr=1e-4",
     )
-    suite.add_argument(
-        "--jobs", type=int, default=1, help="entries run in parallel worker processes"
-    )
-    suite.add_argument(
-        "--gpus",
-        help="comma-separated CUDA ordinals the workers are spread over, e.g. 0,1,2,3 "
-        "(default: $MOSIV_GPUS, else as the environment says)",
-    )
+    from mosiv_framework.scale.flags import add_scale_flags
+
+    add_scale_flags(suite, "entries")
     suite.add_argument(
         "--replay",
         action="store_true",
@@ -112,6 +107,7 @@ def diagnose_suite(args) -> int:
         raise ConfigError("--plot draws a replayed suite: give it with --replay")
     from mosiv_framework.cli.main import resume_from
     from mosiv_framework.cli.stages import check_writable_folder
+    from mosiv_framework.scale.flags import scale_options
 
     check_writable_folder(args.out, "OUT")
     resume_from(args, args.out, "its finished entries and stages", "suite folder")
@@ -122,13 +118,14 @@ def diagnose_suite(args) -> int:
         recipe=args.recipe,
         budget=args.budget,
         only=[name for name in args.only.split(",") if name] if args.only else None,
-        jobs=args.jobs,
-        gpus=args.gpus,
+        **scale_options(args),
         overrides=args.overrides,
         prepare_only=args.prepare_only,
     )
     if args.prepare_only:
         print(f"prepared for diagnosis: {', '.join(summary['prepared']) or 'none'}")
+        if summary.get("retried"):
+            print(f"run again after their worker died: {', '.join(summary['retried'])}")
     else:
         print(table(summary))
     return 0

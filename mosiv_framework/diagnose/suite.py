@@ -23,8 +23,8 @@ from mosiv_framework.diagnose.formats import FIELD, SCORE_FORMAT, SUITE_FORMAT, 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.pipeline import run_pipeline
 from mosiv_framework.recipes import load_recipe
+from mosiv_framework.scale import Task, run_tasks
 from mosiv_framework.scene import read_scene
-from mosiv_framework.workers import run_jobs
 
 log = logging.getLogger(__name__)
 
@@ -211,8 +211,8 @@ def run_entry(
     The score is written atomically to ``score.json`` last, so a suite stopped part-way resumes
     from the entries without one (the pipeline itself resumes its finished stages).
     ``prepare_only``: stop after the pipeline (None is returned), see ``run_suite``. Also the
-    job of a worker process (``run_suite`` with ``jobs`` > 1), whose log records go to the
-    entry's ``suite.log``.
+    body of a Ray task (``run_suite`` with ``jobs`` > 1 or a cluster), whose output goes to
+    the entry's ``suite.log``.
     """
     run_dir = out / entry.name
     done = run_dir / "score.json"
@@ -248,20 +248,22 @@ def run_suite(
     budget: str | None = None,
     entries: list[Entry] | None = None,
     only: list[str] | None = None,
-    jobs: int = 1,
-    gpus: str | None = None,
+    jobs: int | None = 1,
+    ray_address: str | None = None,
+    gpus_per_task: float | None = None,
     overrides: list[str] | None = None,
     prepare_only: bool = False,
 ) -> dict:
     """Generate, run, diagnose and score every entry into ``out``; returns the summary
     (``summarise``, with ``missing``), also written to suite.json, suite.md and suite.png.
 
-    ``only`` restricts the suite to the named entries; ``jobs`` > 1 runs entries in that many
-    worker processes (one per entry, so each initialises its own simulator device), spread over
-    the GPUs ``gpus`` (e.g. ``"0,1"``; default ``$MOSIV_GPUS``, see
-    :mod:`mosiv_framework.workers`). ``overrides`` (``key=value``) apply to every entry's
-    recipe, e.g. ``diagnose.refit_velocity_lr=1e-4``. Entries already scored in ``out`` are not
-    recomputed.
+    ``only`` restricts the suite to the named entries. ``jobs`` > 1 (or None: as many as the
+    cluster takes) or a ``ray_address`` runs every entry as a Ray task of its own
+    (:func:`mosiv_framework.scale.run_tasks`: a local Ray unless ``ray_address`` is given,
+    ``gpus_per_task`` GPUs each, an entry whose worker died run again from its finished
+    stages and listed under ``retried``); ``jobs=1`` runs them here one after another.
+    ``overrides`` (``key=value``) apply to every entry's recipe, e.g.
+    ``diagnose.refit_velocity_lr=1e-4``. Entries already scored in ``out`` are not recomputed.
 
     ``prepare_only`` generates and runs the entries' pipelines (synthesis, identification,
     evaluation) without diagnosing them, and returns ``{"prepared": [names]}``. Why: those
@@ -280,14 +282,23 @@ def run_suite(
         recipe_path=recipe_path,
         out=out,
     )
-    jobs_by_name = {e.name: (e, out, recipe_path, budget, prepare_only) for e in entries}
-    if jobs <= 1:
-        results = {name: run_entry(*args) for name, args in jobs_by_name.items()}
-    else:
-        results = _run_in_workers(jobs_by_name, out, workers=jobs, gpus=gpus)
+    tasks = [
+        Task(
+            e.name,
+            run_entry,
+            (e, out, recipe_path, budget, prepare_only),
+            out / e.name / "suite.log",
+        )
+        for e in entries
+    ]
+    outcomes = run_tasks(tasks, ray_address=ray_address, jobs=jobs, gpus_per_task=gpus_per_task)
+    results = {name: o.result for name, o in outcomes.items() if o.ok}
+    retried = [name for name, o in outcomes.items() if o.retried]
     if prepare_only:  # None: prepared, not diagnosed
-        return {"prepared": sorted(name for name, score in results.items() if score is None)}
-    return _write_summary(out, entries, {n: s for n, s in results.items() if s is not None})
+        prepared = sorted(name for name, score in results.items() if score is None)
+        return {"prepared": prepared, **({"retried": retried} if retried else {})}
+    scores = {n: s for n, s in results.items() if s is not None}
+    return _write_summary(out, entries, scores, retried)
 
 
 def _chosen_entries(
@@ -314,41 +325,16 @@ def _chosen_entries(
     return entries
 
 
-def _run_in_workers(
-    jobs_by_name: dict[str, tuple], out: Path, *, workers: int, gpus: str | None
-) -> dict[str, Score | None]:
-    """``run_entry`` of every entry in worker processes (``workers.run_jobs``), each logging to
-    its entry's ``suite.log``; the results of the entries that finished."""
-    finished: dict[str, Score | None] = {}
-
-    def done(name: str, score: Score | None) -> None:
-        finished[name] = score
-        log.info("%s done (%d/%d)", name, len(finished), len(jobs_by_name))
-
-    def failed(name: str, error: Exception) -> None:
-        log.error("%s FAILED: %r (log: %s)", name, error, out / name / "suite.log")
-
-    run_jobs(
-        run_entry,
-        jobs_by_name,
-        workers=workers,
-        gpus=gpus,
-        logs={name: out / name / "suite.log" for name in jobs_by_name},
-        on_result=done,
-        on_error=failed,
-        on_retry=lambda name, died: log.warning(
-            "%s; running %s again from its finished stages", died, name
-        ),
-    )
-    return finished
-
-
-def _write_summary(out: Path, entries: list[Entry], scores: dict[str, Score]) -> dict:
-    """The summary of the scored entries (in suite order; the others ``missing``), written to
-    suite.json, suite.md and, if any was scored, suite.png."""
+def _write_summary(
+    out: Path, entries: list[Entry], scores: dict[str, Score], retried: list[str]
+) -> dict:
+    """The summary of the scored entries (in suite order; the others ``missing``; those
+    whose worker died and that ran again ``retried``), written to suite.json, suite.md and,
+    if any was scored, suite.png."""
     ordered = [scores[e.name] for e in entries if e.name in scores]
     summary = summarise(ordered)
     summary["missing"] = [e.name for e in entries if e.name not in scores]
+    summary["retried"] = retried
     record = {FIELD: SUITE_FORMAT, **summary}
     (out / "suite.json").write_text(json.dumps(record, indent=2, default=float) + "\n")
     (out / "suite.md").write_text(table(summary) + "\n")
@@ -417,4 +403,6 @@ def table(summary: dict) -> str:
     ]
     if summary.get("missing"):
         lines.append(f"not scored (failed or not yet run): {', '.join(summary['missing'])}")
+    if summary.get("retried"):
+        lines.append(f"run again after their worker died: {', '.join(summary['retried'])}")
     return "\n".join(lines)
