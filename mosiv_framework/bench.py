@@ -4,11 +4,16 @@ The scene is a cube of elastic particles falling onto the ground inside a unit d
 workload for every backend, so figures are comparable side by side. Throughput is reported in
 particle-substeps per second (particles x substeps x frames / wall seconds), after one untimed
 warm-up rollout that pays for kernel compilation.
+
+``run_batch_bench`` measures ``Simulator.rollout_batch``: B members (the same cube, stiffnesses
+spread over a decade) in one batched call against the same B members rolled out one after the
+other, in the same process, so both sides of the comparison come from one run.
 """
 
 from __future__ import annotations
 
 import math
+import resource
 import time
 from dataclasses import asdict, dataclass
 
@@ -16,7 +21,7 @@ import torch
 
 from mosiv_framework.laws import get_law
 from mosiv_framework.registry import get_registry
-from mosiv_framework.types import ObjectParams, ParticleSet, SimulationParams, World
+from mosiv_framework.types import ObjectParams, ParticleSet, SimulationParams, Trajectory, World
 
 
 @dataclass
@@ -74,6 +79,110 @@ def bench_params(device: torch.device, *, requires_grad: bool) -> SimulationPara
     v0 = torch.tensor([0.3, 0.0, 0.0], device=device, requires_grad=requires_grad)
     gf = torch.tensor(0.3, device=device, requires_grad=requires_grad)
     return SimulationParams({1: ObjectParams("elastic", values)}, {1: v0}, gf)
+
+
+@dataclass
+class BatchBenchResult:
+    backend: str
+    device: str
+    batch: int
+    particles: int
+    grid: int
+    substeps: int
+    frames: int
+    batched_particle_substeps_per_s: float
+    sequential_particle_substeps_per_s: float
+    #: batched / sequential throughput (B would be perfect batching)
+    gain: float
+    batched_s: float
+    sequential_s: float
+    peak_memory_batched_bytes: int | None
+    peak_memory_sequential_bytes: int | None
+    #: the process's resident-memory high-water mark after each side (Linux ru_maxrss)
+    max_rss_after_sequential_bytes: int
+    max_rss_after_batched_bytes: int
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def batch_params(device: torch.device, batch: int) -> list[SimulationParams]:
+    """B forward-only members: the bench parameters with E spread log-evenly over a decade
+    around the default, as a global search over stiffness would try."""
+    members = []
+    for b in range(batch):
+        params = bench_params(device, requires_grad=False)
+        scale = 10.0 ** ((b / max(1, batch - 1)) - 0.5)
+        params.objects[1].values["E"] = params.objects[1].values["E"] * scale
+        members.append(params)
+    return members
+
+
+def _max_rss_bytes() -> int:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
+
+
+def run_batch_bench(
+    *,
+    backend: str,
+    device: str,
+    particles: int,
+    grid: int,
+    substeps: int,
+    batch: int,
+    frames: int = 2,
+) -> BatchBenchResult:
+    """Throughput of one ``rollout_batch`` of ``batch`` members and of the same members rolled
+    out one by one (forward only, after an untimed warm-up of each)."""
+    simulator = get_registry().create(
+        "simulator", backend, {"device": device, "grid": grid, "substeps": substeps}
+    )
+    torch_device = torch.device("cuda" if device == "cuda" else "cpu")
+    world = bench_world()
+    parts = bench_particles(particles, grid=grid).to(torch_device)
+    members = batch_params(torch_device, batch)
+    work = len(parts) * substeps * frames * batch
+
+    def timed(call) -> tuple[float, int | None]:
+        with torch.no_grad():
+            call(1)  # warm-up: compilation, buffers and graph capture are not timed
+            simulator.reset_peak_memory()
+            if torch_device.type == "cuda":
+                torch.cuda.synchronize()
+            t0 = time.perf_counter()
+            out = call(frames)
+            if torch_device.type == "cuda":
+                torch.cuda.synchronize()
+        bad = [r for r in out if not isinstance(r, Trajectory)]
+        if bad:
+            raise RuntimeError(f"{backend}: a benchmark member diverged: {bad[0]}")
+        return time.perf_counter() - t0, simulator.peak_memory_bytes()
+
+    sequential_s, peak_seq = timed(
+        lambda n: [simulator.rollout(parts, p, world=world, frames=n) for p in members]
+    )
+    rss_seq = _max_rss_bytes()
+    batched_s, peak_batch = timed(
+        lambda n: simulator.rollout_batch(parts, members, world=world, frames=n)
+    )
+    return BatchBenchResult(
+        backend=backend,
+        device=device,
+        batch=batch,
+        particles=len(parts),
+        grid=grid,
+        substeps=substeps,
+        frames=frames,
+        batched_particle_substeps_per_s=work / batched_s,
+        sequential_particle_substeps_per_s=work / sequential_s,
+        gain=sequential_s / batched_s,
+        batched_s=batched_s,
+        sequential_s=sequential_s,
+        peak_memory_batched_bytes=peak_batch,
+        peak_memory_sequential_bytes=peak_seq,
+        max_rss_after_sequential_bytes=rss_seq,
+        max_rss_after_batched_bytes=_max_rss_bytes(),
+    )
 
 
 def run_bench(

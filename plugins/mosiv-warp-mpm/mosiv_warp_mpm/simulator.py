@@ -38,7 +38,11 @@ def init_warp() -> None:
     """Initialise Warp once per process (quietly)."""
     global _WARP_READY
     if not _WARP_READY:
-        wp.config.quiet = True
+        wp.config.quiet = True  # older Warp
+        # newer Warp logs its banner and module loads at INFO on stdout, where they broke
+        # ``mosiv bench sim --json``
+        if hasattr(wp, "LOG_WARNING"):
+            wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
         wp.init()
         _WARP_READY = True
 
