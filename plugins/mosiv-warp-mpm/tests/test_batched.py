@@ -193,3 +193,20 @@ def test_default_loop_equals_repeated_rollouts() -> None:
         )
         assert torch.equal(out[b].positions, alone.positions)
     assert not torch.equal(out[0].positions, out[2].positions)
+
+
+def test_bench_sim_batch_reports_both_sides(capsys) -> None:
+    import json
+
+    from mosiv_framework.cli.main import main
+
+    argv = ["bench", "sim", "--backend", "warp-mpm", "--batch", "1", "3", "--particles", "64"]
+    assert main([*argv, "--grid", "8", "--substeps", "2", "--frames", "1", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [r["batch"] for r in rows] == [1, 3]
+    for r in rows:
+        work = r["particles"] * r["substeps"] * r["frames"] * r["batch"]
+        assert r["batched_particle_substeps_per_s"] == pytest.approx(work / r["batched_s"])
+        assert r["sequential_particle_substeps_per_s"] == pytest.approx(work / r["sequential_s"])
+        assert r["gain"] == pytest.approx(r["sequential_s"] / r["batched_s"])
+        assert r["max_rss_after_batched_bytes"] >= r["max_rss_after_sequential_bytes"] > 0
