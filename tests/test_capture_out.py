@@ -13,17 +13,16 @@ import json
 import numpy as np
 import pytest
 
-from mosiv_framework.capture_out import (
-    Distortion,
-    RigFrame,
-    distort_image,
-    distort_normalized,
+from mosiv_framework.capture import Distortion, RigFrame
+from mosiv_framework.capture.lens import (
+    Intrinsics,
+    distort_frames,
     distort_pixels,
-    quaternion_to_rotation,
-    rotation_to_quaternion,
-    undistort_normalized,
+    distort_points,
     undistort_pixels,
+    undistort_points,
 )
+from mosiv_framework.capture.rotations import quaternion_to_rotation, rotation_to_quaternion
 from mosiv_framework.cli.main import main
 from mosiv_framework.scene import read_scene, write_example_scene
 
@@ -88,9 +87,7 @@ def test_videos_decode_to_the_frames_through_the_lens(capture, scene_dir):
         cam = scene.camera(entry["id"])
         for i, frame in enumerate(frames):
             t = entry["start_frame"] + i
-            expected = distort_image(
-                scene.rgb(cam.id, t), LENS, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy
-            )
+            expected = distort_frames(scene.rgb(cam.id, t)[None], cam, LENS)[0]
             # H.264 at crf 10 with 4:2:0 chroma: mean error of a few grey levels
             err = np.abs(frame[:SIZE, :SIZE].astype(float) - expected).mean()
             undistorted = np.abs(frame[:SIZE, :SIZE].astype(float) - scene.rgb(cam.id, t)).mean()
@@ -146,29 +143,30 @@ def test_with_reference_copies_gt_beside_the_capture(scene_dir, tmp_path):
     assert not (out / "gt").exists()
 
 
-@pytest.mark.parametrize("lens", [LENS, Distortion(0.2, -0.05, 0.01, -0.02), Distortion()])
+LENSES = [LENS, Distortion(0.2, -0.05, 0.01, -0.02), Distortion(-0.1, 0.02, 1e-3, 2e-3, -5e-3)]
+
+
+@pytest.mark.parametrize("lens", [*LENSES, Distortion()])
 def test_distortion_inverse_round_trips_below_a_thousandth_of_a_pixel(lens):
-    fx, fy, cx, cy = 300.0, 290.0, 160.5, 119.0
+    k = Intrinsics(320, 240, fx=300.0, fy=290.0, cx=160.5, cy=119.0)
     vv, uu = np.meshgrid(np.linspace(0, 240, 49), np.linspace(0, 320, 65), indexing="ij")
     uv = np.stack([uu, vv], -1)
-    distorted = distort_pixels(uv, lens, fx=fx, fy=fy, cx=cx, cy=cy)
-    back = undistort_pixels(distorted, lens, fx=fx, fy=fy, cx=cx, cy=cy)
+    back = undistort_pixels(distort_pixels(uv, lens, k), lens, k)
     assert np.abs(back - uv).max() < 1e-3
     # and the other way round: undistort, then distort
-    again = distort_pixels(undistort_pixels(uv, lens, fx=fx, fy=fy, cx=cx, cy=cy), lens,
-                           fx=fx, fy=fy, cx=cx, cy=cy)  # fmt: skip
+    again = distort_pixels(undistort_pixels(uv, lens, k), lens, k)
     assert np.abs(again - uv).max() < 1e-3
 
 
 def test_forward_model_matches_opencv_formula_by_hand():
     """One point worked by hand: x = 0.3, y = -0.2, r^2 = 0.13."""
-    lens = Distortion(0.1, 0.01, 0.002, -0.003)
+    lens = Distortion(0.1, 0.01, 0.002, -0.003, 0.004)
     x, y, r2 = 0.3, -0.2, 0.13
-    radial = 1 + 0.1 * r2 + 0.01 * r2**2
+    radial = 1 + 0.1 * r2 + 0.01 * r2**2 + 0.004 * r2**3
     xd = x * radial + 2 * 0.002 * x * y + -0.003 * (r2 + 2 * x * x)
     yd = y * radial + 0.002 * (r2 + 2 * y * y) + 2 * -0.003 * x * y
-    np.testing.assert_allclose(distort_normalized(np.array([x, y]), lens), [xd, yd], rtol=1e-15)
-    np.testing.assert_allclose(undistort_normalized(np.array([xd, yd]), lens), [x, y], atol=1e-12)
+    np.testing.assert_allclose(distort_points(np.array([x, y]), lens), [xd, yd], rtol=1e-15)
+    np.testing.assert_allclose(undistort_points(np.array([xd, yd]), lens), [x, y], atol=1e-12)
 
 
 def test_quaternions_round_trip_for_every_branch():

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mosiv_framework.capture.common import CaptureError, SourceCamera
+from mosiv_framework.capture.rotations import rotation_to_z
 from mosiv_framework.scene.cameras import Camera
 
 #: metres per unit of the unit names ``--units`` accepts (a positive number works too)
@@ -72,18 +73,6 @@ def cameras_up(cameras: list[SourceCamera]) -> np.ndarray:
             "cannot infer the up direction: the cameras' up vectors disagree; give --up"
         )
     return mean / np.linalg.norm(mean)
-
-
-def rotation_to_z(up: np.ndarray) -> np.ndarray:
-    """The smallest rotation Q with Q up = +z (Rodrigues; 180 degrees about x for up = -z)."""
-    u = np.asarray(up, float) / np.linalg.norm(up)
-    z = np.array([0.0, 0.0, 1.0])
-    c = float(u @ z)
-    if c < -1.0 + 1e-12:
-        return np.diag([1.0, -1.0, -1.0])
-    v = np.cross(u, z)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
 def parse_ground(text: str | None) -> tuple[int, float] | str | None:
@@ -152,3 +141,46 @@ def ground_height_given(ground: tuple[int, float], align: Alignment, up: np.ndar
             f"direction {np.round(up, 3).tolist()}; name the up axis (or give --up)"
         )
     return float(align.points(normal * value)[2])
+
+
+@dataclass(frozen=True)
+class RigFrame:
+    """A recording's world named by its ``units`` (a key of METRES_PER_UNIT) and ``up`` axis
+    (``x``, ``y`` or ``z``): the frame ``mosiv data capture`` writes cameras in.
+
+    A scene point p (m, z up) is at ``scale * M p`` in the rig's world, with ``scale`` the rig's
+    units per metre and ``M`` the inverse of the import's rotation to z up (``up="y"``: x stays,
+    y <- z, z <- -y, the usual y-up convention of graphics tools). Camera frames keep the OpenCV
+    axes, so a world-to-camera ``[R | t]`` becomes ``[R M^T | scale t]``: the rotation sees the
+    rig's axes, the translation is in the rig's units, and every projection is unchanged.
+    """
+
+    units: str = "m"
+    up: str = "z"
+
+    def __post_init__(self) -> None:
+        if self.units not in METRES_PER_UNIT:
+            raise ValueError(f"units {self.units!r}: choose one of {sorted(METRES_PER_UNIT)}")
+        if self.up not in AXES:
+            raise ValueError(f"up axis {self.up!r}: choose one of {sorted(AXES)}")
+
+    @property
+    def scale(self) -> float:
+        """Rig units per metre."""
+        return 1.0 / METRES_PER_UNIT[self.units]
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """M: scene axes (z up) -> rig axes."""
+        return rotation_to_z(parse_up(self.up)).T
+
+    def world_to_camera(self, scene_w2c: np.ndarray) -> np.ndarray:
+        """A scene world-to-camera 4x4 (m, z up) -> the rig's (its units, its up axis)."""
+        out = np.eye(4)
+        out[:3, :3] = np.asarray(scene_w2c)[:3, :3] @ self.rotation.T
+        out[:3, 3] = self.scale * np.asarray(scene_w2c)[:3, 3]
+        return out
+
+    def scene_world_to_camera(self, rig_w2c: np.ndarray) -> np.ndarray:
+        """The inverse of ``world_to_camera``: a rig world-to-camera back in scene metres, z up."""
+        return Alignment(1.0 / self.scale, self.rotation.T).world_to_camera(np.asarray(rig_w2c))

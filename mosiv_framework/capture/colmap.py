@@ -1,8 +1,14 @@
-"""Cameras from a COLMAP sparse model: cameras.txt / images.txt or cameras.bin / images.bin.
+"""COLMAP sparse models: cameras read from cameras.txt / images.txt (or cameras.bin /
+images.bin), and written as text.
 
 COLMAP stores world-to-camera poses in the OpenCV convention (quaternion qw qx qy qz and
 translation t: x_cam = R x_world + t) and pixel coordinates with pixel centres at integer + 0.5,
 as ``mosiv-scene/1`` does, so poses and intrinsics carry over unchanged.
+
+Text files (https://colmap.github.io/format.html): ``cameras.txt`` ``CAMERA_ID MODEL WIDTH
+HEIGHT PARAMS[]``; ``images.txt`` two lines per image, ``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID
+NAME`` and a line of 2-D points; ``points3D.txt``. The writer puts cameras in a rig's units and
+up axis (``align.RigFrame``) and leaves the points empty.
 """
 
 from __future__ import annotations
@@ -12,14 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
+from mosiv_framework.capture.align import RigFrame
 from mosiv_framework.capture.common import (
     CaptureError,
     SourceCamera,
     camera_key,
     no_frames_message,
-    rigid,
 )
-from mosiv_framework.capture.distortion import Distortion, Intrinsics
+from mosiv_framework.capture.lens import Distortion, Intrinsics
+from mosiv_framework.capture.rotations import quaternion_to_rotation, rigid, rotation_to_quaternion
 from mosiv_framework.errors import OutputError
 
 #: supported camera models: name -> (binary model id, parameter names)
@@ -37,18 +44,8 @@ ALL_MODEL_IDS: dict[int, tuple[str, int]] = {
     8: ("SIMPLE_RADIAL_FISHEYE", 4), 9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12),
     11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16),
 }  # fmt: skip
-
-
-def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) -> 3x3 rotation matrix (normalised first)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+#: models the writer can write (both hold the lens; RADIAL needs fx = fy and no p1, p2)
+WRITE_MODELS = ("OPENCV", "RADIAL")
 
 
 def _intrinsics(model: str, width: int, height: int, params, where: str):
@@ -197,3 +194,61 @@ def read_colmap(model_dir: str | Path, known: set[str]) -> list[SourceCamera]:
         k, dist, model = cams[cam_id]
         out[key] = SourceCamera(key, k, dist, pose, where, model=model)
     return list(out.values())
+
+
+# ---------------------------------------------------------------------------------- writing
+def camera_line(camera_id: int, camera, d: Distortion, model: str, size: tuple[int, int]) -> str:
+    """One line of cameras.txt for a ``scene.cameras.Camera`` recorded at ``size`` (w, h);
+    ValueError when ``model`` cannot describe the camera and lens."""
+    if d.k3 != 0.0:
+        raise ValueError(f"camera {camera.id!r}: k3 = {d.k3} fits neither OPENCV nor RADIAL")
+    if model == "OPENCV":
+        params = [camera.fx, camera.fy, camera.cx, camera.cy, d.k1, d.k2, d.p1, d.p2]
+    elif model == "RADIAL":
+        if abs(camera.fx - camera.fy) > 1e-9 * abs(camera.fx) or not d.radial_only:
+            raise ValueError(
+                f"camera {camera.id!r}: COLMAP's RADIAL model needs fx = fy and no tangential "
+                f"terms (fx={camera.fx}, fy={camera.fy}, p1={d.p1}, p2={d.p2}); use OPENCV"
+            )
+        params = [camera.fx, camera.cx, camera.cy, d.k1, d.k2]
+    else:
+        raise ValueError(f"camera model {model!r}: choose one of {WRITE_MODELS}")
+    return f"{camera_id} {model} {size[0]} {size[1]} " + " ".join(repr(float(p)) for p in params)
+
+
+def write_colmap_text(
+    folder: Path,
+    cameras: list,
+    *,
+    names: list[str],
+    sizes: list[tuple[int, int]] | None = None,
+    distortion: Distortion | None = None,
+    model: str = "OPENCV",
+    rig: RigFrame | None = None,
+) -> Path:
+    """cameras.txt, images.txt and an empty points3D.txt for the scene ``cameras`` into
+    ``folder``, poses in the ``rig``'s world (default metres, z up).
+
+    Camera i (1-based ids in file order) is image i named ``names[i]``, recorded at
+    ``sizes[i]`` = (width, height) (default: the camera's own size)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    rig, distortion = rig or RigFrame(), distortion or Distortion()
+    sizes = sizes or [(c.width, c.height) for c in cameras]
+    cam_lines = ["# Camera list with one line of data per camera:"]
+    cam_lines.append("#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]")
+    img_lines = ["# Image list with two lines of data per image:"]
+    img_lines.append("#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME")
+    img_lines.append("#   POINTS2D[] as (X, Y, POINT3D_ID)")
+    for i, (camera, name, size) in enumerate(zip(cameras, names, sizes), start=1):
+        cam_lines.append(camera_line(i, camera, distortion, model, size))
+        w2c = rig.world_to_camera(np.asarray(camera.world_to_camera, dtype=np.float64))
+        q = rotation_to_quaternion(w2c[:3, :3])
+        numbers = " ".join(repr(float(v)) for v in (*q, *w2c[:3, 3]))
+        img_lines += [f"{i} {numbers} {i} {name}", ""]
+    (folder / "cameras.txt").write_text("\n".join(cam_lines) + "\n")
+    (folder / "images.txt").write_text("\n".join(img_lines) + "\n")
+    (folder / "points3D.txt").write_text(
+        "# 3D point list with one line of data per point: none (cameras only)\n"
+    )
+    return folder

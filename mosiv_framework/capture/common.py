@@ -1,13 +1,15 @@
-"""What the import steps share: the error they raise and a camera as the recording gives it."""
+"""What the capture steps share: the error they raise, a camera as the recording gives it, how a
+camera model's image name finds its frames, and the refusal of a non-empty output folder."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from mosiv_framework.capture.distortion import Distortion, Intrinsics
-from mosiv_framework.errors import ConfigError
+from mosiv_framework.capture.lens import Distortion, Intrinsics
+from mosiv_framework.errors import ConfigError, OutputError
 
 
 class CaptureError(ConfigError):
@@ -41,14 +43,6 @@ class SourceCamera:
         return -self.rotation.T @ self.world_to_camera[:3, 3]
 
 
-def rigid(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """[[R, t], [0, 1]] as a float64 4x4 array."""
-    m = np.eye(4)
-    m[:3, :3] = rotation
-    m[:3, 3] = translation
-    return m
-
-
 def camera_key(name: str, known: set[str]) -> str | None:
     """The camera id an image path of a camera model refers to (docs/SCENE_FORMAT.md,
     "Importing a recording"): the file's stem if a video or frame folder has that name, else its
@@ -71,3 +65,12 @@ def no_frames_message(where: str, name: str) -> str:
         f"{where}: this camera has no frames: no video or frame folder named {names} "
         "in the frames folder"
     )
+
+
+def refuse_non_empty(out: Path, what: str) -> None:
+    """OutputError unless ``out`` is absent or an empty folder: nothing is ever overwritten."""
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        state = "is a file" if not out.is_dir() else "is a non-empty folder"
+        raise OutputError(
+            f"{what} {str(out)!r} {state}; give a new or empty folder (nothing is overwritten)"
+        )

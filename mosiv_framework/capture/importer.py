@@ -1,7 +1,7 @@
 """``import_recording``: a capture rig's recording -> a ``mosiv-scene/1`` folder.
 
 The steps, each in its own module: frames (``video``), cameras (``colmap``, ``nerfstudio``),
-time offsets (``offsets``), lens undistortion (``distortion``), the frame alignment
+time offsets (``offsets``), lens undistortion (``lens``), the frame alignment
 (``align``: units, up axis, ground), masks from a registered segmenter, and the domain from the
 visual hull (``domain``). Everything is read and checked before OUT is created; the scene is
 written with ``SceneWriter``, validated with ``validate_scene``, and previewed as
@@ -22,9 +22,10 @@ from mosiv_framework.capture import domain as dom
 from mosiv_framework.capture import materials as mat
 from mosiv_framework.capture import offsets as off
 from mosiv_framework.capture import video
-from mosiv_framework.capture.common import CaptureError, SourceCamera
-from mosiv_framework.capture.distortion import undistort_frames
-from mosiv_framework.errors import OutputError, SceneFormatError
+from mosiv_framework.capture.common import CaptureError, SourceCamera, refuse_non_empty
+from mosiv_framework.capture.lens import undistort_frames
+from mosiv_framework.capture.rotations import rotation_to_z
+from mosiv_framework.errors import SceneFormatError
 
 logger = logging.getLogger(__name__)
 
@@ -152,14 +153,6 @@ def segment(s: ImportSettings, videos, cameras, n_objects: int, box) -> dict[str
     return masks
 
 
-def _check_out(out: Path) -> None:
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        state = "is a file" if not out.is_dir() else "is a non-empty folder"
-        raise OutputError(
-            f"OUT {str(out)!r} {state}; give a new or empty folder (nothing is overwritten)"
-        )
-
-
 def _alignment(s: ImportSettings, cams: dict[str, SourceCamera]):
     """(Alignment without the ground offset, up direction, ground: height (m) before the
     offset, "none", or None to fit it)."""
@@ -168,7 +161,7 @@ def _alignment(s: ImportSettings, cams: dict[str, SourceCamera]):
     if up is None:
         up = al.cameras_up(list(cams.values()))
         logger.info("up direction from the cameras: %s", np.round(up, 4).tolist())
-    align = al.Alignment(al.parse_units(s.units), al.rotation_to_z(up))
+    align = al.Alignment(al.parse_units(s.units), rotation_to_z(up))
     ground = al.parse_ground(s.ground)
     if isinstance(ground, tuple):
         ground = al.ground_height_given(ground, align, up if up_given else _axis_up(ground, up))
@@ -222,7 +215,7 @@ def import_recording(s: ImportSettings) -> Path:
     unreadable files or a refused OUT, SceneFormatError if the written scene fails validation.
     """
     out = Path(s.out)
-    _check_out(out)
+    refuse_non_empty(out, "OUT")
     objects, hints, yaml_offsets = read_objects(s)
     sources = video.find_sources(s.frames_dir)
     cams = load_cameras(s, set(sources))

@@ -18,7 +18,7 @@ from mosiv_framework.capture.common import (
     camera_key,
     no_frames_message,
 )
-from mosiv_framework.capture.distortion import Distortion, Intrinsics
+from mosiv_framework.capture.lens import Distortion, Intrinsics
 from mosiv_framework.errors import OutputError
 from mosiv_framework.scene.cameras import rigidity_problems
 

@@ -1,7 +1,7 @@
 """Per-camera time offsets: how many leading frames each camera's video drops so that frame i
 of every camera shows the same instant.
 
-Given as ``cam_01:3,cam_02:0`` (or the ``offsets`` mapping of the objects YAML), or estimated
+Given as ``cam_01:3,cam_02:0`` (``cam_01=3`` works too; or the ``offsets`` mapping of the objects YAML), or estimated
 from motion onset: per camera, the first frame whose mean absolute difference to the frame
 before exceeds ``k`` times the median difference of the first ``baseline`` frames (sensor
 noise and compression flicker set that median); the onsets are aligned to the earliest.
@@ -31,7 +31,10 @@ def parse_offsets(text: str | Mapping | None, cameras: list[str], where: str) ->
     if isinstance(text, str):
         pairs = {}
         for item in [p.strip() for p in text.split(",") if p.strip()]:
-            cam, sep, value = item.rpartition(":")
+            for mark in (":", "="):  # cam_01:3 as the import documents, cam_01=3 as well
+                cam, sep, value = item.rpartition(mark)
+                if sep:
+                    break
             if not sep:
                 raise CaptureError(f"{where} {item!r}: give CAMERA:FRAMES, e.g. cam_01:3")
             pairs[cam] = value

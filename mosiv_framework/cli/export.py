@@ -27,8 +27,9 @@ def add_parser(sub) -> None:
 
 def add_capture_parser(dsub) -> None:
     """``data capture`` under the ``data`` command's sub-parsers ``dsub``."""
-    from mosiv_framework.capture_out.colmap import CAMERA_MODELS, UNITS_PER_METRE, UP_ROTATIONS
-    from mosiv_framework.capture_out.writer import DEFAULT_CRF
+    from mosiv_framework.capture.align import AXES, METRES_PER_UNIT
+    from mosiv_framework.capture.colmap import WRITE_MODELS
+    from mosiv_framework.capture.write import DEFAULT_CRF
 
     p = dsub.add_parser(
         "capture",
@@ -38,11 +39,9 @@ def add_capture_parser(dsub) -> None:
     p.add_argument("scene_dir")
     p.add_argument("out_dir", help="capture folder to write (new or empty)")
     p.add_argument(
-        "--units", default="m", choices=sorted(UNITS_PER_METRE), help="rig units (default m)"
+        "--units", default="m", choices=sorted(METRES_PER_UNIT), help="rig units (default m)"
     )
-    p.add_argument(
-        "--up", default="z", choices=sorted(UP_ROTATIONS), help="rig world up axis (default z)"
-    )
+    p.add_argument("--up", default="z", choices=sorted(AXES), help="rig world up axis (default z)")
     p.add_argument(
         "--distortion",
         help="lens coefficients k1,k2 or k1,k2,p1,p2 of the OpenCV model (default none); "
@@ -51,7 +50,7 @@ def add_capture_parser(dsub) -> None:
     p.add_argument(
         "--camera-model",
         default="OPENCV",
-        choices=CAMERA_MODELS,
+        choices=WRITE_MODELS,
         help="COLMAP camera model of cameras.txt (RADIAL needs fx = fy and no p1, p2)",
     )
     p.add_argument(
@@ -78,7 +77,7 @@ def run_export(args) -> int:
 
 
 def run_capture(args) -> int:
-    from mosiv_framework.capture_out import Distortion, RigFrame, write_capture
+    from mosiv_framework.capture import Distortion, RigFrame, write_capture
 
     try:
         distortion = Distortion.parse(args.distortion) if args.distortion else Distortion()

@@ -10,9 +10,11 @@ Layout of the capture folder::
     reference_gt/              only with ``with_reference``: the scene's gt/ for benchmarking
 
 What a rig does not know stays out: instance masks, object count and materials, the ground
-plane and every ground truth. ``offsets`` drops leading frames per camera, as unsynchronised
-cameras that started late; capture.json records each camera's first frame, which is the time
-offset ``start_frame / fps`` of its video.
+plane and every ground truth. ``offsets`` (the syntax of ``mosiv data import --offsets``)
+drops leading frames per camera, as unsynchronised cameras that started late; capture.json
+records each camera's first frame, which is the time offset ``start_frame / fps`` of its video.
+The lens model is ``lens``, the COLMAP writer ``colmap``, the rig's frame ``align.RigFrame``:
+the same modules the import reads a capture with.
 """
 
 from __future__ import annotations
@@ -23,32 +25,16 @@ from pathlib import Path
 
 import numpy as np
 
-from mosiv_framework.capture_out.colmap import RigFrame, camera_line, write_colmap_text
-from mosiv_framework.capture_out.distortion import Distortion, distort_image
-from mosiv_framework.errors import ConfigError, OutputError
+from mosiv_framework.capture.align import RigFrame
+from mosiv_framework.capture.colmap import camera_line, write_colmap_text
+from mosiv_framework.capture.common import refuse_non_empty
+from mosiv_framework.capture.lens import Distortion, distort_frames
+from mosiv_framework.capture.offsets import parse_offsets
+from mosiv_framework.errors import ConfigError
 
 CAPTURE_FORMAT = "mosiv-capture/1"
 #: H.264 constant rate factor: 0 lossless .. 51 worst; 18 is visually lossless for most content
 DEFAULT_CRF = 18
-
-
-def parse_offsets(text: str | None, camera_ids: list[str]) -> dict[str, int]:
-    """``"cam_01=2,cam_03=1"`` -> camera id -> leading frames to drop (0 for cameras not named)."""
-    offsets = {cam: 0 for cam in camera_ids}
-    for item in [p.strip() for p in (text or "").split(",") if p.strip()]:
-        cam, sep, value = item.partition("=")
-        if not sep or cam not in offsets:
-            raise ConfigError(
-                f"--offsets {item!r}: give CAMERA=FRAMES with a camera of the scene "
-                f"({', '.join(camera_ids)})"
-            )
-        try:
-            offsets[cam] = int(value)
-        except ValueError:
-            raise ConfigError(f"--offsets {item!r}: FRAMES must be an integer") from None
-        if offsets[cam] < 0:
-            raise ConfigError(f"--offsets {item!r}: FRAMES must be >= 0")
-    return offsets
 
 
 def _even(frame: np.ndarray) -> np.ndarray:
@@ -82,20 +68,13 @@ def encode_h264(frames: list[np.ndarray], path: Path, *, fps: float, crf: int) -
     return w, h
 
 
-def _check_out(out: Path) -> None:
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        state = "is a file" if not out.is_dir() else "is a non-empty folder"
-        raise OutputError(
-            f"capture folder {str(out)!r} {state}; give a new or empty folder (nothing is "
-            "overwritten)"
-        )
-
-
 def _check_options(scene, crf, offsets, distortion: Distortion, camera_model: str) -> dict:
     """Every option checked before anything is written; returns the start frame per camera."""
     if not 0 <= int(crf) <= 51:
         raise ConfigError(f"--crf {crf}: H.264 takes a constant rate factor from 0 to 51")
-    starts = parse_offsets(offsets, scene.camera_ids)
+    starts = parse_offsets(offsets, scene.camera_ids, "--offsets") or dict.fromkeys(
+        scene.camera_ids, 0
+    )
     too_late = [c for c, s in starts.items() if s >= scene.n_frames]
     if too_late:
         raise ConfigError(
@@ -114,12 +93,8 @@ def _write_videos(scene, out: Path, starts: dict, distortion: Distortion, crf: i
     (out / "videos").mkdir(parents=True, exist_ok=True)
     entries = []
     for cam in scene.cameras:
-        frames = [
-            distort_image(
-                scene.rgb(cam.id, t), distortion, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy
-            )
-            for t in range(starts[cam.id], scene.n_frames)
-        ]
+        ideal = np.stack([scene.rgb(cam.id, t) for t in range(starts[cam.id], scene.n_frames)])
+        frames = list(distort_frames(ideal, cam, distortion))
         video = f"videos/{cam.id}.mp4"
         size = encode_h264(frames, out / video, fps=scene.fps, crf=crf)
         entries.append(
@@ -159,7 +134,7 @@ def write_capture(
     distortion = distortion or Distortion()
     scene = read_scene(scene_dir)
     out = Path(out)
-    _check_out(out)
+    refuse_non_empty(out, "capture folder")
     starts = _check_options(scene, crf, offsets, distortion, camera_model)
     entries = _write_videos(scene, out, starts, distortion, crf)
     write_colmap_text(
@@ -179,11 +154,8 @@ def write_capture(
         "colmap": "sparse/0",
         "camera_model": camera_model,
         "distortion": {
-            "model": "opencv (k1, k2 radial; p1, p2 tangential)",
-            "k1": distortion.k1,
-            "k2": distortion.k2,
-            "p1": distortion.p1,
-            "p2": distortion.p2,
+            "model": "opencv (k1, k2, k3 radial; p1, p2 tangential)",
+            **distortion.as_dict(),
         },
         "crf": int(crf),
         "cameras": entries,

@@ -1,0 +1,213 @@
+"""Lens distortion of the OpenCV / COLMAP family, its inverse, and frames remapped through it.
+
+The model acts on normalised camera coordinates ``(x, y) = ((u - cx) / fx, (v - cy) / fy)``::
+
+    r2 = x^2 + y^2
+    radial = 1 + k1 r2 + k2 r2^2 + k3 r2^3
+    x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
+    y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
+
+COLMAP's SIMPLE_RADIAL (k), RADIAL (k1, k2) and OPENCV (k1, k2, p1, p2) and nerfstudio's
+k1, k2, k3, p1, p2 are all special cases; ``k1 < 0`` is barrel distortion (the image edge pulled
+inward). The forward map has no closed-form inverse: ``undistort_points`` runs Newton's method
+on its 2x2 Jacobian, which reaches 1e-12 in a few steps where the fixed-point iteration
+``x <- (x_d - tangential) / radial`` needs dozens and stalls for strong lenses.
+
+Undistorting a frame needs only the forward map (each pinhole pixel looks up where the lens put
+it); distorting one (what ``mosiv data capture`` records) needs the inverse. Pixel coordinates
+follow docs/SCENE_FORMAT.md and COLMAP: pixel centres at integer + 0.5. Functions that take
+intrinsics ``k`` accept anything with ``fx, fy, cx, cy`` (and ``width, height`` for whole
+frames): an ``Intrinsics`` or a ``scene.cameras.Camera``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+#: coefficient names, in the order of ``Distortion`` fields (OpenCV's order)
+COEFFICIENTS = ("k1", "k2", "p1", "p2", "k3")
+#: Newton iterations of the inverse; moderate lenses converge to 1e-12 in fewer than 10
+UNDISTORT_ITERATIONS = 30
+#: stop once every point moved less than this (normalised units) in one Newton step
+UNDISTORT_TOL = 1e-14
+
+
+@dataclass(frozen=True)
+class Distortion:
+    """Radial (k1, k2, k3) and tangential (p1, p2) coefficients; all zero = a pinhole lens."""
+
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    k3: float = 0.0
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, float]) -> Distortion:
+        return cls(**{k: float(data.get(k, 0.0)) for k in COEFFICIENTS})
+
+    @classmethod
+    def parse(cls, text: str) -> Distortion:
+        """``"k1,k2"`` or ``"k1,k2,p1,p2"`` (ValueError naming the text otherwise)."""
+        parts = [p.strip() for p in text.split(",") if p.strip()]
+        if len(parts) not in (2, 4):
+            raise ValueError(f"distortion {text!r}: give k1,k2 or k1,k2,p1,p2")
+        try:
+            values = [float(p) for p in parts]
+        except ValueError:
+            raise ValueError(f"distortion {text!r}: coefficients must be numbers") from None
+        if not all(np.isfinite(values)):
+            raise ValueError(f"distortion {text!r}: coefficients must be finite numbers")
+        return cls(*values)
+
+    @property
+    def is_zero(self) -> bool:
+        return all(getattr(self, k) == 0.0 for k in COEFFICIENTS)
+
+    @property
+    def radial_only(self) -> bool:
+        """Only k1 and k2: what COLMAP's RADIAL model can hold."""
+        return self.p1 == self.p2 == self.k3 == 0.0
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: getattr(self, k) for k in COEFFICIENTS}
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics (pixels) of a width x height image."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+
+def _radial(r2: np.ndarray, d: Distortion) -> np.ndarray:
+    return 1.0 + r2 * (d.k1 + r2 * (d.k2 + r2 * d.k3))
+
+
+def distort_points(xy: np.ndarray, d: Distortion) -> np.ndarray:
+    """Normalised ideal coordinates [..., 2] -> distorted ones [..., 2] (the forward map)."""
+    xy = np.asarray(xy, dtype=np.float64)
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    radial = _radial(r2, d)
+    xd = x * radial + 2.0 * d.p1 * x * y + d.p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + d.p1 * (r2 + 2.0 * y * y) + 2.0 * d.p2 * x * y
+    return np.stack([xd, yd], axis=-1)
+
+
+def _jacobian(x: np.ndarray, y: np.ndarray, d: Distortion) -> tuple[np.ndarray, ...]:
+    """Entries (a, b, c, e) of d(x_d, y_d)/d(x, y) = [[a, b], [c, e]]."""
+    r2 = x * x + y * y
+    radial = _radial(r2, d)
+    dradial = d.k1 + r2 * (2.0 * d.k2 + 3.0 * d.k3 * r2)  # d radial / d(r^2)
+    a = radial + 2.0 * x * x * dradial + 2.0 * d.p1 * y + 6.0 * d.p2 * x
+    b = 2.0 * x * y * dradial + 2.0 * d.p1 * x + 2.0 * d.p2 * y
+    e = radial + 2.0 * y * y * dradial + 6.0 * d.p1 * y + 2.0 * d.p2 * x
+    return a, b, b, e
+
+
+def undistort_points(xy_d: np.ndarray, d: Distortion) -> np.ndarray:
+    """Normalised distorted coordinates [..., 2] -> ideal ones [..., 2] (the inverse map).
+
+    Newton's method from the distorted point itself; points where the lens model folds over
+    (beyond its invertible radius) come back as NaN rather than as a wrong answer."""
+    target = np.asarray(xy_d, dtype=np.float64)
+    if d.is_zero:
+        return target.copy()
+    xy = target.copy()
+    for _ in range(UNDISTORT_ITERATIONS):
+        residual = distort_points(xy, d) - target
+        a, b, c, e = _jacobian(xy[..., 0], xy[..., 1], d)
+        det = a * e - b * c
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            step_x = (e * residual[..., 0] - b * residual[..., 1]) / det
+            step_y = (a * residual[..., 1] - c * residual[..., 0]) / det
+        xy = xy - np.stack([step_x, step_y], axis=-1)
+        if np.nanmax(np.abs(np.stack([step_x, step_y])), initial=0.0) < UNDISTORT_TOL:
+            break
+    with np.errstate(invalid="ignore", over="ignore"):
+        bad = ~np.all(np.abs(distort_points(xy, d) - target) < 1e-9, axis=-1)
+    xy[bad] = np.nan
+    return xy
+
+
+def normalise(uv: np.ndarray, k) -> np.ndarray:
+    """Pixel coordinates [..., 2] -> normalised camera coordinates."""
+    uv = np.asarray(uv, dtype=np.float64)
+    return np.stack([(uv[..., 0] - k.cx) / k.fx, (uv[..., 1] - k.cy) / k.fy], axis=-1)
+
+
+def to_pixels(xy: np.ndarray, k) -> np.ndarray:
+    """Normalised camera coordinates [..., 2] -> pixel coordinates."""
+    return np.stack([xy[..., 0] * k.fx + k.cx, xy[..., 1] * k.fy + k.cy], axis=-1)
+
+
+def distort_pixels(uv: np.ndarray, d: Distortion, k) -> np.ndarray:
+    """Ideal (pinhole) pixel coordinates [..., 2] -> where the distorting lens records them."""
+    return to_pixels(distort_points(normalise(uv, k), d), k)
+
+
+def undistort_pixels(uv: np.ndarray, d: Distortion, k) -> np.ndarray:
+    """Recorded (distorted) pixel coordinates [..., 2] -> ideal pinhole ones (NaN where the
+    model cannot be inverted)."""
+    return to_pixels(undistort_points(normalise(uv, k), d), k)
+
+
+def pixel_grid(k) -> np.ndarray:
+    """[H, W, 2] pixel coordinates (u, v) of every pixel centre of a k.width x k.height image."""
+    vv, uu = np.meshgrid(np.arange(k.height) + 0.5, np.arange(k.width) + 0.5, indexing="ij")
+    return np.stack([uu, vv], axis=-1)
+
+
+def remap(frames: np.ndarray, uv: np.ndarray, *, outside: str = "black", chunk: int = 16):
+    """Sample frames uint8 [T, H, W, C] bilinearly at pixel coordinates uv [H', W', 2]
+    -> uint8 [T, H', W', C]. Where uv leaves the image (or is NaN) ``outside`` decides:
+    ``"black"`` reads zeros, ``"edge"`` repeats the nearest edge pixel."""
+    t, h, w, c = frames.shape
+    # grid_sample with align_corners=False uses the same pixel-centre convention (centre of
+    # pixel i at i + 0.5 in a [0, W] span), so the mapping to [-1, 1] is a plain rescale;
+    # NaN (no inverse) goes far outside, where ``outside`` applies
+    uv = np.nan_to_num(np.asarray(uv, dtype=np.float64), nan=-1e6)
+    grid = np.empty(uv.shape, dtype=np.float32)
+    grid[..., 0] = 2.0 * uv[..., 0] / w - 1.0
+    grid[..., 1] = 2.0 * uv[..., 1] / h - 1.0
+    grid_t = torch.from_numpy(grid)[None]
+    padding = {"black": "zeros", "edge": "border"}[outside]
+    out = np.empty((t,) + uv.shape[:2] + (c,), dtype=np.uint8)
+    for start in range(0, t, chunk):
+        part = torch.from_numpy(np.ascontiguousarray(frames[start : start + chunk]))
+        src = part.permute(0, 3, 1, 2).to(torch.float32)
+        res = torch.nn.functional.grid_sample(
+            src, grid_t.expand(src.shape[0], -1, -1, -1), mode="bilinear",
+            padding_mode=padding, align_corners=False,
+        )  # fmt: skip
+        res = res.permute(0, 2, 3, 1).round().clamp(0, 255).to(torch.uint8)
+        out[start : start + chunk] = res.numpy()
+    return out
+
+
+def undistort_frames(frames: np.ndarray, k, d: Distortion) -> np.ndarray:
+    """Frames [T, H, W, C] seen through lens ``d`` -> the same frames through a pinhole camera
+    with the same intrinsics ``k``; rays the lens did not record read black."""
+    if d.is_zero:
+        return frames
+    return remap(frames, distort_pixels(pixel_grid(k), d, k), outside="black")
+
+
+def distort_frames(frames: np.ndarray, k, d: Distortion) -> np.ndarray:
+    """Pinhole frames [T, H, W, C] -> what lens ``d`` with intrinsics ``k`` records (the
+    inverse of ``undistort_frames`` up to interpolation). Where a recorded pixel looks past the
+    pinhole image (a barrel lens sees more) the nearest edge pixel is repeated: the ideal camera
+    never saw those rays, and a black wedge would look like an object to a segmenter."""
+    if d.is_zero:
+        return frames.copy()
+    return remap(frames, undistort_pixels(pixel_grid(k), d, k), outside="edge")
