@@ -18,6 +18,7 @@ from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.metrics import frame_metrics
 from mosiv_framework.pipeline.appearance import can_render, rollout_images
 from mosiv_framework.pipeline.formats import METRICS, stamped
+from mosiv_framework.pipeline.uncertainty import mark_coverage
 from mosiv_framework.pipeline.video import pick_camera, save_rollout_npz, write_comparison_video
 from mosiv_framework.types import SimulationParams, Trajectory
 
@@ -303,6 +304,7 @@ def evaluate_run(
     }
     if note is not None:
         metrics["evaluation_note"] = note
+    mark_coverage(metrics["param_error"], metrics["params"])  # intervals holding the truth
     metrics = stamped(METRICS, metrics)
     rd.save_json("metrics.json", metrics)
     plot_centroids(

@@ -23,6 +23,7 @@ from mosiv_framework.pipeline.params import (
     stiffness_ceilings,
 )
 from mosiv_framework.pipeline.silhouettes import SILHOUETTE_LOSSES, SilhouetteObjective
+from mosiv_framework.pipeline.uncertainty import attach_intervals
 from mosiv_framework.recipes.terms import identified_terms, term_tensors
 from mosiv_framework.registry import get_registry
 
@@ -100,6 +101,7 @@ def identify_stage(
     if warnings:
         identified_json["warnings"] = list(warnings)
     _note_stopped_early(history, identified_json)
+    attach_intervals(history, identified_json)
     if library:
         fit = dict(simulator=simulator, particles=sim_particles, objective=objective)
         _choose_prototypes(section, scene, targets, vector, identified_json, rd, **fit)
@@ -229,6 +231,8 @@ def start_vector(
         terms=term_tensors(physics_terms),
         identify_terms=identified_terms(physics_terms),
     )
+    if getattr(section, "start", "defaults") == "centre":
+        vector.move_to_centre()  # a data-independent start (identify.start)
     return vector, free
 
 

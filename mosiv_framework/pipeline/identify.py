@@ -10,7 +10,21 @@ particle state).
 owns what they share: the history, checkpoints (every few iterations, so an interrupted run
 resumes where it stopped), each phase's best iterate (its start included: a phase never returns
 something worse than it was given), stepping back from diverged rollouts, and the
-``stopped_early`` records of phases cut short.
+``stopped_early`` records of phases cut short. Before the parameter phase, the global stage
+(``mosiv_framework.pipeline.global_search``, ``identify.global_candidates`` rollouts) picks
+where the descent starts; a checkpoint after it means a resumed run does not redo it. After
+the phases, ``identify.intervals`` adds a 95 % interval per identified parameter
+(``mosiv_framework.pipeline.uncertainty``) as a history record of phase ``intervals``.
+
+Which iterate a parameter phase returns: the curriculum optimises frames ``1..h`` with ``h``
+growing, and only losses over the whole window compare, so the phase keeps the best iterate of
+every horizon and, at its end, scores those and its last iterate on the whole window too. Before
+that, a phase that overshot the truth on a short horizon (Adam's momentum carries a stiffness a
+decade past it, where the ceiling clamps it) and came back only under the decayed learning rate
+returned its start, because no full-window iterate happened to beat it; the best short-horizon
+iterates, which sat next to the truth, were never compared. Adam's first moment is also zeroed
+where a bound clamps a coordinate, so momentum does not hold a parameter against its bound for
+many steps after the gradient has turned.
 """
 
 from __future__ import annotations
@@ -26,10 +40,12 @@ from tqdm import tqdm
 
 from mosiv_framework.errors import ConfigError, SimulationDiverged
 from mosiv_framework.losses import WeightedSum
+from mosiv_framework.pipeline.global_search import global_search
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.pipeline.phases import (
     BestIterate,
     Fit,
+    ParameterPhase,
     Phase,
     build_phases,
     geometry,
@@ -69,6 +85,8 @@ class IdentifyState:
     run_dir: RunDir
     config_hash: str
     history: list[dict] = field(default_factory=list)
+    #: whether the global stage has run (a resumed run does not redo it)
+    global_done: bool = False
 
     def save_checkpoint(self, phase: int, iteration: int, optimizer: dict | None) -> None:
         """Resume at ``phase``'s ``iteration`` with ``optimizer`` (None: start that phase)."""
@@ -80,6 +98,7 @@ class IdentifyState:
                 "phase": phase,
                 "iteration": iteration,
                 "history": self.history,
+                "global_done": self.global_done,
                 "optimizer": optimizer,
                 "velocity": {k: v.detach().clone() for k, v in vector.velocity.items()},
                 "normalized": {k: u.detach().clone() for k, u in vector.normalized.items()},
@@ -95,6 +114,7 @@ class IdentifyState:
         if ckpt is None or ckpt.get("config") != self.config_hash:
             return 0, 0, None
         self.history = ckpt["history"]
+        self.global_done = bool(ckpt.get("global_done", False))
         with torch.no_grad():
             for k, v in ckpt["velocity"].items():
                 self.vector.velocity[k].copy_(v)
@@ -148,12 +168,53 @@ def identify(
         if index < start_phase or phase.iterations == 0 or not phase.leaves(vector):
             continue
         resumed = carried if index == start_phase else None
+        if isinstance(phase, ParameterPhase) and resumed is None and not state.global_done:
+            _global_stage(section, fit, state, phase)
+            state.save_checkpoint(index, 0, None)
         run = _PhaseRun(phase, index, fit, state, section.checkpoint_every, resumed)
         run.iterate(first=start_iter if resumed is not None else 0, full_at=section.horizon_full_at)
+        if isinstance(phase, ParameterPhase):
+            run.polish()
         # end of phase (also when its last iteration diverged): keep the best iterate
         run.best.apply(vector)
         state.save_checkpoint(index + 1, 0, None)
+    if getattr(section, "intervals", False) and _parameters_fitted(phases, vector):
+        _interval_stage(fit, vector, phases[-1].last, state.history)
     return vector, state.history
+
+
+def _global_stage(section, fit: Fit, state: IdentifyState, phase: Phase) -> None:
+    """The global stage before the parameter phase (``identify.global_candidates`` Sobol
+    candidates over frames ``1..identify.global_frames``, 0: the phase's whole window)."""
+    candidates = int(getattr(section, "global_candidates", 0) or 0)
+    frames = int(getattr(section, "global_frames", 0) or 0)
+    frames = phase.last if frames <= 0 else min(frames, phase.last)
+    if candidates > 0:
+        log.info("global stage: %d candidates over frames 1..%d", candidates, frames)
+        global_search(
+            fit,
+            state.vector,
+            candidates=candidates,
+            frames=frames,
+            seed=int(getattr(section, "seed", 0) or 0),
+            history=state.history,
+        )
+    state.global_done = True
+
+
+def _parameters_fitted(phases: list[Phase], vector: ParameterVector) -> bool:
+    """Whether a parameter phase ran over at least one leaf (intervals are about its result)."""
+    return any(
+        isinstance(p, ParameterPhase) and p.iterations > 0 and p.leaves(vector) for p in phases
+    )
+
+
+def _interval_stage(fit: Fit, vector: ParameterVector, last: int, history: list[dict]) -> None:
+    """A 95 % interval per identified parameter, recorded in the history."""
+    from mosiv_framework.pipeline.uncertainty import INTERVALS_PHASE, parameter_intervals
+
+    intervals = parameter_intervals(fit, vector, last=last)
+    history.append({"phase": INTERVALS_PHASE, "horizon": last, "intervals": intervals})
 
 
 class _PhaseRun:
@@ -181,8 +242,14 @@ class _PhaseRun:
             self.schedule.load_state_dict(resumed["schedule"])
             self.best = BestIterate(resumed["best_loss"], resumed["best_leaves"])
             self.scale = resumed.get("scale")
+            self.by_horizon = {
+                int(h): BestIterate(loss, leaves)
+                for h, (loss, leaves) in resumed.get("by_horizon", {}).items()
+            }
         else:
             self.scale = None
+            #: horizon -> the best iterate at that (shorter than the window) horizon
+            self.by_horizon: dict[int, BestIterate] = {}
             # the start competes too: a phase never returns something worse than it was given
             # (Adam's first steps are about one learning rate long whatever the gradient, which
             # can throw an already good start, e.g. free-flight velocities, far off)
@@ -233,14 +300,14 @@ class _PhaseRun:
         }
         if h == self.phase.last:  # only losses over the phase's whole window are comparable
             self.best.offer(loss_value, vector)
+        else:  # kept to be scored on the whole window at the end (``polish``)
+            self.by_horizon.setdefault(h, BestIterate()).offer(loss_value, vector)
         for leaf in self.named.values():  # no evidence: Adam skips a leaf without a gradient
             if leaf.grad is not None and not bool(leaf.grad.any()):
                 leaf.grad = None
         self.optimizer.step()
         self.schedule.step()
-        with torch.no_grad():  # keep normalised coordinates inside their bounds
-            for u in vector.normalized.values():
-                u.clamp_(0.0, 1.0)
+        self._clamp_to_bounds()
         self.state.history.append(
             {
                 "phase": self.phase.name,
@@ -254,6 +321,48 @@ class _PhaseRun:
                 "values": vector.to_json(),
             }
         )
+
+    def _clamp_to_bounds(self) -> None:
+        """Keep normalised coordinates inside [0, 1], and forget Adam's momentum where a bound
+        stopped a coordinate: otherwise the first moment, built up on the way there, holds it
+        against the bound for many steps after the gradient has turned back."""
+        with torch.no_grad():
+            for u in self.state.vector.normalized.values():
+                at_bound = (u <= 0.0) | (u >= 1.0)
+                u.clamp_(0.0, 1.0)
+                moment = self.optimizer.state.get(u, {}).get("exp_avg")
+                if moment is not None and bool(at_bound.any()):
+                    moment[at_bound] = 0.0
+
+    def polish(self) -> None:
+        """Score the last iterate and the best iterate of every shorter horizon over the whole
+        window, so the phase returns the best of them if one beats its full-window best (the
+        curriculum's short horizons often land nearest the truth; see the module docstring)."""
+        last = self.phase.last
+        candidates = [BestIterate.snapshot(self.state.vector)]
+        candidates += [self.by_horizon[h] for h in sorted(self.by_horizon, reverse=True)]
+        keep = BestIterate.snapshot(self.state.vector)
+        for candidate in candidates:
+            if candidate.leaves is None:
+                continue
+            candidate.apply(self.state.vector)
+            try:
+                loss = self.fit.window_loss(self.state.vector, last)
+            except SimulationDiverged:
+                continue
+            if math.isfinite(loss) and loss < self.best.loss:
+                log.info(
+                    "identification %s: an iterate beat the best over frames 1..%d "
+                    "(loss %.4g < %.4g)",
+                    self.phase.name,
+                    last,
+                    loss,
+                    self.best.loss,
+                )
+            if math.isfinite(loss):
+                self.best.offer(loss, self.state.vector)
+        keep.apply(self.state.vector)
+        self.by_horizon = {}
 
     def _step_back(self, exc: SimulationDiverged, it: int, h: int) -> bool:
         """After a diverged step: back to an earlier iterate at half the rate (True), or, when
@@ -302,6 +411,7 @@ class _PhaseRun:
             "best_loss": self.best.loss,
             "best_leaves": self.best.leaves,
             "scale": self.scale,
+            "by_horizon": {h: (b.loss, b.leaves) for h, b in self.by_horizon.items()},
         }
 
 

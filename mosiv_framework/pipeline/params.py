@@ -236,6 +236,25 @@ class ParameterVector:
             leaf.requires_grad_(True)
         return cls(dict(families), fixed, velocity, normalized, specs, fixed_terms)
 
+    def move_to_centre(self) -> None:
+        """Move every identified object parameter and the ground friction to the centre of its
+        law's bounds: the geometric centre sqrt(lower * upper) for scale parameters (E of
+        1e3-1e7 Pa starts at 1e5), the midpoint for the others; where a stiffness ceiling lowered
+        the upper bound below that centre, the start is the ceiling. A start that knows nothing
+        of the data or of any generator's ranges (the law defaults sit at the centre of the
+        synthetic generator's paper ranges). Physics-term leaves keep their start."""
+        with torch.no_grad():
+            for key, u in self.normalized.items():
+                if key.startswith("term."):
+                    continue
+                if key == "ground_friction":
+                    law_spec = GROUND_FRICTION
+                else:
+                    owner, name = key.split(".", 1)
+                    law_spec = get_law(self.families[int(owner[3:])]).param(name)
+                centre = centre_value(law_spec)
+                u.copy_(self.specs[key].to_normalized(torch.tensor(centre)).clamp(0.0, 1.0))
+
     def physical(self) -> SimulationParams:
         """The SimulationParams these leaves stand for (differentiable w.r.t. the leaves)."""
         objects = {}
@@ -290,6 +309,13 @@ class ParameterVector:
             for name, values in data.get("terms", {}).items()
         }
         return SimulationParams(objects, v0, torch.tensor(float(data["ground_friction"])), terms)
+
+
+def centre_value(spec: ParamSpec) -> float:
+    """The centre of ``spec``'s bounds: geometric for log-scale parameters, else arithmetic."""
+    if spec.log_scale:
+        return math.sqrt(spec.lower * spec.upper)
+    return 0.5 * (spec.lower + spec.upper)
 
 
 def term_param_specs(name: str) -> dict[str, ParamSpec]:

@@ -45,6 +45,8 @@ IDENTIFY_METHODS = ("gradient", "library")
 VELOCITY_WINDOWS = ("free", "observed")
 #: prototypes the library baseline may pick from: the object's known family, or every family
 LIBRARY_SCOPES = ("family", "all")
+#: where the parameters start: the law defaults, or the centre of each law's bounds
+IDENTIFY_STARTS = ("defaults", "centre")
 
 
 @dataclass
@@ -61,7 +63,18 @@ class IdentifySection:
     stiffness_cfl: cap stiffnesses so the P-wave speed stays below this fraction of one grid
     cell per substep (0: no cap; needs the simulator's ``grid`` and ``substeps`` options);
     silhouette_size: side (pixels) of the square images the silhouette losses compare, the
-    recorded masks area-averaged down to it (capped at the cameras' own size).
+    recorded masks area-averaged down to it (capped at the cameras' own size);
+    start: where the law parameters start: "defaults" (each law's default values) or "centre"
+    (the centre of each law's bounds, geometric for scale parameters such as E, 1e5 Pa for
+    1e3-1e7 Pa, and at most the stiffness ceiling: a start that knows nothing of the data);
+    global_candidates: before the parameter phase, roll out this many scrambled Sobol
+    candidates over all objects' identified parameters jointly, in log space for scale
+    parameters and within the law bounds and stiffness ceilings, and start the descent from
+    the best of them and the start (0: off; see ``mosiv_framework.pipeline.global_search``);
+    global_frames: the last frame those rollouts cover (0: the whole observed window);
+    intervals: after identification, a 95 % interval per identified parameter (a Laplace
+    approximation, or the one-sided bound the data support, or "unconstrained"), stored in
+    identified.json under ``intervals`` (see ``mosiv_framework.pipeline.uncertainty``).
     """
 
     method: str = "gradient"
@@ -93,6 +106,13 @@ class IdentifySection:
     #: the objects (each sweep tries every candidate of one object with the others held fixed)
     library_scope: str = "family"
     library_sweeps: int = 2
+    start: str = "defaults"
+    #: 16 (a power of two, where a scrambled Sobol design puts one candidate in each sixteenth
+    #: of every parameter's range: for E over 1e3-1e7 Pa, one per factor of 1.8); 17 rollouts
+    #: without a tape, the start included
+    global_candidates: int = 16
+    global_frames: int = 0
+    intervals: bool = True
 
     @staticmethod
     def value_problems(values: dict[str, Any]) -> list[str]:
@@ -103,6 +123,7 @@ class IdentifySection:
                 ("method", IDENTIFY_METHODS),
                 ("velocity_window", VELOCITY_WINDOWS),
                 ("library_scope", LIBRARY_SCOPES),
+                ("start", IDENTIFY_STARTS),
             )
             if values.get(key) not in valid
         ]
@@ -137,6 +158,8 @@ IDENTIFY_RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "stiffness_cfl": (0.0, 1.0, "cells a P-wave may cross per substep; 0 = no cap"),
     "silhouette_size": (8, 1024, "the side of the compared silhouettes in pixels"),
     "library_sweeps": (0, None, "coordinate sweeps of the library baseline"),
+    "global_candidates": (0, None, "candidates of the global stage (0 = off)"),
+    "global_frames": (0, None, "last frame of the global stage's rollouts (0 = all observed)"),
 }
 #: rates are exclusive at 0: a zero learning rate never moves
 _POSITIVE = ("velocity_lr", "param_lr")

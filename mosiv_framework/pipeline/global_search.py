@@ -1,0 +1,143 @@
+"""A global look over the parameter space before gradient descent.
+
+The parameter phase is local: Adam through the simulator follows the slope from wherever it
+starts, and a Chamfer or silhouette loss of a contact-rich motion is not convex in the
+stiffnesses over decades (a body too stiff bounces where the recorded one squashes, and the
+loss between is flat or has ridges). ``global_search`` therefore first rolls out a scrambled
+Sobol design of candidates over every object's identified parameters, jointly, inside their
+bounds (the law's ParamSpec bounds, stiffnesses already lowered to the stiffness ceiling, see
+``params.stiffness_ceilings``), and keeps the best: the start competes too, so the stage never
+returns something worse than it was given.
+
+The design lives in the optimiser's normalised coordinates (``ParamSpec.to_normalized``), which
+are log space for scale parameters (stiffnesses, viscosities, yield stresses, densities): 16
+candidates spread E over the whole 1e3-1e7 Pa range rather than clustering in the top decade.
+Rollouts run without a tape over frames ``1..frames``; a candidate the simulator cannot follow
+scores ``inf``. Every candidate and its loss are recorded in the history (phase ``global``,
+keyed ``global_loss`` so loss plots of the gradient phases are not mixed with it).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+
+import torch
+
+from mosiv_framework.errors import SimulationDiverged
+from mosiv_framework.pipeline.params import ParameterVector
+
+log = logging.getLogger(__name__)
+
+#: the history's phase name of the global stage
+PHASE = "global"
+
+
+def searched_keys(vector: ParameterVector) -> list[str]:
+    """The normalised leaves the global stage designs over: every scalar object parameter and
+    the ground friction (physics-term leaves, which may be vectors, keep their start)."""
+    return [
+        key
+        for key, u in sorted(vector.normalized.items())
+        if not key.startswith("term.") and u.numel() == 1
+    ]
+
+
+def sobol_design(n: int, dims: int, *, seed: int) -> torch.Tensor:
+    """``n`` points of a scrambled Sobol sequence in [0, 1]^dims, [n, dims] float32.
+
+    Sobol's balance properties hold for powers of two; other ``n`` are allowed (the design is
+    then the first ``n`` points of the sequence), so scipy's warning about it is silenced."""
+    from scipy.stats import qmc
+
+    engine = qmc.Sobol(d=dims, scramble=True, seed=seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        points = engine.random(n)
+    return torch.as_tensor(points, dtype=torch.float32)
+
+
+def global_search(
+    fit, vector: ParameterVector, *, candidates: int, frames: int, seed: int, history: list
+) -> dict:
+    """Score ``candidates`` Sobol points (and the current leaves) over frames ``1..frames`` and
+    leave ``vector`` at the best of them; appends one history record per candidate.
+
+    Args:
+        fit: a ``phases.Fit`` (simulator, particles, world, targets, objective).
+        vector: the parameter vector, changed in place (velocities are kept).
+        candidates: how many design points (0: nothing is done).
+        frames: the last frame of the rollouts.
+        seed: the scrambling seed (the same seed gives the same design).
+        history: the identification history the records are appended to.
+
+    Returns:
+        ``{"best": index (-1: the start), "best_loss", "start_loss", "losses": [...]}``.
+    """
+    keys = searched_keys(vector)
+    if candidates <= 0 or not keys:
+        return {"best": -1, "best_loss": math.nan, "start_loss": math.nan, "losses": []}
+    start = {key: vector.normalized[key].detach().clone() for key in keys}
+    start_loss = _score(fit, vector, frames)
+    design = sobol_design(candidates, len(keys), seed=seed)
+    best, best_loss, losses = -1, start_loss, []
+    history.append(_record(-1, frames, start_loss, vector))
+    for i, point in enumerate(design):
+        _set(vector, keys, point)
+        loss = _score(fit, vector, frames)
+        losses.append(loss)
+        history.append(_record(i, frames, loss, vector))
+        log.info(
+            "global candidate %d/%d: loss %.4g%s", i + 1, candidates, loss, _short(vector, keys)
+        )
+        if loss < best_loss:
+            best, best_loss = i, loss
+    if best < 0:
+        _set(vector, keys, torch.stack([start[k].reshape(()) for k in keys]))
+    else:
+        _set(vector, keys, design[best])
+    log.info(
+        "global stage: %s (loss %.4g; start %.4g)%s",
+        "kept the start" if best < 0 else f"candidate {best + 1} of {candidates}",
+        best_loss,
+        start_loss,
+        _short(vector, keys),
+    )
+    return {"best": best, "best_loss": best_loss, "start_loss": start_loss, "losses": losses}
+
+
+def _score(fit, vector: ParameterVector, frames: int) -> float:
+    """The objective over frames 1..frames without a tape; inf when the rollout diverges or
+    the loss is not finite."""
+    try:
+        value = fit.window_loss(vector, frames)
+    except SimulationDiverged:
+        return math.inf
+    return value if math.isfinite(value) else math.inf
+
+
+def _set(vector: ParameterVector, keys: list[str], point: torch.Tensor) -> None:
+    with torch.no_grad():
+        for key, u in zip(keys, point):
+            vector.normalized[key].copy_(u.reshape(vector.normalized[key].shape))
+
+
+def _record(index: int, frames: int, loss: float, vector: ParameterVector) -> dict:
+    """A history record of one candidate (index -1: the start)."""
+    return {
+        "phase": PHASE,
+        "candidate": index,
+        "horizon": frames,
+        "global_loss": loss if math.isfinite(loss) else None,
+        "values": vector.to_json(),
+    }
+
+
+def _short(vector: ParameterVector, keys: list[str]) -> str:
+    """``; obj1.E=1.2e+05, ...`` for the log."""
+    parts = []
+    for key in keys:
+        value = float(vector.specs[key].from_normalized(vector.normalized[key].detach()))
+        parts.append(f"{key}={value:.3g}")
+    return "; " + ", ".join(parts)
