@@ -43,6 +43,7 @@ def write_recipe(folder: Path, scene: Path, out: Path, **identify) -> Path:
     recipe = {
         "scene": {
             "path": str(scene),
+            "generate": "if-missing",
             "source": {"name": "example", "n_frames": 6, "n_cameras": 2, "size": 24},
         },
         "reconstructor": {"name": "oracle", "max_points": 200},

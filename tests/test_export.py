@@ -79,6 +79,7 @@ def finished_run(tmp_path_factory):
     raw = {
         "scene": {
             "path": str(tmp / "scene"),
+            "generate": "if-missing",
             "source": {"name": "example", "n_frames": N_FRAMES, "n_cameras": 4, "size": 32},
         },
         "reconstructor": {"name": "oracle", "max_points": 400},

@@ -61,6 +61,7 @@ def make_recipe(tmp_path, registry, **identify):
     raw = {
         "scene": {
             "path": str(tmp_path / "scene"),
+            "generate": "if-missing",
             "source": {"name": "example", "n_frames": 8, "n_cameras": 2, "size": 24},
         },
         "reconstructor": {"name": "oracle", "max_points": 300},

@@ -115,6 +115,7 @@ def test_silhouette_loss_runs_in_the_pipeline(tmp_path, monkeypatch):
     raw = {
         "scene": {
             "path": str(tmp_path / "scene"),
+            "generate": "if-missing",
             "source": {"name": "example", "n_frames": 5, "n_cameras": 2, "size": 32},
         },
         "reconstructor": {"name": "oracle", "max_points": 300},

@@ -90,6 +90,7 @@ def raw_recipe(scene: Path, out: Path, **simulator) -> dict:
     return {
         "scene": {
             "path": str(scene),
+            "generate": "if-missing",
             "source": {"name": "example", "n_frames": 8, "n_cameras": 2, "size": 24},
         },
         "reconstructor": {"name": "oracle", "max_points": 200},

@@ -57,6 +57,7 @@ def finished_run(tmp_path_factory):
     raw = {
         "scene": {
             "path": str(tmp / "scene"),
+            "generate": "if-missing",
             "source": {"name": "example", "n_frames": 6, "n_cameras": 2, "size": 24},
         },
         "reconstructor": {"name": "oracle", "max_points": 200},

@@ -66,6 +66,7 @@ def run(tmp_path_factory) -> Path:
     raw = {
         "scene": {
             "path": str(root / "scene"),
+            "generate": "if-missing",
             "source": {"name": "example", "n_frames": 8, "n_cameras": 2, "size": 24},
         },
         "reconstructor": {"name": "oracle", "max_points": 200},

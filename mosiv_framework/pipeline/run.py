@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from mosiv_framework.errors import ConfigError
+from mosiv_framework.errors import ConfigError, SceneFormatError
 from mosiv_framework.pipeline.evaluate import evaluate_run
 from mosiv_framework.pipeline.formats import recipe_header
 from mosiv_framework.pipeline.identification import check_terms_supported, identify_stage
@@ -48,24 +48,36 @@ def component(section) -> tuple[str, dict]:
 
 
 def generate_scene(scene_section) -> bool:
-    """Generate the scene with ``scene.source`` when ``scene.path`` holds no scene.json;
-    returns whether it did."""
+    """Generate the scene with ``scene.source`` when ``scene.generate`` is "if-missing" and
+    ``scene.path`` holds no scene.json; returns whether it did. Without "if-missing" a missing
+    scene is a ConfigError naming scene.path and how to generate one: a mistyped path must not
+    quietly become a synthetic scene."""
     path = Path(scene_section.path)
     if (path / "scene.json").is_file():
         return False
-    if scene_section.source is None:
-        raise ConfigError(
-            f"scene.path {str(path)!r} holds no scene.json and the recipe names no "
-            f"scene.source to generate one"
+    generate = getattr(scene_section, "generate", None) or "never"
+    if generate == "if-missing" and scene_section.source is not None:
+        name, options = component(scene_section.source)
+        log.info("generating scene with %r into %s", name, path)
+        get_registry().create("scene_source", name, options).generate(path)
+        return True
+    what = "holds no scene.json" if path.exists() else "does not exist"
+    if scene_section.source is not None:
+        how = (
+            f"to generate a scene there with scene.source ({scene_section.source.get('name')}), "
+            "set scene.generate=if-missing"
         )
-    name, options = component(scene_section.source)
-    log.info("generating scene with %r into %s", name, path)
-    get_registry().create("scene_source", name, options).generate(path)
-    return True
+    else:
+        how = (
+            "give the folder of a mosiv-scene/1 scene (`mosiv data synth` and `mosiv data "
+            "import` write one), or name a scene.source and set scene.generate=if-missing"
+        )
+    raise ConfigError(f"scene.path {str(path)!r} {what}; {how}")
 
 
 def ensure_scene(scene_section, run_dir: RunDir | None = None):
-    """Read the scene, generating it first with ``scene.source`` when the folder is missing."""
+    """Read the scene, generating it first with ``scene.source`` when the folder is missing and
+    ``scene.generate`` is "if-missing" (ConfigError for a missing scene otherwise)."""
     generate_scene(scene_section)
     return read_scene(Path(scene_section.path))
 
@@ -77,13 +89,32 @@ def needs_ground_truth(plain: dict) -> bool | None:
     return True if reads_gt else None
 
 
+def no_ground_truth_message(plain: dict, path: Path) -> str:
+    """Why a recipe that reads gt/ cannot run on a scene without it, and what runs instead."""
+    readers = [
+        f"{kind} {plain[kind]['name']!r}"
+        for kind, name in (("reconstructor", "oracle"), ("lifter", "gt-points"))
+        if plain[kind]["name"] == name
+    ]
+    return (
+        f"{path}: no ground truth (gt/), as in every recording; this recipe's "
+        f"{' and '.join(readers)} read the scene's ground truth instead of its videos. "
+        "Run a recipe that reconstructs from the videos: recipes/video_quickstart.yaml (small, "
+        "CPU) or recipes/video_paper.yaml (paper size, GPU), e.g. `mosiv run "
+        f"recipes/video_quickstart.yaml scene.path={path}`"
+    )
+
+
 def prepare_scene(recipe: DictConfig, plain: dict):
     """The scene, generated if needed and validated in full, and the warnings of the recipe's
     stiffness caps in it (an impossible cap raises ConfigError). Nothing of the run is written
     yet, so a scene or recipe the run cannot use leaves no run folder behind."""
     generate_scene(recipe.scene)
     path = Path(plain["scene"]["path"])
-    require_valid_scene(path, need_ground_truth=needs_ground_truth(plain))
+    need_gt = needs_ground_truth(plain)
+    if need_gt and not (path / "gt").is_dir():
+        raise SceneFormatError(no_ground_truth_message(plain, path))
+    require_valid_scene(path, need_ground_truth=need_gt)
     scene = read_scene(path)
     warnings = check_stiffness(plain, world=scene.world, families=scene.materials)
     for warning in warnings:

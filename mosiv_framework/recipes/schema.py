@@ -30,12 +30,28 @@ MULTI_COMPONENT_SECTIONS: dict[str, str] = {"losses": "loss"}
 
 @dataclass
 class SceneSection:
-    """Where the recording is. ``path`` is a ``mosiv-scene/1`` folder. If it does not exist and
-    ``source`` names a registered SceneSource (with its options), the scene is generated there
-    first."""
+    """Where the recording is. ``path`` is a ``mosiv-scene/1`` folder. ``generate``:
+    "if-missing" generates the scene there first with ``source`` (a registered SceneSource and
+    its options) when the folder holds no scene; "never" (the default) makes a missing scene an
+    error, so that a mistyped path is reported rather than filled with a synthetic scene."""
 
     path: str = "scene"
     source: dict[str, Any] | None = None
+    generate: str = "never"
+
+    @staticmethod
+    def value_problems(values: dict[str, Any]) -> list[str]:
+        """Values the type check cannot catch, each naming the key and what is valid."""
+        generate = values.get("generate", "never")
+        if generate not in SCENE_GENERATE:
+            return [f"scene.generate={generate!r}: valid values are {list(SCENE_GENERATE)}"]
+        if generate == "if-missing" and not values.get("source"):
+            return ["scene.generate='if-missing' needs scene.source (what generates the scene)"]
+        return []
+
+
+#: when ``mosiv run`` generates the scene with scene.source: only where none exists, or never
+SCENE_GENERATE = ("if-missing", "never")
 
 
 #: identification methods: continuous gradient refinement (the paper) or the discrete-library
