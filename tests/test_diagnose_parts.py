@@ -12,7 +12,7 @@ import torch
 
 from mosiv_framework.diagnose import split_frames
 from mosiv_framework.diagnose.changepoint import hinge_change_point, mean_shift_change_point
-from mosiv_framework.diagnose.decide import bic, bootstrap_drop, verdict
+from mosiv_framework.diagnose.decide import Evidence, bic, bootstrap_drop, verdict
 from mosiv_framework.diagnose.hypothesise import bic_gain
 from mosiv_framework.diagnose.interval import IntervalOptions, linearised_bootstrap
 from mosiv_framework.diagnose.locate import (
@@ -203,12 +203,17 @@ def test_a_small_consistent_held_out_gain_is_not_worth_naming():
 
 
 def test_verdicts():
-    class E:
-        def __init__(self, accepted):
-            self.accepted = accepted
+    def ev(explains=True, nuisance=True, consistent=True):
+        return Evidence(
+            "wind", 0.5, 0.05, -10.0, explains, True, 1e-6, 3,
+            passes_nuisance=nuisance, passes_consistency=consistent,
+        )  # fmt: skip
 
-    assert verdict(True, [E(True)]) == "missing physics"
-    assert verdict(True, [E(False)]) == "unexplained"
+    assert verdict(True, [ev()]) == "missing physics"
+    # improves the model, but a smooth per-object correction does as well: a discrepancy
+    assert verdict(True, [ev(nuisance=False)]) == "discrepancy"
+    assert verdict(True, [ev(consistent=False)]) == "discrepancy"
+    assert verdict(True, [ev(explains=False)]) == "unexplained"
     assert verdict(False, []) == "no missing physics"
 
 
@@ -1308,7 +1313,10 @@ def test_the_format_field_decides_how_a_diagnosis_is_read():
     assert all(v == () for v in saved_special_cases(versioned).values())
 
     complete = json.loads(_kept_diagnosis("gravity-1", "gravity").read_text())
-    assert set(complete["rule"]) == set(DecideOptions().__dict__)
+    # a file written before the physical-evidence tests lacks only their thresholds; without a
+    # nuisance table or consistency records those tests leave its decision as it was
+    physical = {"nuisance_degree", "nuisance_min_drop", "consistency_level"}
+    assert set(complete["rule"]) | physical == set(DecideOptions().__dict__)
     assert all("special_case_of" in e for e in complete["evidence"])
     as_unversioned = replay_diagnosis(complete)
     as_versioned = replay_diagnosis({**complete, "format": DIAGNOSIS_FORMAT})

@@ -27,8 +27,15 @@ along g is a change of gravity's magnitude: ``candidates.SPECIAL_CASES``) is nam
 explains at least ``min_drop`` of the null's held-out error beyond the special case; otherwise
 the special case, with fewer coefficients, ranks first (``prefer_special_cases``).
 
-Verdicts: "missing physics" (a candidate passed every test), "unexplained" (the residual is above
-the noise floor but no candidate passed), "no missing physics" (the residual is at noise level).
+Then the physical-evidence tests (``physical``): a body force's coefficient must agree across
+objects, and every candidate must beat a per-object smooth correction of the null (the
+nuisance model) on the held-out frames.
+
+Verdicts: "missing physics" (a candidate passed every test), "discrepancy" (a candidate
+improved the model but a generic per-object correction explains as much, or its coefficient
+differs between objects: the model differs from the recording, but no physical effect explains
+it), "unexplained" (the residual is above the noise floor and no candidate improved the
+model), "no missing physics" (the residual is at noise level).
 """
 
 from __future__ import annotations
@@ -43,15 +50,20 @@ from mosiv_framework.diagnose.effect import resolved
 from mosiv_framework.diagnose.locate import object_residuals
 from mosiv_framework.diagnose.model import Fit
 
-VERDICTS = ("missing physics", "unexplained", "no missing physics")
+VERDICTS = ("missing physics", "discrepancy", "unexplained", "no missing physics")
 
 
 @dataclass(frozen=True)
 class DecideOptions:
-    """bootstrap: resamples; block: frames per time block; z: bootstrap standard deviations
+    """The decision rule. Every threshold here must be chosen on a development set (suite
+    entries re-decided with ``mosiv diagnose-suite --replay``), never on the scenes it is
+    reported on.
+
+    bootstrap: resamples; block: frames per time block; z: bootstrap standard deviations
     the held-out drop must exceed; min_drop: the smallest held-out drop (fraction of the
     null's error) worth naming; bic_margin: how far below the null's a candidate's BIC must
-    lie; seed: resampling seed; require_nonzero: see the module docstring."""
+    lie; seed: resampling seed; require_nonzero: see the module docstring; nuisance_degree,
+    nuisance_min_drop, consistency_level: the physical-evidence tests (``physical``)."""
 
     bootstrap: int = 200
     block: int = 2
@@ -64,6 +76,13 @@ class DecideOptions:
     #: accept only a term whose own effect on the fit frames reaches this many resolution
     #: floors (``effect.resolved``); 0, the default, records the effect without testing it
     min_effect: float = 0.0
+    #: degree of the nuisance model's per-object time polynomial (0: no nuisance test)
+    nuisance_degree: int = 2
+    #: the smallest held-out drop over the nuisance model (fraction of its error) that wins;
+    #: the effect-size margin the null is beaten by (``min_drop``)
+    nuisance_min_drop: float = 0.2
+    #: chi-square level of the test that a body force's coefficient agrees across objects
+    consistency_level: float = 0.95
 
 
 def frame_errors(ctx: RunContext, fit_or_traj) -> np.ndarray:
@@ -152,12 +171,24 @@ class Evidence:
     #: where the candidate's prediction diverged (``model.Fit.diverged``): the simulator's
     #: message, the reason its held-out test failed
     diverged: str | None = None
+    #: the coefficient per object and its agreement (``physical.consistency``)
+    consistency: dict | None = None
+    passes_consistency: bool = True
+    #: held-out drop and spread against the nuisance model (``physical.judge_physical``)
+    nuisance_drop: float | None = None
+    nuisance_spread: float | None = None
+    passes_nuisance: bool = True
 
     @property
-    def accepted(self) -> bool:
+    def explains(self) -> bool:
+        """Whether the candidate improves the model (every test but the physical ones)."""
         return (
             self.passes_heldout and self.passes_bic and self.passes_interval and self.passes_effect
         )
+
+    @property
+    def accepted(self) -> bool:
+        return self.explains and self.passes_consistency and self.passes_nuisance
 
     def to_json(self) -> dict:
         return {
@@ -182,6 +213,15 @@ class Evidence:
             "effect": self.effect,
             "passes_effect": self.passes_effect,
             "diverged": self.diverged,
+            "consistency": self.consistency,
+            "passes_consistency": self.passes_consistency,
+            "nuisance_drop": None
+            if self.nuisance_drop is None
+            else finite_or_none(self.nuisance_drop),
+            "nuisance_spread": None
+            if self.nuisance_spread is None
+            else finite_or_none(self.nuisance_spread),
+            "passes_nuisance": self.passes_nuisance,
         }
 
 
@@ -359,7 +399,34 @@ def prefer_special_cases(accepted: list[Evidence], *, min_drop: float) -> list[E
     return order
 
 
+def apply_physical_tests(
+    evidence: list[Evidence],
+    errors: dict[str, np.ndarray],
+    consistencies: dict[str, dict | None],
+    heldout_frames: list[int],
+    options: DecideOptions,
+) -> list[Evidence]:
+    """Record and apply the physical-evidence tests (``physical.judge_physical``) to every
+    candidate that improves the model, against ``errors["nuisance"]`` (if present) and the
+    candidates' ``consistencies`` (name -> ``physical.consistency``); re-ranked."""
+    from mosiv_framework.diagnose.physical import judge_physical
+
+    nuisance = errors.get("nuisance") if options.nuisance_degree > 0 else None
+    null = errors["null"]
+    judged = [f for f in heldout_frames if np.isfinite(null[:, f]).all()]
+    for e in evidence:
+        e.consistency = consistencies.get(e.name, e.consistency)
+        if not e.explains or e.name not in errors:
+            continue
+        e.passes_consistency, e.passes_nuisance, e.nuisance_drop, e.nuisance_spread = (
+            judge_physical(nuisance, errors[e.name], judged, e.consistency, options)
+        )
+    return rank_evidence(evidence, min_drop=options.min_drop)
+
+
 def verdict(significant: bool, evidence: list[Evidence]) -> str:
     if evidence and evidence[0].accepted:
         return VERDICTS[0]
-    return VERDICTS[1] if significant else VERDICTS[2]
+    if not significant:
+        return VERDICTS[3]
+    return VERDICTS[1] if any(e.explains for e in evidence) else VERDICTS[2]

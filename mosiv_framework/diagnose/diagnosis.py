@@ -28,14 +28,18 @@ from mosiv_framework.diagnose.decide import (
     DecideOptions,
     apply_effect_test,
     apply_interval_test,
+    apply_physical_tests,
     decide,
     frame_errors,
     verdict,
 )
+from mosiv_framework.diagnose.discover import discover
 from mosiv_framework.diagnose.effect import measure_effect
+from mosiv_framework.diagnose.equivalence import equivalents, prefer_drag_form
 from mosiv_framework.diagnose.floor import resolution_floor, summarise_floor
 from mosiv_framework.diagnose.hypothesise import choose_refits, regression_estimate, screen
 from mosiv_framework.diagnose.interval import coefficient_interval
+from mosiv_framework.diagnose.kinematics import run_samples
 from mosiv_framework.diagnose.locate import locate
 from mosiv_framework.diagnose.model import (
     RefitOptions,
@@ -44,6 +48,7 @@ from mosiv_framework.diagnose.model import (
     refit,
     replaces,
 )
+from mosiv_framework.diagnose.physical import consistency, nuisance_errors
 from mosiv_framework.diagnose.reidentify import ReidentifyOptions, reidentify
 from mosiv_framework.diagnose.report import write_report
 from mosiv_framework.diagnose.steps import DiagnosisSteps, diagnosis_key
@@ -386,7 +391,25 @@ def _converge_models(plan: _Plan, null, fits: list) -> tuple:
     return null, fits
 
 
-def _judge(plan: _Plan, null, fits: list, rule: DecideOptions) -> dict:
+def _physical(plan: _Plan, location, null, fits: list, evidence, errors, rule) -> tuple:
+    """(evidence, samples): the physical-evidence tests (``physical``) on ``evidence``, with the
+    nuisance model's table added to ``errors``; the residual-acceleration samples of the
+    null on the fit frames, which the equivalences and the discovery read too."""
+    ctx = plan.ctx
+    traj = null.trajectory if null.trajectory is not None else ctx.identified_rollout()
+    samples = run_samples(ctx, traj, frames=plan.fit_frames, regimes=location.regimes)
+    consistencies = {
+        f.name: consistency(f.candidate, samples, level=rule.consistency_level) for f in fits
+    }
+    if rule.nuisance_degree > 0:
+        table = nuisance_errors(ctx, null.trajectory, plan.fit_frames, rule.nuisance_degree)
+        if table is not None:
+            errors["nuisance"] = table
+    evidence = apply_physical_tests(evidence, errors, consistencies, plan.heldout, rule)
+    return evidence, samples
+
+
+def _judge(plan: _Plan, location, null, fits: list, rule: DecideOptions) -> dict:
     """The evidence for each candidate against the null (``decide``), the interval test on
     those passing the held-out and BIC tests, then the own-effect test on those still
     standing; also the error tables, the null's resolution floor and the accepted fit with
@@ -415,8 +438,13 @@ def _judge(plan: _Plan, null, fits: list, rule: DecideOptions) -> dict:
     evidence = apply_effect_test(
         evidence, {n: v for n, v in effects.items() if v is not None}, floor, rule
     )
+    evidence, samples = _physical(plan, location, null, fits, evidence, model_errors, rule)
+    forms = equivalents(evidence, model_errors, samples, ctx.world.gravity, plan.heldout, rule)
+    evidence = prefer_drag_form(evidence, forms.get("drag"))
     accepted = by_name[evidence[0].name] if evidence and evidence[0].accepted else None
     return {
+        "samples": samples,
+        "equivalent": forms,
         "evidence": evidence,
         "errors": model_errors,
         "resolution_floor": floor_raw,
@@ -439,7 +467,7 @@ def _investigate(plan: _Plan, location, rule: DecideOptions) -> dict:
         "fits": fits,
         "skipped_candidates": skipped,
         "null": null,
-        **_judge(plan, null, fits, rule),
+        **_judge(plan, location, null, fits, rule),
     }
 
 
@@ -480,6 +508,15 @@ def diagnose_run(
             null=found["null"],
         )
     result["verdict"] = verdict(location.significant, found["evidence"])
+    result["equivalent"] = found.get("equivalent")
+    if location.significant and result["verdict"] != "missing physics":
+        # what no candidate explains, as a formula of the objects' state (``discover``)
+        up = -torch.tensor(ctx.world.gravity, dtype=torch.float64)
+        result["discovered"] = discover(
+            found["samples"],
+            up=tuple((up / up.norm()).tolist()) if up.norm() > 0 else (0.0, 0.0, 1.0),
+            ground_height=ctx.world.ground_height,
+        )
     result["screening"] = [s.to_json() for s in found["screens"]]
     result["evidence"] = [e.to_json() for e in found["evidence"]]
     result["fits"] = found["fits"]

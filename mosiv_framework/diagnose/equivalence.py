@@ -184,3 +184,58 @@ def indistinguishable(
         if math.isfinite(spread) and abs(diff) <= z * spread:
             out.append({"term": name, "heldout_difference": diff, "spread": spread})
     return out
+
+
+def equivalents(evidence, errors, samples, gravity, heldout, options) -> dict:
+    """What the data pin down about the best candidate that improves the model (accepted or
+    not): {"best", "uniform_acceleration" (``uniform_acceleration``), "drag" (the exponent fit
+    where a drag law improved the model), "equivalent": the terms that cannot be told apart
+    from it: the wind/gravity pair of a uniform acceleration and the candidates that predict
+    the held-out frames as well (``indistinguishable``)}."""
+    explaining = [e for e in evidence if e.explains]
+    if not explaining:
+        return {}
+    best = explaining[0]
+    uniform = uniform_acceleration(best.name, best.value, best.interval, gravity)
+    drag = None
+    if any(e.name in DRAG_TERMS for e in explaining):
+        drag = drag_from_samples(samples)
+    same = indistinguishable(
+        best.name,
+        errors,
+        [e.name for e in explaining],
+        heldout,
+        z=options.z,
+        block=options.block,
+        resamples=options.bootstrap,
+        seed=options.seed,
+    )
+    names = [e["term"] for e in (uniform or {}).get("equivalent", [])]
+    names += [e["term"] for e in same if e["term"] not in names]
+    return {
+        "best": best.name,
+        "uniform_acceleration": uniform,
+        "drag": drag,
+        "indistinguishable": same,
+        "equivalent": [n for n in names if n != best.name] if names else [],
+    }
+
+
+def prefer_drag_form(evidence: list, drag: dict | None) -> list:
+    """``evidence`` with the accepted drag term of the fitted form ("linear drag" or
+    "quadratic drag") moved ahead of the other accepted drag term: the two often pass alike,
+    and the exponent fitted to the residual accelerations is what tells them apart."""
+    if drag is None or drag["form"] not in ("linear drag", "quadratic drag"):
+        return evidence
+    wanted = drag["form"].replace(" ", "_")
+    order = list(evidence)
+    names = [e.name for e in order]
+    if wanted not in names:
+        return order
+    i = names.index(wanted)
+    other = next(
+        (j for j, e in enumerate(order) if e.name in DRAG_TERMS and e.name != wanted), None
+    )
+    if other is not None and other < i and order[i].accepted and order[other].accepted:
+        order.insert(other, order.pop(i))
+    return order

@@ -29,6 +29,7 @@ from mosiv_framework.diagnose.decide import (
     Evidence,
     apply_effect_test,
     apply_interval_test,
+    apply_physical_tests,
     verdict,
     weigh,
 )
@@ -125,6 +126,14 @@ def _redecide(diagnosis: dict, tables: dict, options: DecideOptions) -> list[Evi
     ranked = apply_interval_test(ranked, saved_intervals(diagnosis), options)
     ranked = apply_effect_test(
         ranked, saved_effects(diagnosis), diagnosis.get("resolution_floor_mm2"), options
+    )
+    # the nuisance table and each body force's per-object coefficients, where recorded
+    ranked = apply_physical_tests(
+        ranked,
+        tables,
+        {e["name"]: e.get("consistency") for e in diagnosis["evidence"]},
+        diagnosis["frames"]["heldout"],
+        options,
     )
     saved = {e["name"]: e for e in diagnosis["evidence"]}
     for e in ranked:  # what the fits were: unchanged by a new rule

@@ -225,6 +225,11 @@ def _summary(location: Location, result: dict, observed: int) -> dict:
         # of the own-effect test, recorded so that a replay can apply it
         "resolution_floor_mm2": summarise_floor(result.get("resolution_floor"), result["frames"]),
         "accepted": None,
+        # terms the data cannot tell apart from the best candidate, the uniform acceleration
+        # or drag exponent they pin down (``equivalence.equivalents``)
+        "equivalent": result.get("equivalent") or {},
+        # the open-form law of what no candidate explains (``discover``), where run
+        "discovered": result.get("discovered"),
         # time of this attempt; the steps it took from an earlier, cut-off one (``steps.py``)
         "time_s": result["time_s"],
         "resumed_steps": result.get("resumed_steps", []),
@@ -275,8 +280,18 @@ def _markdown(s: dict) -> str:
     """diagnosis.md: where the model misses, what was left out (if a term was accepted), the
     errors, the evidence and the screening."""
     lines = _where_lines(s["where"], s["verdict"])
+    if s["verdict"] == "discrepancy":
+        lines += [
+            "The model differs from the recording, but no physical effect explains it: a "
+            "per-object smooth correction predicts as well as every candidate that improved "
+            "the model, or the candidate's coefficient differs between objects.",
+            "",
+        ]
     if s["accepted"] is not None:
         lines += _accepted_lines(s["accepted"])
+    lines += _equivalent_lines(s.get("equivalent") or {})
+    if s.get("discovered"):
+        lines += _discovered_lines(s["discovered"])
     lines += _error_lines(s["errors"])
     if s["evidence"]:
         lines += _evidence_lines(s)
@@ -349,6 +364,62 @@ def _accepted_lines(acc: dict) -> list[str]:
     ]
 
 
+def _equivalent_lines(eq: dict) -> list[str]:
+    """The quantity the data pin down and the terms they cannot tell apart."""
+    if not eq:
+        return []
+    lines = ["## Equivalent forms", ""]
+    uniform = eq.get("uniform_acceleration")
+    if uniform:
+        a = ", ".join(f"{x:.3g}" for x in uniform["acceleration"])
+        g = ", ".join(f"{x:.3g}" for x in uniform["gravity"])
+        lines.append(
+            f"A uniform extra acceleration ({a}) m/s^2: equivalently a gravity of ({g}) m/s^2, "
+            f"magnitude {uniform['gravity_magnitude']:.4g} m/s^2"
+            + (
+                " (95 %: {:.4g} to {:.4g})".format(*uniform["gravity_magnitude_interval"])
+                if uniform.get("gravity_magnitude_interval")
+                else ""
+            )
+            + "."
+        )
+    drag = eq.get("drag")
+    if drag:
+        lo, hi = drag["interval"]
+        lines.append(
+            f"Drag a = -c |v|^(p-1) v fitted to the residual accelerations: p = "
+            f"{drag['exponent']:.2f} (95 %: {lo:.2f} to {hi:.2f}), c = {drag['coefficient']:.3g}: "
+            f"{drag['form']}."
+        )
+    if eq.get("equivalent"):
+        lines.append(
+            f"Cannot be told apart from {eq['best']} on these data: "
+            + ", ".join(f"`{n}`" for n in eq["equivalent"])
+            + "."
+        )
+    return lines + [""]
+
+
+def _discovered_lines(found: dict) -> list[str]:
+    """The discovered law per axis with its coefficients' intervals."""
+    lines = [
+        "## Discovered law (sparse regression of the residual accelerations)",
+        "",
+        f"From {found['samples']} samples"
+        + ("" if found["node_local"] else " (uses other objects or contact: not node-local)")
+        + ":",
+        "",
+    ]
+    for axis in found["axes"].values():
+        terms = "; ".join(
+            f"{t['feature']}: {t['coefficient']:.3g} [{t['interval'][0]:.3g}, "
+            f"{t['interval'][1]:.3g}]"
+            for t in axis["terms"]
+        )
+        lines.append(f"- `{axis['formula']}`" + (f" ({terms})" if terms else ""))
+    return lines + [""]
+
+
 def _error_lines(errors: dict) -> list[str]:
     lines = [
         "## Errors (mean Chamfer against the run's targets, mm^2)",
@@ -380,6 +451,7 @@ def _evidence_lines(s: dict) -> list[str]:
     ]
     lines += [_evidence_row(e) for e in s["evidence"]]
     lines.append("")
+    lines += _physical_lines(s["evidence"])
     # why a candidate whose prediction blew up was not accepted, in the simulator's words
     diverged = [e for e in s["evidence"] if e.get("diverged")]
     lines += [
@@ -387,6 +459,28 @@ def _evidence_lines(s: dict) -> list[str]:
         for e in diverged
     ]
     return lines + ([""] if diverged else [])
+
+
+def _physical_lines(evidence: list[dict]) -> list[str]:
+    """The physical-evidence tests of the candidates that improved the model."""
+    tested = [e for e in evidence if e.get("nuisance_drop") is not None or e.get("consistency")]
+    if not tested:
+        return []
+    lines = [
+        "Physical evidence: the held-out drop against the nuisance model (the null with a "
+        "smooth per-object correction) and the agreement of the coefficient across objects.",
+        "",
+        "| candidate | drop vs nuisance | bootstrap sd | beats nuisance | objects agree |",
+        "|---|---|---|---|---|",
+    ]
+    for e in tested:
+        c = e.get("consistency") or {}
+        agree = {True: "yes", False: "no", None: "-"}[c.get("consistent")]
+        lines.append(
+            f"| {e['name']} | {_pct(e.get('nuisance_drop'))} | {_pct(e.get('nuisance_spread'))} "
+            f"| {'pass' if e.get('passes_nuisance', True) else 'fail'} | {agree} |"
+        )
+    return lines + [""]
 
 
 def _how_judged(s: dict) -> str:

@@ -169,7 +169,8 @@ def score_entry(entry: Entry, diagnosis: dict, effects: list[dict]) -> Score:
     if not entry.conceal:
         correct = accepted is None
     elif entry.exclude:
-        correct = diagnosis["verdict"] == "unexplained"
+        # both verdicts say the residual is real and no candidate in the library explains it
+        correct = diagnosis["verdict"] in ("unexplained", "discrepancy")
     else:
         correct = accepted is not None and candidate_kind(accepted["name"]) == entry.kind
     coef = None
