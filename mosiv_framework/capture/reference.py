@@ -1,0 +1,98 @@
+"""The ground truth of a benchmark capture, carried into the scene imported from it.
+
+``mosiv data capture --with-reference`` copies the scene's gt/ beside the capture (in the
+scene's own frame: metres, z up, frame 0 = the scene's first frame). An import puts the scene in
+a frame of its own: the capture's rig frame (``capture.json``: units, up) mapped by the import's
+alignment (``import.json``: scale, rotation, offset, the ground fitted or given) and cut to a
+common time base (``import.json``: frames dropped per camera; ``capture.json``: frames each
+camera started late). ``attach_reference`` composes both and writes the reference as the imported
+scene's gt/, so ``mosiv run`` scores an imported scene as it scores the original one: positions
+and initial velocities transformed (a velocity is left out where the imported scene starts
+later than the original: it was not recorded there), material parameters (frame-free) copied.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from mosiv_framework.capture.align import Alignment, RigFrame
+from mosiv_framework.capture.common import CaptureError
+
+
+def reference_transform(capture: dict, record: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(A, b) with imported point = A @ original point + b, from capture.json and import.json.
+
+    A original point p (m, z up) is ``rig.scale * M p`` in the rig's world; the import maps a
+    rig point q to ``alignment.scale * Q q + offset``."""
+    rig = RigFrame(capture["units"], capture["up"])
+    a = record["alignment"]
+    align = Alignment(float(a["scale"]), np.asarray(a["rotation"]), np.asarray(a["offset"]))
+    linear = align.scale * rig.scale * align.rotation @ rig.rotation
+    return linear, align.offset.copy()
+
+
+def reference_shift(capture: dict, record: dict) -> int:
+    """The original frame that the imported scene's frame 0 shows: each camera's late start
+    plus the frames the import dropped from it, which must agree over the cameras."""
+    starts = {
+        c["id"]: int(c["start_frame"]) + int(record["offsets"][c["id"]]) for c in capture["cameras"]
+    }
+    if len(set(starts.values())) != 1:
+        raise CaptureError(
+            f"the import's time offsets do not undo the capture's late starts: the imported "
+            f"frame 0 shows original frames {starts} (camera -> frame); give --offsets"
+        )
+    return next(iter(starts.values()))
+
+
+def attach_reference(capture_dir: str | Path, scene_dir: str | Path) -> Path:
+    """Write ``capture_dir/reference_gt`` into ``scene_dir/gt`` in the imported frame; returns
+    the gt folder. CaptureError when the capture has no reference, the scene already has gt/,
+    or the objects (ids, materials) or frames do not correspond."""
+    capture_dir, scene_dir = Path(capture_dir), Path(scene_dir)
+    capture = json.loads((capture_dir / "capture.json").read_text())
+    record = json.loads((scene_dir / "import.json").read_text())
+    scene = json.loads((scene_dir / "scene.json").read_text())
+    source = capture_dir / capture.get("reference_gt", {}).get("path", "reference_gt")
+    if not (source / "points.npz").is_file():
+        raise CaptureError(f"{capture_dir}: no reference_gt/ (write it with --with-reference)")
+    gt = scene_dir / "gt"
+    if gt.exists():
+        raise CaptureError(f"{gt}: exists already; nothing is overwritten")
+    linear, offset = reference_transform(capture, record)
+    shift, n = reference_shift(capture, record), int(scene["n_frames"])
+    params = json.loads((source / "params.json").read_text())
+    materials = {int(o["id"]): o["material"] for o in scene["objects"]}
+    truth = {int(o["id"]): o["material"] for o in params["objects"]}
+    if materials != truth:
+        raise CaptureError(
+            f"{scene_dir}: objects {materials} (id -> material) do not match the reference's "
+            f"{truth}; give the materials in the order of the original object ids"
+        )
+    with np.load(source / "points.npz", allow_pickle=False) as data:
+        points = {key: data[key] for key in data.files}
+    if any(len(p) < shift + n for p in points.values()):
+        raise CaptureError(f"{source}: fewer than {shift + n} frames; not this capture's scene")
+    moved = {
+        key: (p[shift : shift + n].astype(np.float64) @ linear.T + offset).astype(np.float32)
+        for key, p in points.items()
+    }
+    for obj in params["objects"]:
+        if "initial_velocity" not in obj:
+            continue
+        if shift:  # the velocity at a later frame is not recorded (gravity, contacts)
+            del obj["initial_velocity"]
+        else:  # velocities see the linear part only
+            obj["initial_velocity"] = (linear @ np.asarray(obj["initial_velocity"])).tolist()
+    gt.mkdir()
+    np.savez(gt / "points.npz", **moved)
+    params["reference"] = {"capture": str(capture_dir), "frame_shift": shift}
+    (gt / "params.json").write_text(json.dumps(params, indent=2) + "\n")
+    for extra in ("effects.json",):
+        if (source / extra).is_file():
+            shutil.copy2(source / extra, gt / extra)
+    return gt
