@@ -69,9 +69,11 @@ def particle_grid(
 ) -> ParticleGrid:
     """P2G of particles (positions [N, 3] m, sigma [N] 1/m, colors [N, 3], object_ids [N] in
     1..n_objects, volumes [N] m^3) onto a grid of spacing ``cell`` around them."""
-    with torch.no_grad():  # the box moves with the particles but is not differentiated
-        lower = positions.min(dim=0).values
-        upper = positions.max(dim=0).values
+    with torch.no_grad():
+        # the box follows the particles but snaps to a world-fixed lattice of spacing cell, so
+        # it is piecewise constant in the positions and their gradient is the whole story
+        lower = torch.floor(positions.min(dim=0).values / cell) * cell
+        upper = torch.ceil(positions.max(dim=0).values / cell) * cell
     box = GridBox.around(lower.detach(), upper.detach(), cell, margin=kernel_reach(kernel) + 1)
     weight = sigma * volumes / cell**3  # [N]
     onehot = torch.nn.functional.one_hot(object_ids.long() - 1, n_objects).to(positions)
