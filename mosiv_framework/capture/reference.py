@@ -66,21 +66,28 @@ def attach_reference(capture_dir: str | Path, scene_dir: str | Path) -> Path:
     linear, offset = reference_transform(capture, record)
     shift, n = reference_shift(capture, record), int(scene["n_frames"])
     params = json.loads((source / "params.json").read_text())
-    materials = {int(o["id"]): o["material"] for o in scene["objects"]}
-    truth = {int(o["id"]): o["material"] for o in params["objects"]}
-    if materials != truth:
-        raise CaptureError(
-            f"{scene_dir}: objects {materials} (id -> material) do not match the reference's "
-            f"{truth}; give the materials in the order of the original object ids"
-        )
     with np.load(source / "points.npz", allow_pickle=False) as data:
         points = {key: data[key] for key in data.files}
     if any(len(p) < shift + n for p in points.values()):
         raise CaptureError(f"{source}: fewer than {shift + n} frames; not this capture's scene")
     moved = {
-        key: (p[shift : shift + n].astype(np.float64) @ linear.T + offset).astype(np.float32)
+        int(key.removeprefix("obj_")): (
+            p[shift : shift + n].astype(np.float64) @ linear.T + offset
+        ).astype(np.float32)
         for key, p in points.items()
     }
+    ids = match_objects(scene_dir, moved)  # imported id -> reference id
+    materials = {int(o["id"]): o["material"] for o in scene["objects"]}
+    truth = {int(o["id"]): o for o in params["objects"]}
+    wrong = {k: (materials[k], truth[r]["material"]) for k, r in ids.items()
+             if materials[k] != truth[r]["material"]}  # fmt: skip
+    if wrong:
+        raise CaptureError(
+            f"{scene_dir}: imported objects have other materials than the reference objects "
+            f"they show (id: (imported, reference)): {wrong}; give the materials in the "
+            "segmenter's order (--objects FILE names them by id)"
+        )
+    params["objects"] = [dict(truth[r], id=k) for k, r in sorted(ids.items())]
     for obj in params["objects"]:
         if "initial_velocity" not in obj:
             continue
@@ -88,11 +95,51 @@ def attach_reference(capture_dir: str | Path, scene_dir: str | Path) -> Path:
             del obj["initial_velocity"]
         else:  # velocities see the linear part only
             obj["initial_velocity"] = (linear @ np.asarray(obj["initial_velocity"])).tolist()
+    params["reference"] = {
+        "capture": str(capture_dir),
+        "frame_shift": shift,
+        "object_ids": {str(k): r for k, r in ids.items()},  # imported -> reference
+    }
     gt.mkdir()
-    np.savez(gt / "points.npz", **moved)
-    params["reference"] = {"capture": str(capture_dir), "frame_shift": shift}
+    np.savez(gt / "points.npz", **{f"obj_{k}": moved[r] for k, r in ids.items()})
     (gt / "params.json").write_text(json.dumps(params, indent=2) + "\n")
     for extra in ("effects.json",):
         if (source / extra).is_file():
             shutil.copy2(source / extra, gt / extra)
     return gt
+
+
+def match_objects(scene_dir: Path, points: dict[int, np.ndarray]) -> dict[int, int]:
+    """Imported object id -> reference object id, the one whose points (imported frame) fall in
+    that object's masks at the first frame, over every camera. CaptureError unless the matching
+    is one to one with most points inside (an import's segmenter numbers objects its own way)."""
+    import torch
+
+    from mosiv_framework.scene import read_scene
+
+    scene = read_scene(scene_dir)
+    refs = sorted(points)
+    if len(refs) != len(scene.object_ids):
+        raise CaptureError(
+            f"{scene_dir}: {len(scene.object_ids)} objects imported, the reference has {len(refs)}"
+        )
+    hits = np.zeros((len(scene.object_ids), len(refs)))
+    for cam in scene.cameras:
+        mask = np.asarray(scene.mask(cam.id, 0))
+        for j, ref in enumerate(refs):
+            uv, z = cam.project(torch.from_numpy(points[ref][0].astype(np.float64)))
+            px = np.floor(uv.numpy()).astype(int)
+            inside = (px >= 0).all(1) & (px[:, 0] < cam.width) & (px[:, 1] < cam.height)
+            px = px[inside & (z.numpy() > 0)]
+            labels = mask[px[:, 1], px[:, 0]]
+            for i, oid in enumerate(scene.object_ids):
+                hits[i, j] += float(np.mean(labels == oid)) if labels.size else 0.0
+    hits /= len(scene.cameras)
+    best = {oid: refs[int(np.argmax(hits[i]))] for i, oid in enumerate(scene.object_ids)}
+    overlap = hits.max(axis=1)
+    if len(set(best.values())) != len(best) or np.any(overlap < 0.5):
+        raise CaptureError(
+            f"{scene_dir}: imported objects and reference objects do not correspond (imported "
+            f"id -> reference id by mask overlap: {best}, overlaps {np.round(overlap, 2)})"
+        )
+    return best
