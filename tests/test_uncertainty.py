@@ -83,6 +83,14 @@ def test_coverage_marks_in_the_metrics():
     assert errors["1"]["E"]["covered"] is False
     assert errors["1"]["nu"]["covered"] is True and errors["1"]["friction"]["covered"] is True
     assert "covered" not in errors["1"]["rho"]  # no interval, no mark
+    # a stiffness of a second object, identified in the gauge where object 1's density is 900
+    # (truth 1000): its interval [1e4, 2e4] is [1.11e4, 2.22e4] in the truth's gauge
+    errors["2"] = {
+        "E": {"value": 1.5e4, "true": 2.1e4, "rel_error": 0.3, "rel_error_gauge_free": 0.2}
+    }
+    identified["intervals"]["obj2"] = {"E": {"low": 1e4, "high": 2e4, "kind": "two-sided"}}
+    mark_coverage(errors, identified)
+    assert errors["2"]["E"]["covered"] is True
     assert covered({"low": 1.0, "high": 2.0}, 2.0) and not covered({"low": 1.0, "high": None}, 0.5)
     out: dict = {}
     attach_intervals([{"phase": "params"}, {"phase": "intervals", "intervals": {"x": 1}}], out)

@@ -4,7 +4,7 @@ The parameter phase is local: Adam through the simulator follows the slope from 
 starts, and a Chamfer or silhouette loss of a contact-rich motion is not convex in the
 stiffnesses over decades (a body too stiff bounces where the recorded one squashes, and the
 loss between is flat or has ridges). ``global_search`` therefore first rolls out a scrambled
-Sobol design of candidates over every object's identified parameters, jointly, inside their
+Sobol design of candidates over every object's identified scale parameters, jointly, inside their
 bounds (the law's ParamSpec bounds, stiffnesses already lowered to the stiffness ceiling, see
 ``params.stiffness_ceilings``), and keeps the best: the start competes too, so the stage never
 returns something worse than it was given.
@@ -12,6 +12,14 @@ returns something worse than it was given.
 The design lives in the optimiser's normalised coordinates (``ParamSpec.to_normalized``), which
 are log space for scale parameters (stiffnesses, viscosities, yield stresses, densities): 16
 candidates spread E over the whole 1e3-1e7 Pa range rather than clustering in the top decade.
+Only scale parameters are searched: they span decades, so a start can be far off in them; the
+bounded dimensionless ones (Poisson ratios, friction coefficients, angles) keep their start.
+Drawing those too made the design so sparse that the best candidate's low loss came from a
+lucky mix (a Poisson ratio of 0.015 with a friction of 1.7) in a basin the descent could not
+leave: on the quickstart scene the future Chamfer distance went from 132 to 3090 mm^2 (with
+scale parameters only, the stage keeps the law defaults there). A candidate's loss is still only
+a guess at its basin: a yield stress above every stress reached fits a short window well and has
+no gradient to come back with (see ``identify.global_candidates`` in the recipe schema).
 Rollouts run without a tape over frames ``1..frames``; a candidate the simulator cannot follow
 scores ``inf``. Every candidate and its loss are recorded in the history (phase ``global``,
 keyed ``global_loss`` so loss plots of the gradient phases are not mixed with it).
@@ -35,12 +43,12 @@ PHASE = "global"
 
 
 def searched_keys(vector: ParameterVector) -> list[str]:
-    """The normalised leaves the global stage designs over: every scalar object parameter and
-    the ground friction (physics-term leaves, which may be vectors, keep their start)."""
+    """The normalised leaves the global stage designs over: every log-scale object parameter
+    (physics-term leaves, which may be vectors, and linear parameters keep their start)."""
     return [
         key
         for key, u in sorted(vector.normalized.items())
-        if not key.startswith("term.") and u.numel() == 1
+        if key.startswith("obj") and u.numel() == 1 and vector.specs[key].log_scale
     ]
 
 

@@ -159,10 +159,32 @@ def attach_intervals(history: list[dict], identified_json: dict) -> None:
 
 def mark_coverage(param_error: dict | None, identified_json: dict) -> None:
     """Add ``covered`` (whether the interval holds the truth) to each parameter's entry of
-    metrics.json's ``param_error`` that has an interval in identified.json."""
+    metrics.json's ``param_error`` that has an interval in identified.json.
+
+    Parameters with a ``rel_error_gauge_free`` (Pa, Pa*s, kg/m^3) are identified in the gauge
+    where the first object's density keeps its given value (``params.GAUGE_PARAM``); their
+    interval is scaled into the truth's gauge (by true / identified density of that object)
+    before the comparison, as their gauge-free error is."""
     intervals = identified_json.get("intervals") or {}
+    gauge = _gauge(param_error or {})
     for obj, errors in (param_error or {}).items():
         for name, err in errors.items():
             interval = intervals.get(f"obj{obj}", {}).get(name)
-            if interval is not None and isinstance(err, dict) and "true" in err:
-                err["covered"] = covered(interval, float(err["true"]))
+            if interval is None or not isinstance(err, dict) or "true" not in err:
+                continue
+            if "rel_error_gauge_free" in err and gauge is not None:
+                interval = {
+                    side: None if interval.get(side) is None else interval[side] * gauge
+                    for side in ("low", "high")
+                }
+            err["covered"] = covered(interval, float(err["true"]))
+
+
+def _gauge(param_error: dict) -> float | None:
+    """True / identified density of the lowest-id object in ``param_error`` (None if absent)."""
+    if not param_error:
+        return None
+    rho = param_error[min(param_error, key=int)].get("rho")
+    if not rho or not rho.get("value"):
+        return None
+    return float(rho["true"]) / float(rho["value"])
