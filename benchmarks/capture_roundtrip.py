@@ -49,6 +49,8 @@ QUICK = [
 ]
 #: at 48 px an object covers a few pixels: no morphological cleanup, no minimum hull size
 QUICK_SEGMENTER = ["open_px=0", "close_px=0", "min_voxels=1"]
+#: domain margin of the import, a fraction of the objects' hull size (see capture_and_import)
+MARGIN = 0.7
 #: the rig: units, up axis, lens (k1, k2: a mild barrel lens) and one camera starting late
 UNITS, UP, LENS, LATE = "cm", "y", "-0.05,0.01", ("cam_01", 1)
 
@@ -93,6 +95,10 @@ def capture_and_import(scene: Path, out: Path, segmenter: list[str] = ()) -> Pat
     # the observed window ends at the original's last observed frame
     argv += ["--observed", str(original.observed_frames - late)]
     argv += [f"--segmenter-option={option}" for option in segmenter]
+    # the visual hull is tight around the objects (0.41 m for the quick scene): a margin of
+    # 0.7 of its size brings the domain near the synthetic scene's 0.8 m, so the simulator
+    # grid, and the stiffness cap it implies, match the direct run's
+    argv += ["--margin", str(MARGIN)]
     if main(argv) != 0:
         raise RuntimeError(f"mosiv {' '.join(argv)} failed")
     attach_reference(capture, imported)
