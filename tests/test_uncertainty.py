@@ -18,7 +18,7 @@ from mosiv_framework.pipeline.uncertainty import (
     Z95,
     attach_intervals,
     covered,
-    laplace_interval,
+    laplace_intervals,
     mark_coverage,
 )
 from mosiv_framework.registry import get_registry
@@ -27,38 +27,76 @@ from mosiv_framework.types import World
 FPS = 24.0
 
 
-def quadratic(floor: float, curvature: float, centre: float):
-    return lambda u: floor + 0.5 * curvature * (u - centre) ** 2
+def quadratic(floor: float, hessian, centre):
+    """u -> (L, dL/du) of L = floor + (u - centre)^T H (u - centre) / 2."""
+    h = torch.tensor(hessian, dtype=torch.float64)
+    c = torch.tensor(centre, dtype=torch.float64)
+
+    def loss_grad(u):
+        r = u.double() - c
+        return float(floor + 0.5 * r @ h @ r), h @ r
+
+    return loss_grad
 
 
 @pytest.mark.parametrize("u0", [0.5, 0.01, 0.995])  # central and both one-sided stencils
 def test_laplace_interval_of_a_quadratic_loss_is_the_analytic_one(u0):
     # L = a + h (u - u0)^2 / 2 averaging n residuals of variance a: the posterior of u has
     # standard deviation sqrt(2 a / (n h)); with a = 1e-4, h = 4, n = 50: 1e-3
-    got = laplace_interval(quadratic(1e-4, 4.0, u0), u0, n=50)
+    (got,) = laplace_intervals(
+        quadratic(1e-4, [[4.0]], [u0]), torch.tensor([u0], dtype=torch.float64), n=50
+    )
     half = Z95 * math.sqrt(2 * 1e-4 / (50 * 4.0))
-    assert got["curvature"] == pytest.approx(4.0, rel=1e-6)
     assert got["kind"] == "two-sided"
     assert got["low"] == pytest.approx(u0 - half, rel=1e-6)
     assert got["high"] == pytest.approx(u0 + half, rel=1e-6)
 
 
+def test_correlated_parameters_get_their_marginal_interval():
+    # two coordinates that trade off: H = [[4, 3], [3, 4]]; the marginal variance of each is
+    # (2 a / n) [H^-1]_ii = (2 a / n) 4 / 7, wider than the conditional (2 a / n) / 4
+    u0 = [0.4, 0.6]
+    found = laplace_intervals(
+        quadratic(1e-3, [[4.0, 3.0], [3.0, 4.0]], u0), torch.tensor(u0, dtype=torch.float64), n=20
+    )
+    for got, centre in zip(found, u0):
+        half = Z95 * math.sqrt(2 * 1e-3 / 20 * 4 / 7)
+        assert got["kind"] == "two-sided"
+        assert got["high"] - centre == pytest.approx(half, rel=1e-6)
+        assert centre - got["low"] == pytest.approx(half, rel=1e-6)
+    # a perfect trade-off (H singular): neither is pinned down, a third, separate one is
+    found = laplace_intervals(
+        quadratic(1e-3, [[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 4.0]], [0.5] * 3),
+        torch.tensor([0.5] * 3, dtype=torch.float64),
+        n=20,
+    )
+    assert [got["kind"] for got in found] == ["unconstrained", "unconstrained", "two-sided"]
+
+
 def test_an_interval_past_a_bound_keeps_only_the_side_the_data_support():
     # half-width 1.96 * sqrt(2 * 1e-2 / (10 * 0.5)) = 0.124
     half = Z95 * math.sqrt(2 * 1e-2 / (10 * 0.5))
-    near_top = laplace_interval(quadratic(1e-2, 0.5, 0.95), 0.95, n=10)
-    assert near_top["kind"] == "lower-bound" and near_top["high"] is None
-    assert near_top["low"] == pytest.approx(0.95 - half, rel=1e-6)
-    near_bottom = laplace_interval(quadratic(1e-2, 0.5, 0.05), 0.05, n=10)
-    assert near_bottom["kind"] == "upper-bound" and near_bottom["low"] is None
-    assert near_bottom["high"] == pytest.approx(0.05 + half, rel=1e-6)
-    wide = laplace_interval(quadratic(1.0, 0.5, 0.5), 0.5, n=1)  # half-width 3.9
-    assert wide["kind"] == "unconstrained"
+    top = laplace_intervals(
+        quadratic(1e-2, [[0.5]], [0.95]), torch.tensor([0.95], dtype=torch.float64), n=10
+    )[0]
+    assert top["kind"] == "lower-bound" and top["high"] is None
+    assert top["low"] == pytest.approx(0.95 - half, rel=1e-6)
+    bottom = laplace_intervals(
+        quadratic(1e-2, [[0.5]], [0.05]), torch.tensor([0.05], dtype=torch.float64), n=10
+    )[0]
+    assert bottom["kind"] == "upper-bound" and bottom["low"] is None
+    assert bottom["high"] == pytest.approx(0.05 + half, rel=1e-6)
+    wide = laplace_intervals(
+        quadratic(1.0, [[0.5]], [0.5]), torch.tensor([0.5], dtype=torch.float64), n=1
+    )[0]
+    assert wide["kind"] == "unconstrained"  # half-width 3.9: past both bounds
 
 
 def test_a_flat_loss_is_unconstrained():
-    got = laplace_interval(lambda u: 3e-5, 0.4, n=10)
-    assert got["kind"] == "unconstrained" and got["low"] is None and got["high"] is None
+    found = laplace_intervals(
+        quadratic(3e-5, [[0.0]], [0.4]), torch.tensor([0.4], dtype=torch.float64), n=10
+    )
+    assert found == [{"low": None, "high": None, "kind": "unconstrained"}]
 
 
 def test_coverage_marks_in_the_metrics():

@@ -1,24 +1,25 @@
 """How well the recording pins down each identified parameter: a 95 % interval per parameter.
 
-A Laplace approximation in the optimiser's coordinate of each parameter (its normalised
-coordinate, affine in log(value) for scale parameters, so the interval is symmetric in log
-space): near the identified value u0 the loss is L(u) ~ L0 + H (u - u0)^2 / 2. Read as the
-mean of n Gaussian residuals of variance sigma^2, the negative log-likelihood is
-n L / (2 sigma^2); with sigma^2 estimated by the residual level L0 it has curvature n H / (2 L0),
-so the posterior standard deviation of u is sqrt(2 L0 / (n H)) and the 95 % interval is
-u0 +- 1.96 of them. The curvature H comes from central finite differences of the loss along
-each coordinate (no tape, two rollouts per parameter; one-sided near a bound), the other
-parameters held at their identified values, so correlations between parameters are ignored:
-the interval is conditional on them.
+A Laplace approximation in the optimiser's coordinates (each parameter's normalised coordinate,
+affine in log(value) for scale parameters, so intervals are symmetric in log space): near the
+identified point u0 the loss is L(u) ~ L0 + (u - u0)^T H (u - u0) / 2. Read as the mean of n
+Gaussian residuals of variance sigma^2, the negative log-likelihood is n L / (2 sigma^2); with
+sigma^2 estimated by the residual level L0 its Hessian is n H / (2 L0), so the posterior
+covariance of u is (2 L0 / n) H^-1 and each parameter's 95 % interval is u0_i +- 1.96
+sqrt((2 L0 / n) [H^-1]_ii): the marginal interval, which widens where parameters trade off
+against each other (a stiffer body with a larger Poisson ratio moving much like a softer one).
+H comes from central finite differences of the loss's gradient (autograd through the simulator,
+1 + 2 d backward rollouts for d parameters; one-sided near a bound), symmetrised.
 
 n counts the independent residuals. The points of one body move together, so their distances
 are far from independent; each (observed frame, object) pair counts as one residual. This is
 conservative (wider) when the misfit is noise, and an honest width when the misfit is a bias.
 
-Where the curvature vanishes (the loss does not change along the coordinate, e.g. a ground
-friction no sliding ever tests) the parameter is ``unconstrained``; where the interval runs
-past one of the parameter's bounds, only the other side is supported by the data: ``E >= x``
-(``lower-bound``, ``high`` None) or ``E <= x`` (``upper-bound``, ``low`` None).
+A parameter along which the loss does not change (zero curvature, e.g. a yield stress above
+every stress the motion reaches) is ``unconstrained``; so is one with weight on a direction of
+(near) zero or negative curvature, whose marginal variance is then unbounded. Where an interval
+runs past one of the parameter's bounds, only the other side is supported by the data:
+``E >= x`` (``lower-bound``, ``high`` None) or ``E <= x`` (``upper-bound``, ``low`` None).
 """
 
 from __future__ import annotations
@@ -36,55 +37,84 @@ INTERVALS_PHASE = "intervals"
 Z95 = 1.959963984540054
 #: finite-difference step in normalised coordinates (2 % of the range: 20 % in E over 1e3-1e7 Pa)
 STEP = 0.02
-#: a loss change below this fraction of the loss (or of 1e-12 absolute) is no curvature
+#: a loss change along a coordinate below this fraction of the loss is no curvature
 FLAT = 1e-6
+#: eigenvalues of H below this fraction of the largest count as zero curvature
+RANK_TOL = 1e-9
+
+LossGrad = Callable[[torch.Tensor], tuple[float, torch.Tensor]]
 
 
-def laplace_interval(
-    loss: Callable[[float], float],
-    u0: float,
-    *,
-    n: int,
-    step: float = STEP,
-    l0: float | None = None,
-) -> dict:
-    """The Laplace 95 % interval of the coordinate ``u`` in [0, 1] around ``u0``.
+def finite_difference_hessian(
+    loss_grad: LossGrad, u0: torch.Tensor, *, step: float = STEP
+) -> tuple[float, torch.Tensor]:
+    """(L(u0), H): the Hessian from central differences of the gradient, one-sided (pointing
+    into [0, 1]) where a central step would leave it; symmetrised. float64 throughout."""
+    u0 = u0.double()
+    l0, g0 = loss_grad(u0.clone())
+    d = u0.numel()
+    hessian = torch.zeros(d, d, dtype=torch.float64)
+    for i in range(d):
+        e = torch.zeros(d, dtype=torch.float64)
+        e[i] = step
+        if u0[i] - step >= 0.0 and u0[i] + step <= 1.0:
+            hessian[i] = (loss_grad(u0 + e)[1].double() - loss_grad(u0 - e)[1].double()) / (
+                2 * step
+            )
+        else:
+            sign = 1.0 if u0[i] + step <= 1.0 else -1.0
+            hessian[i] = (loss_grad(u0 + sign * e)[1].double() - g0.double()) / (sign * step)
+    return l0, 0.5 * (hessian + hessian.T)
+
+
+def laplace_intervals(
+    loss_grad: LossGrad, u0: torch.Tensor, *, n: int, step: float = STEP
+) -> list[dict]:
+    """The marginal Laplace 95 % interval of each coordinate of ``u`` in [0, 1]^d around u0.
 
     Args:
-        loss: u -> the loss with the coordinate set to u (others held).
-        u0: the identified coordinate.
+        loss_grad: u -> (loss, gradient [d]) at u (a diverged rollout: inf, NaN gradient).
+        u0: the identified coordinates, [d].
         n: the number of independent residuals the loss averages.
         step: the finite-difference step in u.
-        l0: ``loss(u0)`` if already known (saves a rollout).
 
     Returns:
-        ``{"low", "high", "kind", "curvature", "loss"}`` in u: kind ``two-sided``,
-        ``lower-bound`` (``high`` None), ``upper-bound`` (``low`` None) or ``unconstrained``
-        (both None).
+        Per coordinate ``{"low", "high", "kind"}`` in u: kind ``two-sided``, ``lower-bound``
+        (``high`` None), ``upper-bound`` (``low`` None) or ``unconstrained`` (both None).
     """
-    l0 = loss(u0) if l0 is None else l0
-    if u0 - step >= 0.0 and u0 + step <= 1.0:
-        lo, hi = loss(u0 - step), loss(u0 + step)
-        curvature = (hi - 2.0 * l0 + lo) / step**2
-        change = max(abs(hi - l0), abs(lo - l0))
-    else:  # one-sided second difference, pointing into the range
-        d = step if u0 + 2 * step <= 1.0 else -step
-        l1, l2 = loss(u0 + d), loss(u0 + 2 * d)
-        curvature = (l2 - 2.0 * l1 + l0) / step**2
-        change = max(abs(l1 - l0), abs(l2 - l0))
-    out = {"low": None, "high": None, "kind": "unconstrained", "curvature": curvature, "loss": l0}
-    flat = change <= max(FLAT * abs(l0), 1e-12)
-    if not (math.isfinite(curvature) and math.isfinite(l0)) or flat or curvature <= 0.0:
+    l0, hessian = finite_difference_hessian(loss_grad, u0, step=step)
+    d = u0.numel()
+    out = [{"low": None, "high": None, "kind": "unconstrained"} for _ in range(d)]
+    if not math.isfinite(l0) or not bool(torch.isfinite(hessian).all()):
         return out
-    half = Z95 * math.sqrt(2.0 * max(l0, 0.0) / (max(n, 1) * curvature))
+    # a coordinate along which the loss changes by less than FLAT of itself over a step
+    seen = [
+        i
+        for i in range(d)
+        if hessian[i, i] > 0 and 0.5 * hessian[i, i] * step**2 > max(FLAT * abs(l0), 1e-15)
+    ]
+    if not seen:
+        return out
+    values, vectors = torch.linalg.eigh(hessian[seen][:, seen])
+    # zero or negative curvature: an unbounded variance along that direction, which every
+    # coordinate with weight on it inherits (its interval then spans the whole range)
+    values = values.clamp(min=RANK_TOL * max(float(values.max()), 1e-300))
+    variance = (vectors**2 / values).sum(dim=1) * 2.0 * max(l0, 0.0) / max(n, 1)
+    for j, i in enumerate(seen):
+        out[i] = _interval(float(u0[i]), Z95 * math.sqrt(float(variance[j])))
+    return out
+
+
+def _interval(u0: float, half: float) -> dict:
+    """``u0 +- half`` in [0, 1], one-sided or unconstrained where it runs past a bound."""
     low, high = u0 - half, u0 + half
     if low < 0.0 and high > 1.0:
-        return out
+        return {"low": None, "high": None, "kind": "unconstrained"}
     if low < 0.0:
-        return {**out, "high": high, "kind": "upper-bound"}
+        return {"low": None, "high": high, "kind": "upper-bound"}
     if high > 1.0:
-        return {**out, "low": low, "kind": "lower-bound"}
-    return {**out, "low": low, "high": high, "kind": "two-sided"}
+        return {"low": low, "high": None, "kind": "lower-bound"}
+    return {"low": low, "high": high, "kind": "two-sided"}
 
 
 def parameter_intervals(fit, vector, *, last: int, step: float = STEP) -> dict:
@@ -97,38 +127,43 @@ def parameter_intervals(fit, vector, *, last: int, step: float = STEP) -> dict:
         step: the finite-difference step in normalised coordinates.
 
     Returns:
-        ``{"obj1": {"E": {"low", "high", "kind"}}, "ground_friction": {...}}``; a diverged
-        probe rollout counts as an infinite loss there.
+        ``{"obj1": {"E": {"low", "high", "kind"}}, "ground_friction": {...}}``; physics-term
+        leaves are not reported. A probe whose rollout diverges leaves every parameter
+        ``unconstrained`` (the curvature there is unknown).
     """
-    n = last * len(vector.families)
-    with torch.no_grad():
+    keys = [
+        key
+        for key, u in sorted(vector.normalized.items())
+        if not key.startswith("term.") and u.numel() == 1
+    ]
+    if not keys:
+        return {}
+    leaves = [vector.normalized[key] for key in keys]
+    saved = [leaf.detach().clone() for leaf in leaves]
+
+    def loss_grad(u: torch.Tensor) -> tuple[float, torch.Tensor]:
+        with torch.no_grad():
+            for leaf, value in zip(leaves, u):
+                leaf.fill_(float(value))
         try:
-            l0 = fit.window_loss(vector, last)
+            loss = fit.objective(*fit.rollout_geometry(vector, last))
+            grads = torch.autograd.grad(loss, leaves, allow_unused=True)
         except SimulationDiverged:
-            return {}  # the identified values themselves cannot be rolled out: nothing to say
+            return math.inf, torch.full((len(keys),), math.nan, dtype=torch.float64)
+        flat = [0.0 if g is None else float(g.detach().reshape(())) for g in grads]
+        return float(loss.detach()), torch.tensor(flat, dtype=torch.float64)
+
+    u0 = torch.stack([s.reshape(()) for s in saved]).double()
+    try:
+        found = laplace_intervals(loss_grad, u0, n=last * len(vector.families), step=step)
+    finally:
+        with torch.no_grad():
+            for leaf, value in zip(leaves, saved):
+                leaf.copy_(value)
     out: dict = {}
-    for key, u in sorted(vector.normalized.items()):
-        if key.startswith("term.") or u.numel() != 1:
-            continue  # physics-term leaves (some are vectors) are not reported
-        spec, u0 = vector.specs[key], float(u.detach())
-
-        def loss_at(value: float, key=key) -> float:
-            with torch.no_grad():
-                saved = vector.normalized[key].detach().clone()
-                vector.normalized[key].fill_(value)
-                try:
-                    return fit.window_loss(vector, last)
-                except SimulationDiverged:
-                    return math.inf
-                finally:
-                    vector.normalized[key].copy_(saved)
-
-        got = laplace_interval(loss_at, u0, n=n, step=step, l0=l0)
-        entry = {
-            "low": _si(spec, got["low"]),
-            "high": _si(spec, got["high"]),
-            "kind": got["kind"],
-        }
+    for key, got in zip(keys, found):
+        spec = vector.specs[key]
+        entry = {"low": _si(spec, got["low"]), "high": _si(spec, got["high"]), "kind": got["kind"]}
         if "." in key:
             owner, name = key.split(".", 1)
             out.setdefault(owner, {})[name] = entry
