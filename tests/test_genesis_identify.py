@@ -1,0 +1,251 @@
+"""benchmarks/genesis_identify.py: the table from per-scene metrics, the RESULTS.md section,
+and one end-to-end run on the committed tiny Genesis scene."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import statistics
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "benchmarks" / "genesis_identify.py"
+TINY = ROOT / "plugins" / "mosiv-genesis" / "tests" / "data" / "tiny_scene"
+
+
+def _bench():
+    # the script imports its sibling identify_suite, as it does when run from benchmarks/
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        spec = importlib.util.spec_from_file_location("genesis_identify", SCRIPT)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    return module
+
+
+def _interval(low, high, kind):
+    return {"low": low, "high": high, "kind": kind}
+
+
+def _metrics(*, e_true, e_value, rho1, kind, future_cd, sand=None, v0_rel=0.01):
+    """metrics.json of a two-object scene: object 1 elastic (the gauge object, identified
+    density 1000 against a true ``rho1``), object 2 plasticine or, with ``sand`` = (true, value)
+    of the friction angle, sand. ``e_true``/``e_value``: E of both objects; ``kind``: the kind
+    of both E intervals (two-sided ones span +-10 % around the identified value)."""
+    gauge = rho1 / 1000.0
+
+    def e_err(true, value):
+        return {
+            "value": value,
+            "true": true,
+            "rel_error": abs(value - true) / true,
+            "rel_error_gauge_free": abs(value * gauge - true) / true,
+        }
+
+    def e_interval(value):
+        if kind == "two-sided":
+            return _interval(0.9 * value, 1.1 * value, kind)
+        return _interval(0.5 * value, None, kind)
+
+    v0 = {"value": [1, 0, 0], "true": [1, 0, 0], "rel_error": v0_rel}
+    errors = {
+        "1": {
+            "E": e_err(e_true[0], e_value[0]),
+            "rho": {"value": 1000.0, "true": rho1, "rel_error": abs(1000 - rho1) / rho1},
+            "initial_velocity": v0,
+        },
+        "2": {"E": e_err(e_true[1], e_value[1]), "initial_velocity": v0},
+    }
+    intervals = {"obj1": {"E": e_interval(e_value[0])}, "obj2": {"E": e_interval(e_value[1])}}
+    family2 = "plasticine"
+    if sand is not None:
+        family2 = "sand"
+        errors["2"]["friction_angle"] = {
+            "value": sand[1],
+            "true": sand[0],
+            "abs_error_deg": abs(sand[1] - sand[0]),
+        }
+        intervals["obj2"]["friction_angle"] = _interval(None, None, "unconstrained")
+    else:
+        errors["2"]["yield_stress"] = e_err(2000.0, 2400.0)
+    identified = {
+        "objects": {"1": {"family": "elastic"}, "2": {"family": family2}},
+        "intervals": intervals,
+    }
+    block = {"cd_mm2": 1.0, "emd_mm": 2.0}
+    return {
+        "observed": block,
+        "future": {"cd_mm2": future_cd, "emd_mm": 5.0},
+        "params": identified,
+        "param_error": errors,
+        "peak_memory_gb": 1.5,
+    }
+
+
+def _rows(bench):
+    data = {"generator": "mosiv-genesis (Genesis 1.4.5, MPM, cpu)", "ranges": "wide"}
+    # scene A: density gauge 0.8 (true first density 800); the identified E values are exact in
+    # the gauge: value * 0.8 = true, so the gauge-free error is 0 and the raw one 25 %
+    a = _metrics(
+        e_true=[8e4, 4e5], e_value=[1e5, 5e5], rho1=800.0, kind="two-sided", future_cd=100.0
+    )
+    # scene B: no gauge (true first density 1000); E off by 40 % and 100 %, intervals one-sided
+    b = _metrics(
+        e_true=[1e5, 1e5],
+        e_value=[1.4e5, 2e5],
+        rho1=1000.0,
+        kind="lower-bound",
+        future_cd=900.0,
+        sand=(30.0, 33.0),
+    )
+    return [
+        bench.scene_row("A", a, time_s=100.0, data={**data, "seed": 0}, device="X", code="c1"),
+        bench.scene_row("B", b, time_s=700.0, data={**data, "seed": 1}, device="X", code="c1"),
+        {"scene": "C", "error": "SimulationDiverged: boom", "data": {**data, "seed": 2}},
+    ]
+
+
+def test_object_entries_use_the_gauge_for_errors_and_coverage():
+    bench = _bench()
+    rows = _rows(bench)
+    e1 = rows[0]["objects"]["1"]["params"]["E"]
+    assert e1["raw"] == pytest.approx(25.0)
+    assert e1["gauge_free"] == pytest.approx(0.0, abs=1e-9)
+    assert e1["error"] == e1["gauge_free"]
+    # the interval 0.9e5..1.1e5 of the identified value misses the raw truth 8e4 but holds it
+    # after the gauge (0.72e5..0.88e5)
+    assert e1["kind"] == "two-sided" and e1["covered"] is True
+    # the gauge object's density: no interval, nothing to cover
+    assert rows[0]["objects"]["1"]["params"]["rho"]["covered"] is None
+    angle = rows[1]["objects"]["2"]["params"]["friction_angle"]
+    assert angle["deg"] == pytest.approx(3.0) and angle["kind"] == "unconstrained"
+    assert rows[1]["objects"]["2"]["params"]["E"]["covered"] is True  # lower bound 1e5 <= 1e5
+
+
+def test_summary_medians_shares_coverage_and_targets():
+    bench = _bench()
+    table = bench.make_table(_rows(bench))
+    s = table["summary"]
+    assert [r["scene"] for r in table["rows"]] == ["A", "B", "C"]
+    assert s["scenes"] == 3 and s["failed"] == ["C"]
+    # two-sided E intervals only in scene A, both exact in the gauge
+    assert s["E_finite"]["n"] == 2 and s["E_finite"]["value"] == pytest.approx(0.0, abs=1e-9)
+    assert s["E_finite"]["met"] is True
+    # E errors 0, 0, 40, 100 %: three of four within 50 %
+    assert s["E_within_50"]["value"] == pytest.approx(75.0) and s["E_within_50"]["met"] is False
+    # two of four E intervals one-sided
+    assert s["E_not_finite"]["value"] == pytest.approx(50.0)
+    assert s["E_not_finite"]["one_sided"] == 2 and s["E_not_finite"]["met"] is False
+    # the yield stress of scene A: 2400 in the 0.8 gauge is 1920 against 2000: 4 %
+    assert s["yield_stress"]["value"] == pytest.approx(4.0) and s["yield_stress"]["met"] is True
+    assert s["friction_angle"]["value"] == pytest.approx(3.0) and s["friction_angle"]["met"]
+    assert s["viscosity"]["n"] == 0 and s["viscosity"]["met"] is None
+    assert s["initial_velocity"]["value"] == pytest.approx(1.0)
+    # intervals claiming something: 4 E intervals, all holding the truth; the friction angle's
+    # unconstrained one is counted apart
+    assert s["coverage"]["n"] == 4 and s["coverage"]["value"] == pytest.approx(100.0)
+    assert s["coverage"]["unconstrained"] == 1
+    assert s["future_cd"]["value"] == pytest.approx(statistics.fmean([100.0, 900.0]))
+    assert s["future_cd"]["met"] is False
+    assert s["time"]["value"] == pytest.approx(700.0) and s["time"]["met"] is False
+    text = bench.markdown(table)
+    assert "| A | 1 elastic | 0 / 25 [2s in] |" in text
+    assert "failed: SimulationDiverged: boom" in text
+    assert "| mean future CD | 2 | 500 mm^2 | <= 450 mm^2 | not met |" in text
+
+
+def test_a_missed_interval_lowers_the_coverage():
+    bench = _bench()
+    m = _metrics(e_true=[1e5, 1e5], e_value=[2e5, 1e5], rho1=1000.0, kind="two-sided", future_cd=1)
+    row = bench.scene_row("A", m, time_s=1.0, data={}, device="CPU", code="c")
+    s = bench.summarise([row])
+    assert row["objects"]["1"]["params"]["E"]["covered"] is False  # 1.8e5..2.2e5 misses 1e5
+    assert s["coverage"]["count"] == 1 and s["coverage"]["n"] == 2  # the two E intervals
+
+
+def test_results_section_replacement_changes_only_that_section(tmp_path):
+    bench = _bench()
+    table = bench.make_table(_rows(bench)[:2])
+    body = bench.section_text(table, command="python benchmarks/genesis_identify.py", date="D")
+    words = " ".join(body.split())  # the prose is wrapped at 100 columns
+    assert "2 scenes made by the Genesis engine (genesis-world 1.4.5, cpu backend)" in words
+    assert "wide ranges, seeds 0-1" in words and "Machine: X. Date D. Code c1." in words
+    original = (ROOT / "docs" / "RESULTS.md").read_text()
+    once = bench.replace_section(original, body)
+    head, _, rest = once.partition(f"## {bench.SECTION}\n")
+    assert rest, "the section was not inserted"
+    # everything outside the section is the original, in order
+    after = rest[rest.index("\n## ") + 1 :]
+    assert head + after == original.replace(_section_of(original, bench.SECTION), "")
+    # a second write replaces the section instead of adding one
+    other = body.replace("Date D", "Date E")
+    twice = bench.replace_section(once, other)
+    assert twice.count(f"## {bench.SECTION}") == 1 and "Date E" in twice and "Date D" not in twice
+    assert twice.replace(_section_of(twice, bench.SECTION), "") == once.replace(
+        _section_of(once, bench.SECTION), ""
+    )
+    # the last section of a file is replaced up to the end
+    last = "# R\n\n## A\n\na\n\n## " + bench.SECTION + "\n\nold\n"
+    assert bench.replace_section(last, body) == "# R\n\n## A\n\na\n\n" + body
+
+
+def _section_of(text: str, title: str) -> str:
+    """The ``## title`` section's text (heading to the next level-2 heading), '' if absent."""
+    start = text.find(f"## {title}\n")
+    if start < 0:
+        return ""
+    end = text.find("\n## ", start + 1)
+    return text[start : end + 1 if end >= 0 else len(text)]
+
+
+def test_command_line_names_no_machine_paths():
+    bench = _bench()
+    line = bench.command_line(
+        ["--scenes", "/data/x", f"--out={ROOT}/runs/y", "--write-results", str(ROOT / "docs/R.md")]
+    )
+    assert line == (
+        "python benchmarks/genesis_identify.py --scenes SCENES --out=OUT --write-results docs/R.md"
+    )
+
+
+def test_end_to_end_on_the_tiny_genesis_scene(tmp_path):
+    """The whole command on CPU: a row per scene, table files, and the RESULTS section."""
+    bench = _bench()
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    (scenes / "E-S").symlink_to(TINY, target_is_directory=True)
+    results = tmp_path / "RESULTS.md"
+    results.write_text("# Results\n\n## From video\n\nkept\n")
+    sets = [
+        "simulator.device=cpu",
+        "simulator.grid=16",
+        "simulator.substeps=20",
+        "identify.velocity_iterations=2",
+        "identify.param_iterations=2",
+        "identify.global_candidates=2",
+        "losses.chamfer.max_points=256",
+        "evaluate.emd_samples=128",
+        "evaluate.render_videos=false",
+    ]
+    argv = ["--scenes", str(scenes), "--out", str(tmp_path / "out")]
+    argv += [x for s in sets for x in ("--set", s)] + ["--write-results", str(results)]
+    assert bench.main(argv) == 0
+    table = json.loads((tmp_path / "out" / "table.json").read_text())
+    (row,) = table["rows"]
+    assert "error" not in row, row.get("error")
+    truth = json.loads((TINY / "gt" / "params.json").read_text())
+    families = [o["material"] for o in truth["objects"]]
+    assert [o["family"] for o in row["objects"].values()] == families
+    sand = row["objects"]["2"]["params"]
+    assert {"E", "nu", "rho", "friction_angle", "initial_velocity"} <= set(sand)
+    assert sand["E"]["kind"] in bench.KINDS and sand["E"]["gauge_free"] is not None
+    assert row["device"] == "CPU" and row["data"]["seed"] == truth["generator_params"]["seed"]
+    assert table["summary"]["initial_velocity"]["n"] == 2
+    text = results.read_text()
+    assert f"## {bench.SECTION}" in text and text.endswith("## From video\n\nkept\n")
+    assert "--scenes SCENES --out OUT" in text and str(tmp_path) not in text
