@@ -1,0 +1,117 @@
+"""Real recordings in, results out: a scene through ``mosiv data capture`` and ``mosiv data
+import`` identifies as the scene itself does, and recipes are honest about what a scene needs.
+
+The round trip (benchmarks/capture_roundtrip.py --quick, which this test drives) runs
+recipes/video_quickstart.yaml with the short schedule of tests/test_pipeline_video.py on the
+tiny synthetic scene, then on the same scene written in centimetres with y up through a barrel
+lens with one camera starting a frame late and imported back (materials, units, up, ground and
+the late camera's offset given: the thrown objects move from the first frame, so there is no
+motion onset to estimate offsets from; lens undone, masks and domain from the classical
+segmenter's hull). The imported scene's reference ground truth is the capture's, mapped by
+import.json's alignment and matched to the import's object ids by mask overlap, so both runs
+are scored the same way and compared object by object.
+
+The issue's targets (E within 10 %, future CD within 20 % of the direct run) are for the paper
+size on a GPU (benchmarks/capture_roundtrip.py without --quick). The tiny CPU version cannot
+test them: MEASURED on the 2-core development machine (other jobs running), with 5
+identification iterations neither run identifies E (direct: 1.87e3 and 1.2e5 Pa, the latter at
+the stiffness cap, against true 4.75e4 and 5.17e4 Pa; imported: 1.38e4 and 2.57e3 Pa), so the
+imported E differs from the direct one by 6.4x and 0.98 (relative) and no E bound is set here;
+the future Chamfer distance was 2439 mm^2 direct and 9396 mm^2 imported (3.9x). CI checks what
+the tiny version does support: the reference reaches the imported frame exactly (camera
+centres), both runs identify every object within the law's bounds, and the imported future CD
+stays within MAX_FUTURE_CD_RATIO of the direct one. The round trip took 669 s at load average 6
+on the 2 shared cores; it is two runs of the short schedule tests/test_pipeline_video.py
+measured at 43 s each on an idle machine, plus the capture and import.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mosiv_framework.capture.reference import reference_transform
+from mosiv_framework.cli.main import main
+from mosiv_framework.errors import ConfigError
+from mosiv_framework.recipes import load_recipe
+from mosiv_framework.scene import read_scene, write_example_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "benchmarks" / "capture_roundtrip.py"
+QUICKSTART = ROOT / "recipes" / "quickstart.yaml"
+
+#: imported / direct future Chamfer distance; MEASURED 3.9 (see the module docstring)
+MAX_FUTURE_CD_RATIO = 6.0
+#: the bounds of E (Pa) every law here identifies within
+E_BOUNDS = (1e3, 1e7)
+
+
+def load_benchmark():
+    spec = importlib.util.spec_from_file_location("capture_roundtrip", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["capture_roundtrip"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+# ------------------------------------------------------------------------ honest recipes
+def test_a_missing_scene_is_an_error_unless_the_recipe_generates_it(tmp_path, capsys):
+    typo = tmp_path / "scnee"
+    argv = ["run", str(QUICKSTART), f"scene.path={typo}", f"output.dir={tmp_path / 'run'}"]
+    assert main([*argv, "scene.generate=never"]) == 2
+    err = capsys.readouterr().err
+    assert f"scene.path '{typo}' does not exist" in err, err
+    assert "scene.generate=if-missing" in err and "synth" in err, err
+    assert not typo.exists() and not (tmp_path / "run").exists()
+
+
+def test_generate_takes_if_missing_or_never_and_if_missing_needs_a_source(tmp_path):
+    with pytest.raises(ConfigError, match="scene.generate='sometimes'"):
+        load_recipe(QUICKSTART, ["scene.generate=sometimes"])
+    with pytest.raises(ConfigError, match="needs scene.source"):
+        load_recipe(QUICKSTART, ["scene.source=null"])
+    # the shipped recipe generates its synthetic scene where none exists yet
+    recipe = load_recipe(QUICKSTART, [f"scene.path={tmp_path / 's'}"])
+    assert recipe.scene.generate == "if-missing"
+
+
+def test_a_ground_truth_recipe_refuses_a_scene_without_gt(tmp_path, capsys):
+    scene = write_example_scene(tmp_path / "recording", n_frames=4, n_cameras=2, size=16)
+    shutil.rmtree(scene / "gt")  # as every imported recording: no ground truth
+    argv = ["run", str(QUICKSTART), f"scene.path={scene}", f"output.dir={tmp_path / 'run'}"]
+    assert main(argv) == 3  # a scene error
+    err = capsys.readouterr().err
+    assert "no ground truth" in err and "reconstructor 'oracle'" in err, err
+    assert "recipes/video_quickstart.yaml" in err and "recipes/video_paper.yaml" in err, err
+    assert not (tmp_path / "run").exists()
+
+
+# ---------------------------------------------------------------------------- round trip
+def test_imported_capture_identifies_like_the_scene(tmp_path):
+    bench = load_benchmark()
+    result = bench.roundtrip(tmp_path, bench.QUICK_RECIPE, bench.QUICK, bench.QUICK_SEGMENTER)
+    print(bench.table(result))
+    (tmp_path / "result.json").write_text(json.dumps(result, indent=2))
+    # the transform that carried the reference maps every original camera centre onto the
+    # imported one: the reference lives in the frame the imported run was scored in
+    capture = json.loads((tmp_path / "capture" / "capture.json").read_text())
+    record = json.loads((tmp_path / "imported" / "import.json").read_text())
+    linear, offset = reference_transform(capture, record)
+    original, imported = read_scene(tmp_path / "scene"), read_scene(tmp_path / "imported")
+    for cam in original.cameras:
+        centre = linear @ cam.camera_center.numpy() + offset
+        np.testing.assert_allclose(imported.camera(cam.id).camera_center.numpy(), centre, atol=1e-6)
+    assert result["imported"]["future_cd_mm2"] is not None
+    comparison = result["comparison"]
+    assert set(comparison["E_rel_to_direct"]) == set(result["direct"]["objects"])
+    for run in ("direct", "imported"):
+        for oid, obj in result[run]["objects"].items():
+            assert E_BOUNDS[0] <= obj["E"] <= E_BOUNDS[1], (run, oid, result)
+    ratio = result["imported"]["future_cd_mm2"] / result["direct"]["future_cd_mm2"]
+    assert ratio < MAX_FUTURE_CD_RATIO, result
