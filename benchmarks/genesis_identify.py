@@ -461,7 +461,9 @@ def run_scene(scene: Path, *, recipe: Path, out: Path, sets: list[str]) -> dict:
         metrics = run_pipeline(cfg, run_dir=run_dir)
     except Exception as exc:  # one failed scene must not lose the others' rows
         traceback.print_exc()
-        return {"scene": scene.name, "error": f"{type(exc).__name__}: {exc}", "data": data}
+        # the message goes into a results file: the scene folder by its name, not its path
+        why = f"{type(exc).__name__}: {exc}".replace(str(scene.parent), "SCENES")
+        return {"scene": scene.name, "error": why, "data": data}
     elapsed = _timed(run_dir, before, time.perf_counter() - started)
     return scene_row(
         scene.name,
