@@ -47,13 +47,25 @@ def component(section) -> tuple[str, dict]:
     return options.pop("name"), options
 
 
+def _occupied(path: Path) -> bool:
+    """Whether something other than an empty folder is at ``path`` (a link counts)."""
+    if not path.exists():
+        return path.is_symlink()
+    try:
+        return not path.is_dir() or any(path.iterdir())
+    except OSError:
+        return True
+
+
 def generate_scene(scene_section) -> bool:
     """Generate the scene with ``scene.source`` when ``scene.generate`` is "if-missing" and
-    ``scene.path`` holds no scene.json; returns whether it did. Without "if-missing" a missing
-    scene is a ConfigError naming scene.path and how to generate one: a mistyped path must not
-    quietly become a synthetic scene."""
+    ``scene.path`` is missing or an empty folder; returns whether it did. Without "if-missing"
+    a missing scene is a ConfigError naming scene.path and how to generate one: a mistyped
+    path must not quietly become a synthetic scene."""
     path = Path(scene_section.path)
-    if (path / "scene.json").is_file():
+    if (path / "scene.json").is_file() or _occupied(path):
+        # a scene, or files that are not one (scene.json missing or broken): validation names
+        # what is wrong; a scene is never generated over the user's files
         return False
     generate = getattr(scene_section, "generate", None) or "never"
     if generate == "if-missing" and scene_section.source is not None:
@@ -112,7 +124,8 @@ def prepare_scene(recipe: DictConfig, plain: dict):
     generate_scene(recipe.scene)
     path = Path(plain["scene"]["path"])
     need_gt = needs_ground_truth(plain)
-    if need_gt and not (path / "gt").is_dir():
+    gt = path / "gt"
+    if need_gt and not (gt.exists() or gt.is_symlink()):  # a gt/ file: validation names it
         raise SceneFormatError(no_ground_truth_message(plain, path))
     require_valid_scene(path, need_ground_truth=need_gt)
     scene = read_scene(path)

@@ -47,14 +47,8 @@ def scene_facts(recipe: Mapping[str, Any], registry) -> SceneFacts | None:
     scene_json = Path(str(scene.get("path") or "")) / "scene.json"
     if scene_json.is_file():
         try:
-            data = json.loads(scene_json.read_text(encoding="utf-8"))
-            lower, upper = data["domain"]["lower"], data["domain"]["upper"]
-            return SceneFacts(
-                fps=float(data["fps"]),
-                extent=max(float(u) - float(lo) for lo, u in zip(lower, upper)),
-                families={int(o["id"]): str(o["material"]) for o in data["objects"]},
-            )
-        except (OSError, ValueError, KeyError, TypeError):
+            return _facts_of(json.loads(scene_json.read_text(encoding="utf-8")))
+        except (OSError, ValueError, KeyError, TypeError, ArithmeticError, RecursionError):
             return None  # reading the scene names what is wrong with it
     source = scene.get("source")
     if not isinstance(source, Mapping) or "name" not in source:
@@ -69,6 +63,22 @@ def scene_facts(recipe: Mapping[str, Any], registry) -> SceneFacts | None:
         extent=float(world.extent),
         families=dict(enumerate(families, start=1)) if families else None,
     )
+
+
+def _facts_of(data: dict) -> SceneFacts | None:
+    """The facts scene.json declares; None where they are not usable numbers or families (the
+    scene's validation, exit 3, names them: they are not the recipe's fault)."""
+    lower, upper = data["domain"]["lower"], data["domain"]["upper"]
+    numbers = [data["fps"], *lower, *upper]
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in numbers):
+        return None
+    fps = float(data["fps"])  # OverflowError for an integer beyond float range
+    extent = max(float(u) - float(lo) for lo, u in zip(lower, upper))
+    families = {int(o["id"]): str(o["material"]) for o in data["objects"]}
+    usable = all(f in LAWS for f in families.values()) and families
+    if not (usable and math.isfinite(fps) and fps > 0 and math.isfinite(extent) and extent > 0):
+        return None
+    return SceneFacts(fps=fps, extent=extent, families=families)
 
 
 def _is_count(value: Any) -> bool:
