@@ -17,7 +17,7 @@ Paper size (GPU; the issue's targets: E within 10 % and future CD within 20 % of
 
 CPU smoke run (the tiny scene and short schedule of tests/test_capture_roundtrip.py)::
 
-    python benchmarks/capture_roundtrip.py --quick --out /tmp/capture_roundtrip
+    python benchmarks/capture_roundtrip.py --quick --out runs/capture_roundtrip
 
 Writes OUT/capture_roundtrip.json and prints a table; OUT must be new or empty.
 """

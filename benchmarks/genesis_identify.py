@@ -531,22 +531,29 @@ def run_parallel(args, names: list[str], scale: dict) -> dict:
 def command_line(argv: list[str]) -> str:
     """The command as run, the scene and output folders named SCENES and OUT and other paths
     relative to the repository (a results file must not name a machine's paths)."""
-    out, placeholder = ["python", "benchmarks/genesis_identify.py"], None
+
+    def written(flag: str, value: str) -> str:
+        # the folders differ on every machine, so they are named; other paths are portable
+        return flag[2:].upper() if flag in ("--scenes", "--out") else _portable(value)
+
+    out, path_flag = ["python", "benchmarks/genesis_identify.py"], None
     for arg in argv:
         flag, eq, value = arg.partition("=")
-        if placeholder:
-            out.append(placeholder if placeholder != "PATH" else _portable(arg))
-            placeholder = None
-        elif flag in ("--scenes", "--out", "--recipe", "--write-results"):
-            name = flag[2:].upper() if flag in ("--scenes", "--out") else "PATH"
-            if eq:
-                out.append(f"{flag}={name if name != 'PATH' else _portable(value)}")
-            else:
-                out.append(flag)
-                placeholder = name
+        if path_flag is not None:  # the value of a path flag given as a separate argument
+            out.append(written(path_flag, arg))
+            path_flag = None
+        elif flag in PATH_FLAGS and eq:
+            out.append(f"{flag}={written(flag, value)}")
+        elif flag in PATH_FLAGS:
+            out.append(flag)
+            path_flag = flag
         else:
             out.append(arg)
     return shlex.join(out)
+
+
+#: flags whose value is a path of the machine the benchmark ran on
+PATH_FLAGS = ("--scenes", "--out", "--recipe", "--write-results")
 
 
 def _portable(path: str) -> str:

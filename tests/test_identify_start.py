@@ -20,6 +20,7 @@ from mosiv_framework.pipeline.params import ParameterVector, centre_value, stiff
 from mosiv_framework.pipeline.phases import Fit
 from mosiv_framework.pipeline.rundir import RunDir
 from mosiv_framework.registry import get_registry
+from mosiv_framework.testing.pytest_plugin import require_simulator
 from mosiv_framework.types import ParticleSet, Trajectory, World
 
 FPS = 24.0
@@ -159,10 +160,8 @@ def _drop_scene(e_true: float):
     """A 4x4x4-particle elastic block thrown down onto the table (warp-mpm, 16 cells, CPU)."""
     from mosiv_framework.testing.shapes import block, default_params
 
-    if "warp-mpm" not in get_registry().names("simulator"):
-        pytest.skip("simulator 'warp-mpm' is not installed")
     options = {"grid": 16, "substeps": 20, "device": "cpu"}
-    sim = get_registry().create("simulator", "warp-mpm", options)
+    sim = require_simulator("warp-mpm").create("simulator", "warp-mpm", options)
     world = World((0, 0, 0), (1, 1, 1), gravity=(0, 0, -9.8), ground_height=0.0, fps=FPS)
     particles = block((0.4, 0.4, 0.08), (0.56, 0.56, 0.24), spacing=0.04, object_id=1)
     params = default_params(particles, velocities={1: (0.0, 0.0, -2.0)})

@@ -22,6 +22,7 @@ from mosiv_framework.pipeline.uncertainty import (
     mark_coverage,
 )
 from mosiv_framework.registry import get_registry
+from mosiv_framework.testing.pytest_plugin import require_simulator
 from mosiv_framework.types import World
 
 FPS = 24.0
@@ -141,10 +142,8 @@ def test_intervals_on_a_tiny_scene_cover_the_truth_and_leave_an_unseen_yield_str
     every stress the impact reaches (the block only bounces elastically), is unconstrained."""
     from mosiv_framework.testing.shapes import block, default_params
 
-    if "warp-mpm" not in get_registry().names("simulator"):
-        pytest.skip("simulator 'warp-mpm' is not installed")
     options = {"grid": 16, "substeps": 20, "device": "cpu"}
-    sim = get_registry().create("simulator", "warp-mpm", options)
+    sim = require_simulator("warp-mpm").create("simulator", "warp-mpm", options)
     world = World((0, 0, 0), (1, 1, 1), gravity=(0, 0, -9.8), ground_height=0.0, fps=FPS)
     particles = block((0.4, 0.4, 0.08), (0.56, 0.56, 0.24), spacing=0.04, object_id=1)
     particles.materials[1] = "plasticine"

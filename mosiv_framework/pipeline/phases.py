@@ -119,6 +119,8 @@ class Phase:
 
     def leaves(self, vector: ParameterVector) -> dict[str, torch.Tensor]:
         """The tensors this phase optimises, by the name the history logs them under."""
+        # abstract: every phase (VelocityPhase, ParameterPhase) names its own leaves; a Phase
+        # itself is only the shared record of iterations, rate and curriculum
         raise NotImplementedError
 
     def before_iteration(

@@ -2,7 +2,8 @@
 
 - ``mosiv_registry``: the registry of installed plugins;
 - ``mosiv_example_scene``: a small valid ``mosiv-scene/1`` folder (two analytic spheres);
-- ``mosiv_make_simulator``: factory of the simulator named by ``--mosiv-backend``.
+- ``mosiv_make_simulator``: factory of the simulator named by ``--mosiv-backend``;
+- ``require_simulator(name)``: skip a test that needs a simulator plugin not installed.
 """
 
 from __future__ import annotations
@@ -39,3 +40,18 @@ def mosiv_make_simulator(request, mosiv_registry):
     name = request.config.getoption("--mosiv-backend")
     device = request.config.getoption("--mosiv-device")
     return lambda **options: mosiv_registry.create("simulator", name, {**options, "device": device})
+
+
+def require_simulator(name: str):
+    """The registry, after skipping the calling test when simulator ``name`` is not installed.
+
+    The core and the plugins other than the backend meet a simulator only through the
+    registry (a plugin never imports another), and a simulator is an optional plugin, so a
+    test that needs one says so here; the README's test command installs both backends, so
+    there these tests run."""
+    from mosiv_framework.registry import get_registry
+
+    registry = get_registry()
+    if name not in registry.names("simulator"):
+        pytest.skip(f"simulator {name!r} is not installed")
+    return registry

@@ -16,6 +16,7 @@ from mosiv_genesis.tiny_scene import TINY_OPTIONS
 
 from mosiv_framework.laws import get_law
 from mosiv_framework.scene import read_scene, validate_scene
+from mosiv_framework.testing.pytest_plugin import require_simulator
 
 TINY = Path(__file__).parent / "data" / "tiny_scene"
 
@@ -77,11 +78,8 @@ def test_a_short_identification_reads_the_recording(tmp_path):
 
     from mosiv_framework.pipeline import run_pipeline
     from mosiv_framework.recipes import validate_recipe
-    from mosiv_framework.registry import get_registry
 
-    registry = get_registry()
-    if "warp-mpm" not in registry.names("simulator"):
-        pytest.skip("the warp-mpm simulator is not installed")
+    registry = require_simulator("warp-mpm")
     scene = tmp_path / "scene"
     shutil.copytree(TINY, scene)  # the run must not write next to the committed data
     raw = {

@@ -33,6 +33,7 @@ from mosiv_synth.stability import (
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.laws import get_law
+from mosiv_framework.testing.pytest_plugin import require_simulator
 
 # The paper preset's draws for seed 7, as the generator produced them before the wide preset
 # existed (12 significant digits): adding a preset must not move a single paper scene.
@@ -184,8 +185,7 @@ def test_a_wide_scene_records_its_ranges_and_the_substeps_it_ran(tmp_path):
     from mosiv_framework.registry import get_registry
     from mosiv_framework.scene import check_scene, read_scene
 
-    if "warp-mpm" not in get_registry().names("simulator"):
-        pytest.skip("the warp-mpm simulator is not installed")
+    require_simulator("warp-mpm")
     options = {
         "resolution": 16, "n_cameras": 1, "n_frames": 4, "observed_frames": 2,
         "particle_spacing": 0.015, "collision_frame": 3, "materials": "elastic,newtonian",
