@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mosiv_framework.metrics import chamfer_floor_mm2
 from mosiv_framework.registry import get_registry
 from mosiv_framework.scene import read_scene
 
@@ -89,23 +90,6 @@ def contact_frames(gt: dict[int, torch.Tensor], *, distance: float) -> list[int]
     return out
 
 
-def chamfer_floor(gt: dict[int, torch.Tensor], *, spacing: float, samples: int = 8) -> float:
-    """Chamfer (mm^2) of a perfect dense reconstruction: points drawn uniformly in every true
-    particle's lattice cell (side ``spacing``, m) against the particles themselves, the worst
-    object and frame. A volumetric reconstruction that does not know the lattice cannot go
-    below it (about spacing^2 / 4)."""
-    from mosiv_framework.metrics import chamfer_mm2
-
-    gen = torch.Generator().manual_seed(0)
-    worst = 0.0
-    for pts in gt.values():
-        for t in range(pts.shape[0]):
-            offsets = (torch.rand(pts.shape[1], samples, 3, generator=gen) - 0.5) * spacing
-            dense = (pts[t].unsqueeze(1) + offsets).reshape(-1, 3)
-            worst = max(worst, chamfer_mm2(dense, pts[t]))
-    return worst
-
-
 def main(argv=None) -> dict:
     args = parse_args(argv)
     from mosiv_gauss.evaluate import chamfer_per_frame
@@ -164,7 +148,7 @@ def main(argv=None) -> dict:
         "iou_per_frame": training["iou"],
         "area_ratio_per_frame": training["area_ratio"],
         "chamfer_mm2_max": max(o["chamfer_mm2_max"] for o in per_object.values()),
-        "chamfer_floor_mm2": chamfer_floor(gt, spacing=spacing),
+        "chamfer_floor_mm2": chamfer_floor_mm2(gt, spacing=spacing),
         "contact_frames": contact,
         "contact_ratio_max": max(
             (o["contact_ratio"] for o in per_object.values() if o["contact_ratio"] is not None),

@@ -15,7 +15,7 @@ from dataclasses import replace
 import torch
 
 from mosiv_framework.errors import SimulationDiverged
-from mosiv_framework.metrics import frame_metrics
+from mosiv_framework.metrics import chamfer_floor_mm2, chamfer_mm2, frame_metrics
 from mosiv_framework.pipeline.appearance import can_render, rollout_images
 from mosiv_framework.pipeline.formats import METRICS, stamped
 from mosiv_framework.pipeline.uncertainty import mark_coverage
@@ -304,6 +304,8 @@ def evaluate_run(
     }
     if note is not None:
         metrics["evaluation_note"] = note
+    if reconstruction.gaussians is not None and scene.has_gt:
+        metrics["reconstruction"] = reconstruction_scores(reconstruction, scene)
     mark_coverage(metrics["param_error"], metrics["params"])  # intervals holding the truth
     metrics = stamped(METRICS, metrics)
     rd.save_json("metrics.json", metrics)
@@ -330,6 +332,45 @@ def evaluate_run(
             observed_frames=scene.observed_frames,
         )
     return metrics
+
+
+def gt_particle_spacing(gt_params: dict) -> float | None:
+    """The spacing (m) of the generator's particles from gt/params.json: mosiv-synth records
+    ``particle_spacing``, Genesis ``particle_size``; None when neither is there."""
+    generator = gt_params.get("generator_params") or {}
+    value = generator.get("particle_spacing", generator.get("particle_size"))
+    return float(value) if isinstance(value, (int, float)) and value > 0 else None
+
+
+def reconstruction_scores(reconstruction, scene) -> dict:
+    """Stage I's Gaussians against the ground truth, per object: the Chamfer (mm^2) of the
+    Gaussian centres to the true particles per frame, its worst frame and that frame's multiple
+    of the scene's floor (``metrics.chamfer_floor_mm2``, the worst object and frame of a perfect
+    dense reconstruction on the particles' spacing), and the mask IoU per frame and its worst
+    frame where the reconstructor scored its own fit (gauss-dynamic's ``extras["training"]``).
+    Identification fits these centres, so a run's accuracy is bounded by them."""
+    gt = scene.gt_points()
+    spacing = gt_particle_spacing(scene.gt_params())
+    floor = chamfer_floor_mm2(gt, spacing=spacing) if spacing is not None else None
+    training = (reconstruction.extras or {}).get("training") or {}
+    per_object = {}
+    for k, truth in sorted(gt.items()):
+        points = reconstruction.points.get(k)
+        cd = []
+        if points is not None:
+            n = min(points.shape[0], truth.shape[0])
+            cd = [chamfer_mm2(points[t], truth[t]) for t in range(n)]
+        iou = (training.get("iou") or {}).get(str(k)) or []
+        defined = [v for v in iou if v is not None]
+        worst = max(cd) if cd else None
+        per_object[str(k)] = {
+            "cd_mm2_per_frame": cd,
+            "cd_mm2_max": worst,
+            "cd_floor_multiple": worst / floor if worst is not None and floor else None,
+            "iou_per_frame": iou,
+            "iou_min": min(defined) if defined else None,
+        }
+    return {"chamfer_floor_mm2": floor, "particle_spacing_m": spacing, "per_object": per_object}
 
 
 def _peak_memory_gb(simulator=None) -> float:
