@@ -86,10 +86,12 @@ def object_entries(metrics: dict) -> dict[str, dict]:
     Each parameter entry has ``raw`` (relative error %, or None), ``gauge_free`` (% after the
     density gauge, for densities and stresses), ``deg`` (friction angle, absolute), ``error``
     (what the targets use: gauge-free, else degrees, else raw), ``kind`` (of the interval, None
-    without one) and ``covered`` (None without truth or interval). Coverage of a density or
-    stress is judged in the gauge too: the interval is of the identified value, which holds
-    the first object's density at its assumed value, so it is rescaled by true / assumed
-    density of that object before it is compared with the truth.
+    without one), ``covered`` (None without truth or interval), ``value`` (as identified; a
+    density or stress in the truth's gauge, the value its gauge-free error compares) and
+    ``true`` (None without truth). Coverage of a density or stress is judged in the gauge
+    too: the interval is of the identified value, which holds the first object's density at
+    its assumed value, so it is rescaled by true / assumed density of that object before it
+    is compared with the truth.
     """
     errors = metrics.get("param_error") or {}
     identified = metrics.get("params") or {}
@@ -120,7 +122,7 @@ def _gauge(errors: dict) -> float | None:
 def _param_entry(err: dict | None, interval: dict | None, gauge: float | None) -> dict:
     entry = {"raw": None, "gauge_free": None, "deg": None, "error": None}
     entry["kind"] = interval.get("kind") if interval else None
-    entry["covered"] = None
+    entry["covered"] = entry["value"] = entry["true"] = None
     if err is None:
         return entry
     if "abs_error_deg" in err:
@@ -130,8 +132,11 @@ def _param_entry(err: dict | None, interval: dict | None, gauge: float | None) -
         if "rel_error_gauge_free" in err:
             entry["gauge_free"] = 100.0 * float(err["rel_error_gauge_free"])
         entry["error"] = entry["raw"] if entry["gauge_free"] is None else entry["gauge_free"]
+    scale = gauge if (entry["gauge_free"] is not None and gauge) else 1.0
+    value = err.get("value")
+    entry["value"] = value * scale if isinstance(value, (int, float)) else value
+    entry["true"] = err.get("true")
     if interval is not None and isinstance(err.get("true"), (int, float)):
-        scale = gauge if (entry["gauge_free"] is not None and gauge) else 1.0
         low, high = interval.get("low"), interval.get("high")
         true = float(err["true"])
         entry["covered"] = (low is None or true >= low * scale) and (
@@ -528,15 +533,16 @@ def run_parallel(args, names: list[str], scale: dict) -> dict:
     return save_table(args.out, rows, recipe=args.recipe, sets=args.set)
 
 
-def command_line(argv: list[str]) -> str:
-    """The command as run, the scene and output folders named SCENES and OUT and other paths
-    relative to the repository (a results file must not name a machine's paths)."""
+def command_line(argv: list[str], *, script: str = "benchmarks/genesis_identify.py") -> str:
+    """The command as run (``script`` with ``argv``; genesis_resolution names its own), the
+    scene and output folders named SCENES and OUT and other paths relative to the repository
+    (a results file must not name a machine's paths)."""
 
     def written(flag: str, value: str) -> str:
         # the folders differ on every machine, so they are named; other paths are portable
         return flag[2:].upper() if flag in ("--scenes", "--out") else _portable(value)
 
-    out, path_flag = ["python", "benchmarks/genesis_identify.py"], None
+    out, path_flag = ["python", script], None
     for arg in argv:
         flag, eq, value = arg.partition("=")
         if path_flag is not None:  # the value of a path flag given as a separate argument
