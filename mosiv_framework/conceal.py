@@ -14,6 +14,11 @@ Body-force, material-damping and restitution kinds map onto the core PhysicsTerm
 the table's Coulomb coefficient, ``object_friction`` every body's Coulomb coefficient against
 the others, and ``plasticity`` simulates every body declared ``elastic`` as ``plasticine`` (same
 E, nu) with the given von Mises yield stress.
+
+The out-of-library kinds (``vortex``, ``attractor``; ``conceal_fields``) are acceleration fields
+no physics term of the diagnosis expresses. ``parse_conceal`` takes them only from a source that
+lists them in its ``kinds``, and their gt/effects.json entries carry the formula and the function
+that evaluate them (``Effect.to_json``).
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from typing import Any
+
+from mosiv_framework.conceal_fields import FIELD_DEFAULTS, OUT_OF_LIBRARY_KINDS, truth_record
 
 # kind -> {param: default}; floats are scalars, 3-tuples vectors.
 # linear_drag 1.5 1/s: loses ~30 % of the speed over the ~0.25 s flight before the collision.
@@ -54,6 +61,8 @@ CONCEAL_DEFAULTS: dict[str, dict[str, float | tuple[float, float, float]]] = {
     "object_friction": {"coefficient": 1.2},
     "plasticity": {"yield_stress": 3000.0},
 }
+#: every kind a spec may name: the library's (above) and the out-of-library fields
+ALL_DEFAULTS = {**CONCEAL_DEFAULTS, **FIELD_DEFAULTS}
 #: plasticine's yield-stress bounds (Pa), kept here so that parsing a spec loads no law module
 YIELD_STRESS_RANGE = (10.0, 1e6)
 #: kinds that are simulator PhysicsTerms (the rest are realised through SimulationParams)
@@ -74,14 +83,19 @@ class Effect:
     kind: str
     params: dict[str, Any]
 
+    @property
+    def in_library(self) -> bool:
+        """Whether the diagnosis has a candidate for this kind (not an out-of-library field)."""
+        return self.kind not in OUT_OF_LIBRARY_KINDS
+
     def to_json(self) -> dict[str, Any]:
-        """The gt/effects.json entry: vectors as lists."""
-        return {
-            "kind": self.kind,
-            "params": {
-                k: list(v) if isinstance(v, tuple) else float(v) for k, v in self.params.items()
-            },
-        }
+        """The gt/effects.json entry: vectors as lists; an out-of-library field also records
+        its formula and function (``conceal_fields.truth_record``)."""
+        params = {k: list(v) if isinstance(v, tuple) else float(v) for k, v in self.params.items()}
+        out = {"kind": self.kind, "params": params}
+        if not self.in_library:
+            out.update(truth_record(self.kind, self.params))
+        return out
 
     def spec(self) -> str:
         """The canonical ``KIND:param=value,...`` string (parses back to the same effect)."""
@@ -96,8 +110,11 @@ def _parse_one(text: str, kinds: tuple[str, ...]) -> Effect:
     kind, _, rest = text.strip().partition(":")
     kind = kind.strip()
     if kind not in kinds:
-        raise ValueError(f"unknown effect kind {kind!r}; valid kinds: {', '.join(kinds)}")
-    defaults = CONCEAL_DEFAULTS[kind]
+        what = "an out-of-library field" if kind in OUT_OF_LIBRARY_KINDS else "unknown"
+        raise ValueError(
+            f"effect kind {kind!r}: {what} for this scene source; valid kinds: {', '.join(kinds)}"
+        )
+    defaults = ALL_DEFAULTS[kind]
     values: dict[str, list[float]] = {}
     current: str | None = None
     for token in (t.strip() for t in rest.split(",") if t.strip()):
@@ -146,6 +163,8 @@ def _check_range(kind: str, params: dict[str, Any]) -> None:
     for name in ("coefficient", "viscosity"):
         if name in params and params[name] < 0:
             raise ValueError(f"{kind}.{name}={params[name]} must be >= 0")
+    if kind == "attractor" and params["strength"] < 0:
+        raise ValueError(f"{kind}.strength={params['strength']} must be >= 0 (a pull)")
     if kind == "ground_restitution" and params["coefficient"] > 1:
         raise ValueError(f"{kind}.coefficient={params['coefficient']} must be <= 1")
     if (
@@ -161,12 +180,13 @@ def _check_range(kind: str, params: dict[str, Any]) -> None:
 def parse_conceal(spec: Any, *, kinds: tuple[str, ...] = tuple(CONCEAL_DEFAULTS)) -> list[Effect]:
     """Effects from ``None``/"" (none), a ``;``-separated string, or a list of specs.
 
-    ``kinds`` are the effect kinds the calling scene source can realise (default: all).
+    ``kinds`` are the effect kinds the calling scene source can realise (default: every library
+    kind; a source that realises out-of-library fields lists them).
     Raises ValueError naming the bad kind or parameter; a kind may appear only once.
     """
     if spec is None:
         return []
-    unknown = [k for k in kinds if k not in CONCEAL_DEFAULTS]
+    unknown = [k for k in kinds if k not in ALL_DEFAULTS]
     if unknown:
         raise ValueError(f"no concealed-effect defaults for kind(s) {unknown}")
     items = spec.split(";") if isinstance(spec, str) else [str(s) for s in spec]
