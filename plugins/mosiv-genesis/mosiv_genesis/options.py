@@ -16,9 +16,11 @@ from mosiv_framework.scene.protocol import check_clip, name_list
 from mosiv_genesis.plan import GENESIS_FAMILIES, RANGE_PRESETS, SHAPE_NAMES
 
 #: concealed effects Genesis can realise: drag and wind as its acceleration fields
-#: (gs.force_fields.Drag / Constant), gravity through SimOptions. Ground friction is not
-#: offered: Genesis' MPM-ground contact has no coefficient to change.
-GENESIS_KINDS = ("linear_drag", "quadratic_drag", "wind", "gravity")
+#: (gs.force_fields.Drag / Constant), gravity through SimOptions, and the out-of-library
+#: fields of ``mosiv_framework.conceal_fields`` (vortex: gs.force_fields.Vortex; attractor:
+#: gs.force_fields.Point). Ground friction is not offered: Genesis' MPM-ground contact has no
+#: coefficient to change.
+GENESIS_KINDS = ("linear_drag", "quadratic_drag", "wind", "gravity", "vortex", "attractor")
 
 
 @dataclass
@@ -34,7 +36,8 @@ class GenesisOptions:
     ranges, "paper" or "wide" (``plan.WIDE_COMMON``, ``plan.WIDE_EXTRA``); grid_density: MPM
     grid cells per metre (1/m); particle_size: MPM particle spacing (m); collision_frame: frame
     of the mid-air collision (0 = from the seed); conceal: "KIND[:param=value,...]" effects
-    (linear_drag, quadratic_drag, wind, gravity) separated by ";" or a list; vis_mode: how
+    (linear_drag, quadratic_drag, wind, gravity; out of the diagnosis library: vortex,
+    attractor) separated by ";" or a list; vis_mode: how
     Genesis draws MPM bodies ("visual": the object mesh skinned to its particles, for sand and
     liquid their particles; "particle"; "recon": a reconstructed surface); backend: "cpu" or "gpu"; seed; scene_name (empty =
     from materials and seed); progress: print one line per frame.

@@ -242,3 +242,52 @@ def plan_layout(
         if inside:
             return Layout(np.array(starts), np.array(targets), p)
     raise RuntimeError("no collision layout fits the domain; objects are too large")
+
+
+def fly(start, velocity, duration: float, acceleration, *, steps: int = 64) -> np.ndarray:
+    """The position after ``duration`` s of x'' = acceleration(x, v, t) from ``start`` (m) at
+    ``velocity`` (m/s), by classical Runge-Kutta in ``steps`` steps."""
+    dt = duration / steps
+    x, v = np.asarray(start, dtype=np.float64), np.asarray(velocity, dtype=np.float64)
+    for i in range(steps):
+        t = i * dt
+        k1x, k1v = v, acceleration(x, v, t)
+        k2x, k2v = v + dt / 2 * k1v, acceleration(x + dt / 2 * k1x, v + dt / 2 * k1v, t + dt / 2)
+        k3x, k3v = v + dt / 2 * k2v, acceleration(x + dt / 2 * k2x, v + dt / 2 * k2v, t + dt / 2)
+        k4x, k4v = v + dt * k3v, acceleration(x + dt * k3x, v + dt * k3v, t + dt)
+        x = x + dt / 6 * (k1x + 2 * k2x + 2 * k3x + k4x)
+        v = v + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v)
+    return x
+
+
+def shoot_velocity(
+    start, target, duration: float, acceleration, *, tol: float = 1e-7, iterations: int = 20
+) -> np.ndarray:
+    """The launch velocity (m/s) whose flight under x'' = acceleration(x, v, t) reaches
+    ``target`` after ``duration`` s: Newton's method on the miss, its Jacobian by finite
+    differences, from the ballistic velocity under the acceleration at the start.
+
+    Why: a position-dependent field (a vortex, an attractor) bends the paths so that bodies
+    aimed under a constant acceleration would pass each other without colliding.
+
+    Raises RuntimeError if the miss does not fall below ``tol`` (m)."""
+    start, target = np.asarray(start, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    a0 = acceleration(start, np.zeros(3), 0.0)
+    v = launch_velocity(start, target, duration, a0)
+    miss = fly(start, v, duration, acceleration) - target
+    for _ in range(iterations):
+        if np.linalg.norm(miss) < tol:
+            return v
+        h = 1e-4
+        jac = np.stack(
+            [
+                (fly(start, v + h * e, duration, acceleration) - target - miss) / h
+                for e in np.eye(3)
+            ],
+            axis=1,
+        )
+        v = v - np.linalg.solve(jac, miss)
+        miss = fly(start, v, duration, acceleration) - target
+    if np.linalg.norm(miss) < tol:
+        return v
+    raise RuntimeError(f"no launch velocity reaches the target: misses by {miss} m")

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from mosiv_framework.conceal import parse_conceal
+from mosiv_framework.conceal_fields import field_acceleration
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.interfaces import SceneSource
 from mosiv_framework.scene.cameras import Camera
@@ -230,7 +231,8 @@ def _add_objects(gs, scene, opts: GenesisOptions, plan: _Plan, tmp: Path) -> lis
 
 
 def _add_force_fields(gs, scene, effects) -> None:
-    """Concealed wind and drag as Genesis force fields (gravity acts through SimOptions)."""
+    """Concealed wind, drag and the out-of-library fields as Genesis force fields (gravity acts
+    through SimOptions); the fields' settings are those ``conceal_fields`` writes as the truth."""
     for e in effects:
         if e.kind == "wind":
             a = np.array(e.params["acceleration"])
@@ -241,6 +243,22 @@ def _add_force_fields(gs, scene, effects) -> None:
         elif e.kind in ("linear_drag", "quadratic_drag"):
             kw = "linear" if e.kind == "linear_drag" else "quadratic"
             field = gs.force_fields.Drag(**{kw: e.params["coefficient"]})
+        elif e.kind == "vortex":  # Genesis' vortex turns about +z whatever its direction
+            field = gs.force_fields.Vortex(
+                direction=(0.0, 0.0, 1.0),
+                center=tuple(float(x) for x in e.params["center"]),
+                strength_perpendicular=float(e.params["strength"]),
+                strength_radial=float(e.params["radial"]),
+                falloff_pow=0.0,
+                damping=0.0,
+            )
+        elif e.kind == "attractor":  # Point pushes away at positive strength
+            field = gs.force_fields.Point(
+                strength=-float(e.params["strength"]),
+                position=tuple(float(x) for x in e.params["position"]),
+                falloff_pow=0.0,
+                flow=0.0,
+            )
         else:
             continue
         scene.add_force_field(field)
@@ -267,16 +285,43 @@ def _add_cameras(scene, opts: GenesisOptions, rng: np.random.Generator) -> list:
 
 def _aim(entities, opts: GenesisOptions, plan: _Plan):
     """Launch each object from where Genesis actually sampled its particles so that it reaches
-    its planned target at the collision frame; returns (start centroids, velocities)."""
+    its planned target at the collision frame; returns (start centroids, velocities).
+
+    Under gravity and wind (drag slows both bodies alike and is left out) the flight is
+    ballistic; an out-of-library field bends it, and the launch is then shot through the whole
+    true acceleration (``plan.shoot_velocity``)."""
     t_c = plan.frame_c / opts.fps
     starts = [_positions(e).mean(axis=0) for e in entities]
-    acceleration = plan.gravity + plan.wind
-    velocities = [
-        launch_velocity(s, t, t_c, acceleration) for s, t in zip(starts, plan.layout.targets)
-    ]
+    if all(e.in_library for e in plan.effects):
+        acceleration = plan.gravity + plan.wind
+        velocities = [
+            launch_velocity(s, t, t_c, acceleration) for s, t in zip(starts, plan.layout.targets)
+        ]
+    else:
+        accel = true_acceleration(plan.effects, plan.gravity)
+        velocities = [
+            P.shoot_velocity(s, t, t_c, accel) for s, t in zip(starts, plan.layout.targets)
+        ]
     for entity, v in zip(entities, velocities):
         entity.set_velocity(np.broadcast_to(v, (entity.n_particles, 3)).astype(np.float32))
     return starts, velocities
+
+
+def true_acceleration(effects, gravity):
+    """x'' = f(x, v, t) of a small free body in the recording: ``gravity`` (m/s^2, the true
+    one) plus every concealed wind, drag and field."""
+    wind = sum((np.array(e.params["acceleration"]) for e in effects if e.kind == "wind"), 0.0)
+    lin = sum(e.params["coefficient"] for e in effects if e.kind == "linear_drag")
+    quad = sum(e.params["coefficient"] for e in effects if e.kind == "quadratic_drag")
+    fields = [e.to_json() for e in effects if not e.in_library]
+
+    def f(x, v, t):
+        a = np.asarray(gravity, dtype=np.float64) + wind - lin * v - quad * np.linalg.norm(v) * v
+        for field in fields:
+            a = a + field_acceleration(field, x, v, t)
+        return a
+
+    return f
 
 
 def _record(scene, entities, cameras, writer, opts: GenesisOptions, name: str) -> dict:
