@@ -204,6 +204,14 @@ class PhysicsTerm(ABC):
     #: regimes where it acts: any of "free_flight", "object_contact", "ground_contact", "rest"
     regimes: frozenset[str]
     description: str = ""
+    #: False: a parameter a recipe leaves out starts at its default. True: only the parameters
+    #: given act (and only those are identified); for terms with many optional coefficients
+    #: such as ``expression``
+    sparse: bool = False
+
+    def parameter_names_text(self) -> str:
+        """The valid parameter names, as error messages list them."""
+        return ", ".join(spec.name for spec in self.params)
 
     def reference_acceleration(
         self, velocity: torch.Tensor, values: dict[str, torch.Tensor]

@@ -7,13 +7,15 @@ names, units and bounds. Vector parameters (``acceleration``) are [3] tensors.
 Body-force terms (drag, wind, gravity) add an acceleration at every grid node. The material and
 contact terms (``material_damping``, ``ground_restitution``) change the stress or the ground
 boundary condition instead, so they have no reference acceleration. Every term at its zero
-value is the model without it.
+value is the model without it. ``expression`` (``mosiv_framework.expression``) applies a
+discovered force law, a sparse sum of state features with differentiable coefficients.
 """
 
 from __future__ import annotations
 
 import torch
 
+from mosiv_framework.expression import ExpressionTerm
 from mosiv_framework.interfaces import PhysicsTerm
 from mosiv_framework.laws.base import ParamSpec
 
@@ -132,4 +134,5 @@ BUILTIN_TERMS: tuple[PhysicsTerm, ...] = (
     Gravity(),
     MaterialDamping(),
     GroundRestitution(),
+    ExpressionTerm(),
 )

@@ -22,11 +22,12 @@ from itertools import combinations
 import numpy as np
 
 from mosiv_framework.diagnose.kinematics import ResidualSamples
+from mosiv_framework.expression import NODE_FEATURES
 
 AXES = ("x", "y", "z")
-#: features that depend only on the state of the material at one place and time: the ones a
-#: simulator could apply per grid node (an expression term); the others need the objects
-NODE_LOCAL = ("1", "x", "y", "z", "h", "v_x", "v_y", "v_z", "|v|v_x", "|v|v_y", "|v|v_z", "t")
+#: features that depend only on the state of the material at one place and time, which a
+#: simulator applies per grid node (the ``expression`` term); the others need the objects
+NODE_LOCAL = NODE_FEATURES
 
 
 @dataclass(frozen=True)

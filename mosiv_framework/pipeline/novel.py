@@ -182,8 +182,10 @@ def _set_term(terms: dict, item: str, name: str, value_text: str) -> None:
             f"{', '.join(registered) or 'none installed'}"
         )
     specs = term_param_specs(term)
+    term_obj = get_registry().create("physics_term", term, {})
     if param not in specs:
-        raise ConfigError(f"--set {item!r}: the parameters of {term} are {sorted(specs)}")
+        names = term_obj.parameter_names_text() if term_obj.sparse else sorted(specs)
+        raise ConfigError(f"--set {item!r}: the parameters of {term} are {names}")
     spec = specs[param]
     values = _floats(value_text, param_size(spec), f"--set {item!r}")
     for v in values:
@@ -195,6 +197,7 @@ def _set_term(terms: dict, item: str, name: str, value_text: str) -> None:
         terms[term] = {
             n: torch.tensor([float(sp.default)] * 3 if param_size(sp) == 3 else float(sp.default))
             for n, sp in specs.items()
+            if not term_obj.sparse  # a sparse term holds only the parameters set
         }
     terms[term][param] = torch.tensor(values if len(values) == 3 else values[0])
 

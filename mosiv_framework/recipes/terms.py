@@ -2,7 +2,8 @@
 
 Each key names a registered PhysicsTerm; its value maps the term's parameter names to initial
 values (SI units, within the term's ParamSpec bounds) and may set ``identify: true`` to make the
-term's parameters part of the identified parameter vector::
+term's parameters part of the identified parameter vector (of a sparse term, such as
+``expression``, only the parameters given exist)::
 
     physics_terms:
       wind: {acceleration: [1.0, 0, 0], identify: true}
@@ -10,7 +11,7 @@ term's parameters part of the identified parameter vector::
 
 A parameter whose ParamSpec description begins with ``[3]`` is a 3-vector (the convention of
 ``mosiv_framework.terms``); every other parameter is a scalar. Parameters left out start at the
-spec's default (a vector at the default on every axis).
+spec's default (a vector at the default on every axis), except in a sparse term.
 """
 
 from __future__ import annotations
@@ -99,12 +100,12 @@ def check_physics_terms(value: Any, registry, problems: list[str]) -> dict[str, 
             if key not in specs:
                 problems.append(
                     f"unknown key {where}.{key}; valid keys of {name}: "
-                    f"{', '.join([*specs, IDENTIFY_KEY])}"
+                    f"{term.parameter_names_text()}, {IDENTIFY_KEY}"
                 )
                 continue
             entry[key] = _check_value(f"{where}.{key}", specs[key], item, problems)
         for spec in term.params:  # parameters left out start at the spec's default
-            if spec.name not in entry:
+            if spec.name not in entry and not term.sparse:  # a sparse term has only those given
                 entry[spec.name] = (
                     [spec.default] * 3 if param_size(spec) == 3 else float(spec.default)
                 )
