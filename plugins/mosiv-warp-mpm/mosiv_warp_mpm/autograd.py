@@ -90,6 +90,7 @@ class BackwardWorkspace:
         parameter gradients accumulate in run.tables. Raises SimulationDiverged if the
         re-simulated frame blew up."""
         self.work[0].copy_from(start)
+        run.set_clock(frame)
         if wp.get_device(run.device).is_cuda:
             if self._graph is None:
                 with wp.ScopedCapture(device=run.device, force_module_load=True) as capture:

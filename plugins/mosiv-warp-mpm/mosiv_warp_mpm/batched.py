@@ -58,7 +58,7 @@ def rollout_batch(
     """
     members = [member_particles(particles, p) for p in params_list]
     for member, params in zip(members, params_list):
-        check_inputs(member, params, world, frames)
+        check_inputs(member, params, world, frames, contact=sim.options.contact)
     if not params_list:
         return []
     if _needs_grad(particles, params_list):

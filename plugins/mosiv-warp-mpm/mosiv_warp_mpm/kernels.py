@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from mosiv_warp_mpm.expression_kernels import node_expression
 from mosiv_warp_mpm.field_sums import field_sums
 from mosiv_warp_mpm.laws import J_MIN, kirchhoff_stress, return_map, safe_norm, vec5
 
@@ -161,12 +162,33 @@ def p2g(
                     wp.atomic_add(grid_gm, n, m * grad_w)
 
 
+@wp.struct
+class ExpressionInputs:
+    """What the expression term reads at a node (expression_kernels.py): the switches (``on``,
+    ObjectTables.expr_switch; ``switch`` is a C++ keyword) and coefficients (ObjectTables), the other objects' summed centres (Grid), the frame's start
+    time (s, MPMRun.clock), the substep within the frame, the grid origin (m) and spacing (m),
+    the scene's up and its ground height (m)."""
+
+    on: wp.array(dtype=float)
+    coef: wp.array(dtype=wp.vec3)
+    rel_p: wp.array(dtype=wp.vec3)
+    rel_v: wp.array(dtype=wp.vec3)
+    rel_n: wp.array(dtype=float)
+    clock: wp.array(dtype=float)
+    substep: int
+    origin: wp.vec3
+    dx: float
+    up: wp.vec3
+    ground: float
+
+
 @wp.kernel
 def grid_free_velocity(
     grid_m: wp.array(dtype=float),
     grid_mv: wp.array(dtype=wp.vec3),
     accel: wp.array(dtype=wp.vec3),
     drag: wp.array(dtype=float),
+    expr: ExpressionInputs,
     dt: float,
     box_lo: wp.vec3i,
     box_dims: wp.vec3i,
@@ -174,15 +196,26 @@ def grid_free_velocity(
     fields_per_member: int,
     grid_vs: wp.array(dtype=wp.vec3),
 ):
-    # v = mv/m + dt (g + wind - c_lin v - c_quad |v| v), on every field's nodes of the box
+    # v = mv/m + dt (g + wind - c_lin v - c_quad |v| v + expression), on every field's nodes of
+    # the box; the expression (a member's switch) at the node's position and the substep's time
     t = wp.tid()
+    count = box_dims[0] * box_dims[1] * box_dims[2]
     n = box_node(t, box_lo, box_dims, nodes)
-    b = t // (box_dims[0] * box_dims[1] * box_dims[2] * fields_per_member)  # batch member
+    field = t // count
+    b = field // fields_per_member  # batch member
     m = grid_m[n]
     vf = wp.vec3()
     if m > MASS_EPS:
         vs = grid_mv[n] / m
         a = accel[b] - drag[2 * b] * vs - drag[2 * b + 1] * safe_norm(vs) * vs
+        if expr.on[2 * b] > 0.5:
+            c = box_ijk(t % count, box_lo, box_dims)
+            x = expr.origin + expr.dx * wp.vec3(float(c[0]), float(c[1]), float(c[2]))
+            time = expr.clock[0] + float(expr.substep) * dt
+            a = a + node_expression(
+                expr.coef, b, field, x, vs, time, expr.up, expr.ground, expr.rel_p,
+                expr.rel_v, expr.rel_n,
+            )  # fmt: skip
         vf = vs + dt * a
     grid_vs[n] = vf
 

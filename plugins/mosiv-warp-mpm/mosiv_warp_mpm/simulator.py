@@ -1,4 +1,4 @@
-"""The warp-mpm Simulator: input checks, parameter packing and the substep/frame loop.
+"""The warp-mpm Simulator: the substep/frame loop (input checks and packing: packing.py).
 
 ``MPMRun`` owns the Warp buffers of one rollout and knows how to advance a frame forward (CUDA
 graph on GPUs) and how to back-propagate through one frame (see autograd.py for the schedule).
@@ -13,23 +13,18 @@ import torch
 import warp as wp
 
 from mosiv_framework.errors import ConfigError, SimulationDiverged
+from mosiv_framework.expression import up_vector
 from mosiv_framework.interfaces import Simulator
 from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, World
+from mosiv_warp_mpm import expression_kernels as XK
 from mosiv_warp_mpm import kernels as K
 from mosiv_warp_mpm import laws as laws_module
-from mosiv_warp_mpm.laws import LAW_IDS, LAW_PARAM_NAMES, N_SLOTS
+from mosiv_warp_mpm.laws import LAW_IDS
 from mosiv_warp_mpm.options import WarpMPMOptions
-from mosiv_warp_mpm.state import Grid, GridLayout, NodeBox, ObjectTables, ParticleState
 
-#: physics term -> its parameter names (docs/PHYSICS.md, Physics terms)
-TERMS: dict[str, tuple[str, ...]] = {
-    "linear_drag": ("coefficient",),
-    "quadratic_drag": ("coefficient",),
-    "wind": ("acceleration",),
-    "gravity": ("acceleration",),
-    "material_damping": ("viscosity",),
-    "ground_restitution": ("coefficient",),
-}
+# re-exported: batched.py, tests and benchmarks import them from this module
+from mosiv_warp_mpm.packing import TERMS, check_inputs, initial_velocities, pack_theta
+from mosiv_warp_mpm.state import Grid, GridLayout, NodeBox, ObjectTables, ParticleState
 
 _WARP_READY = False
 
@@ -70,7 +65,7 @@ def use_deterministic_atomics(on: bool) -> None:
         )
     if _DETERMINISTIC is None:
         mode = wp.DeterministicMode.RUN_TO_RUN if on else wp.DeterministicMode.NOT_GUARANTEED
-        for module in (K, laws_module):
+        for module in (K, XK, laws_module):
             wp.set_module_options({"deterministic": mode}, module=module)
         _DETERMINISTIC = on
 
@@ -134,6 +129,9 @@ class MPMRun:
         self.ground_on = int(world.ground_height is not None)
         z0 = layout.origin[2]
         self.ground_k = ((world.ground_height or 0.0) - z0) / layout.dx + 1e-4
+        #: the current frame's start time (s), read by the expression term (``set_clock``)
+        self.clock = wp.zeros(1, dtype=float, device=device)
+        self.up = wp.vec3(*up_vector(world.gravity).tolist())
         self.peak_sampler = None  # callable sampling device memory, set by the simulator
 
     def refresh(self, obj_index: torch.Tensor, volumes: torch.Tensor) -> None:
@@ -142,7 +140,48 @@ class MPMRun:
         wp.copy(self.obj, wp.from_torch(obj_index.to(torch.int32).contiguous(), dtype=wp.int32))
         wp.copy(self.volume, wp.from_torch(volumes.float().contiguous()))
 
+    def set_clock(self, frame: int) -> None:
+        """The start time of ``frame`` (1-based: the frame that ``advance_frame(frame)`` makes),
+        outside any captured graph, so that one graph serves every frame."""
+        self.clock.fill_((frame - 1) / self.world.fps)
+
     # -- one substep -----------------------------------------------------------------------
+    def expression_inputs(self, grid: Grid, s: int) -> K.ExpressionInputs:
+        """The expression term's kernel inputs at substep ``s`` of a frame."""
+        expr = K.ExpressionInputs()
+        expr.on, expr.coef = self.tables.expr_switch, self.tables.expr_coef
+        expr.rel_p, expr.rel_v, expr.rel_n = grid.rel_p, grid.rel_v, grid.rel_n
+        expr.clock, expr.substep = self.clock, s
+        expr.origin, expr.dx = wp.vec3(*self.layout.origin), self.layout.dx
+        expr.up, expr.ground = self.up, float(self.world.ground_height or 0.0)
+        return expr
+
+    def centre_sums(self, grid: Grid, box: NodeBox) -> None:
+        """The other objects' summed centres per field (expression_kernels.py), for an
+        expression of the other objects' features: launched on CUDA always (one captured graph
+        serves rollouts with and without it; the kernels test the switch), on the CPU only
+        when some member's expression uses them."""
+        lay = self.layout
+        if lay.fields < 2 or not (self.tables.relative or wp.get_device(self.device).is_cuda):
+            return
+        box_lo, box_dims = wp.vec3i(*box.lo), wp.vec3i(*box.dims)
+        wp.launch(
+            XK.field_moments,
+            dim=self.batch * lay.fields * box.count,
+            inputs=[grid.m, grid.mv, self.tables.expr_switch, wp.vec3(*lay.origin), lay.dx]
+            + [box_lo, box_dims, wp.vec3i(*lay.nodes), lay.fields],
+            outputs=[grid.moment_m, grid.moment_mx, grid.moment_mv],
+            device=self.device,
+        )
+        wp.launch(
+            XK.other_centres,
+            dim=self.batch * lay.fields * lay.fields,
+            inputs=[grid.moment_m, grid.moment_mx, grid.moment_mv, self.tables.expr_switch]
+            + [lay.fields],
+            outputs=[grid.rel_p, grid.rel_v, grid.rel_n],
+            device=self.device,
+        )
+
     def active_box(self, state: ParticleState) -> NodeBox:
         """The grid nodes this substep from ``state`` can touch (state.NodeBox): the whole grid
         on CUDA (one captured graph per frame), the box around the particles on the CPU."""
@@ -167,11 +206,12 @@ class MPMRun:
             outputs=[grid.m, grid.mv, grid.gm, grid.pm],
             device=dev,
         )
+        self.centre_sums(grid, box)
         wp.launch(
             K.grid_free_velocity,
             dim=self.batch * lay.fields * box.count,
-            inputs=[grid.m, grid.mv, t.accel, t.drag, self.dt, box_lo, box_dims, nodes]
-            + [lay.fields],
+            inputs=[grid.m, grid.mv, t.accel, t.drag, self.expression_inputs(grid, s), self.dt]
+            + [box_lo, box_dims, nodes, lay.fields],
             outputs=[grid.vs],
             device=dev,
         )
@@ -212,6 +252,7 @@ class MPMRun:
         On CUDA the frame's launches are captured once into a graph and replayed, so the
         substep loop costs no Python per substep.
         """
+        self.set_clock(frame)
         if wp.get_device(self.device).is_cuda:
             if self._graph is None:
                 with wp.ScopedCapture(device=self.device, force_module_load=True) as capture:
@@ -326,100 +367,6 @@ class MPMRun:
 
     def checkpoint_bytes(self) -> int:
         return sum(c.nbytes() for c in self.checkpoints)
-
-
-def pack_theta(
-    params: SimulationParams, object_ids: list[int], gravity: tuple, device
-) -> torch.Tensor:
-    """Flatten every differentiable parameter into ObjectTables' layout (float32, differentiable).
-
-    Layout: per object N_SLOTS law parameters | rho per object | friction per object |
-    ground_friction | body acceleration (3) | drag (linear, quadratic) | material_damping
-    viscosity (Pa s) | ground_restitution coefficient. An absent term packs as 0, its "off".
-    """
-    zero = torch.zeros((), dtype=torch.float32, device=device)
-
-    def val(t) -> torch.Tensor:
-        return torch.as_tensor(t, dtype=torch.float32).to(device).reshape(-1)
-
-    parts = []
-    for k in object_ids:
-        p = params.objects[k]
-        names = LAW_PARAM_NAMES[p.family]
-        parts += [val(p.values[n]) for n in names] + [zero.reshape(1)] * (N_SLOTS - len(names))
-    parts += [val(params.objects[k].values["rho"]) for k in object_ids]
-    parts += [val(params.objects[k].values["friction"]) for k in object_ids]
-    parts.append(val(params.ground_friction))
-    terms = params.terms
-    g = val(terms["gravity"]["acceleration"]) if "gravity" in terms else val(gravity)
-    wind = val(terms["wind"]["acceleration"]) if "wind" in terms else torch.zeros(3, device=device)
-    parts.append(g + wind)
-    lin = val(terms["linear_drag"]["coefficient"]) if "linear_drag" in terms else val(zero)
-    quad = val(terms["quadratic_drag"]["coefficient"]) if "quadratic_drag" in terms else val(zero)
-    parts += [lin, quad]
-    for term, name in (("material_damping", "viscosity"), ("ground_restitution", "coefficient")):
-        parts.append(val(terms[term][name]) if term in terms else val(zero))
-    return torch.cat(parts)
-
-
-def initial_velocities(
-    params: SimulationParams, object_ids: list[int], obj_index: torch.Tensor
-) -> torch.Tensor:
-    """Each particle's initial velocity [N, 3] (its object's), differentiable in params."""
-    dev = obj_index.device
-    v_obj = torch.stack(
-        [
-            torch.as_tensor(params.initial_velocity[k], dtype=torch.float32).to(dev)
-            for k in object_ids
-        ]
-    )
-    return v_obj[obj_index]
-
-
-def check_inputs(particles: ParticleSet, params: SimulationParams, world: World, frames: int):
-    """Raise ConfigError listing every inconsistency between particles, params and world."""
-    problems = []
-    if not isinstance(frames, int) or frames < 0:
-        problems.append(f"frames={frames!r}: must be an integer >= 0")
-    for k, fam in sorted(particles.materials.items()):
-        if fam not in LAW_IDS:
-            problems.append(f"object {k}: material {fam!r} unsupported; valid: {list(LAW_IDS)}")
-            continue
-        if k not in params.objects:
-            problems.append(f"object {k}: no ObjectParams in params.objects")
-            continue
-        p = params.objects[k]
-        if p.family != fam:
-            problems.append(f"object {k}: params family {p.family!r} but particles say {fam!r}")
-        needed = (*LAW_PARAM_NAMES[fam], "rho", "friction")
-        for name in needed:
-            if name not in p.values:
-                problems.append(f"object {k} ({fam}): missing parameter {name!r}; needs {needed}")
-            elif not torch.isfinite(torch.as_tensor(p.values[name])).all():
-                problems.append(f"object {k}: parameter {name} is not finite")
-        nu = float(torch.as_tensor(p.values["nu"]).detach()) if "nu" in p.values else None
-        if nu is not None and not 0.0 <= nu < 0.5:
-            problems.append(f"object {k}: nu={nu} must lie in [0, 0.5)")
-        if k not in params.initial_velocity:
-            problems.append(f"object {k}: no initial_velocity")
-    for term, values in params.terms.items():
-        if term not in TERMS:
-            problems.append(f"physics term {term!r} unsupported; valid: {sorted(TERMS)}")
-        elif set(values) != set(TERMS[term]):
-            problems.append(
-                f"physics term {term!r} needs exactly {TERMS[term]}, got {sorted(values)}"
-            )
-    x = particles.positions
-    lo = torch.tensor(world.domain_lower, dtype=x.dtype, device=x.device)
-    hi = torch.tensor(world.domain_upper, dtype=x.dtype, device=x.device)
-    outside = int(((x < lo) | (x > hi)).any(dim=1).sum())
-    if outside:
-        problems.append(
-            f"{outside} particle(s) lie outside the scene domain {world.domain_lower}.."
-            f"{world.domain_upper} m"
-        )
-    if problems:
-        raise ConfigError([f"warp-mpm rollout: {p}" for p in problems])
 
 
 class WarpMPMSimulator(Simulator):
@@ -564,7 +511,7 @@ class WarpMPMSimulator(Simulator):
     ) -> Trajectory:
         from mosiv_warp_mpm.autograd import WarpRollout  # keeps the two modules one-way
 
-        check_inputs(particles, params, world, frames)
+        check_inputs(particles, params, world, frames, contact=self.options.contact)
         layout, ids, x0s, obj_index, volumes, inverse = self.scatter_layout(particles, world)
         dev, out_dev = x0s.device, particles.positions.device
         v0 = initial_velocities(params, ids, obj_index)

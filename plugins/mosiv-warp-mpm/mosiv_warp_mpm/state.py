@@ -13,6 +13,7 @@ import torch
 import warp as wp
 
 from mosiv_framework.types import World
+from mosiv_warp_mpm.expression_kernels import N_FEATURES
 from mosiv_warp_mpm.kernels import PAD, clear_box
 from mosiv_warp_mpm.laws import N_SLOTS, vec5
 
@@ -170,7 +171,9 @@ class NodeBox:
 class Grid:
     """Per-field node mass (kg), momentum (kg m/s), mass gradient (kg/m), free and final
     velocities (m/s); flat arrays of GridLayout.size per batch member, ``batch`` grids one
-    after the other (kernels.py, batched rollouts)."""
+    after the other (kernels.py, batched rollouts). Per field also its mass, first moment and
+    momentum and the sums over the other fields' centres (the expression term's relative
+    features, expression_kernels.py)."""
 
     def __init__(self, layout: GridLayout, device, *, requires_grad: bool = False, batch=1):
         kw = {"device": device, "requires_grad": requires_grad}
@@ -181,18 +184,33 @@ class Grid:
         self.pm = wp.zeros(size, dtype=wp.vec3, **kw)
         self.vs = wp.zeros(size, dtype=wp.vec3, **kw)
         self.v = wp.zeros(size, dtype=wp.vec3, **kw)
+        fields = batch * layout.fields
+        self.moment_m = wp.zeros(fields, dtype=float, **kw)
+        self.moment_mx = wp.zeros(fields, dtype=wp.vec3, **kw)
+        self.moment_mv = wp.zeros(fields, dtype=wp.vec3, **kw)
+        self.rel_p = wp.zeros(fields, dtype=wp.vec3, **kw)
+        self.rel_v = wp.zeros(fields, dtype=wp.vec3, **kw)
+        self.rel_n = wp.zeros(fields, dtype=float, **kw)
         self.layout, self.device, self.batch = layout, device, batch
 
     def arrays(self) -> list[wp.array]:
         return [self.m, self.mv, self.gm, self.pm, self.vs, self.v]
 
+    def field_arrays(self) -> list[wp.array]:
+        """The per-field sums (one entry per field, not per node)."""
+        return [self.moment_m, self.moment_mx, self.moment_mv, self.rel_p, self.rel_v, self.rel_n]
+
     def clear(self, box: NodeBox) -> None:
-        """Zero what P2G accumulates into, on the nodes of ``box``."""
+        """Zero what P2G accumulates into, on the nodes of ``box``, and the per-field sums."""
         self._zero([self.m, self.mv, self.gm, self.pm, self.vs, self.v], box, velocities=False)
+        for a in self.field_arrays():
+            a.zero_()
 
     def zero_grad(self, box: NodeBox) -> None:
         if self.m.grad is not None:
             self._zero([a.grad for a in self.arrays()], box, velocities=True)
+            for a in self.field_arrays():
+                a.grad.zero_()
 
     def _zero(self, arrays: list[wp.array], box: NodeBox, *, velocities: bool) -> None:
         if box.is_whole(self.layout):  # a memset per array
@@ -214,8 +232,10 @@ class ObjectTables:
     ``params`` [K] vec5 law parameters, ``rho`` [K] kg/m^3, ``friction`` [K], ``ground_friction``
     [1], ``accel`` [1] body acceleration (gravity + wind, m/s^2), ``drag`` [2] (linear 1/s,
     quadratic 1/m), ``damping`` [1] Kelvin-Voigt viscosity of ``material_damping`` (Pa s),
-    ``ground_restitution`` [1] (dimensionless). The flat torch vector ``theta`` of the autograd
-    function maps onto them in this order.
+    ``ground_restitution`` [1] (dimensionless), ``expr_switch`` [2] (the expression term is on;
+    it uses the other objects) and ``expr_coef`` [N_FEATURES] vec3 (its coefficients,
+    packing.pack_expression). The flat torch vector ``theta`` of the autograd function maps
+    onto them in this order.
 
     With ``batch`` = B members every table holds B of these blocks, member-major (per-object
     tables B K rows, ``drag`` 2 B values), and ``law_ids``/``fields`` list all B K objects;
@@ -238,6 +258,10 @@ class ObjectTables:
         self.drag = wp.zeros(2 * batch, dtype=float, **kw)
         self.damping = wp.zeros(batch, dtype=float, **kw)
         self.ground_restitution = wp.zeros(batch, dtype=float, **kw)
+        self.expr_switch = wp.zeros(2 * batch, dtype=float, **kw)
+        self.expr_coef = wp.zeros(batch * N_FEATURES, dtype=wp.vec3, **kw)
+        #: whether some member's expression uses the other objects (set by ``load``)
+        self.relative = False
 
     def _parts(self) -> list[tuple[wp.array, int]]:
         """(table, its values per member) in theta's order."""
@@ -251,11 +275,13 @@ class ObjectTables:
             (self.drag, 2),
             (self.damping, 1),
             (self.ground_restitution, 1),
+            (self.expr_switch, 2),
+            (self.expr_coef, 3 * N_FEATURES),
         ]
 
     @staticmethod
     def theta_size(k: int) -> int:
-        return k * N_SLOTS + 2 * k + 1 + 3 + 2 + 1 + 1
+        return k * N_SLOTS + 2 * k + 1 + 3 + 2 + 1 + 1 + 2 + 3 * N_FEATURES
 
     def load(self, theta: torch.Tensor) -> None:
         """Copy the float32 parameter vector [P] (or [B, P], one row per member) into the
@@ -263,7 +289,10 @@ class ObjectTables:
         rows = theta.detach().float().cpu().numpy().reshape(self.batch, -1)
         at = 0
         for arr, size in self._parts():
-            arr.assign(rows[:, at : at + size].reshape(arr.numpy().shape))
+            block = rows[:, at : at + size]
+            arr.assign(block.reshape(arr.numpy().shape))
+            if arr is self.expr_switch:
+                self.relative = bool((block[:, 1] > 0.5).any())
             at += size
 
     def zero_grad(self) -> None:
