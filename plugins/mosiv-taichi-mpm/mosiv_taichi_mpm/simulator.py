@@ -204,6 +204,13 @@ class TaichiMPMSimulator(Simulator):
             if v0 is None or tuple(v0.shape) != (3,):
                 problems.append(f"params.initial_velocity[{k}] must be a [3] tensor (m/s)")
         for term, values in params.terms.items():
+            if term == "expression":  # its node features and centre sums exist in warp-mpm only
+                problems.append(
+                    "physics term 'expression' (a discovered force law applied on grid nodes) "
+                    "is implemented by the warp-mpm simulator, not by taichi-mpm: set "
+                    f"simulator.name: warp-mpm to use it; taichi-mpm implements {sorted(TERMS)}"
+                )
+                continue
             if term not in TERMS:
                 problems.append(
                     f"physics term {term!r} not supported by taichi-mpm; valid: {sorted(TERMS)}"
