@@ -29,9 +29,11 @@ from mosiv_framework.types import (
 )
 
 if TYPE_CHECKING:  # the scene module is heavier (image I/O); only its types are needed here
+    from mosiv_framework.bench_peer import PeerTiming, PeerWorkload
     from mosiv_framework.scene import Camera, Scene
 
 __all__ = [
+    "BenchPeer",
     "ConstitutiveLaw",
     "Lifter",
     "Loss",
@@ -238,3 +240,15 @@ class Segmenter(ABC):
     @abstractmethod
     def segment(self, frames: Frames) -> dict[str, np.ndarray]:
         """Instance-id masks: camera id -> uint8 array [T, H, W] (0 background, k = object k)."""
+
+
+class BenchPeer(ABC):
+    """Another simulator timed on the bench's workload (``mosiv bench sim --peer NAME``).
+
+    It maps the workload (bench_peer.PeerWorkload: particles, law, grid, substeps, frames,
+    device) onto its own engine, times the forward frames after an untimed warm-up, and says
+    what it did not time (gradients) in its PeerTiming.
+    """
+
+    @abstractmethod
+    def measure(self, workload: PeerWorkload) -> PeerTiming: ...

@@ -60,6 +60,10 @@ class MosivHookSpecs:
     def mosiv_segmenters(self, register: Register) -> None:
         """Register Segmenter components (multi-view video -> instance masks)."""
 
+    @hookspec
+    def mosiv_bench_peers(self, register: Register) -> None:
+        """Register BenchPeer components (other simulators timed by ``mosiv bench sim --peer``)."""
+
 
 #: component kind -> the hook that registers it
 HOOK_OF_KIND: dict[str, str] = {
@@ -72,4 +76,5 @@ HOOK_OF_KIND: dict[str, str] = {
     "physics_term": "mosiv_physics_terms",
     "scene_source": "mosiv_scene_sources",
     "segmenter": "mosiv_segmenters",
+    "bench_peer": "mosiv_bench_peers",
 }

@@ -17,6 +17,7 @@ KINDS: tuple[str, ...] = (
     "physics_term",
     "scene_source",
     "segmenter",
+    "bench_peer",
 )
 
 
