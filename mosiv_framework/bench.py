@@ -38,6 +38,8 @@ class BenchResult:
     forward_backward_s: float | None
     peak_memory_bytes: int | None
     peak_memory_forward_backward_bytes: int | None
+    #: centroid of the body after the timed forward rollout's last frame (m)
+    final_centroid: list[float] | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -215,11 +217,12 @@ def run_bench(
     sync()
     t0 = time.perf_counter()
     with torch.no_grad():
-        simulator.rollout(
+        forward = simulator.rollout(
             parts, bench_params(torch_device, requires_grad=False), world=world, frames=frames
         )
     sync()
     forward_s = time.perf_counter() - t0
+    final_centroid = [float(c) for c in forward.positions[-1].double().mean(dim=0)]
     peak_forward = simulator.peak_memory_bytes()
 
     fb_s = fb_rate = peak_fb = None
@@ -253,4 +256,5 @@ def run_bench(
         forward_backward_s=fb_s,
         peak_memory_bytes=peak_forward,
         peak_memory_forward_backward_bytes=peak_fb,
+        final_centroid=final_centroid,
     )

@@ -1,4 +1,5 @@
-"""``mosiv bench sim``: simulator throughput and peak memory, one or several backends side by side."""
+"""``mosiv bench sim``: simulator throughput and peak memory, one or several backends side by side,
+and with ``--peer NAME`` another simulator on the same workload (mosiv_framework.bench_peer)."""
 
 from __future__ import annotations
 
@@ -25,6 +26,12 @@ def add_parser(sub) -> None:
         metavar="B",
         help="measure rollout_batch of B members against B single rollouts (forward only)",
     )
+    sim.add_argument(
+        "--peer",
+        metavar="NAME",
+        help="also time another simulator (a registered bench peer, e.g. genesis) on the same "
+        "particles, law, grid, substeps and frames, forward only, after its untimed warm-up",
+    )
     sim.add_argument("--json", action="store_true")
     sim.set_defaults(handler=run_sim)
 
@@ -33,10 +40,19 @@ def run_sim(args) -> int:
     from mosiv_framework.bench import run_bench
 
     if args.batch:
+        if args.peer:
+            from mosiv_framework.errors import ConfigError
+
+            raise ConfigError("--peer times single rollouts; it does not combine with --batch")
         return run_batch(args)
+    if args.peer:  # an unknown or uninstalled peer fails before minutes of MOSIV timing
+        from mosiv_framework.bench_peer import resolve_peer
+
+        resolve_peer(args.peer)
     results = []
     for n in args.particles:
         for grid in args.grid:
+            ours = []
             for backend in args.backend.split(","):
                 result = run_bench(
                     backend=backend.strip(),
@@ -47,12 +63,52 @@ def run_sim(args) -> int:
                     frames=args.frames,
                     backward=not args.no_backward,
                 )
-                results.append(result.as_dict())
+                ours.append(result.as_dict())
                 if not args.json:
                     print(_line(result.as_dict()), flush=True)
+            results += ours
+            if args.peer:
+                results.append(_run_peer(args, n, grid, ours))
     if args.json:
         print(json.dumps(results, indent=2))
     return 0
+
+
+def _run_peer(args, n: int, grid: int, ours: list[dict]) -> dict:
+    """Time the peer on this size and compare it with each MOSIV backend just timed."""
+    from mosiv_framework.bench_peer import compare_with_peer, run_peer_bench
+
+    peer = run_peer_bench(
+        peer=args.peer,
+        device=args.device,
+        particles=n,
+        grid=grid,
+        substeps=args.substeps,
+        frames=args.frames,
+    ).as_dict()
+    peer["versus"] = {r["backend"]: compare_with_peer(r, peer) for r in ours}
+    if not args.json:
+        print(_peer_line(peer), flush=True)
+        for backend, c in peer["versus"].items():
+            print(
+                f"  {backend} / {peer['peer']} forward: {c['forward_ratio']:.3g}x; "
+                f"final centroids {c['centroid_distance_m'] * 1e3:.2g} mm apart",
+                flush=True,
+            )
+    return peer
+
+
+def _peer_line(r: dict) -> str:
+    lines = [
+        f"{r['peer'] + ' (peer)':<11} {r['device']:<4} N={r['particles']:>8} "
+        f"grid={r['grid']:<4} substeps={r['substeps']:<4} fwd "
+        f"{r['forward_particle_substeps_per_s']:.3g} p-substeps/s  fwd+bwd n/a "
+        f"({r['gradients']})  memory {_mem(r['peak_memory_bytes'])}"
+        + (f" ({r['memory_note']})" if r["memory_note"] else ""),
+        f"  {r['peer']} warm-up excluded from the timing: {r['warmup_s']:.1f} s (scene build, "
+        "kernel compilation, one frame)",
+    ]
+    return "\n".join(lines + [f"  {r['peer']}: {note}" for note in r["notes"]])
 
 
 def run_batch(args) -> int:
