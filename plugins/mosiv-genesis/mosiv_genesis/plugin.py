@@ -1,7 +1,8 @@
-"""Entry point of mosiv-genesis: registers the ``genesis`` scene source.
+"""Entry point of mosiv-genesis: registers the ``genesis`` scene source and bench peer.
 
 Importing it never imports Genesis (a large engine, installed with ``mosiv-genesis[engine]``);
-the engine loads when a scene is generated, and its absence is a clear ConfigError then.
+the engine loads when a scene is generated or a bench runs, and its absence is a clear error
+then.
 """
 
 from __future__ import annotations
@@ -27,5 +28,25 @@ def mosiv_scene_sources(register):
             options=GenesisOptions,
             description="Genesis-engine MPM scenes (Elastic, ElastoPlastic, Liquid, Sand, Snow) "
             "with the paper's collision protocol; needs genesis-world",
+        )
+    )
+
+
+def make_bench_peer():
+    """The Genesis bench peer (``mosiv bench sim --peer genesis``)."""
+    from mosiv_genesis.bench import GenesisPeer
+
+    return GenesisPeer()
+
+
+@hookimpl
+def mosiv_bench_peers(register):
+    register(
+        Component(
+            "bench_peer",
+            "genesis",
+            factory=make_bench_peer,
+            description="Genesis' MPM timed on the bench workload (same particles, elastic "
+            "law, grid, substeps), forward only; needs genesis-world",
         )
     )
