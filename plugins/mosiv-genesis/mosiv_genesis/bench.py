@@ -22,6 +22,7 @@ sides say how much that moves the body.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
@@ -29,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mosiv_framework.bench_peer import PeerTiming
 from mosiv_framework.errors import ConfigError, StageNotAvailable
 from mosiv_framework.interfaces import BenchPeer
 from mosiv_genesis.source import MPM_BOUNDARY_CELLS, _genesis
@@ -163,11 +165,13 @@ def settings_notes(settings: GenesisBenchSettings, workload) -> list[str]:
 class GenesisPeer(BenchPeer):
     """Times Genesis' MPM on a bench workload (forward only; see the module docstring)."""
 
-    def measure(self, workload):
-        from mosiv_framework.bench_peer import PeerTiming
-
+    def measure(self, workload) -> PeerTiming:
         settings = genesis_bench_settings(workload)
         gs = _engine(workload.device)
+        with _log_to_stderr(gs):
+            return self._measure(gs, settings, workload)
+
+    def _measure(self, gs, settings: GenesisBenchSettings, workload) -> PeerTiming:
         rss0 = _rss_bytes()
         t0 = time.perf_counter()
         scene, body = _build(gs, settings)
@@ -198,12 +202,25 @@ class GenesisPeer(BenchPeer):
             particles=particles,
             final_positions=final,
             peak_memory_bytes=(rss1 - rss0) if cpu and rss0 is not None else None,
-            memory_note="resident memory the scene added, compiled kernels included"
+            memory_note="resident memory the scene added (the first scene of a process also "
+            "loads Genesis' kernels)"
             if cpu
             else "Genesis' GPU memory pool is not reported",
             gradients="forward only",
             notes=[GRADIENTS_NOTE, *settings_notes(settings, workload)],
         )
+
+
+@contextlib.contextmanager
+def _log_to_stderr(gs):
+    """Genesis logs to stdout; while it runs, its lines go to stderr, so that the bench's
+    stdout stays its table or JSON."""
+    handler = gs.logger.handler
+    previous = handler.setStream(sys.stderr)
+    try:
+        yield
+    finally:
+        handler.setStream(previous)
 
 
 def _engine(device: str):

@@ -129,13 +129,16 @@ def test_missing_engine_says_what_to_install(monkeypatch):
 
 @pytest.mark.genesis_engine
 @pytest.mark.slow
-def test_genesis_peer_times_the_bench_body_in_free_fall():
+def test_genesis_peer_times_the_bench_body_in_free_fall(capsys):
     """Two frames before the body lands: Genesis' centroid flies as n = 80 semi-implicit
     Euler substeps fly it, x0 + v t + g dt^2 n (n + 1) / 2 (0.4 mm below x0 + v t + g t^2 / 2),
     so positions, velocity, gravity, dt and substeps reached it as MOSIV's backends get them."""
     from mosiv_framework.bench_peer import run_peer_bench
 
     r = run_peer_bench(peer="genesis", device="cpu", particles=512, grid=32, substeps=40, frames=2)
+    # Genesis warns about this dt (above its hint) on stderr: stdout stays the bench's table
+    captured = capsys.readouterr()
+    assert "substep_dt" in captured.err and "substep_dt" not in captured.out
     assert r.particles == 512 and r.forward_particle_substeps_per_s > 0 and r.warmup_s > 0
     assert r.gradients == "forward only" and GRADIENTS_NOTE in r.notes
     assert r.peak_memory_bytes is not None and r.peak_memory_bytes > 0
