@@ -23,12 +23,26 @@ def add_parsers(sub) -> None:
     )
     diag.add_argument("--device", help="run the simulator on this device (cpu, cuda) instead")
     diag.set_defaults(handler=diagnose)
+    _add_suite_parser(sub)
 
+
+def _add_suite_parser(sub) -> None:
     suite = sub.add_parser(
         "diagnose-suite", help="score the diagnosis on scenes with concealed effects"
     )
     suite.add_argument("out", help="folder for the suite's scenes, runs and table")
     suite.add_argument("--small", action="store_true", help="three tiny scenes (CPU, minutes)")
+    suite.add_argument(
+        "--source",
+        default="synth",
+        help="whose suite: synth (default) or genesis (Genesis-recorded scenes with "
+        "out-of-library fields; needs --split)",
+    )
+    suite.add_argument(
+        "--split",
+        help="dev or test split of the genesis suite: choose thresholds on dev (--replay), "
+        "score once on test",
+    )
     suite.add_argument("--recipe", help="recipe the scenes run with (default: the suite's own)")
     suite.add_argument("--budget", choices=("small", "full"), help="diagnosis budget")
     suite.add_argument("--only", help="comma-separated entry names to run (default: all)")
@@ -121,6 +135,8 @@ def diagnose_suite(args) -> int:
         **scale_options(args),
         overrides=args.overrides,
         prepare_only=args.prepare_only,
+        source=args.source,
+        split=args.split,
     )
     if args.prepare_only:
         print(f"prepared for diagnosis: {', '.join(summary['prepared']) or 'none'}")
@@ -148,7 +164,9 @@ def _replay(args) -> int:
     from mosiv_framework.cli.stages import require_folder
 
     require_folder(args.out, "suite folder", "the OUT of a finished `mosiv diagnose-suite`")
-    summary = replay_suite(args.out, options, small=args.small)
+    summary = replay_suite(
+        args.out, options, small=args.small, source=args.source, split=args.split
+    )
     print(f"replayed under {summary['rule']}")
     print(table(summary))
     if args.plot:

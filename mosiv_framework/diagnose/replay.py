@@ -200,25 +200,57 @@ def _tables(diagnosis: dict, source: str | Path) -> dict:
     return diagnosis["frame_errors_mm2"]
 
 
-def replay_suite(out: Path, options: DecideOptions, *, small: bool = False) -> dict:
+def replay_suite(
+    out: Path,
+    options: DecideOptions,
+    *,
+    small: bool = False,
+    source: str = "synth",
+    split: str | None = None,
+) -> dict:
     """Re-score every finished entry of a ``mosiv diagnose-suite`` folder under ``options``;
     returns the suite summary (``suite.summarise``) of the replayed scores. Entries without a
-    diagnosis.json (not finished, or failed) are left out and listed under ``missing``."""
-    from mosiv_framework.diagnose.suite import score_entry, suite_entries, summarise
+    diagnosis.json (not finished, or failed) are left out and listed under ``missing``.
+    ``source`` and ``split`` name the suite the folder holds (``suite.suite_selection``); a
+    folder whose suite.json records another is refused."""
+    from mosiv_framework.diagnose.suite import (
+        check_suite_folder,
+        score_entry,
+        suite_selection,
+        summarise,
+    )
 
     out = Path(out)
+    entries = suite_selection(small, source, split)
+    check_suite_folder(out, source, split)
     scores, missing = [], []
-    for entry in suite_entries(small):
+    for entry in entries:
         path = out / entry.name / "diagnosis.json"
         if not path.exists():
             missing.append(entry.name)
             continue
         diagnosis = replay_diagnosis(load_diagnosis(path), options, source=path)
-        scores.append(score_entry(entry, diagnosis, _truth(entry, out, diagnosis["accepted"])))
+        truth = _truth(entry, out, diagnosis["accepted"])
+        scores.append(score_entry(entry, diagnosis, truth, _law(entry, out, diagnosis)))
     summary = summarise(scores)
     summary["missing"] = missing
     summary["rule"] = dict(options.__dict__)
+    summary.update(source=source, split=split)
     return summary
+
+
+def _law(entry, out: Path, diagnosis: dict) -> dict | None:
+    """The discovered law's score of an out-of-library entry whose scene is kept: the law the
+    diagnosis wrote counts where the replayed verdict names no term (the discovery runs only
+    then)."""
+    from mosiv_framework.diagnose.law_score import law_score
+    from mosiv_framework.scene import read_scene
+
+    scene = out / entry.name / "scene"
+    if not entry.outside or not scene.is_dir():
+        return None
+    law = diagnosis.get("discovered") if diagnosis["verdict"] != "missing physics" else None
+    return law_score(law, read_scene(scene).gt_effects(), scene)
 
 
 def _truth(entry, out: Path, accepted: dict | None) -> list[dict]:

@@ -6,6 +6,10 @@ runs on it (oracle reconstructor), the run is diagnosed, and only then is ``gt/e
 read to score the diagnosis. Entries: concealed effects at two strengths on mixed material
 pairs, controls with nothing concealed, and out-of-library entries whose concealed term is
 removed from the screened library (the right answer there is "unexplained").
+
+``--source genesis --split dev|test`` runs the Genesis suite instead (``suite_splits``): scenes
+the Genesis engine records, with out-of-library fields no term expresses, in a development split
+to choose thresholds on and a test split to score once.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import statistics
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+from mosiv_framework.conceal_fields import OUT_OF_LIBRARY_KINDS, library_conflicts
 from mosiv_framework.diagnose.diagnosis import diagnose_run
 from mosiv_framework.diagnose.formats import FIELD, SCORE_FORMAT, SUITE_FORMAT, file_format
 from mosiv_framework.errors import ConfigError
@@ -51,6 +56,12 @@ class Entry:
     @property
     def kind(self) -> str:
         return self.conceal.split(":", 1)[0] if self.conceal else ""
+
+    @property
+    def outside(self) -> bool:
+        """Whether the concealed effect is outside the screened library: excluded from it, or
+        an out-of-library field (``conceal_fields``)."""
+        return bool(self.exclude) or self.kind in OUT_OF_LIBRARY_KINDS
 
 
 def suite_entries(small: bool) -> list[Entry]:
@@ -156,7 +167,11 @@ def candidate_kind(name: str) -> str:
     return name.split("@", 1)[0]
 
 
-def score_entry(entry: Entry, diagnosis: dict, effects: list[dict]) -> Score:
+def score_entry(
+    entry: Entry, diagnosis: dict, effects: list[dict], law: dict | None = None
+) -> Score:
+    """How the diagnosis did on ``entry`` against the concealed ``effects``; ``law``: the
+    discovered law's score against an out-of-library field (``law_score``), kept in extra."""
     accepted = diagnosis.get("accepted")
     ranked = diagnosis["evidence"][0]["name"] if diagnosis["evidence"] else None
     errors = diagnosis["errors"]
@@ -168,7 +183,7 @@ def score_entry(entry: Entry, diagnosis: dict, effects: list[dict]) -> Score:
             reduction = 1.0 - after / before
     if not entry.conceal:
         correct = accepted is None
-    elif entry.exclude:
+    elif entry.outside:
         # both verdicts say the residual is real and no candidate in the library explains it
         correct = diagnosis["verdict"] in ("unexplained", "discrepancy")
     else:
@@ -186,6 +201,7 @@ def score_entry(entry: Entry, diagnosis: dict, effects: list[dict]) -> Score:
         float(diagnosis["where"]["signal_to_noise"]),
         coef,
         reduction,
+        dict(law or {}),
     )
 
 
@@ -225,7 +241,12 @@ def run_entry(
         return None
     diagnosis = diagnose_run(run_dir, budget=budget)
     effects = read_scene(run_dir / "scene").gt_effects()  # scoring only, after diagnosis
-    score = score_entry(entry, diagnosis, effects)
+    law = None
+    if entry.outside:
+        from mosiv_framework.diagnose.law_score import law_score
+
+        law = law_score(diagnosis.get("discovered"), effects, run_dir / "scene")
+    score = score_entry(entry, diagnosis, effects, law)
     tmp = done.with_suffix(".json.tmp")
     record = {FIELD: SCORE_FORMAT, **asdict(score)}
     tmp.write_text(json.dumps(record, indent=2, default=float) + "\n")
@@ -254,9 +275,14 @@ def run_suite(
     gpus_per_task: float | None = None,
     overrides: list[str] | None = None,
     prepare_only: bool = False,
+    source: str = "synth",
+    split: str | None = None,
 ) -> dict:
     """Generate, run, diagnose and score every entry into ``out``; returns the summary
     (``summarise``, with ``missing``), also written to suite.json, suite.md and suite.png.
+
+    ``source`` and ``split``: the synth suite (``small`` or full, no split) or the Genesis
+    suite's ``dev`` or ``test`` split (``suite_splits``); a folder holds one of them only.
 
     ``only`` restricts the suite to the named entries. ``jobs`` > 1 (or None: as many as the
     cluster takes) or a ``ray_address`` runs every entry as a Ray task of its own
@@ -273,11 +299,15 @@ def run_suite(
     scene's path is part of every stage's key).
     """
     out = Path(out)
+    if entries is None:
+        entries = suite_selection(small, source, split)
+    check_suite_folder(out, source, split)
     out.mkdir(parents=True, exist_ok=True)
-    recipe_path = Path(recipe) if recipe is not None else DEFAULT_RECIPES[small]
+    (out / SUITE_MARKER).write_text(json.dumps({"source": source, "split": split}) + "\n")
+    recipe_path = Path(recipe) if recipe is not None else default_recipe(small, source)
     budget = budget or ("small" if small else "full")
     entries = _chosen_entries(
-        list(entries if entries is not None else suite_entries(small)),
+        list(entries),
         only=only,
         overrides=overrides,
         recipe_path=recipe_path,
@@ -299,7 +329,56 @@ def run_suite(
         prepared = sorted(name for name, score in results.items() if score is None)
         return {"prepared": prepared, **({"retried": retried} if retried else {})}
     scores = {n: s for n, s in results.items() if s is not None}
-    return _write_summary(out, entries, scores, retried)
+    return _write_summary(out, entries, scores, retried, {"source": source, "split": split})
+
+
+def suite_selection(small: bool, source: str = "synth", split: str | None = None) -> list[Entry]:
+    """The entries of the synth suite (small or full) or of a split of another source's suite
+    (``suite_splits``); an out-of-library kind that a registered physics term is named after is
+    refused, since the diagnosis would then have it in its library."""
+    from mosiv_framework.diagnose.suite_splits import split_entries
+
+    entries = split_entries(source, split, small=small)
+    if entries is None:
+        return suite_entries(small)
+    from mosiv_framework.registry import get_registry
+
+    clash = library_conflicts(get_registry().names("physics_term"))
+    if clash:
+        raise ConfigError(
+            f"physics term(s) {clash} are registered under out-of-library effect names: the "
+            "suite's out-of-library entries would be in the library; rename the term(s)"
+        )
+    return entries
+
+
+def default_recipe(small: bool, source: str = "synth") -> Path:
+    """The recipe a suite runs with unless another is given."""
+    from mosiv_framework.diagnose.suite_splits import SPLIT_RECIPES
+
+    return SPLIT_RECIPES.get(source, DEFAULT_RECIPES[small])
+
+
+#: the file in a suite folder that names the suite it holds (written when a run starts)
+SUITE_MARKER = "suite_source.json"
+
+
+def check_suite_folder(out: Path, source: str, split: str | None) -> None:
+    """Refuse a folder that holds another source's or split's suite (its ``SUITE_MARKER`` or
+    suite.json says so; a suite.json without them is the synth suite's). Why: the splits share
+    entry names, and an entry's finished scene and score would be reused across them."""
+    for name in (SUITE_MARKER, "suite.json"):
+        path = out / name
+        if not path.is_file():
+            continue
+        data = json.loads(path.read_text())
+        was = (data.get("source", "synth"), data.get("split"))
+        if was != (source, split):
+            raise ConfigError(
+                f"{path} holds the suite of source {was[0]!r}, split {was[1]!r}, not "
+                f"{source!r}, {split!r}: use another folder, or give --source/--split as it "
+                "was run"
+            )
 
 
 def _chosen_entries(
@@ -327,15 +406,16 @@ def _chosen_entries(
 
 
 def _write_summary(
-    out: Path, entries: list[Entry], scores: dict[str, Score], retried: list[str]
+    out: Path, entries: list[Entry], scores: dict[str, Score], retried: list[str], which: dict
 ) -> dict:
     """The summary of the scored entries (in suite order; the others ``missing``; those
-    whose worker died and that ran again ``retried``), written to suite.json, suite.md and,
-    if any was scored, suite.png."""
+    whose worker died and that ran again ``retried``; ``which``: the source and split), written
+    to suite.json, suite.md and, if any was scored, suite.png."""
     ordered = [scores[e.name] for e in entries if e.name in scores]
     summary = summarise(ordered)
     summary["missing"] = [e.name for e in entries if e.name not in scores]
     summary["retried"] = retried
+    summary.update(which)
     record = {FIELD: SUITE_FORMAT, **summary}
     (out / "suite.json").write_text(json.dumps(record, indent=2, default=float) + "\n")
     (out / "suite.md").write_text(table(summary) + "\n")
@@ -362,6 +442,9 @@ def summarise(scores: list[Score]) -> dict:
     strong = [s for s in concealed if s.signal_to_noise >= 3.0]
     coefs = [s.coefficient_error for s in concealed if s.coefficient_error is not None]
     reductions = [s.future_reduction for s in concealed if s.future_reduction is not None]
+    # the discovered laws of out-of-library fields (``law_score``), where scored
+    laws = [s.extra["law_error"] for s in outside if s.extra.get("law_error") is not None]
+    forms = [s for s in outside if s.extra.get("form_correct") is not None]
 
     def rate(items, pred):
         return sum(1 for s in items if pred(s)) / len(items) if items else None
@@ -373,6 +456,8 @@ def summarise(scores: list[Score]) -> dict:
         "outside_reported_unexplained_rate": rate(outside, lambda s: s.correct),
         "median_coefficient_error": statistics.median(coefs) if coefs else None,
         "median_future_reduction": statistics.median(reductions) if reductions else None,
+        "outside_median_law_error": statistics.median(laws) if laws else None,
+        "outside_law_form_rate": rate(forms, lambda s: s.extra["form_correct"]),
     }
 
 
@@ -402,6 +487,12 @@ def table(summary: dict) -> str:
         f"median coefficient error: {f(summary['median_coefficient_error'], True)}; "
         f"median future-error reduction: {f(summary['median_future_reduction'], True)}",
     ]
+    if summary.get("outside_median_law_error") is not None or summary.get("outside_law_form_rate"):
+        lines.append(
+            "out-of-library fields: median discovered-law error "
+            f"{f(summary.get('outside_median_law_error'), True)}; law of the right form "
+            f"{f(summary.get('outside_law_form_rate'), True)}"
+        )
     if summary.get("missing"):
         lines.append(f"not scored (failed or not yet run): {', '.join(summary['missing'])}")
     if summary.get("retried"):
