@@ -20,7 +20,7 @@ import torch
 import warp as wp
 
 from mosiv_warp_mpm import kernels as K
-from mosiv_warp_mpm.state import Grid, ParticleState
+from mosiv_warp_mpm.state import Grid, NodeBox, ParticleState
 
 
 class WarpRollout(torch.autograd.Function):
@@ -103,21 +103,47 @@ class BackwardWorkspace:
 
     def _launches(self, run) -> None:
         """Everything after loading work[0]: re-simulate the frame keeping every substep's
-        state, then run the substeps' adjoints in reverse, one short tape each."""
-        S, work, grid = run.substeps, self.work, self.grid
+        state, then run the substeps' adjoints in reverse, one short tape each. The phases are
+        separate methods so that benchmarks/warp_profile.py can time each of them."""
+        boxes = self.resimulate(run)
+        self.seed()
+        for s in range(run.substeps - 1, -1, -1):
+            self.prepare_substep(s, boxes[s])
+            self.record_substep(run, s, boxes[s]).backward()
+            # no tape.reset(): it would zero every gradient, parameters included
+        self.finish()
+
+    def resimulate(self, run) -> list[NodeBox]:
+        """Advance work[0] through the frame into work[1..S] (one shared grid); returns each
+        substep's node box."""
+        work, grid = self.work, self.grid
         run.flag.fill_(K.NO_FLAG)
         boxes = []
-        for s in range(S):
+        for s in range(run.substeps):
             boxes.append(run.active_box(work[s]))
             grid.clear(boxes[s])
             run.substep(work[s], work[s + 1], grid, s, boxes[s])
-        work[S].copy_grad_from(self.carry)
-        for s in range(S - 1, -1, -1):
-            work[s].zero_grad()
-            grid.zero_grad(boxes[s])
-            grid.clear(boxes[s])
-            tape = wp.Tape()
-            with tape:
-                run.substep(work[s], work[s + 1], grid, s, boxes[s])
-            tape.backward()  # no tape.reset(): it would zero every gradient, parameters included
-        self.carry.copy_grad_from(work[0])
+        return boxes
+
+    def seed(self) -> None:
+        """d(loss)/d(state at the frame's end), held by ``carry``, onto the last substep's state."""
+        self.work[-1].copy_grad_from(self.carry)
+
+    def prepare_substep(self, s: int, box: NodeBox) -> None:
+        """Zero what substep ``s``'s adjoint accumulates into (its input state's and the grid's
+        gradients) and the grid values its replay accumulates into."""
+        self.work[s].zero_grad()
+        self.grid.zero_grad(box)
+        self.grid.clear(box)
+
+    def record_substep(self, run, s: int, box: NodeBox) -> wp.Tape:
+        """Replay substep ``s`` (work[s] -> work[s + 1]) under a fresh tape, which rebuilds the
+        grid that later substeps overwrote; returns the tape, ready for ``backward``."""
+        tape = wp.Tape()
+        with tape:
+            run.substep(self.work[s], self.work[s + 1], self.grid, s, box)
+        return tape
+
+    def finish(self) -> None:
+        """d(loss)/d(state at the frame's start) from work[0] into ``carry``."""
+        self.carry.copy_grad_from(self.work[0])
