@@ -21,6 +21,7 @@ from mosiv_framework.diagnose.suite import (
     entry_group,
     entry_overrides,
     score_entry,
+    scored_law,
     suite_selection,
     summarise,
 )
@@ -156,11 +157,24 @@ def test_out_of_library_entries_are_right_when_nothing_is_named():
     assert right.correct and right.extra == law and right.coefficient_error is None
     wrong = score_entry(vortex, _diagnosis("missing physics", "wind"), effects, None)
     assert not wrong.correct and wrong.future_reduction == pytest.approx(0.6)
+    # the discovered law accepted as a model names no library term either
+    law_accepted = score_entry(vortex, _diagnosis("missing physics", "expression"), effects, law)
+    assert law_accepted.correct and law_accepted.future_reduction == pytest.approx(0.6)
     summary = summarise([right, wrong])
     assert summary["outside_reported_unexplained_rate"] == 0.5
     assert summary["outside_median_law_error"] == 0.2
     assert summary["outside_law_form_rate"] == 1.0
     assert summary["correct_first_rate"] is None  # no library effect among them
+
+
+def test_the_scored_law_is_the_one_the_diagnosis_ends_with():
+    discovered, refitted = {"formula": "found"}, {"formula": "refitted"}
+    none = _diagnosis("unexplained", None)
+    assert scored_law({**none, "discovered": discovered}) is discovered
+    expression = {**_diagnosis("missing physics", "expression"), "discovered": discovered}
+    assert scored_law({**expression, "formula": {"refitted": refitted}}) is refitted
+    assert scored_law(expression) is discovered
+    assert scored_law({**_diagnosis("missing physics", "wind"), "discovered": discovered}) is None
 
 
 def test_a_dev_folder_replays_under_its_split(tmp_path):

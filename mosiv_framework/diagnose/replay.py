@@ -240,17 +240,16 @@ def replay_suite(
 
 
 def _law(entry, out: Path, diagnosis: dict) -> dict | None:
-    """The discovered law's score of an out-of-library entry whose scene is kept: the law the
-    diagnosis wrote counts where the replayed verdict names no term (the discovery runs only
-    then)."""
+    """The law's score of an out-of-library entry whose scene is kept (``suite.scored_law``
+    of the replayed decision)."""
     from mosiv_framework.diagnose.law_score import law_score
+    from mosiv_framework.diagnose.suite import scored_law
     from mosiv_framework.scene import read_scene
 
     scene = out / entry.name / "scene"
     if not entry.outside or not scene.is_dir():
         return None
-    law = diagnosis.get("discovered") if diagnosis["verdict"] != "missing physics" else None
-    return law_score(law, read_scene(scene).gt_effects(), scene)
+    return law_score(scored_law(diagnosis), read_scene(scene).gt_effects(), scene)
 
 
 def _truth(entry, out: Path, accepted: dict | None) -> list[dict]:

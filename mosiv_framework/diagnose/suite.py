@@ -26,6 +26,7 @@ from mosiv_framework.conceal_fields import OUT_OF_LIBRARY_KINDS, library_conflic
 from mosiv_framework.diagnose.diagnosis import diagnose_run
 from mosiv_framework.diagnose.formats import FIELD, SCORE_FORMAT, SUITE_FORMAT, file_format
 from mosiv_framework.errors import ConfigError
+from mosiv_framework.expression import NAME as EXPRESSION
 from mosiv_framework.pipeline import run_pipeline
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.scale import Task, run_tasks
@@ -184,8 +185,11 @@ def score_entry(
     if not entry.conceal:
         correct = accepted is None
     elif entry.outside:
-        # both verdicts say the residual is real and no candidate in the library explains it
-        correct = diagnosis["verdict"] in ("unexplained", "discrepancy")
+        # both verdicts say the residual is real and no candidate in the library explains it;
+        # so does an accepted discovered law (the ``expression`` candidate), which names none
+        correct = diagnosis["verdict"] in ("unexplained", "discrepancy") or (
+            accepted is not None and candidate_kind(accepted["name"]) == EXPRESSION
+        )
     else:
         correct = accepted is not None and candidate_kind(accepted["name"]) == entry.kind
     coef = None
@@ -245,13 +249,23 @@ def run_entry(
     if entry.outside:
         from mosiv_framework.diagnose.law_score import law_score
 
-        law = law_score(diagnosis.get("discovered"), effects, run_dir / "scene")
+        law = law_score(scored_law(diagnosis), effects, run_dir / "scene")
     score = score_entry(entry, diagnosis, effects, law)
     tmp = done.with_suffix(".json.tmp")
     record = {FIELD: SCORE_FORMAT, **asdict(score)}
     tmp.write_text(json.dumps(record, indent=2, default=float) + "\n")
     os.replace(tmp, done)
     return score
+
+
+def scored_law(diagnosis: dict) -> dict | None:
+    """The law an out-of-library entry's diagnosis ends with: the discovered law refitted as a
+    model where it was accepted (``expression``), else the discovered law where no library
+    term was accepted (the discovery runs only then), else none."""
+    accepted = diagnosis.get("accepted")
+    if accepted is not None and candidate_kind(accepted["name"]) == EXPRESSION:
+        return (diagnosis.get("formula") or {}).get("refitted") or diagnosis.get("discovered")
+    return diagnosis.get("discovered") if accepted is None else None
 
 
 def load_score(path: Path) -> Score:
