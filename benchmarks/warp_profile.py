@@ -1,42 +1,190 @@
-"""Per-kernel GPU time of one warp-mpm frame on the `mosiv bench sim` workload.
+"""Per-kernel time of one warp-mpm frame on the `mosiv bench sim` workload, forward or backward.
 
-Usage (GPU machine): python benchmarks/warp_profile.py [--particles 1000000] [--grid 128]
-Prints the summed CUDA time of each kernel over one frame (no graph capture, so Warp can time
-every launch), to show where the forward substep loop spends its time.
+Usage (GPU machine):
+    python benchmarks/warp_profile.py [--particles 1000000] [--grid 128] [--substeps 50]
+    python benchmarks/warp_profile.py --backward [--ablate-parameter-gradients] [--json OUT]
+    python benchmarks/warp_profile.py --backward --family plasticine   # a law with an SVD
+
+Forward: the summed CUDA time of each kernel over one frame (no graph capture, so Warp can
+time every launch). Backward: one frame's adjoint as autograd.BackwardWorkspace runs it -- load
+the frame's checkpoint, re-simulate the frame keeping every substep's state, then per substep in
+reverse: zero the gradients, replay the substep under a Warp tape, run the tape's adjoint
+kernels -- each phase timed on its own, summed per (phase, kernel) with launch counts, sorted,
+with each row's share of the backward total. Beside it: the forward frame, the implied
+particle-substeps/s of forward + backward, the same frame through the captured CUDA graphs that
+rollouts replay, peak GPU memory, and a check that the profiled schedule gives the real path's
+gradients. Timing is Warp's: ScopedTimer with cuda_filter=TIMING_ALL (kernels, memsets, copies)
+on CUDA; on the CPU Warp has no per-kernel timing, so each phase is one launch group timed by
+its wall clock, and the adjoint is timed per recorded launch.
+
+Where the forward + backward time goes: suspects read off autograd.py, simulator.py and
+kernels.py, for this profile to confirm or refute. Reference (docs/BENCHMARKS.md, H200, 1M
+particles, grid 128, 50 substeps): forward 1.26e9 particle-substeps/s (40 ms a frame), forward +
+backward 4.05e7 (2.47 s for 2 frames), so the backward takes about 1.2 s a frame, 24 ms a
+substep, some 30 forward substeps' worth. Per substep it runs the forward twice more (the
+re-simulation and the taped replay), zeroes gradients, and launches four adjoint kernels.
+
+1. Contended atomics on the parameter adjoints. In Warp the adjoint of an array read a[i] is
+   atomic_add(adj_a[i], ...) (native/array.h, adj_address), issued by every thread even when
+   the value is zero. p2g reads params[o] (5 floats), rho[o] and damping[b] in every particle
+   thread and g2p reads params[o] again: 12 atomic adds per particle and substep onto 7
+   addresses (one object in the bench), 12 M same-address atomics a substep at 1M particles,
+   which the L2 serialises. The grid kernels add accel, drag, the expression switch, friction
+   and the ground coefficients per node with mass. Confirmed if the adjoint p2g and g2p rows
+   dwarf their forward rows and --ablate-parameter-gradients (the tables' gradient arrays
+   removed, so Warp skips those atomics) recovers most of the time. The fix would reduce
+   parameter adjoints per block before one atomic (a tiled sum), which changes the summation
+   order, so gradients would no longer be bit-identical.
+2. Recomputation. Every substep's forward runs three times (rollout, re-simulation, taped
+   replay) and each Warp adjoint kernel replays its forward body before its reverse sweep. That
+   bounds it at a few forward substeps (about 2.5 ms of the 24): the re-simulation and replay
+   rows measure it. The replay's G2P recomputes what the re-simulation already wrote into
+   work[s + 1] (its adjoint reads only G2P's inputs), so it could be recorded without running.
+3. Adjoint scatter. The adjoint g2p atomically adds 27 vec3 per particle into grid_v's gradient
+   (the forward P2G's pattern, 20 ms a frame in the forward profile), and each read of x, v, C,
+   F in p2g becomes an atomic into its gradient (C[p] three times, plus once per ground-layer
+   node; F twice). Shows in the adjoint rows that remain after the ablation.
+4. SVD adjoint. Not on the bench workload: elastic is neo-Hookean (no SVD) with an identity
+   return map. Plasticine, sand, non_newtonian and snow go through svd.proper_svd and its
+   hand-written adjoint: --family measures them.
+5. Per-substep tape overhead. Tape recording (Python, a stack inspection per launch) is paid
+   only by this profiler's uncaptured launches; rollouts replay one captured graph per frame.
+   The report puts the graph's wall per frame beside the kernel sum: what separates them is
+   idle time inside the graph, not Python.
+6. Memory traffic of the saved states and the zeroing. Per reverse substep: 5 particle gradient
+   arrays (about 100 bytes a particle) and, on CUDA, 6 whole-grid gradient arrays and 4 value
+   arrays (2.46 M nodes at grid 128): about 0.35 GB in all, some 0.15 ms of the 24 at H100
+   bandwidth: the memset and memcpy rows. The 51 saved states (values and gradients, about 10 GB
+   at 1M particles) cost memory, not time.
+7. Occupancy of the adjoint kernels (register pressure of the reversed 27-node loops): what is
+   left of adjoint p2g/g2p after 1 and 3 are accounted for points here; Nsight Compute on those
+   two kernels would be the next measurement.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import re
 import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
 
 import torch
 import warp as wp
-from mosiv_warp_mpm.simulator import MPMRun, pack_theta
-from mosiv_warp_mpm.state import GridLayout
+from mosiv_warp_mpm.simulator import MPMRun, init_warp, pack_theta, use_deterministic_atomics
+from mosiv_warp_mpm.state import GridLayout, ParticleState
 
 from mosiv_framework.bench import bench_params, bench_particles, bench_world
+from mosiv_framework.laws import FAMILIES, get_law
+from mosiv_framework.types import ObjectParams, SimulationParams
+
+#: the adjoint kernels of every substep (the expression term's field sums join them with
+#: several fields on CUDA)
+ADJOINT_KERNELS = ("p2g", "grid_free_velocity", "grid_boundaries", "g2p")
+
+_HASH = re.compile(r"_[0-9a-f]{8}$")  # Warp's module-hash suffix of a kernel's name
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--particles", type=int, default=1_000_000)
-    ap.add_argument("--grid", type=int, default=128)
-    ap.add_argument("--substeps", type=int, default=50)
-    ap.add_argument(
-        "--order",
-        choices=["scatter", "cell", "lattice", "random"],
-        default="scatter",
-        help="particle order: GridLayout.scatter_order (what rollouts use), sorted by grid cell, "
-        "as generated, or shuffled",
+@dataclass
+class Row:
+    """Timed activity of one name within one phase of the profiled frame."""
+
+    phase: str
+    name: str
+    launches: int
+    ms: float
+
+
+@dataclass
+class Profile:
+    """What one run of this script measured (times in ms, rates in particle-substeps/s)."""
+
+    mode: str  # "forward" or "backward"
+    device: str
+    timing: str  # "cuda activity" or "cpu wall per launch group"
+    particles: int
+    grid: int
+    substeps: int
+    family: str
+    order: str
+    rows: list[Row]
+    total_ms: float  # sum of the rows
+    wall_ms: float  # wall of the timed phases (uncaptured launches, each phase synchronised)
+    forward_ms: float  # the forward frame's activity sum (backward mode: as the forward mode)
+    rate: float  # particle-substeps/s implied by the sums (forward + backward in backward mode)
+    graph_forward_ms: float | None = None  # the real path's frame, CUDA graph on GPUs
+    graph_backward_ms: float | None = None
+    graph_rate: float | None = None
+    memory: dict = field(default_factory=dict)
+    gradient_check: dict = field(default_factory=dict)
+    ablation: dict | None = None
+
+    def phase_totals(self) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for r in self.rows:
+            out[r.phase] = out.get(r.phase, 0.0) + r.ms
+        return out
+
+
+class Recorder:
+    """Sums timed activity per (phase, name) with Warp's ScopedTimer: on CUDA every kernel,
+    memset and copy inside a phase (cuda_filter=TIMING_ALL); on the CPU, where Warp has no
+    per-kernel timing, the phase's wall clock as one launch group named by the caller."""
+
+    def __init__(self, cuda: bool):
+        self.cuda = cuda
+        self.sums: dict[tuple[str, str], list] = {}
+        self.wall_ms = 0.0
+
+    def add(self, phase: str, name: str, ms: float) -> None:
+        entry = self.sums.setdefault((phase, name), [0, 0.0])
+        entry[0] += 1
+        entry[1] += ms
+
+    @contextmanager
+    def phase(self, phase: str, group: str = "all launches (wall)"):
+        flt = wp.TIMING_ALL if self.cuda else 0
+        with wp.ScopedTimer(phase, print=False, synchronize=True, cuda_filter=flt) as timer:
+            yield
+        self.wall_ms += timer.elapsed
+        if not self.cuda:
+            self.add(phase, group, timer.elapsed)
+            return
+        for r in timer.timing_results:
+            self.add(phase, _HASH.sub("", r.name), r.elapsed)
+
+    def rows(self) -> list[Row]:
+        rows = [Row(p, n, c, ms) for (p, n), (c, ms) in self.sums.items()]
+        return sorted(rows, key=lambda r: -r.ms)
+
+
+@dataclass
+class Setup:
+    run: MPMRun
+    x0: torch.Tensor
+    v0: torch.Tensor
+    theta: torch.Tensor
+
+
+def family_params(family: str, device) -> SimulationParams:
+    """The bench's parameters (elastic defaults, v0, ground friction) with ``family``'s law."""
+    base = bench_params(device, requires_grad=False)
+    values = {
+        name: torch.tensor(value, dtype=torch.float32, device=device)
+        for name, value in get_law(family).defaults().items()
+    }
+    return SimulationParams(
+        {1: ObjectParams(family, values)}, base.initial_velocity, base.ground_friction
     )
-    args = ap.parse_args()
-    wp.init()
-    device = "cuda:0"
+
+
+def build(args) -> Setup:
+    """The bench workload's particles in the chosen order, loaded into a fresh MPMRun."""
+    device = args.device
     dev = wp.device_to_torch(device)
     world = bench_world()
     particles = bench_particles(args.particles, grid=args.grid)
-    params = bench_params(dev, requires_grad=False)
     layout = GridLayout.for_world(world, grid=args.grid, fields=1)
     x0 = particles.positions.to(dev)
     if args.order == "scatter":
@@ -54,32 +202,351 @@ def main() -> None:
         substeps=args.substeps,
         device=device,
         object_ids=[1],
-        families=["elastic"],
+        families=[args.family],
         obj_index=torch.zeros(n, dtype=torch.int64, device=dev),
         volumes=particles.volumes.to(dev)[order],
     )
+    params = family_params(args.family, dev)
     theta = pack_theta(params, [1], world.gravity, dev)
     v0 = params.initial_velocity[1].expand(n, 3).contiguous()
-    run.tables.load(theta)
-    run.a.set_initial(x0[order].contiguous(), v0)
-    run._frame_launches()  # compile and warm up
-    wp.synchronize()
-    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
-    t0 = time.perf_counter()
-    run._frame_launches()
-    wp.synchronize()
-    wall = time.perf_counter() - t0
-    results = wp.timing_end()
-    per_kernel: dict[str, float] = {}
-    for r in results:
-        per_kernel[r.name] = per_kernel.get(r.name, 0.0) + r.elapsed
-    total = sum(per_kernel.values())
-    print(
-        f"N={n} grid={args.grid} substeps={args.substeps} order={args.order}: frame wall {wall * 1e3:.1f} ms"
+    return Setup(run, x0[order].contiguous(), v0, theta)
+
+
+def start_state(setup: Setup, frame: int) -> ParticleState:
+    """The state at the start of ``frame`` (1-based): the initial state advanced frame - 1
+    frames, copied into a checkpoint as a differentiable rollout keeps it."""
+    run = setup.run
+    run.tables.load(setup.theta)
+    run.a.set_initial(setup.x0, setup.v0)
+    for f in range(1, frame):
+        run.advance_frame(f)
+    ckpt = ParticleState(run.n, run.device)
+    ckpt.copy_from(run.a)
+    return ckpt
+
+
+def time_forward(setup: Setup, rec: Recorder, start: ParticleState, frame: int) -> None:
+    """One frame's forward launches from ``start``, uncaptured, as phase "forward"."""
+    run = setup.run
+    run.a.copy_from(start)
+    run.set_clock(frame)
+    with rec.phase("forward"):
+        run._frame_launches()
+
+
+def seed_loss(run: MPMRun) -> None:
+    """d(loss)/d(end state) of the bench's loss (sum of the last frame's positions): 1 on x."""
+    ws = run.backward_workspace()
+    run.tables.zero_grad()
+    ws.carry.zero_grad()
+    ws.carry.x.grad.fill_(1.0)
+
+
+def profiled_adjoint(run: MPMRun, rec: Recorder, start: ParticleState, frame: int) -> None:
+    """autograd.BackwardWorkspace._launches phase by phase, each under the recorder (the
+    profile's check compares its gradients with the real path's)."""
+    ws = run.backward_workspace()
+    with rec.phase("load checkpoint"):
+        ws.work[0].copy_from(start)
+        run.set_clock(frame)
+    with rec.phase("re-simulation"):
+        boxes = ws.resimulate(run)
+    with rec.phase("seed/finish copies"):
+        ws.seed()
+    for s in range(run.substeps - 1, -1, -1):
+        with rec.phase("zero gradients"):
+            ws.prepare_substep(s, boxes[s])
+        with rec.phase("taped replay"):
+            tape = ws.record_substep(run, s, boxes[s])
+        run_tape_backward(rec, tape)
+    with rec.phase("seed/finish copies"):
+        ws.finish()
+    run.check_divergence(frame)
+
+
+def run_tape_backward(rec: Recorder, tape: wp.Tape) -> None:
+    """tape.backward(), as phase "adjoint". On the CPU each recorded launch goes through its
+    own one-launch tape, so that its wall time is its own: Tape.backward runs the same
+    adjoint launches in the same reverse order."""
+    if rec.cuda:
+        with rec.phase("adjoint"):
+            tape.backward()
+        return
+    for launch in reversed(tape.launches):
+        single = wp.Tape()
+        single.launches = [launch]
+        name = "recorded function" if callable(launch) else launch[0].key
+        with rec.phase("adjoint", f"backward kernel {name}"):
+            single.backward()
+
+
+def gradients(run: MPMRun) -> dict[str, torch.Tensor]:
+    """What one frame's adjoint produced: parameter gradients and d(loss)/d(start state)."""
+    ws = run.backward_workspace()
+    out = {"theta": run.tables.grad_theta()}
+    for name in ("x", "v", "C", "F", "plastic_J"):
+        out[name] = wp.to_torch(getattr(ws.carry, name).grad).detach().cpu().clone()
+    return out
+
+
+def compare(profiled: dict, real: dict) -> dict:
+    """Largest difference of each gradient relative to the real path's largest magnitude."""
+    out = {"bit_identical": all(torch.equal(profiled[k], real[k]) for k in real)}
+    for k, ref in real.items():
+        scale = float(ref.abs().max()) or 1.0
+        out[f"{k}_max_rel_diff"] = float((profiled[k] - ref).abs().max()) / scale
+    return out
+
+
+def graph_frame_ms(setup: Setup, start: ParticleState, frame: int, reps: int) -> tuple:
+    """Wall ms of one forward frame and one adjoint frame through the real path (captured CUDA
+    graphs on GPUs: MPMRun.advance_frame, BackwardWorkspace.adjoint_frame), mean of ``reps``
+    after a warm-up that captures and compiles; and the real path's gradients."""
+    run = setup.run
+    ws = run.backward_workspace()
+    fwd, bwd = [], []
+    for rep in range(reps + 1):
+        run.a.copy_from(start)
+        with wp.ScopedTimer("forward", print=False, synchronize=True) as t:
+            run.advance_frame(frame)
+        seed_loss(run)
+        with wp.ScopedTimer("adjoint", print=False, synchronize=True) as b:
+            ws.adjoint_frame(run, start, frame=frame)
+        if rep:
+            fwd.append(t.elapsed)
+            bwd.append(b.elapsed)
+    return sum(fwd) / reps, sum(bwd) / reps, gradients(run)
+
+
+def memory(setup: Setup) -> dict:
+    """Peak GPU memory (Warp's pool high-water mark and torch's peak) and the backward's
+    buffers (one frame's per-substep states and grid, plus the checkpoint)."""
+    run, dev = setup.run, setup.run.device
+    out = {"backward_workspace_bytes": run.backward_workspace().nbytes()}
+    if wp.get_device(dev).is_cuda:
+        out["torch_max_allocated_bytes"] = int(
+            torch.cuda.max_memory_allocated(wp.device_to_torch(dev))
+        )
+        if wp.is_mempool_enabled(dev):
+            out["warp_mempool_high_bytes"] = int(wp.get_mempool_used_mem_high(dev))
+    return out
+
+
+def without_parameter_gradients(setup: Setup, start: ParticleState, frame: int) -> dict:
+    """The profiled adjoint again with the parameter tables' gradient arrays removed, so that
+    Warp's adjoints skip their per-object atomics (suspect 1): ms per (phase, name) and total.
+    Friction keeps its gradient: field_sums' hand-written adjoint writes into it unchecked
+    (read once per node with mass, not per particle)."""
+    run = setup.run
+    tables = [
+        a
+        for a in vars(run.tables).values()
+        if isinstance(a, wp.array) and a.requires_grad and a is not run.tables.friction
+    ]
+    for a in tables:
+        a.requires_grad = False
+    try:
+        run.backward_workspace().carry.zero_grad()
+        run.backward_workspace().carry.x.grad.fill_(1.0)
+        rec = Recorder(wp.get_device(run.device).is_cuda)
+        profiled_adjoint(run, rec, start, frame)
+    finally:
+        for a in tables:
+            a.requires_grad = True  # fresh zero gradients; the captured graph is not replayed
+    rows = rec.rows()
+    return {"rows": [asdict(r) for r in rows], "total_ms": sum(r.ms for r in rows)}
+
+
+def profile_backward(setup: Setup, args) -> Profile:
+    run, cuda = setup.run, wp.get_device(args.device).is_cuda
+    start = start_state(setup, args.frame)
+    if cuda:
+        torch.cuda.reset_peak_memory_stats(wp.device_to_torch(args.device))
+    g_fwd, g_bwd, real = graph_frame_ms(setup, start, args.frame, args.reps)
+    seed_loss(run)
+    profiled_adjoint(run, Recorder(cuda), start, args.frame)  # warm-up of the uncaptured path
+    fwd = Recorder(cuda)
+    time_forward(setup, fwd, start, args.frame)
+    seed_loss(run)
+    rec = Recorder(cuda)
+    profiled_adjoint(run, rec, start, args.frame)
+    check = compare(gradients(run), real)
+    rows = rec.rows()
+    total = sum(r.ms for r in rows)
+    forward_ms = sum(r.ms for r in fwd.rows())
+    work = run.n * run.substeps
+    return Profile(
+        mode="backward",
+        device=args.device,
+        timing="cuda activity" if cuda else "cpu wall per launch group",
+        particles=run.n,
+        grid=args.grid,
+        substeps=run.substeps,
+        family=args.family,
+        order=args.order,
+        rows=rows,
+        total_ms=total,
+        wall_ms=rec.wall_ms,
+        forward_ms=forward_ms,
+        rate=work / ((forward_ms + total) / 1e3),
+        graph_forward_ms=g_fwd,
+        graph_backward_ms=g_bwd,
+        graph_rate=work / ((g_fwd + g_bwd) / 1e3),
+        memory=memory(setup),
+        gradient_check=check,
+        ablation=without_parameter_gradients(setup, start, args.frame) if args.ablate else None,
     )
-    for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1]):
-        print(f"  {name:<50} {ms:8.2f} ms  {100 * ms / total:5.1f}%")
-    print(f"  throughput without graph: {n * args.substeps / wall:.3g} particle-substeps/s")
+
+
+def profile_forward(setup: Setup, args) -> Profile:
+    run, cuda = setup.run, wp.get_device(args.device).is_cuda
+    start = start_state(setup, args.frame)
+    warm = Recorder(cuda)
+    time_forward(setup, warm, start, args.frame)  # compile and warm up
+    rec = Recorder(cuda)
+    t0 = time.perf_counter()
+    time_forward(setup, rec, start, args.frame)
+    wall = time.perf_counter() - t0
+    rows = rec.rows()
+    total = sum(r.ms for r in rows)
+    return Profile(
+        mode="forward",
+        device=args.device,
+        timing="cuda activity" if cuda else "cpu wall per launch group",
+        particles=run.n,
+        grid=args.grid,
+        substeps=run.substeps,
+        family=args.family,
+        order=args.order,
+        rows=rows,
+        total_ms=total,
+        wall_ms=wall * 1e3,
+        forward_ms=total,
+        rate=run.n * run.substeps / wall,
+    )
+
+
+def _mib(b: int) -> str:
+    return f"{b / 2**20:,.0f} MiB"
+
+
+def report(p: Profile, target: float) -> str:
+    """The profile as text: rows sorted by time with launches and share, phase totals, rates."""
+    head = (
+        f"{p.mode}: N={p.particles} grid={p.grid} substeps={p.substeps} family={p.family} "
+        f"order={p.order} device={p.device}; timing: {p.timing}"
+    )
+    lines = [head]
+    if p.timing != "cuda activity":
+        lines.append(
+            "  (CPU: Warp times CUDA activity only, so each row is a launch group's wall time; "
+            "the adjoint is timed per recorded launch)"
+        )
+    lines.append(f"  {'phase':<20} {'activity':<42} {'launches':>8} {'ms':>10} {'share':>6}")
+    for r in p.rows:
+        share = 100 * r.ms / p.total_ms if p.total_ms else 0.0
+        lines.append(f"  {r.phase:<20} {r.name:<42} {r.launches:>8} {r.ms:>10.2f} {share:>5.1f}%")
+    lines.append(f"  total {p.total_ms:.2f} ms (wall of the timed phases {p.wall_ms:.2f} ms)")
+    work = p.particles * p.substeps
+    if p.mode == "forward":
+        lines.append(f"  throughput without graph: {p.rate:.3g} particle-substeps/s")
+        return "\n".join(lines)
+    phases = ", ".join(
+        f"{k} {v:.2f}" for k, v in sorted(p.phase_totals().items(), key=lambda kv: -kv[1])
+    )
+    lines.append(f"  per phase (ms): {phases}")
+    lines.append(
+        f"  forward frame {p.forward_ms:.2f} ms + backward {p.total_ms:.2f} ms "
+        f"(backward / forward {p.total_ms / p.forward_ms:.1f}x): {p.rate:.3g} particle-substeps/s "
+        "forward + backward, from the sums"
+    )
+    how = "captured CUDA graphs" if p.timing == "cuda activity" else "launched from Python"
+    lines.append(
+        f"  real path ({how}): forward {p.graph_forward_ms:.2f} ms + adjoint "
+        f"{p.graph_backward_ms:.2f} ms a frame: {p.graph_rate:.3g} particle-substeps/s"
+    )
+    budget = work / target * 1e3
+    lines.append(
+        f"  target {target:.3g} particle-substeps/s: forward + backward within {budget:.2f} ms a "
+        f"frame; the sums take {(p.forward_ms + p.total_ms) / budget:.1f}x that"
+    )
+    lines.append("  memory: " + ", ".join(f"{k} {_mib(v)}" for k, v in p.memory.items()))
+    g = p.gradient_check
+    worst = max(v for k, v in g.items() if k.endswith("_max_rel_diff"))
+    lines.append(
+        f"  gradients of the profiled schedule vs the real path: "
+        f"{'bit-identical' if g['bit_identical'] else f'largest relative difference {worst:.2g}'}"
+    )
+    if p.ablation is not None:
+        lines.append(ablation_report(p))
+    return "\n".join(lines)
+
+
+def ablation_report(p: Profile) -> str:
+    """Adjoint rows with and without the parameter tables' gradients (suspect 1)."""
+    without = {(r["phase"], r["name"]): r["ms"] for r in p.ablation["rows"]}
+    lines = ["  without parameter gradients (Warp skips the per-object atomics):"]
+    for r in p.rows:
+        if r.phase == "adjoint":
+            other = without.get((r.phase, r.name), 0.0)
+            lines.append(f"    {r.name:<42} {r.ms:>10.2f} -> {other:>10.2f} ms")
+    total = p.ablation["total_ms"]
+    rate = p.particles * p.substeps / ((p.forward_ms + total) / 1e3)
+    lines.append(
+        f"    backward total {p.total_ms:.2f} -> {total:.2f} ms: {rate:.3g} particle-substeps/s "
+        "forward + backward"
+    )
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--particles", type=int, default=1_000_000)
+    ap.add_argument("--grid", type=int, default=128)
+    ap.add_argument("--substeps", type=int, default=50)
+    ap.add_argument(
+        "--order",
+        choices=["scatter", "cell", "lattice", "random"],
+        default="scatter",
+        help="particle order: GridLayout.scatter_order (what rollouts use), sorted by grid cell, "
+        "as generated, or shuffled",
+    )
+    ap.add_argument("--backward", action="store_true", help="profile one frame's adjoint")
+    ap.add_argument("--device", default=None, help="cuda:N or cpu (default: cuda:0 if present)")
+    ap.add_argument("--family", choices=FAMILIES, default="elastic", help="the cube's law")
+    ap.add_argument("--frame", type=int, default=1, help="which frame (1-based) to profile")
+    ap.add_argument("--reps", type=int, default=3, help="real-path frames timed (backward)")
+    ap.add_argument("--deterministic", action="store_true", help="Warp's deterministic atomics")
+    ap.add_argument(
+        "--ablate-parameter-gradients",
+        dest="ablate",
+        action="store_true",
+        help="backward: also profile the adjoint without the parameter tables' gradients",
+    )
+    ap.add_argument("--target", type=float, default=3e8, help="particle-substeps/s to compare")
+    ap.add_argument("--json", default=None, help="also write the profile to this JSON file")
+    args = ap.parse_args(argv)
+    for name in ("particles", "grid", "substeps", "frame", "reps"):
+        if getattr(args, name) < 1:
+            ap.error(f"--{name} must be at least 1, got {getattr(args, name)}")
+    return args
+
+
+def main(argv: list[str] | None = None) -> Profile:
+    args = parse_args(argv)
+    init_warp()
+    use_deterministic_atomics(args.deterministic)
+    if args.device is None:
+        args.device = "cuda:0" if wp.is_cuda_available() else "cpu"
+    if args.device.startswith("cuda") and not wp.is_cuda_available():
+        raise SystemExit(f"--device {args.device}: Warp sees no CUDA device (use --device cpu)")
+    setup = build(args)
+    profile = profile_backward(setup, args) if args.backward else profile_forward(setup, args)
+    print(report(profile, args.target))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(asdict(profile), fh, indent=1)
+    return profile
 
 
 if __name__ == "__main__":
