@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import torch
 
 from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.expression import NAME as EXPRESSION
 from mosiv_framework.interfaces import PhysicsTerm
 from mosiv_framework.laws import get_law
 from mosiv_framework.laws.base import OBJECT_PARAMS
@@ -61,7 +62,9 @@ class Candidate:
     """
 
     name: str
-    kind: str  # "term", "gravity", "ground_friction", "object_friction" or "plasticity"
+    # "term", "gravity", "ground_friction", "object_friction", "plasticity" or "expression"
+    # (a discovered law, ``formula``)
+    kind: str
     coefficient_names: list[str]
     units: list[str]
     lower: torch.Tensor
@@ -113,6 +116,8 @@ class Candidate:
             k = self.base["object"]
             values = {**params.objects[k].values, "yield_stress": self.yield_stress(theta)}
             objects = {**params.objects, k: ObjectParams("plasticine", values)}
+        elif self.kind == "expression":  # a sparse term: only the discovered coefficients
+            terms[self.name] = {n: theta[i] for i, n in enumerate(self.coefficient_names)}
         else:
             values, i = {}, 0
             for spec in self.term.params:
@@ -124,7 +129,7 @@ class Candidate:
 
     def without(self, params: SimulationParams, theta: torch.Tensor) -> SimulationParams:
         """``params`` (which include this effect at ``theta``) with the effect taken out."""
-        if self.kind in ("term", "gravity"):
+        if self.kind in ("term", "gravity", "expression"):
             terms = {k: v for k, v in params.terms.items() if k != self.term.name}
             return SimulationParams(
                 params.objects, params.initial_velocity, params.ground_friction, terms
@@ -172,6 +177,8 @@ class Candidate:
             return out
         if self.kind == "plasticity":
             return {"object": self.base["object"], "yield_stress": float(self.yield_stress(theta))}
+        if self.kind == "expression":
+            return {n: float(c) for n, c in zip(self.coefficient_names, theta)}
         out, i = {}, 0
         for spec in self.term.params:
             if _is_vector(spec):
@@ -219,6 +226,8 @@ def _term_candidates(ctx: RunContext, skipped: list[str]) -> list[Candidate]:
     out = []
     for component in get_registry().components("physics_term"):
         term = component.factory()
+        if term.name == EXPRESSION:  # not a library term: built from the discovered law
+            continue
         if term.name not in supported:
             skipped.append(f"{term.name}: simulator {ctx.simulator_name!r} does not implement it")
         elif term.name in ctx.identified.terms:

@@ -33,10 +33,18 @@ from mosiv_framework.diagnose.decide import (
     frame_errors,
     verdict,
 )
-from mosiv_framework.diagnose.discover import discover
 from mosiv_framework.diagnose.effect import measure_effect
 from mosiv_framework.diagnose.equivalence import equivalents, prefer_drag_form
 from mosiv_framework.diagnose.floor import resolution_floor, summarise_floor
+from mosiv_framework.diagnose.formula import (
+    discover_law,
+    expression_candidate,
+    expression_starts,
+    formula_record,
+    law_to_test,
+    run_velocity_change,
+    scene_up,
+)
 from mosiv_framework.diagnose.hypothesise import choose_refits, regression_estimate, screen
 from mosiv_framework.diagnose.interval import coefficient_interval
 from mosiv_framework.diagnose.kinematics import run_samples
@@ -471,6 +479,59 @@ def _investigate(plan: _Plan, location, rule: DecideOptions) -> dict:
     }
 
 
+def _test_formula(plan: _Plan, location, rule: DecideOptions, found: dict, discovered) -> dict:
+    """``found`` with the discovered law as one more candidate (an ``expression``): refitted
+    from the null's state at the discovered coefficients (and identified afresh in the full
+    budget), every model converged again with it, and all judged anew (``_judge``); its
+    record (``found["formula"]``) gives the law tested and the refitted one with intervals."""
+    ctx = plan.ctx
+    law, reason = law_to_test(ctx, found["samples"], discovered)
+    candidate = None if law is None else expression_candidate(
+        law, up=scene_up(ctx.world), ground_height=ctx.world.ground_height
+    )  # fmt: skip
+    if candidate is None:
+        return {**found, "formula": {"tested": None, "skipped": [reason] if reason else []}}
+    plan.say(f"testing the discovered law as a model: {law['formula']}")
+    null = found["null"]
+    fit_frames = plan.fit_frames
+    dv = run_velocity_change(ctx, candidate, null.trajectory, location.regimes, fit_frames)
+    fit = plan.steps.get(
+        "refit-expression",
+        lambda: refit(
+            ctx,
+            candidate,
+            fit_frames=fit_frames,
+            starts=expression_starts(candidate, plan.budget.starts, dv),
+            base=null.shared,
+            options=plan.refit_options,
+        ),
+    )
+    if plan.budget.reidentify:
+        schedule = ReidentifyOptions.from_recipe(ctx.recipe.identify)
+        fit = plan.steps.get(
+            "fresh-expression",
+            lambda: _better(
+                fit, ctx, candidate, candidate.base["start"], plan.fit_frames, schedule
+            ),
+        )
+    null, fits = plan.steps.get(
+        "converged-expression",
+        lambda: _converge(
+            ctx, null, [*found["fits"], fit], fit_frames=plan.fit_frames,
+            options=plan.refit_options,
+        ),
+    )  # fmt: skip
+    judged = _judge(plan, location, null, fits, rule)
+    mine = next(f for f in fits if f.name == candidate.name)
+    evidence = next(e for e in judged["evidence"] if e.name == candidate.name)
+    record = {
+        "tested": law["formula"],
+        "refitted": formula_record(candidate, mine.theta, evidence.interval),
+        "accepted": evidence.accepted,
+    }
+    return {**found, **judged, "null": null, "fits": fits, "formula": record}
+
+
 def diagnose_run(
     run_dir: str | Path,
     *,
@@ -507,16 +568,15 @@ def diagnose_run(
             skipped_candidates=found["skipped_candidates"],
             null=found["null"],
         )
+    if location.significant and verdict(True, found["evidence"]) != "missing physics":
+        # what no candidate explains, as a formula of the objects' state (``discover``),
+        # then that formula as a model, judged like the library terms (``formula``)
+        result["discovered"] = discover_law(ctx, found["samples"])
+        found = _test_formula(plan, location, rule, found, result["discovered"])
+        result["formula"] = found["formula"]
+        result["skipped_candidates"] += found["formula"].get("skipped", [])
     result["verdict"] = verdict(location.significant, found["evidence"])
     result["equivalent"] = found.get("equivalent")
-    if location.significant and result["verdict"] != "missing physics":
-        # what no candidate explains, as a formula of the objects' state (``discover``)
-        up = -torch.tensor(ctx.world.gravity, dtype=torch.float64)
-        result["discovered"] = discover(
-            found["samples"],
-            up=tuple((up / up.norm()).tolist()) if up.norm() > 0 else (0.0, 0.0, 1.0),
-            ground_height=ctx.world.ground_height,
-        )
     result["screening"] = [s.to_json() for s in found["screens"]]
     result["evidence"] = [e.to_json() for e in found["evidence"]]
     result["fits"] = found["fits"]

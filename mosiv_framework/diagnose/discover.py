@@ -204,8 +204,10 @@ def discover(
     up=(0.0, 0.0, 1.0),
     ground_height: float | None = None,
     options: DiscoveryOptions = DiscoveryOptions(),
+    features: tuple[str, ...] | None = None,
 ) -> dict | None:
-    """The sparse force law of the residual accelerations (see the module docstring).
+    """The sparse force law of the residual accelerations (see the module docstring), over
+    the library's ``features`` only where given (those a simulator can apply).
 
     Returns:
         {"axes": {axis: {"terms": [{"feature", "coefficient", "interval"}], "formula"}},
@@ -216,7 +218,8 @@ def discover(
     )
     if len(y) < options.min_samples:
         return None
-    cols = independent_columns(x)
+    allowed = [j for j, n in enumerate(names) if features is None or n in features]
+    cols = [allowed[j] for j in independent_columns(x[:, allowed])] if allowed else []
     names, x = [names[j] for j in cols], x[:, cols]
     cutoff = options.threshold * float(np.sqrt((y**2).mean()))
     rng = np.random.default_rng(options.seed)

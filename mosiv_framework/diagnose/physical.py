@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from scipy.stats import chi2
 
+from mosiv_framework.diagnose.formula import object_designs
 from mosiv_framework.diagnose.kinematics import ResidualSamples
 
 
@@ -43,6 +44,20 @@ def candidate_basis(candidate, velocity: np.ndarray) -> np.ndarray | None:
             return None
         cols.append(acc.detach().double().numpy())
     return np.stack(cols, axis=-1)
+
+
+def _object_designs(candidate, samples: dict[int, ResidualSamples]) -> dict | None:
+    """Per object: (basis [M, 3, d], residual [M, 3]) of its free-flight samples; None for a
+    candidate that is not a body force."""
+    if getattr(candidate, "kind", None) == "expression":
+        return object_designs(candidate, samples)
+    if candidate_basis(candidate, np.zeros((1, 3))) is None:
+        return None
+    out = {}
+    for k, s in samples.items():
+        flight = s.subset(np.array([r in ("free_flight", "") for r in s.regime]))
+        out[k] = (candidate_basis(candidate, flight.velocity), flight.residual)
+    return out
 
 
 def object_coefficient(basis: np.ndarray, residual: np.ndarray) -> tuple | None:
@@ -67,13 +82,15 @@ def consistency(
 
     Returns None for a candidate that is not a body force. Otherwise {"objects": how many had
     an estimate, "per_object": {id: {"theta", "interval"}}, "pooled", "chi2", "dof",
-    "consistent"}; "consistent" is None with fewer than 2 estimates (nothing to compare)."""
-    if candidate_basis(candidate, np.zeros((1, 3))) is None:
+    "consistent"}; "consistent" is None with fewer than 2 estimates (nothing to compare). A
+    discovered law (an ``expression`` candidate) is a body force of the objects' state:
+    its basis holds each sample's features (``formula.object_designs``)."""
+    designs = _object_designs(candidate, samples)
+    if designs is None:
         return None
     per, fits = {}, []
-    for k, s in samples.items():
-        flight = s.subset(np.array([r in ("free_flight", "") for r in s.regime]))
-        fit = object_coefficient(candidate_basis(candidate, flight.velocity), flight.residual)
+    for k, (basis, residual) in designs.items():
+        fit = object_coefficient(basis, residual)
         if fit is None:  # too few free-flight samples of this object
             continue
         theta, cov = fit

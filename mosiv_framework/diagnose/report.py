@@ -230,6 +230,8 @@ def _summary(location: Location, result: dict, observed: int) -> dict:
         "equivalent": result.get("equivalent") or {},
         # the open-form law of what no candidate explains (``discover``), where run
         "discovered": result.get("discovered"),
+        # that law tested as a model (``formula``): the law, its refit with intervals
+        "formula": result.get("formula"),
         # time of this attempt; the steps it took from an earlier, cut-off one (``steps.py``)
         "time_s": result["time_s"],
         "resumed_steps": result.get("resumed_steps", []),
@@ -292,6 +294,8 @@ def _markdown(s: dict) -> str:
     lines += _equivalent_lines(s.get("equivalent") or {})
     if s.get("discovered"):
         lines += _discovered_lines(s["discovered"])
+    if s.get("formula"):
+        lines += _formula_lines(s["formula"])
     lines += _error_lines(s["errors"])
     if s["evidence"]:
         lines += _evidence_lines(s)
@@ -418,6 +422,30 @@ def _discovered_lines(found: dict) -> list[str]:
         )
         lines.append(f"- `{axis['formula']}`" + (f" ({terms})" if terms else ""))
     return lines + [""]
+
+
+def _formula_lines(record: dict) -> list[str]:
+    """The discovered law tested as a model (an ``expression`` candidate): the law, whether
+    it was accepted, and its refitted coefficients with their 95 % intervals."""
+    lines = ["## Discovered law tested as a model", ""]
+    if not record.get("tested"):
+        return lines + [f"Not tested: {'; '.join(record.get('skipped') or ['no law'])}.", ""]
+    outcome = "accepted" if record["accepted"] else "not accepted"
+    lines += [
+        f"`{record['tested']}` was applied by the simulator on its grid nodes (the "
+        "`expression` term), refitted with the run's free parameters and judged like the "
+        f"library terms (Evidence, row `expression`): {outcome}. Refitted, with 95 % intervals:",
+        "",
+    ]
+    for axis in record["refitted"]["axes"].values():
+        terms = "; ".join(
+            f"{t['feature']}: {t['coefficient']:.3g} "
+            + ("[-]" if t["interval"] is None else "[{:.3g}, {:.3g}]".format(*t["interval"]))
+            for t in axis["terms"]
+        )
+        lines.append(f"- `{axis['formula']}`" + (f" ({terms})" if terms else ""))
+    # an interval is computed only for a candidate that passed the held-out and BIC tests
+    return lines + ["", "[-]: no interval (the law failed the tests before it).", ""]
 
 
 def _error_lines(errors: dict) -> list[str]:
