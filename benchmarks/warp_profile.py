@@ -38,8 +38,9 @@ re-simulation and the taped replay), zeroes gradients, and launches four adjoint
 2. Recomputation. Every substep's forward runs three times (rollout, re-simulation, taped
    replay) and each Warp adjoint kernel replays its forward body before its reverse sweep. That
    bounds it at a few forward substeps (about 2.5 ms of the 24): the re-simulation and replay
-   rows measure it. The replay's G2P recomputes what the re-simulation already wrote into
-   work[s + 1] (its adjoint reads only G2P's inputs), so it could be recorded without running.
+   rows measure it. The replay's G2P only recomputed what the re-simulation had already
+   written into work[s + 1] (G2P's adjoint reads its inputs, not its outputs): MPMRun.record_g2p
+   now puts it on the tape without running it, so the replay row is the grid update alone.
 3. Adjoint scatter. The adjoint g2p atomically adds 27 vec3 per particle into grid_v's gradient
    (the forward P2G's pattern, 20 ms a frame in the forward profile), and each read of x, v, C,
    F in p2g becomes an atomic into its gradient (C[p] three times, plus once per ground-layer

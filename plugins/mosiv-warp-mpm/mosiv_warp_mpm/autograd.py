@@ -3,7 +3,9 @@
 Forward keeps one particle state per frame boundary (no tape). Backward walks the frames from
 last to first; for each frame it re-simulates the frame from its checkpoint into per-substep
 state buffers, then replays the substeps in reverse, each under its own short Warp tape, carrying
-the adjoint of the particle state. Because each substep writes a fresh state buffer and each
+the adjoint of the particle state. The replay reruns only the grid update (the grid is shared,
+so later substeps overwrote it); G2P goes on the tape without running, its output already in
+the next state buffer. Because each substep writes a fresh state buffer and each
 tape is consumed before the shared grid is reused, nothing a tape recorded is overwritten before
 its adjoint runs. Memory: checkpoints grow with frames; the workspace (substeps + 1 particle
 states and one grid) is the same for every frame and does not grow with the number of frames.
@@ -137,11 +139,13 @@ class BackwardWorkspace:
         self.grid.clear(box)
 
     def record_substep(self, run, s: int, box: NodeBox) -> wp.Tape:
-        """Replay substep ``s`` (work[s] -> work[s + 1]) under a fresh tape, which rebuilds the
-        grid that later substeps overwrote; returns the tape, ready for ``backward``."""
+        """Substep ``s`` (work[s] -> work[s + 1]) on a fresh tape, ready for ``backward``: its
+        grid update runs again, rebuilding the grid that later substeps overwrote; its G2P is
+        only recorded, since the re-simulation already wrote G2P's result into work[s + 1]."""
         tape = wp.Tape()
         with tape:
-            run.substep(self.work[s], self.work[s + 1], self.grid, s, box)
+            run.grid_update(self.work[s], self.grid, s, box)
+        run.record_g2p(tape, self.work[s], self.work[s + 1], self.grid, s)
         return tape
 
     def finish(self) -> None:

@@ -194,6 +194,30 @@ class MPMRun:
     ) -> None:
         """P2G, grid update (contact, ground, walls, terms) and G2P from src into dst; the grid
         kernels visit the nodes of ``box`` (``active_box(src)``), cleared beforehand."""
+        self.grid_update(src, grid, s, box)
+        inputs, outputs = self._g2p_args(src, dst, grid, s)
+        wp.launch(K.g2p, dim=self.n, inputs=inputs, outputs=outputs, device=self.device)
+
+    def record_g2p(
+        self, tape: wp.Tape, src: ParticleState, dst: ParticleState, grid: Grid, s: int
+    ) -> None:
+        """Put substep ``s``'s G2P on ``tape`` without running it, for a replay whose ``dst``
+        already holds G2P's result (the backward's re-simulation wrote it): G2P's adjoint reads
+        only its inputs and its outputs' gradients, so running it again would only rewrite
+        ``dst`` with the same values."""
+        inputs, outputs = self._g2p_args(src, dst, grid, s)
+        tape.record_launch(K.g2p, self.n, 0, inputs, outputs, self.device)
+
+    def _g2p_args(self, src: ParticleState, dst: ParticleState, grid: Grid, s: int) -> tuple:
+        lay, t = self.layout, self.tables
+        origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
+        inputs = [src.x, src.F, src.plastic_J, self.obj, t.law_of, t.field_of, t.params]
+        inputs += [grid.v, origin, lay.dx, self.dt, nodes, s, self.flag]
+        return inputs, [dst.x, dst.v, dst.C, dst.F, dst.plastic_J]
+
+    def grid_update(self, src: ParticleState, grid: Grid, s: int, box: NodeBox) -> None:
+        """P2G from src, then the grid's free velocity and boundaries, on the nodes of ``box``
+        (cleared beforehand): the grid velocities ``grid.v`` that G2P reads."""
         lay, t, dev = self.layout, self.tables, self.device
         origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
         box_lo, box_dims = wp.vec3i(*box.lo), wp.vec3i(*box.dims)
@@ -222,14 +246,6 @@ class MPMRun:
             + [self.ground_on, self.ground_k, t.ground_friction, t.ground_restitution]
             + [box_lo, box_dims],
             outputs=[grid.v],
-            device=dev,
-        )
-        wp.launch(
-            K.g2p,
-            dim=self.n,
-            inputs=[src.x, src.F, src.plastic_J, self.obj, t.law_of, t.field_of, t.params]
-            + [grid.v, origin, lay.dx, self.dt, nodes, s, self.flag],
-            outputs=[dst.x, dst.v, dst.C, dst.F, dst.plastic_J],
             device=dev,
         )
 
