@@ -23,9 +23,11 @@ import torch
 
 from mosiv_framework.diagnose.discover import discover
 from mosiv_framework.diagnose.formula import (
+    TESTS,
     applicable_features,
     expression_candidate,
     expression_starts,
+    failed_tests,
     formula_record,
     law_to_test,
     law_velocity_change,
@@ -206,8 +208,16 @@ def test_candidate_bounds_starts_and_formula_record():
     lines = "\n".join(_formula_lines({"tested": "law", "refitted": record, "accepted": True}))
     assert "accepted" in lines and "`a_y = -0.21 |v|v_y` (|v|v_y: -0.21 [-0.3, -0.1])" in lines
     untested = formula_record(candidate, torch.tensor([2.4, -0.21]), None)
-    lines = "\n".join(_formula_lines({"tested": "law", "refitted": untested, "accepted": False}))
-    assert "not accepted" in lines and "(1: 2.4 [-])" in lines
+    lines = "\n".join(
+        _formula_lines(
+            {"tested": "law", "refitted": untested, "accepted": False, "failed": ["held-out"]}
+        )
+    )
+    assert "not accepted (failed: held-out)" in lines and "(1: 2.4 [-])" in lines
+    assert "[-]: no interval" in lines
+    assert failed_tests(SimpleNamespace(**{f: f != "passes_bic" for f, _ in TESTS})) == [
+        "information criterion"
+    ]
     assert expression_candidate(_law(x={"contact": 1.0}), up=(0, 0, 1), ground_height=None) is None
     assert expression_candidate(_law(), up=(0, 0, 1), ground_height=None) is None
 

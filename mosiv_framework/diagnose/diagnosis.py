@@ -40,6 +40,7 @@ from mosiv_framework.diagnose.formula import (
     discover_law,
     expression_candidate,
     expression_starts,
+    failed_tests,
     formula_record,
     law_to_test,
     run_velocity_change,
@@ -528,6 +529,7 @@ def _test_formula(plan: _Plan, location, rule: DecideOptions, found: dict, disco
         "tested": law["formula"],
         "refitted": formula_record(candidate, mine.theta, evidence.interval),
         "accepted": evidence.accepted,
+        "failed": failed_tests(evidence),
     }
     return {**found, **judged, "null": null, "fits": fits, "formula": record}
 

@@ -272,3 +272,19 @@ def formula_record(candidate: Candidate, theta, interval=None) -> dict:
         ]
         axes[axis] = {"terms": terms, "formula": formula(axis, terms)}
     return {"axes": axes, "formula": "; ".join(ax["formula"] for ax in axes.values())}
+
+
+#: the tests of ``decide.Evidence`` in the order the rule applies them, as the report names them
+TESTS = (
+    ("passes_heldout", "held-out"),
+    ("passes_bic", "information criterion"),
+    ("passes_interval", "interval"),
+    ("passes_effect", "own effect"),
+    ("passes_consistency", "agreement across objects"),
+    ("passes_nuisance", "win over the nuisance model"),
+)
+
+
+def failed_tests(evidence) -> list[str]:
+    """The names of the tests a candidate's ``decide.Evidence`` failed."""
+    return [name for field, name in TESTS if not getattr(evidence, field)]

@@ -431,6 +431,8 @@ def _formula_lines(record: dict) -> list[str]:
     if not record.get("tested"):
         return lines + [f"Not tested: {'; '.join(record.get('skipped') or ['no law'])}.", ""]
     outcome = "accepted" if record["accepted"] else "not accepted"
+    if record.get("failed"):
+        outcome += f" (failed: {', '.join(record['failed'])})"
     lines += [
         f"`{record['tested']}` was applied by the simulator on its grid nodes (the "
         "`expression` term), refitted with the run's free parameters and judged like the "
@@ -444,8 +446,10 @@ def _formula_lines(record: dict) -> list[str]:
             for t in axis["terms"]
         )
         lines.append(f"- `{axis['formula']}`" + (f" ({terms})" if terms else ""))
-    # an interval is computed only for a candidate that passed the held-out and BIC tests
-    return lines + ["", "[-]: no interval (the law failed the tests before it).", ""]
+    terms = [t for axis in record["refitted"]["axes"].values() for t in axis["terms"]]
+    if any(t["interval"] is None for t in terms):  # computed only after held-out and BIC
+        lines += ["", "[-]: no interval (the law failed the tests before it)."]
+    return lines + [""]
 
 
 def _error_lines(errors: dict) -> list[str]:
