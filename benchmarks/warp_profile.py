@@ -120,6 +120,7 @@ class Profile:
     memory: dict = field(default_factory=dict)
     gradient_check: dict = field(default_factory=dict)
     ablation: dict | None = None
+    forward_rows: list[Row] = field(default_factory=list)  # backward mode: the forward frame's
 
     def phase_totals(self) -> dict[str, float]:
         out: dict[str, float] = {}
@@ -320,8 +321,9 @@ def graph_frame_ms(setup: Setup, start: ParticleState, frame: int, reps: int) ->
 
 
 def memory(setup: Setup) -> dict:
-    """Peak GPU memory (Warp's pool high-water mark and torch's peak) and the backward's
-    buffers (one frame's per-substep states and grid, plus the checkpoint)."""
+    """Peak GPU memory (Warp's pool high-water mark over the process, torch's peak since the
+    profile began) and the backward workspace's bytes (one frame's per-substep states and the
+    grid, values and gradients)."""
     run, dev = setup.run, setup.run.device
     out = {"backward_workspace_bytes": run.backward_workspace().nbytes()}
     if wp.get_device(dev).is_cuda:
@@ -389,6 +391,7 @@ def profile_backward(setup: Setup, args) -> Profile:
         total_ms=total,
         wall_ms=rec.wall_ms,
         forward_ms=forward_ms,
+        forward_rows=fwd.rows(),
         rate=work / ((forward_ms + total) / 1e3),
         graph_forward_ms=g_fwd,
         graph_backward_ms=g_bwd,
@@ -456,6 +459,7 @@ def report(p: Profile, target: float) -> str:
         f"{k} {v:.2f}" for k, v in sorted(p.phase_totals().items(), key=lambda kv: -kv[1])
     )
     lines.append(f"  per phase (ms): {phases}")
+    lines.append(kernel_table(p))
     lines.append(
         f"  forward frame {p.forward_ms:.2f} ms + backward {p.total_ms:.2f} ms "
         f"(backward / forward {p.total_ms / p.forward_ms:.1f}x): {p.rate:.3g} particle-substeps/s "
@@ -474,12 +478,37 @@ def report(p: Profile, target: float) -> str:
     lines.append("  memory: " + ", ".join(f"{k} {_mib(v)}" for k, v in p.memory.items()))
     g = p.gradient_check
     worst = max(v for k, v in g.items() if k.endswith("_max_rel_diff"))
-    lines.append(
-        f"  gradients of the profiled schedule vs the real path: "
-        f"{'bit-identical' if g['bit_identical'] else f'largest relative difference {worst:.2g}'}"
-    )
+    same = "bit-identical" if g["bit_identical"] else f"largest relative difference {worst:.2g}"
+    if not g["bit_identical"] and p.timing == "cuda activity":
+        same += " (CUDA float atomics add in schedule order; --deterministic fixes it)"
+    lines.append(f"  gradients of the profiled schedule vs the real path: {same}")
     if p.ablation is not None:
         lines.append(ablation_report(p))
+    return "\n".join(lines)
+
+
+def kernel_table(p: Profile) -> str:
+    """Per kernel, ms in the forward frame, the re-simulation, the taped replay and the adjoint,
+    and the adjoint over one forward pass of it ("-": not timed per kernel, as on the CPU)."""
+    cols = {"forward": {}, "re-simulation": {}, "taped replay": {}, "adjoint": {}}
+    for r in [*p.forward_rows, *p.rows]:
+        for prefix in ("forward kernel ", "backward kernel "):
+            if r.phase in cols and r.name.startswith(prefix):
+                cols[r.phase][r.name.removeprefix(prefix)] = r.ms
+    names = sorted({k for c in cols.values() for k in c}, key=lambda k: -cols["adjoint"].get(k, 0))
+    lines = [
+        f"  per kernel (ms): {'kernel':<24} {'forward':>9} {'re-sim':>9} {'replay':>9} "
+        f"{'adjoint':>9} {'adj/fwd':>8}"
+    ]
+
+    def cell(phase: str, name: str) -> str:
+        return f"{cols[phase][name]:>9.2f}" if name in cols[phase] else f"{'-':>9}"
+
+    for name in names:
+        fwd, adj = cols["forward"].get(name), cols["adjoint"].get(name)
+        ratio = f"{adj / fwd:>8.1f}" if fwd and adj is not None else f"{'-':>8}"
+        row = " ".join(cell(ph, name) for ph in cols)
+        lines.append(f"  {'':<17}{name:<24} {row} {ratio}")
     return "\n".join(lines)
 
 
@@ -543,10 +572,10 @@ def main(argv: list[str] | None = None) -> Profile:
         raise SystemExit(f"--device {args.device}: Warp sees no CUDA device (use --device cpu)")
     setup = build(args)
     profile = profile_backward(setup, args) if args.backward else profile_forward(setup, args)
-    print(report(profile, args.target))
-    if args.json:
+    if args.json:  # first, so that the measurement survives a failing report
         with open(args.json, "w") as fh:
             json.dump(asdict(profile), fh, indent=1)
+    print(report(profile, args.target))
     return profile
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -62,6 +63,19 @@ def test_backward_profile_reports_each_adjoint_kernel(profile_module, tmp_path, 
     assert p.memory["backward_workspace_bytes"] > 0
 
     assert p.gradient_check["bit_identical"], p.gradient_check
+
+    # the per-kernel table puts each adjoint beside one forward pass of its kernel; on the CPU
+    # the forward is one wall-timed group, so give it per-kernel rows as CUDA timing would
+    assert "per kernel (ms)" in text
+    Row = profile_module.Row
+    forward = [
+        Row("forward", f"forward kernel {k}", 1, 0.5) for k in profile_module.ADJOINT_KERNELS
+    ]
+    table = profile_module.kernel_table(replace(p, forward_rows=forward)).splitlines()
+    for kernel in profile_module.ADJOINT_KERNELS:
+        line = next(ln for ln in table if f" {kernel} " in ln)
+        adjoint = rows[("adjoint", f"backward kernel {kernel}")].ms
+        assert line.split()[-1] == f"{adjoint / 0.5:.1f}", line
     ablated = {(r["phase"], r["name"]): r for r in p.ablation["rows"]}
     for kernel in profile_module.ADJOINT_KERNELS:
         assert ablated[("adjoint", f"backward kernel {kernel}")]["ms"] > 0
