@@ -272,6 +272,12 @@ class _ChamferBase(Loss):
         # one generator per loss: successive calls draw different subsets, reproducibly
         self._generator = torch.Generator().manual_seed(self.options.seed)
 
+    @property
+    def generator(self) -> torch.Generator:
+        """The subsampling generator (its state set back makes the next calls draw the same
+        subsets, as ``pipeline.contact`` does to score two models on common draws)."""
+        return self._generator
+
     def _chamfer(self, a: Tensor, b: Tensor) -> Tensor:
         a = _subsample(a, self.options.max_points, self._generator)
         b = _subsample(b, self.options.max_points, self._generator)

@@ -12,6 +12,7 @@ from omegaconf import OmegaConf
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.losses import WeightedSum
 from mosiv_framework.pipeline import formats
+from mosiv_framework.pipeline.contact import contact_json, contact_modes
 from mosiv_framework.pipeline.evaluate import plot_history, plot_parameters
 from mosiv_framework.pipeline.identify import identify
 from mosiv_framework.pipeline.library import library_params, pick_prototypes
@@ -72,7 +73,9 @@ def identify_stage(
     identify/history.json and the identification plots. Returns detached SimulationParams.
 
     ``warnings``: what the recipe's settings cap (``check_stiffness``), stored under
-    ``warnings`` in identified.json so the results say how they were limited."""
+    ``warnings`` in identified.json so the results say how they were limited. identified.json's
+    ``contact`` says which contact between objects the parameters were identified with (chosen
+    from the data with ``identify.contact: auto``, see ``mosiv_framework.pipeline.contact``)."""
     section = recipe.identify
     objective = stage_objective(recipe, scene, particles)
     targets = reconstruction.points
@@ -82,6 +85,9 @@ def identify_stage(
     vector, free = start_vector(recipe, scene, particles.materials, targets, sim_options)
     library = section.method == "library"
     _announce(recipe, vector, free, library)
+    modes = None
+    if section.contact == "auto":
+        modes = contact_modes(recipe.simulator, simulator, margin=section.contact_margin)
     vector, history = identify(
         simulator=simulator,
         particles=sim_particles,
@@ -96,8 +102,14 @@ def identify_stage(
         velocity_frames=min(free, scene.observed_frames)
         if section.velocity_window == "free"
         else None,
+        contact=modes,
     )
     identified_json = vector.to_json()
+    contact = contact_json(history, recipe.simulator)
+    if contact is not None:
+        identified_json["contact"] = contact
+        if modes is not None:  # the library baseline picks with the chosen contact too
+            simulator = modes.simulators[contact["mode"]]
     if warnings:
         identified_json["warnings"] = list(warnings)
     _note_stopped_early(history, identified_json)

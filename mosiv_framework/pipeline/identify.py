@@ -40,6 +40,7 @@ from tqdm import tqdm
 
 from mosiv_framework.errors import ConfigError, SimulationDiverged
 from mosiv_framework.losses import WeightedSum
+from mosiv_framework.pipeline.contact import ContactModes, choose_contact, restore_choice
 from mosiv_framework.pipeline.global_search import global_search
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.pipeline.phases import (
@@ -71,6 +72,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 CHECKPOINT = "identify/checkpoint.pt"
+#: the history's phase name of the brief fits that compare contact modes
+CONTACT_FIT = "contact_fit"
 #: consecutive diverged rollouts tolerated, each stepping one accepted iterate further back and
 #: halving the step size, before the phase stops at its best iterate
 MAX_BACKOFFS = 6
@@ -136,6 +139,7 @@ def identify(
     run_dir: RunDir,
     config_hash: str = "",
     velocity_frames: int | None = None,
+    contact: ContactModes | None = None,
 ) -> tuple[ParameterVector, list[dict]]:
     """Optimise ``vector`` in place; returns it and the per-iteration history.
 
@@ -155,6 +159,9 @@ def identify(
     its epsilon, which would otherwise swamp gradients of m^2-sized Chamfer losses).
     A checkpoint is resumed only if it was written under the same ``config_hash`` (the
     fingerprint of everything identification depends on); otherwise it starts afresh.
+    With ``contact`` (``identify.contact: auto``) the contact between objects is chosen from
+    the data before the parameter phase (``mosiv_framework.pipeline.contact``), even where that
+    phase does not run (the library baseline), and everything after uses the chosen mode.
     """
     if observed_frames < 2:
         raise ConfigError(f"identification needs at least 2 observed frames, got {observed_frames}")
@@ -164,13 +171,19 @@ def identify(
     phases = build_phases(section, observed_frames=observed_frames, velocity_frames=velocity_frames)
     state = IdentifyState(vector, run_dir, config_hash)
     start_phase, start_iter, carried = state.resume()
+    if contact is not None:
+        restore_choice(contact, fit, state.history)
     for index, phase in enumerate(phases):
-        if index < start_phase or phase.iterations == 0 or not phase.leaves(vector):
+        runs = phase.iterations > 0 and bool(phase.leaves(vector))
+        if index < start_phase or not (runs or isinstance(phase, ParameterPhase)):
             continue
         resumed = carried if index == start_phase else None
         if isinstance(phase, ParameterPhase) and resumed is None and not state.global_done:
-            _global_stage(section, fit, state, phase)
-            state.save_checkpoint(index, 0, None)
+            if runs or contact is not None:
+                _global_stage(section, fit, state, phase, search=runs, contact=contact)
+                state.save_checkpoint(index, 0, None)
+        if not runs:
+            continue
         run = _PhaseRun(phase, index, fit, state, section.checkpoint_every, resumed)
         run.iterate(first=start_iter if resumed is not None else 0, full_at=section.horizon_full_at)
         if isinstance(phase, ParameterPhase):
@@ -183,21 +196,44 @@ def identify(
     return vector, state.history
 
 
-def _global_stage(section, fit: Fit, state: IdentifyState, phase: Phase) -> None:
+def _global_stage(
+    section, fit: Fit, state: IdentifyState, phase: Phase, *, search: bool, contact
+) -> None:
     """The global stage before the parameter phase (``identify.global_candidates`` Sobol
-    candidates over frames ``1..identify.global_frames``, 0: the phase's whole window)."""
-    candidates = int(getattr(section, "global_candidates", 0) or 0)
+    candidates over frames ``1..identify.global_frames``, 0: the phase's whole window; only
+    where ``search``, i.e. the parameter phase runs). With ``contact`` it runs in every contact
+    mode, each followed by a brief fit (``identify.contact_iterations`` parameter steps over
+    the phase's whole window), and the mode that fits best is chosen (``choose_contact``)."""
+    candidates = int(getattr(section, "global_candidates", 0) or 0) if search else 0
     frames = int(getattr(section, "global_frames", 0) or 0)
     frames = phase.last if frames <= 0 else min(frames, phase.last)
-    if candidates > 0:
-        log.info("global stage: %d candidates over frames 1..%d", candidates, frames)
-        global_search(
-            fit,
-            state.vector,
-            candidates=candidates,
-            frames=frames,
-            seed=int(getattr(section, "seed", 0) or 0),
-            history=state.history,
+    brief = int(getattr(section, "contact_iterations", 0) or 0) if search else 0
+
+    def stage(fit_in_mode: Fit) -> None:
+        if candidates > 0:
+            log.info("global stage: %d candidates over frames 1..%d", candidates, frames)
+            global_search(
+                fit_in_mode,
+                state.vector,
+                candidates=candidates,
+                frames=frames,
+                seed=int(getattr(section, "seed", 0) or 0),
+                history=state.history,
+            )
+        if contact is not None and brief > 0:
+            # the brief fit of a contact mode: the whole window from the first step, no
+            # checkpoints (a resumed run redoes the choice), the best iterate kept
+            trial = ParameterPhase(CONTACT_FIT, brief, phase.lr, phase.last, phase.last)
+            run = _PhaseRun(trial, -1, fit_in_mode, state, brief, None)
+            run.iterate(first=0, full_at=section.horizon_full_at)
+            run.polish()  # the last step's iterate competes too
+            run.best.apply(state.vector)
+
+    if contact is None:
+        stage(fit)
+    else:
+        choose_contact(
+            contact, fit, state.vector, frames=phase.last, search=stage, history=state.history
         )
     state.global_done = True
 

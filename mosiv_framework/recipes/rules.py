@@ -2,8 +2,9 @@
 
 Each rule catches a setting that would otherwise be accepted and then fail late (after
 reconstruction and lifting) or quietly change the result: a loss objective with nothing in it,
-a re-synchronisation period longer than the phase it re-synchronises, and simulator settings
-whose stability cap puts the materials out of reach (``mosiv_framework.recipes.stiffness``).
+a re-synchronisation period longer than the phase it re-synchronises, a contact choice
+(``identify.contact=auto``) for a simulator without contact modes, and simulator settings whose
+stability cap puts the materials out of reach (``mosiv_framework.recipes.stiffness``).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from typing import Any
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.recipes.stiffness import scene_facts, stiffness_findings
+from mosiv_framework.simulation import CONTACT_MODES
 
 
 def cross_section_findings(recipe: Mapping[str, Any], registry) -> tuple[list[str], list[str]]:
@@ -39,6 +41,7 @@ def cross_section_findings(recipe: Mapping[str, Any], registry) -> tuple[list[st
             f"identify.resync_every={every} is not below identify.param_iterations="
             f"{iterations}: the velocities are never re-synchronised (0 switches it off)"
         )
+    problems.extend(contact_problems(recipe))
     try:
         facts = scene_facts(recipe, registry)
     except ConfigError as exc:
@@ -49,3 +52,17 @@ def cross_section_findings(recipe: Mapping[str, Any], registry) -> tuple[list[st
         problems.extend(errors)
         warnings.extend(caps)
     return problems, warnings
+
+
+def contact_problems(recipe: Mapping[str, Any]) -> list[str]:
+    """identify.contact=auto chooses the simulator's ``contact`` option between the modes of
+    ``CONTACT_MODES``: a simulator without that option has nothing to choose."""
+    identify = recipe.get("identify") or {}
+    simulator = recipe.get("simulator") or {}
+    if identify.get("contact") != "auto" or simulator.get("contact") in CONTACT_MODES:
+        return []
+    return [
+        f"identify.contact='auto' chooses simulator.contact among {list(CONTACT_MODES)}, but "
+        f"simulator {simulator.get('name')!r} has no such contact option; use "
+        "identify.contact=fixed, or a simulator with one (warp-mpm, taichi-mpm)"
+    ]

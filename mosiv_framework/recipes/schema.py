@@ -63,6 +63,9 @@ VELOCITY_WINDOWS = ("free", "observed")
 LIBRARY_SCOPES = ("family", "all")
 #: where the parameters start: the law defaults, or the centre of each law's bounds
 IDENTIFY_STARTS = ("defaults", "centre")
+#: the contact between objects: the simulator's ``contact`` as the recipe gives it, or chosen
+#: from the observed frames (``mosiv_framework.pipeline.contact``)
+IDENTIFY_CONTACT = ("fixed", "auto")
 
 
 @dataclass
@@ -90,7 +93,19 @@ class IdentifySection:
     global_frames: the last frame those rollouts cover (0: the whole observed window);
     intervals: after identification, a 95 % interval per identified parameter (a Laplace
     approximation, or the one-sided bound the data support, or "unconstrained"), stored in
-    identified.json under ``intervals`` (see ``mosiv_framework.pipeline.uncertainty``).
+    identified.json under ``intervals`` (see ``mosiv_framework.pipeline.uncertainty``);
+    contact: "fixed" identifies with the simulator's ``contact`` as given; "auto" chooses
+    between multi_field and single_field from the observed frames after the velocity phase
+    (each mode from the same start, after its own global stage and ``contact_iterations``
+    parameter steps, scored on the whole observed window) and uses the choice for everything
+    after (see ``mosiv_framework.pipeline.contact``); needs a simulator with a ``contact``
+    option;
+    contact_iterations: the parameter steps of each mode's brief fit (0: each mode is scored at
+    the start, or after its global stage; the materials of the start then decide as much as
+    the contact does);
+    contact_margin: with contact "auto", the simulator's ``contact`` is kept unless the other
+    mode's loss is lower by more than this fraction of its loss (ties, e.g. bodies that never
+    touch in the observed frames, keep it).
     """
 
     method: str = "gradient"
@@ -133,6 +148,9 @@ class IdentifySection:
     global_candidates: int = 0
     global_frames: int = 0
     intervals: bool = True
+    contact: str = "fixed"
+    contact_iterations: int = 20
+    contact_margin: float = 0.05
 
     @staticmethod
     def value_problems(values: dict[str, Any]) -> list[str]:
@@ -144,6 +162,7 @@ class IdentifySection:
                 ("velocity_window", VELOCITY_WINDOWS),
                 ("library_scope", LIBRARY_SCOPES),
                 ("start", IDENTIFY_STARTS),
+                ("contact", IDENTIFY_CONTACT),
             )
             if values.get(key) not in valid
         ]
@@ -180,6 +199,8 @@ IDENTIFY_RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "library_sweeps": (0, None, "coordinate sweeps of the library baseline"),
     "global_candidates": (0, None, "candidates of the global stage (0 = off)"),
     "global_frames": (0, None, "last frame of the global stage's rollouts (0 = all observed)"),
+    "contact_iterations": (0, None, "parameter steps of each contact mode's brief fit"),
+    "contact_margin": (0.0, 1.0, "the fraction by which the other contact mode must fit better"),
 }
 #: rates are exclusive at 0: a zero learning rate never moves
 _POSITIVE = ("velocity_lr", "param_lr")

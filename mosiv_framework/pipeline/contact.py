@@ -1,0 +1,221 @@
+"""Which contact between objects a recording's world has, chosen from its observed frames.
+
+MOSIV's simulators model objects that touch in two ways (``simulator.contact``, docs/PHYSICS.md
+"Contact between objects"): ``multi_field``, one velocity field per object with Coulomb
+friction between them, where bodies part after an impact, and ``single_field``, one field for
+all objects, where bodies that touch stick (classic MPM, and how Genesis solves its scenes). A
+recording does not say which of the two its world has, so ``identify.contact: auto`` lets the
+data decide:
+
+1. After the velocity phase (which fits the free flight before any contact, the same in both
+   modes), each mode in turn starts from the same parameters, runs the global stage when it is
+   on (``identify.global_candidates``) and then ``identify.contact_iterations`` steps of the
+   parameter phase over every observed frame, in that mode: each mode is scored with the
+   materials that suit it, not with the start's. Scored at the start alone, the choice was
+   wrong on one of four tiny two-body scenes (the start's stiffness and density were as far
+   off as the contact); after three steps per mode it was right on all eight runs (four
+   scenes, each made in both modes), the chosen mode's loss 1.2 to 160 times lower.
+2. Each mode's objective is evaluated over every observed frame, both on the same random
+   subsets of points (the Chamfer losses subsample afresh on every call; without common draws
+   the two scores would differ by the draw alone).
+3. The recipe's ``simulator.contact`` is kept unless the other mode's loss is lower than
+   ``(1 - identify.contact_margin)`` times the kept mode's loss. Where the bodies never touch
+   in the observed frames both modes roll out the same motion and the recipe decides.
+
+The choice is recorded in the history (phase ``contact``; the brief fits are phase
+``contact_fit``, the global stage's records tagged with their ``contact`` mode), in
+identified.json under ``contact`` (``choice``, ``mode``, and for ``auto`` the
+``recipe_mode``, each mode's ``losses``, the ``margin`` and the last of the ``frames`` scored)
+and in the log. With ``identify.contact: fixed`` identified.json records the recipe's mode.
+The parameter phase continues from the chosen mode's brief fit, and it, the intervals,
+evaluation and every later rollout of the run (``mosiv eval``, ``mosiv simulate``, ``mosiv
+diagnose``) use the chosen mode (``simulator_section``). The cost: per mode, the global
+stage's rollouts and ``contact_iterations`` parameter steps. Nothing here reads the scene's
+ground truth.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from mosiv_framework.errors import SimulationDiverged
+from mosiv_framework.pipeline.phases import BestIterate, Fit
+from mosiv_framework.simulation import CONTACT_MODES
+
+log = logging.getLogger(__name__)
+
+#: the history's phase name of the contact choice
+PHASE = "contact"
+
+
+@dataclass
+class ContactModes:
+    """The simulators identification may choose between, one per contact mode; ``default`` is
+    the recipe's ``simulator.contact`` (kept unless the other mode fits better by more than
+    ``margin``, a fraction of its loss)."""
+
+    simulators: dict[str, object]
+    default: str
+    margin: float
+
+    @property
+    def order(self) -> list[str]:
+        """The modes, the recipe's first."""
+        return [self.default] + [m for m in self.simulators if m != self.default]
+
+
+def contact_modes(simulator_section, simulator, *, margin: float) -> ContactModes:
+    """A ContactModes of ``simulator`` (built from ``simulator_section``, the recipe's) and the
+    same simulator in every other mode of ``CONTACT_MODES``."""
+    from mosiv_framework.registry import get_registry
+
+    options = dict(OmegaConf.to_container(simulator_section, resolve=True))
+    name, default = options.pop("name"), options["contact"]
+    simulators = {default: simulator}
+    for mode in CONTACT_MODES:
+        if mode != default:
+            simulators[mode] = get_registry().create(
+                "simulator", name, {**options, "contact": mode}
+            )
+    return ContactModes(simulators, default, margin)
+
+
+def pick(losses: dict[str, float], default: str, margin: float) -> str:
+    """The rule: ``default`` unless another mode's loss is below ``(1 - margin)`` times its
+    loss (an infinite loss, a diverged rollout, loses to any finite one)."""
+    kept = losses[default]
+    best = min(losses, key=lambda m: (losses[m], m != default))
+    if best == default or not math.isfinite(losses[best]):
+        return default
+    if not math.isfinite(kept) or losses[best] < (1.0 - margin) * kept:
+        return best
+    return default
+
+
+def choose_contact(
+    modes: ContactModes,
+    fit: Fit,
+    vector,
+    *,
+    frames: int,
+    search: Callable[[Fit], None],
+    history: list[dict],
+) -> dict:
+    """Score every mode (see the module docstring), leave ``fit.simulator`` in the chosen one
+    and ``vector`` at that mode's start; returns the choice's history record (also appended).
+
+    Args:
+        modes: the simulators to choose between.
+        fit: the identification's Fit; its ``simulator`` is replaced by the chosen one.
+        vector: the ParameterVector, changed in place (by ``search``, and to the chosen
+            mode's start).
+        frames: the last frame scored (the observed window).
+        search: the global stage and brief fit, run in each mode before it is scored (it
+            moves ``vector``; a SimulationDiverged from it scores the mode ``inf``).
+        history: the identification history; the global stage's records of each mode are
+            tagged with ``contact``.
+    """
+    start = BestIterate.snapshot(vector)
+    draws = _draw_states(fit.objective)
+    losses, leaves = {}, {}
+    for mode in modes.order:
+        start.apply(vector)
+        fit.simulator = modes.simulators[mode]
+        first = len(history)
+        try:
+            search(fit)
+        except SimulationDiverged as exc:  # not one rollout of this mode worked
+            log.warning("contact %s: %s", mode, exc)
+            losses[mode], leaves[mode] = math.inf, start
+            continue
+        finally:
+            for record in history[first:]:
+                record["contact"] = mode
+        _restore_draws(draws)
+        losses[mode] = _score(fit, vector, frames)
+        leaves[mode] = BestIterate.snapshot(vector)
+        log.info("contact %s: loss %.6g over frames 1..%d", mode, losses[mode], frames)
+    chosen = pick(losses, modes.default, modes.margin)
+    leaves[chosen].apply(vector)
+    fit.simulator = modes.simulators[chosen]
+    record = {
+        "phase": PHASE,
+        "choice": "auto",
+        "mode": chosen,
+        "recipe_mode": modes.default,
+        "losses": {m: (v if math.isfinite(v) else None) for m, v in losses.items()},
+        "margin": modes.margin,
+        "frames": frames,
+        "values": vector.to_json(),
+    }
+    history.append(record)
+    log.info(
+        "contact between objects: %s (%s; the recipe's %s is kept unless the other mode's "
+        "loss is more than %g %% lower)",
+        chosen,
+        ", ".join(f"{m} {v:.6g}" for m, v in losses.items()),
+        modes.default,
+        100 * modes.margin,
+    )
+    return record
+
+
+def restore_choice(modes: ContactModes, fit: Fit, history: list[dict]) -> None:
+    """After resuming from a checkpoint: put ``fit`` back in the mode the history chose."""
+    record = choice_record(history)
+    if record is not None and record["mode"] in modes.simulators:
+        fit.simulator = modes.simulators[record["mode"]]
+
+
+def choice_record(history: list[dict]) -> dict | None:
+    """The history's contact choice, if identification made one."""
+    records = [h for h in history if h.get("phase") == PHASE]
+    return records[-1] if records else None
+
+
+def contact_json(history: list[dict], simulator_section) -> dict | None:
+    """identified.json's ``contact``: the choice the history holds, else the recipe's fixed
+    mode; None for a simulator without a ``contact`` option."""
+    record = choice_record(history)
+    if record is not None:
+        keep = ("choice", "mode", "recipe_mode", "losses", "margin", "frames")
+        return {k: record[k] for k in keep}
+    mode = simulator_section.get("contact", None)
+    return None if mode is None else {"choice": "fixed", "mode": str(mode)}
+
+
+def simulator_section(section, identified_json: dict | None) -> DictConfig:
+    """The recipe's simulator section with the contact identification used (identified.json's
+    ``contact.mode``); unchanged where identified.json records none (fixed contact, or a run
+    made before the choice existed)."""
+    section = OmegaConf.create(OmegaConf.to_container(section, resolve=True))
+    mode = ((identified_json or {}).get("contact") or {}).get("mode")
+    if mode is not None and "contact" in section:
+        section.contact = mode
+    return section
+
+
+def _score(fit: Fit, vector, frames: int) -> float:
+    """The objective over frames 1..frames; inf where the rollout diverges."""
+    try:
+        value = fit.window_loss(vector, frames)
+    except SimulationDiverged:
+        return math.inf
+    return value if math.isfinite(value) else math.inf
+
+
+def _draw_states(objective) -> list[tuple[torch.Generator, torch.Tensor]]:
+    """The random generators of the objective's terms (point subsampling) and their states."""
+    generators = [getattr(t, "generator", None) for t in objective.terms.values()]
+    return [(g, g.get_state()) for g in generators if isinstance(g, torch.Generator)]
+
+
+def _restore_draws(states: list[tuple[torch.Generator, torch.Tensor]]) -> None:
+    for generator, state in states:
+        generator.set_state(state)
