@@ -44,6 +44,7 @@ import torch
 from omegaconf import OmegaConf
 
 from mosiv_framework.pipeline import run_pipeline
+from mosiv_framework.pipeline.contact import simulator_section
 from mosiv_framework.pipeline.evaluate import score
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.recipes import load_recipe
@@ -182,7 +183,8 @@ def future_with_true_ground(run_dir: Path, *, n_samples: int) -> float | None:
     if true_ground is None or scene.observed_frames >= scene.n_frames:
         return None
     identified["ground_friction"] = float(true_ground)
-    options = OmegaConf.to_container(recipe.simulator, resolve=True)
+    # the contact the run identified with (identify.contact: auto may have chosen it)
+    options = OmegaConf.to_container(simulator_section(recipe.simulator, identified), resolve=True)
     simulator = get_registry().create("simulator", options.pop("name"), options)
     params = ParameterVector.from_json(identified)
     particles = torch.load(run_dir / "particles.pt", weights_only=False)

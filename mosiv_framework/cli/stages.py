@@ -131,7 +131,7 @@ def run_eval(args) -> int:
         identified=run.identified,
         simulator=run.simulator(),
         run_dir=run.run_dir,
-        refine=simulator_refiner(run.recipe.simulator),
+        refine=simulator_refiner(run.simulator_section),
     )
     future = metrics["future"]
     print(

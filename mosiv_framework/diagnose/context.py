@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.interfaces import Simulator
 from mosiv_framework.losses import chamfer_m2
+from mosiv_framework.pipeline.contact import simulator_section
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.pipeline.rundir import RunDir
 from mosiv_framework.recipes.terms import identified_terms
@@ -215,7 +216,9 @@ def build_context(
     """A RunContext from a run's parts: the recipe's simulator (with ``simulator_overrides``)
     and the reconstruction's points as targets, over the frames both the scene and the
     reconstruction cover."""
-    sim_options = dict(OmegaConf.to_container(recipe.simulator, resolve=True))
+    # the contact identification used (identify.contact: auto may have chosen it)
+    section = simulator_section(recipe.simulator, identified_json)
+    sim_options = dict(OmegaConf.to_container(section, resolve=True))
     sim_name = sim_options.pop("name")
     sim_options.update(simulator_overrides or {})
     simulator = get_registry().create("simulator", sim_name, sim_options)

@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.laws import get_law
+from mosiv_framework.pipeline.contact import simulator_section
 from mosiv_framework.pipeline.formats import PARAMS, stamped
 from mosiv_framework.pipeline.params import (
     GROUND_FRICTION,
@@ -43,9 +44,16 @@ class FinishedRun:
     particles: object
     reconstruction: object
     identified: SimulationParams
+    #: identified.json as the run wrote it (its ``contact`` says which contact was identified)
+    identified_json: dict | None = None
+
+    @property
+    def simulator_section(self) -> DictConfig:
+        """The recipe's simulator with the contact identification used."""
+        return simulator_section(self.recipe.simulator, self.identified_json)
 
     def simulator(self):
-        options = dict(OmegaConf.to_container(self.recipe.simulator, resolve=True))
+        options = dict(OmegaConf.to_container(self.simulator_section, resolve=True))
         name = options.pop("name")
         return get_registry().create("simulator", name, options)
 
@@ -69,13 +77,15 @@ def load_finished_run(run_dir: str | Path) -> FinishedRun:
     if problems:
         raise ConfigError([f"{rd.path('recipe.yaml')}: {p}" for p in problems])
     recipe = OmegaConf.create(resolved)
+    identified_json = rd.load_json("identified.json")
     return FinishedRun(
         run_dir=rd,
         recipe=recipe,
         scene=read_scene(recipe.scene.path),
         particles=rd.load_torch("particles.pt"),
         reconstruction=rd.load_torch("reconstruction.pt"),
-        identified=ParameterVector.from_json(rd.load_json("identified.json")),
+        identified=ParameterVector.from_json(identified_json),
+        identified_json=identified_json,
     )
 
 

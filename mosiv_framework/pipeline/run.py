@@ -21,6 +21,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from mosiv_framework.errors import ConfigError, SceneFormatError
+from mosiv_framework.pipeline.contact import simulator_section
 from mosiv_framework.pipeline.evaluate import evaluate_run
 from mosiv_framework.pipeline.formats import recipe_header
 from mosiv_framework.pipeline.identification import check_terms_supported, identify_stage
@@ -270,8 +271,14 @@ def run_stages(recipe, plain, scene, progress: Progress, warnings, *, started) -
         )
         progress.mark("identify")
 
+    # evaluation rolls out with the contact identification used (identify.contact: auto
+    # may have chosen another than the recipe's simulator.contact)
+    section = simulator_section(recipe.simulator, rd.load_json("identified.json"))
+    if section != recipe.simulator:
+        simulator, _ = build_simulator(section)
     stages = dict(scene=scene, particles=particles, reconstruction=reconstruction)
-    return evaluate_stage(recipe, stages, identified, simulator, progress, started=started)
+    simulators = (simulator, simulator_refiner(section))
+    return evaluate_stage(recipe, stages, identified, simulators, progress, started=started)
 
 
 def reconstruct_stage(recipe, scene, progress: Progress):
@@ -330,8 +337,10 @@ def simulator_refiner(section):
     return refined
 
 
-def evaluate_stage(recipe, stages: dict, identified, simulator, progress: Progress, *, started):
-    """Evaluation over observed and future frames (metrics.json, plots, videos).
+def evaluate_stage(recipe, stages: dict, identified, simulators, progress: Progress, *, started):
+    """Evaluation over observed and future frames (metrics.json, plots, videos); ``simulators``
+    is (the simulator in the contact mode identification used, its ``simulator_refiner``: the
+    same with more substeps, for a rollout that diverges).
 
     A resumed run, such as a suite entry run again after its diagnosis was cut short, keeps its
     metrics, plots and videos rather than rolling out again."""
@@ -339,6 +348,7 @@ def evaluate_stage(recipe, stages: dict, identified, simulator, progress: Progre
     if rd.path("metrics.json").is_file() and progress.done("evaluate"):
         return rd.load_json("metrics.json")
     log.info("evaluating over observed and future frames")
+    simulator, refine = simulators
     metrics = evaluate_run(
         recipe=recipe,
         **stages,
@@ -346,7 +356,7 @@ def evaluate_stage(recipe, stages: dict, identified, simulator, progress: Progre
         simulator=simulator,
         run_dir=rd,
         started=started,
-        refine=simulator_refiner(recipe.simulator),
+        refine=refine,
     )
     progress.mark("evaluate")
     return metrics
