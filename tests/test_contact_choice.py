@@ -1,0 +1,202 @@
+"""identify.contact: auto chooses the contact between objects from the observed frames.
+
+Two tiny warp-mpm scenes of the ``synth`` source, the same throw (two elastic bodies meeting
+at frame 3 of 7 observed), one made with ``contact: single_field`` (the bodies stick where they
+touch, as in Genesis) and one with ``multi_field`` (they part). Each is identified with the
+recipe's ``simulator.contact`` set to the mode the data were NOT made with, so the choice has
+to overturn the recipe in both directions; the margins measured are 2.7x and 6.9x in the loss
+(seed 1). The rule itself, the record in identified.json and history.json, the resumed choice,
+the downstream rollouts and the recipe checks are tested apart.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from mosiv_framework.errors import ConfigError
+from mosiv_framework.pipeline import run_pipeline
+from mosiv_framework.pipeline.contact import (
+    ContactModes,
+    contact_json,
+    pick,
+    restore_choice,
+    simulator_section,
+)
+from mosiv_framework.pipeline.formats import read_history
+from mosiv_framework.pipeline.novel import load_finished_run
+from mosiv_framework.recipes import load_recipe, validate_recipe
+from mosiv_framework.registry import Component, Registry, hookimpl, manager
+from mosiv_framework.testing.pytest_plugin import require_simulator
+
+RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "diagnose_small.yaml"
+OTHER = {"single_field": "multi_field", "multi_field": "single_field"}
+
+
+def _run(root: Path, data_mode: str) -> tuple[Path, list[str]]:
+    """Identify the scene made with ``data_mode`` from a recipe naming the other mode; returns
+    the run folder and the log lines of the contact choice."""
+    overrides = [
+        f"scene.path={root / 'scene'}",
+        f"output.dir={root / 'run'}",
+        "scene.source.seed=1",
+        "scene.source.collision_frame=3",
+        "scene.source.n_frames=8",
+        "scene.source.observed_frames=7",
+        "scene.source.particle_spacing=0.02",
+        f"scene.source.simulator_options.contact={data_mode}",
+        "lifter.max_particles_per_object=200",
+        "lifter.voxel_size=0.02",
+        f"simulator.contact={OTHER[data_mode]}",
+        "identify.contact=auto",
+        "identify.contact_iterations=3",
+        "identify.velocity_iterations=0",
+        "identify.param_iterations=1",
+        "identify.intervals=false",
+        "evaluate.emd_samples=64",
+    ]
+    lines: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: lines.append(record.getMessage())
+    logger = logging.getLogger("mosiv_framework.pipeline.contact")
+    logger.addHandler(handler)
+    old_level = logger.level
+    logger.setLevel(logging.INFO)
+    try:
+        run_pipeline(load_recipe(RECIPE, overrides), run_dir=root / "run")
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(old_level)
+    return root / "run", lines
+
+
+@pytest.fixture(scope="module", params=["single_field", "multi_field"])
+def identified_run(request, tmp_path_factory):
+    require_simulator("warp-mpm")
+    data_mode = request.param
+    run, lines = _run(tmp_path_factory.mktemp(data_mode), data_mode)
+    return SimpleNamespace(data_mode=data_mode, run=run, log=lines)
+
+
+def test_auto_picks_the_contact_the_data_were_made_with(identified_run):
+    contact = json.loads((identified_run.run / "identified.json").read_text())["contact"]
+    data, recipe = identified_run.data_mode, OTHER[identified_run.data_mode]
+    assert contact["choice"] == "auto" and contact["recipe_mode"] == recipe
+    assert contact["mode"] == data, contact
+    losses = contact["losses"]
+    assert set(losses) == {"multi_field", "single_field"}
+    # decided by the data, not by a tie: the recipe's mode loses by more than the margin
+    assert losses[data] < (1.0 - contact["margin"]) * losses[recipe], losses
+    assert contact["frames"] == 6  # every observed frame after the first
+
+
+def test_the_choice_is_in_the_history_and_the_log(identified_run):
+    history = read_history(identified_run.run / "identify" / "history.json")
+    records = [h for h in history if h["phase"] == "contact"]
+    assert len(records) == 1 and records[0]["mode"] == identified_run.data_mode
+    # each mode's brief fit is in the history, tagged with its mode
+    fits = {h["contact"] for h in history if h["phase"] == "contact_fit"}
+    assert fits == {"multi_field", "single_field"}
+    assert any(
+        f"contact between objects: {identified_run.data_mode}" in m for m in identified_run.log
+    )
+
+
+def test_evaluation_and_later_rollouts_use_the_chosen_contact(identified_run):
+    """The saved rollout is the identified model rolled out in the chosen mode, and not in the
+    recipe's; ``mosiv eval`` and ``mosiv simulate`` build the same simulator."""
+    finished = load_finished_run(identified_run.run)
+    assert finished.recipe.simulator.contact == OTHER[identified_run.data_mode]
+    assert finished.simulator_section.contact == identified_run.data_mode
+    saved = torch.load(identified_run.run / "rollout.pt", weights_only=False)["positions"]
+    registry = require_simulator("warp-mpm")
+    options = OmegaConf.to_container(finished.recipe.simulator, resolve=True)
+    options.pop("name")
+    gaps = {}
+    for mode in OTHER:
+        sim = registry.create("simulator", "warp-mpm", {**options, "contact": mode})
+        with torch.no_grad():
+            traj = sim.rollout(
+                finished.particles,
+                finished.identified,
+                world=finished.scene.world,
+                frames=finished.scene.n_frames - 1,
+            )
+        gaps[mode] = float((traj.positions - saved).abs().max())
+    assert gaps[identified_run.data_mode] < 1e-5, gaps
+    assert gaps[OTHER[identified_run.data_mode]] > 1e-3, gaps
+
+
+def test_the_rule_keeps_the_recipes_mode_unless_the_other_is_better_by_the_margin():
+    assert pick({"multi_field": 1.0, "single_field": 0.96}, "multi_field", 0.05) == "multi_field"
+    assert pick({"multi_field": 1.0, "single_field": 0.94}, "multi_field", 0.05) == "single_field"
+    assert pick({"multi_field": 1.0, "single_field": 1.0}, "single_field", 0.0) == "single_field"
+    assert pick({"multi_field": 2.0, "single_field": 1.0}, "single_field", 0.05) == "single_field"
+    inf = float("inf")
+    assert pick({"multi_field": inf, "single_field": 5.0}, "multi_field", 0.05) == "single_field"
+    assert pick({"multi_field": 5.0, "single_field": inf}, "multi_field", 0.05) == "multi_field"
+    assert pick({"multi_field": inf, "single_field": inf}, "single_field", 0.05) == "single_field"
+
+
+def test_fixed_contact_is_recorded_and_a_resumed_run_keeps_the_choice():
+    section = OmegaConf.create({"name": "warp-mpm", "grid": 24, "contact": "single_field"})
+    assert contact_json([], section) == {"choice": "fixed", "mode": "single_field"}
+    assert contact_json([], OmegaConf.create({"name": "ballistic"})) is None
+    chosen = {"phase": "contact", "choice": "auto", "mode": "multi_field"}
+    chosen.update(recipe_mode="single_field", losses={}, margin=0.05, frames=6)
+    assert contact_json([chosen], section)["mode"] == "multi_field"
+    assert simulator_section(section, {"contact": contact_json([chosen], section)}).contact == (
+        "multi_field"
+    )
+    assert simulator_section(section, {}).contact == "single_field"  # a run without a record
+    modes = ContactModes(
+        {"single_field": "sim-single", "multi_field": "sim-multi"}, "single_field", 0.05
+    )
+    fit = SimpleNamespace(simulator="sim-single")
+    restore_choice(modes, fit, [{"phase": "params"}, chosen])
+    assert fit.simulator == "sim-multi"
+
+
+class NoContact:
+    def __init__(self, **options):
+        pass
+
+
+class NoContactPlugin:
+    @hookimpl
+    def mosiv_simulators(self, register):
+        register(Component("simulator", "no-contact", factory=NoContact))
+
+
+def _problems(registry, **identify) -> list[str]:
+    raw = {"scene": {"path": "scene"}, "identify": identify}
+    raw["simulator"] = {"name": identify.pop("simulator", "warp-mpm"), "device": "cpu"}
+    if raw["simulator"]["name"] != "warp-mpm":
+        raw["simulator"].pop("device")
+    return validate_recipe(raw, registry)[1]
+
+
+def test_recipe_checks_of_the_contact_options(monkeypatch):
+    registry = Registry().load_entry_points(disabled=["taichi-mpm", "gauss"])
+    registry.add_plugin(NoContactPlugin(), name="no-contact-test")
+    monkeypatch.setattr(manager, "_REGISTRY", registry)
+    if "warp-mpm" not in registry.names("simulator"):
+        pytest.skip("simulator 'warp-mpm' is not installed")
+    assert _problems(registry, contact="auto") == []
+    bad = _problems(registry, contact="sometimes")
+    assert bad == ["identify.contact='sometimes': valid values are ['fixed', 'auto']"]
+    margin = _problems(registry, contact="auto", contact_margin=1.5)
+    assert len(margin) == 1 and margin[0].startswith("identify.contact_margin=1.5: must be in")
+    steps = _problems(registry, contact="auto", contact_iterations=-1)
+    assert len(steps) == 1 and steps[0].startswith("identify.contact_iterations=-1: must be >= 0")
+    none = _problems(registry, contact="auto", simulator="no-contact")
+    assert len(none) == 1 and "identify.contact='auto'" in none[0] and "no-contact" in none[0]
+    assert _problems(registry, contact="fixed", simulator="no-contact") == []
+    with pytest.raises(ConfigError, match="identify.contact"):
+        load_recipe(RECIPE, ["identify.contact=sometimes"])
