@@ -1,35 +1,58 @@
 """How well the recording pins down each identified parameter: a 95 % interval per parameter.
 
-A Laplace approximation in the optimiser's coordinates (each parameter's normalised coordinate,
-affine in log(value) for scale parameters, so intervals are symmetric in log space): near the
-identified point u0 the loss is L(u) ~ L0 + (u - u0)^T H (u - u0) / 2. Read as the mean of n
+Both methods (``identify.interval_method``) work in the optimiser's coordinates (each
+parameter's normalised coordinate, affine in log(value) for scale parameters, so intervals are
+symmetric in log space) around the identified point u0, with the Hessian H of the loss there
+from central finite differences of its gradient (autograd through the simulator, 1 + 2 d
+backward rollouts for d parameters; one-sided near a bound), symmetrised. Both give the
+marginal interval, which widens where parameters trade off against each other (a stiffer body
+with a larger Poisson ratio moving much like a softer one).
+
+``laplace``: near u0 the loss is L(u) ~ L0 + (u - u0)^T H (u - u0) / 2. Read as the mean of n
 Gaussian residuals of variance sigma^2, the negative log-likelihood is n L / (2 sigma^2); with
 sigma^2 estimated by the residual level L0 its Hessian is n H / (2 L0), so the posterior
 covariance of u is (2 L0 / n) H^-1 and each parameter's 95 % interval is u0_i +- 1.96
-sqrt((2 L0 / n) [H^-1]_ii): the marginal interval, which widens where parameters trade off
-against each other (a stiffer body with a larger Poisson ratio moving much like a softer one).
-H comes from central finite differences of the loss's gradient (autograd through the simulator,
-1 + 2 d backward rollouts for d parameters; one-sided near a bound), symmetrised.
+sqrt((2 L0 / n) [H^-1]_ii). n counts the independent residuals: the points of one body move
+together, so each (observed frame, object) pair counts as one. This assumes the model is right
+(the misfit is noise, not a bias) and the loss is a calibrated likelihood; where another
+engine made the data, it is too narrow.
 
-n counts the independent residuals. The points of one body move together, so their distances
-are far from independent; each (observed frame, object) pair counts as one residual. This is
-conservative (wider) when the misfit is noise, and an honest width when the misfit is a bias.
+``sandwich``: the covariance H^-1 J H^-1 of ``mosiv_framework.pipeline.sandwich``, with one
+block per fitted frame (the objectives average over frames, so each frame's loss over the
+number of frames is its share of the loss) and J the Bartlett-weighted covariance of the
+frames' gradients at u0: how much the frames disagree about where the optimum lies, which is
+what a wrong model shows. The frames' gradients are differences of the frames' losses at the
+same probes as the Hessian (no extra rollout; one more forward-and-backward rollout per
+parameter within a step of its bound, for a second-order one-sided difference). Its interval
+is the wider of the sandwich one and the Laplace one (``interval_estimates`` says why).
 
 A parameter along which the loss does not change (zero curvature, e.g. a yield stress above
 every stress the motion reaches) is ``unconstrained``; so is one with weight on a direction of
 (near) zero or negative curvature, whose marginal variance is then unbounded. Where an interval
 runs past one of the parameter's bounds, only the other side is supported by the data:
 ``E >= x`` (``lower-bound``, ``high`` None) or ``E <= x`` (``upper-bound``, ``low`` None).
+Every probe draws the same random point subsets (the losses' generators are set back before
+each evaluation), so differences between probes are not subsampling noise.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 
 from mosiv_framework.errors import SimulationDiverged
+from mosiv_framework.pipeline.sandwich import (
+    block_scores,
+    hac_meat,
+    newey_west_lag,
+    sandwich_covariance,
+    t_quantile,
+)
+from mosiv_framework.recipes.schema import INTERVAL_METHODS
+from mosiv_framework.types import GeometryFrames
 
 #: the history's phase name of the interval record
 INTERVALS_PHASE = "intervals"
@@ -42,29 +65,66 @@ FLAT = 1e-6
 #: eigenvalues of H below this fraction of the largest count as zero curvature
 RANK_TOL = 1e-9
 
-LossGrad = Callable[[torch.Tensor], tuple[float, torch.Tensor]]
+#: u -> (loss, gradient [d]) or (loss, gradient [d], block shares [T] summing to the loss)
+LossGrad = Callable[[torch.Tensor], tuple]
+
+
+@dataclass
+class Probes:
+    """What the finite-difference probes around u0 found: the loss there, the Hessian and,
+    where the loss came in block shares, the per-block scores ([T, d], else None)."""
+
+    loss: float
+    hessian: torch.Tensor
+    scores: torch.Tensor | None = None
+
+
+def probe(loss_grad: LossGrad, u0: torch.Tensor, *, step: float = STEP, blocks: bool = False):
+    """The Hessian from central differences of the gradient, one-sided (pointing into [0, 1])
+    where a central step would leave it, symmetrised; with ``blocks``, also each block's
+    gradient from differences of the block shares at the same probes (one forward-and-backward
+    evaluation more per one-sided coordinate, for a second-order difference). float64."""
+    u0 = u0.double()
+    first = loss_grad(u0.clone())
+    l0, g0 = first[0], first[1].double()
+    d = u0.numel()
+    hessian = torch.zeros(d, d, dtype=torch.float64)
+    plus, minus, steps = [], [], []
+    for i in range(d):
+        e = torch.zeros(d, dtype=torch.float64)
+        e[i] = step
+        if u0[i] - step >= 0.0 and u0[i] + step <= 1.0:
+            up, down = loss_grad(u0 + e), loss_grad(u0 - e)
+            hessian[i] = (up[1].double() - down[1].double()) / (2 * step)
+            if blocks:
+                plus.append(_shares(up))
+                minus.append(_shares(down))
+                steps.append(step)
+            continue
+        sign = 1.0 if u0[i] + step <= 1.0 else -1.0
+        up = loss_grad(u0 + sign * e)
+        hessian[i] = (up[1].double() - g0) / (sign * step)
+        if blocks:
+            plus.append(torch.stack([_shares(up), _shares(loss_grad(u0 + 2 * sign * e))]))
+            minus.append(None)
+            steps.append(sign * step)
+    scores = block_scores(_shares(first), plus, minus, steps) if blocks else None
+    return Probes(l0, 0.5 * (hessian + hessian.T), scores)
+
+
+def _shares(evaluated: tuple) -> torch.Tensor:
+    """The block shares of one ``loss_grad`` evaluation (float64)."""
+    if len(evaluated) < 3:
+        raise ValueError("the sandwich needs loss_grad to return (loss, gradient, block shares)")
+    return torch.as_tensor(evaluated[2], dtype=torch.float64).reshape(-1)
 
 
 def finite_difference_hessian(
     loss_grad: LossGrad, u0: torch.Tensor, *, step: float = STEP
 ) -> tuple[float, torch.Tensor]:
-    """(L(u0), H): the Hessian from central differences of the gradient, one-sided (pointing
-    into [0, 1]) where a central step would leave it; symmetrised. float64 throughout."""
-    u0 = u0.double()
-    l0, g0 = loss_grad(u0.clone())
-    d = u0.numel()
-    hessian = torch.zeros(d, d, dtype=torch.float64)
-    for i in range(d):
-        e = torch.zeros(d, dtype=torch.float64)
-        e[i] = step
-        if u0[i] - step >= 0.0 and u0[i] + step <= 1.0:
-            hessian[i] = (loss_grad(u0 + e)[1].double() - loss_grad(u0 - e)[1].double()) / (
-                2 * step
-            )
-        else:
-            sign = 1.0 if u0[i] + step <= 1.0 else -1.0
-            hessian[i] = (loss_grad(u0 + sign * e)[1].double() - g0.double()) / (sign * step)
-    return l0, 0.5 * (hessian + hessian.T)
+    """(L(u0), H), see ``probe``."""
+    found = probe(loss_grad, u0, step=step)
+    return found.loss, found.hessian
 
 
 def laplace_intervals(
@@ -82,9 +142,53 @@ def laplace_intervals(
         Per coordinate ``{"low", "high", "kind"}`` in u: kind ``two-sided``, ``lower-bound``
         (``high`` None), ``upper-bound`` (``low`` None) or ``unconstrained`` (both None).
     """
-    l0, hessian = finite_difference_hessian(loss_grad, u0, step=step)
+    return interval_estimates(probe(loss_grad, u0, step=step), u0, n=n, step=step)["laplace"]
+
+
+def sandwich_intervals(
+    loss_grad: LossGrad, u0: torch.Tensor, *, n: int, step: float = STEP, lag: int | None = None
+) -> list[dict]:
+    """The sandwich 95 % interval of each coordinate of ``u`` in [0, 1]^d around u0, never
+    narrower than the Laplace one (``interval_estimates``).
+
+    Args:
+        loss_grad: u -> (loss, gradient [d], block shares [T]) at u; the shares sum to the
+            loss and come in the blocks' (time) order.
+        u0: the identified coordinates, [d].
+        n: the number of independent residuals the loss averages (for the Laplace floor).
+        step: the finite-difference step in u.
+        lag: the Bartlett lag over blocks (None: ``sandwich.newey_west_lag``).
+
+    Returns:
+        Per coordinate ``{"low", "high", "kind"}`` in u, as ``laplace_intervals``.
+    """
+    found = probe(loss_grad, u0, step=step, blocks=True)
+    return interval_estimates(found, u0, n=n, step=step, lag=lag)["sandwich"]
+
+
+def interval_estimates(
+    found: Probes, u0: torch.Tensor, *, n: int, step: float = STEP, lag: int | None = None
+) -> dict:
+    """Both intervals from one set of probes.
+
+    The Laplace variance of coordinate i is (2 L0 / n) [H^-1]_ii; the sandwich variance is
+    [H^-1 J H^-1]_ii (``sandwich.hac_meat``) with Student's t quantile. The sandwich interval
+    is the wider of the two: J comes from a few blocks and is itself uncertain, and a misfit
+    that all blocks share (no disagreement between them) leaves J small while the Laplace
+    width still reflects it. Coordinates without curvature, or with weight on a direction of
+    (near) zero or negative curvature, are ``unconstrained`` under both.
+
+    Returns:
+        ``{"laplace": [...], "sandwich": [...] or None (no scores), "blocks": T, "lag": L}``.
+    """
     d = u0.numel()
-    out = [{"low": None, "high": None, "kind": "unconstrained"} for _ in range(d)]
+    free = [{"low": None, "high": None, "kind": "unconstrained"} for _ in range(d)]
+    scores = found.scores
+    out = {"laplace": list(free), "sandwich": None if scores is None else list(free)}
+    if scores is not None:
+        out["blocks"] = int(scores.shape[0])
+        out["lag"] = newey_west_lag(out["blocks"]) if lag is None else int(lag)
+    l0, hessian = found.loss, found.hessian
     if not math.isfinite(l0) or not bool(torch.isfinite(hessian).all()):
         return out
     # a coordinate along which the loss changes by less than FLAT of itself over a step
@@ -99,9 +203,16 @@ def laplace_intervals(
     # zero or negative curvature: an unbounded variance along that direction, which every
     # coordinate with weight on it inherits (its interval then spans the whole range)
     values = values.clamp(min=RANK_TOL * max(float(values.max()), 1e-300))
-    variance = (vectors**2 / values).sum(dim=1) * 2.0 * max(l0, 0.0) / max(n, 1)
+    inverse = (vectors / values) @ vectors.T
+    laplace = Z95 * (torch.diagonal(inverse) * 2.0 * max(l0, 0.0) / max(n, 1)).sqrt()
     for j, i in enumerate(seen):
-        out[i] = _interval(float(u0[i]), Z95 * math.sqrt(float(variance[j])))
+        out["laplace"][i] = _interval(float(u0[i]), float(laplace[j]))
+    if scores is None or scores.shape[0] < 2 or not bool(torch.isfinite(scores).all()):
+        return out  # the spread between blocks is unknown: the sandwich stays unconstrained
+    cov = sandwich_covariance(inverse, hac_meat(scores[:, seen], out["lag"]))
+    robust = t_quantile(out["blocks"]) * torch.diagonal(cov).clamp(min=0.0).sqrt()
+    for j, i in enumerate(seen):
+        out["sandwich"][i] = _interval(float(u0[i]), max(float(robust[j]), float(laplace[j])))
     return out
 
 
@@ -117,53 +228,137 @@ def _interval(u0: float, half: float) -> dict:
     return {"low": low, "high": high, "kind": "two-sided"}
 
 
-def parameter_intervals(fit, vector, *, last: int, step: float = STEP) -> dict:
-    """Per object and identified parameter, its 95 % interval in SI units.
+def interval_record(fit, vector, *, last: int, method: str = "laplace", step: float = STEP):
+    """The history record of the intervals: per object and identified parameter, its 95 %
+    interval in SI units by ``method``.
 
     Args:
         fit: a ``phases.Fit``; the loss is its objective over frames ``1..last``.
         vector: the identified ParameterVector (left as it was given).
         last: the last fitted frame.
+        method: one of ``INTERVAL_METHODS``: ``laplace`` (the loss read as a Gaussian
+            likelihood) or ``sandwich`` (one block per fitted frame, see
+            ``mosiv_framework.pipeline.sandwich``; costs one forward-and-backward rollout more
+            per parameter within a step of its bound).
         step: the finite-difference step in normalised coordinates.
 
     Returns:
-        ``{"obj1": {"E": {"low", "high", "kind"}}, "ground_friction": {...}}``; physics-term
-        leaves are not reported. A probe whose rollout diverges leaves every parameter
-        ``unconstrained`` (the curvature there is unknown).
+        ``{"phase": "intervals", "horizon", "method", "intervals": {"obj1": {"E": {"low",
+        "high", "kind", "method"}}, "ground_friction": {...}}}``; with ``sandwich`` also
+        ``laplace`` (the Laplace intervals from the same probes, for comparison), ``blocks``
+        and ``lag``. Physics-term leaves are not reported. A probe whose rollout diverges
+        leaves every parameter ``unconstrained`` (the curvature there is unknown).
     """
+    if method not in INTERVAL_METHODS:
+        raise ValueError(
+            f"identify.interval_method must be one of {list(INTERVAL_METHODS)}, got {method!r}"
+        )
+    record = {"phase": INTERVALS_PHASE, "horizon": last, "method": method, "intervals": {}}
     keys = [
         key
         for key, u in sorted(vector.normalized.items())
         if not key.startswith("term.") and u.numel() == 1
     ]
     if not keys:
-        return {}
+        return record
     leaves = [vector.normalized[key] for key in keys]
     saved = [leaf.detach().clone() for leaf in leaves]
+    draws = _CommonDraws(fit.objective)
+    blocks = method == "sandwich"
+    u0 = torch.stack([s.reshape(()) for s in saved]).double()
+    try:
+        loss_grad = _fit_loss_grad(fit, vector, leaves, last, draws, blocks)
+        found = probe(loss_grad, u0, step=step, blocks=blocks)
+    finally:
+        draws.restore()
+        with torch.no_grad():
+            for leaf, value in zip(leaves, saved):
+                leaf.copy_(value)
+    estimates = interval_estimates(found, u0, n=last * len(vector.families), step=step)
+    record["intervals"] = _by_parameter(vector, keys, estimates[method], method)
+    if blocks:
+        record["laplace"] = _by_parameter(vector, keys, estimates["laplace"], "laplace")
+        record["blocks"], record["lag"] = estimates["blocks"], estimates["lag"]
+    return record
 
-    def loss_grad(u: torch.Tensor) -> tuple[float, torch.Tensor]:
+
+def parameter_intervals(
+    fit, vector, *, last: int, method: str = "laplace", step: float = STEP
+) -> dict:
+    """``interval_record(...)["intervals"]``."""
+    return interval_record(fit, vector, last=last, method=method, step=step)["intervals"]
+
+
+def _fit_loss_grad(fit, vector, leaves: list, last: int, draws, blocks: bool) -> LossGrad:
+    """u -> (loss, gradient) of the fit's objective over frames 1..last with the leaves set to
+    u, plus with ``blocks`` each frame's share (its loss over the number of frames: the
+    objectives average over frames). Every evaluation draws the same random subsets."""
+
+    def loss_grad(u: torch.Tensor) -> tuple:
         with torch.no_grad():
             for leaf, value in zip(leaves, u):
                 leaf.fill_(float(value))
         try:
-            loss = fit.objective(*fit.rollout_geometry(vector, last))
+            draws.reset()
+            predicted, target = fit.rollout_geometry(vector, last)
+            loss = fit.objective(predicted, target)
             grads = torch.autograd.grad(loss, leaves, allow_unused=True)
         except SimulationDiverged:
-            return math.inf, torch.full((len(keys),), math.nan, dtype=torch.float64)
+            nan = torch.full((last,), math.nan, dtype=torch.float64)
+            return math.inf, torch.full((len(leaves),), math.nan, dtype=torch.float64), nan
         flat = [0.0 if g is None else float(g.detach().reshape(())) for g in grads]
-        return float(loss.detach()), torch.tensor(flat, dtype=torch.float64)
-
-    u0 = torch.stack([s.reshape(()) for s in saved]).double()
-    try:
-        found = laplace_intervals(loss_grad, u0, n=last * len(vector.families), step=step)
-    finally:
+        out = (float(loss.detach()), torch.tensor(flat, dtype=torch.float64))
+        if not blocks:
+            return out
+        shares = torch.zeros(len(predicted.frames), dtype=torch.float64)
         with torch.no_grad():
-            for leaf, value in zip(leaves, saved):
-                leaf.copy_(value)
+            for i in range(len(predicted.frames)):
+                draws.reset()
+                shares[i] = float(fit.objective(_frame(predicted, i), _frame(target, i)))
+        return (*out, shares / len(shares))
+
+    return loss_grad
+
+
+def _frame(geometry: GeometryFrames, i: int) -> GeometryFrames:
+    """The geometry of its ``i``-th frame alone."""
+    silhouettes = geometry.silhouettes
+    if silhouettes is not None:
+        silhouettes = {k: alpha[i : i + 1] for k, alpha in silhouettes.items()}
+    points = {k: [sets[i]] for k, sets in geometry.points.items()}
+    return GeometryFrames([geometry.frames[i]], points, silhouettes)
+
+
+class _CommonDraws:
+    """The random-subset generators of the objective's terms, set back to one state before
+    every evaluation: differences between probes then see the same points, not the noise of
+    different subsets (and the probes leave the generators as they found them)."""
+
+    def __init__(self, objective):
+        terms = getattr(objective, "terms", {}) or {}
+        gens = [getattr(term, "generator", None) for term in terms.values()]
+        self.states = [(g, g.get_state()) for g in gens if isinstance(g, torch.Generator)]
+
+    def reset(self) -> None:
+        for generator, state in self.states:
+            generator.set_state(state)
+
+    def restore(self) -> None:
+        """Leave the generators as the probes found them."""
+        self.reset()
+
+
+def _by_parameter(vector, keys: list[str], found: list[dict], method: str) -> dict:
+    """Intervals in u per key -> ``{"obj1": {"E": entry}, "ground_friction": entry}`` in SI."""
     out: dict = {}
     for key, got in zip(keys, found):
         spec = vector.specs[key]
-        entry = {"low": _si(spec, got["low"]), "high": _si(spec, got["high"]), "kind": got["kind"]}
+        entry = {
+            "low": _si(spec, got["low"]),
+            "high": _si(spec, got["high"]),
+            "kind": got["kind"],
+            "method": method,
+        }
         if "." in key:
             owner, name = key.split(".", 1)
             out.setdefault(owner, {})[name] = entry

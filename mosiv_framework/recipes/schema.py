@@ -63,6 +63,9 @@ VELOCITY_WINDOWS = ("free", "observed")
 LIBRARY_SCOPES = ("family", "all")
 #: where the parameters start: the law defaults, or the centre of each law's bounds
 IDENTIFY_STARTS = ("defaults", "centre")
+#: how the intervals are estimated: the loss read as a Gaussian likelihood (right when the
+#: model is), or the sandwich covariance over frame blocks (``pipeline.sandwich``)
+INTERVAL_METHODS = ("laplace", "sandwich")
 #: the contact between objects: the simulator's ``contact`` as the recipe gives it, or chosen
 #: from the observed frames (``mosiv_framework.pipeline.contact``)
 IDENTIFY_CONTACT = ("fixed", "auto")
@@ -91,9 +94,13 @@ class IdentifySection:
     parameters and within the law bounds and stiffness ceilings, and start the descent from
     the best of them and the start (0: off; see ``mosiv_framework.pipeline.global_search``);
     global_frames: the last frame those rollouts cover (0: the whole observed window);
-    intervals: after identification, a 95 % interval per identified parameter (a Laplace
-    approximation, or the one-sided bound the data support, or "unconstrained"), stored in
-    identified.json under ``intervals`` (see ``mosiv_framework.pipeline.uncertainty``);
+    intervals: after identification, a 95 % interval per identified parameter (two-sided, or
+    the one-sided bound the data support, or "unconstrained"), stored in identified.json under
+    ``intervals`` (see ``mosiv_framework.pipeline.uncertainty``);
+    interval_method: "laplace" reads the loss as a Gaussian likelihood of the model, right
+    when the model made the data; "sandwich" (H^-1 J H^-1 with J from the disagreement
+    between frames, never narrower than the Laplace one) stays honest when it did not, e.g.
+    on data another engine made;
     contact: "fixed" identifies with the simulator's ``contact`` as given; "auto" chooses
     between multi_field and single_field from the observed frames after the velocity phase
     (each mode from the same start, after its own global stage and ``contact_iterations``
@@ -148,6 +155,7 @@ class IdentifySection:
     global_candidates: int = 0
     global_frames: int = 0
     intervals: bool = True
+    interval_method: str = "laplace"
     contact: str = "fixed"
     contact_iterations: int = 20
     contact_margin: float = 0.05
@@ -162,6 +170,7 @@ class IdentifySection:
                 ("velocity_window", VELOCITY_WINDOWS),
                 ("library_scope", LIBRARY_SCOPES),
                 ("start", IDENTIFY_STARTS),
+                ("interval_method", INTERVAL_METHODS),
                 ("contact", IDENTIFY_CONTACT),
             )
             if values.get(key) not in valid
