@@ -192,7 +192,8 @@ def identify(
         run.best.apply(vector)
         state.save_checkpoint(index + 1, 0, None)
     if getattr(section, "intervals", False) and _parameters_fitted(phases, vector):
-        _interval_stage(fit, vector, phases[-1].last, state.history)
+        method = getattr(section, "interval_method", "laplace")
+        _interval_stage(fit, vector, phases[-1].last, state.history, method)
     return vector, state.history
 
 
@@ -245,12 +246,12 @@ def _parameters_fitted(phases: list[Phase], vector: ParameterVector) -> bool:
     )
 
 
-def _interval_stage(fit: Fit, vector: ParameterVector, last: int, history: list[dict]) -> None:
-    """A 95 % interval per identified parameter, recorded in the history."""
-    from mosiv_framework.pipeline.uncertainty import INTERVALS_PHASE, parameter_intervals
+def _interval_stage(fit: Fit, vector: ParameterVector, last: int, history: list, method) -> None:
+    """A 95 % interval per identified parameter (``identify.interval_method``), recorded in
+    the history."""
+    from mosiv_framework.pipeline.uncertainty import interval_record
 
-    intervals = parameter_intervals(fit, vector, last=last)
-    history.append({"phase": INTERVALS_PHASE, "horizon": last, "intervals": intervals})
+    history.append(interval_record(fit, vector, last=last, method=method))
 
 
 class _PhaseRun:
