@@ -11,10 +11,11 @@ data decide:
    modes), each mode in turn starts from the same parameters, runs the global stage when it is
    on (``identify.global_candidates``) and then ``identify.contact_iterations`` steps of the
    parameter phase over every observed frame, in that mode: each mode is scored with the
-   materials that suit it, not with the start's. Scored at the start alone, the choice was
-   wrong on one of four tiny two-body scenes (the start's stiffness and density were as far
-   off as the contact); after three steps per mode it was right on all eight runs (four
-   scenes, each made in both modes), the chosen mode's loss 1.2 to 160 times lower.
+   materials that suit it, not with the start's. On four tiny two-body scenes, each made in
+   both modes and identified from a recipe naming the other, the choice scored at the start
+   alone was wrong in two of the eight runs (the start's materials were as far off as the
+   contact); after three steps per mode it was right in all eight, the chosen mode's loss 1.2
+   to 160 times lower.
 2. Each mode's objective is evaluated over every observed frame, both on the same random
    subsets of points (the Chamfer losses subsample afresh on every call; without common draws
    the two scores would differ by the draw alone).

@@ -28,8 +28,10 @@ from mosiv_genesis import plan as P
 from mosiv_genesis.options import GENESIS_KINDS, GenesisOptions
 
 # Genesis keeps MPM particles inside its grid box shrunk by this many cells on every side; the
-# box is grown by as much so that this boundary is the declared domain: its floor is the table
-# (Genesis' rigid plane does not stop MPM particles; the plane entity only draws the table)
+# box is grown by as much so that this boundary is the declared domain: its floor is the table,
+# which stops the normal motion. The rigid plane drawn there is coupled to the MPM grid too and
+# adds Coulomb friction (its coup_friction, 0.1 by default) on the nodes at or below it: MOSIV's
+# ground with ground_friction 0.1 (docs/PHYSICS.md, Ground friction)
 MPM_BOUNDARY_CELLS = 3
 # Genesis' MPM solves every body on one grid: bodies that touch share grid velocities and stick
 # (no friction coefficient between them); gt/params.json says so, for identification
