@@ -3,6 +3,13 @@
 Importing this package does not import taichi; the simulator module does, on first use.
 """
 
-from mosiv_taichi_mpm.options import TaichiMPMOptions
+import os
+
+# Taichi prints its version banner on stdout when it is first imported, which would corrupt
+# machine-readable output such as `mosiv bench sim --json`; a user who wants it sets the
+# variable to true. This must run before any submodule imports taichi.
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")
+
+from mosiv_taichi_mpm.options import TaichiMPMOptions  # noqa: E402
 
 __all__ = ["TaichiMPMOptions"]

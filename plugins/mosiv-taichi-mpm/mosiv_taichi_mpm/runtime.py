@@ -7,6 +7,9 @@ simulators notice through ``generation()`` and answer by re-allocating.
 
 from __future__ import annotations
 
+import contextlib
+import sys
+
 import taichi as ti
 import torch
 
@@ -30,7 +33,10 @@ def ensure(device: str) -> int:
         ti.reset()
     arch = ti.cuda if device == "cuda" else ti.cpu
     # float32 throughout; fast_math off so NaN/inf checks are not optimised away
-    ti.init(arch=arch, default_fp=ti.f32, offline_cache=True, fast_math=False, log_level="warn")
+    # ti.init prints "Starting on arch=..." on stdout whatever the log level; stdout belongs to
+    # the command's own output (`mosiv bench sim --json`), so the line goes to stderr
+    with contextlib.redirect_stdout(sys.stderr):
+        ti.init(arch=arch, default_fp=ti.f32, offline_cache=True, fast_math=False, log_level="warn")
     actual = ti.lang.impl.current_cfg().arch
     if device == "cuda" and actual != ti.cuda:
         ti.reset()
