@@ -201,16 +201,19 @@ class Grid:
         return [self.moment_m, self.moment_mx, self.moment_mv, self.rel_p, self.rel_v, self.rel_n]
 
     def clear(self, box: NodeBox) -> None:
-        """Zero what P2G accumulates into, on the nodes of ``box``, and the per-field sums."""
+        """Zero what P2G accumulates into, on the nodes of ``box``, and the per-field sums
+        (with several fields: one field has no other objects)."""
         self._zero([self.m, self.mv, self.gm, self.pm, self.vs, self.v], box, velocities=False)
-        for a in self.field_arrays():
-            a.zero_()
+        if self.layout.fields > 1:
+            for a in self.field_arrays():
+                a.zero_()
 
     def zero_grad(self, box: NodeBox) -> None:
         if self.m.grad is not None:
             self._zero([a.grad for a in self.arrays()], box, velocities=True)
-            for a in self.field_arrays():
-                a.grad.zero_()
+            if self.layout.fields > 1:
+                for a in self.field_arrays():
+                    a.grad.zero_()
 
     def _zero(self, arrays: list[wp.array], box: NodeBox, *, velocities: bool) -> None:
         if box.is_whole(self.layout):  # a memset per array
