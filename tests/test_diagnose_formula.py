@@ -225,12 +225,12 @@ def test_candidate_bounds_starts_and_formula_record():
 def _context(terms, contact="multi_field", diagnose=None):
     from omegaconf import OmegaConf
 
-    recipe = OmegaConf.create(
-        {"simulator": {"contact": contact}, "diagnose": diagnose or {"terms": [], "exclude": []}}
-    )
+    recipe = OmegaConf.create({"diagnose": diagnose or {"terms": [], "exclude": []}})
     return SimpleNamespace(
         recipe=recipe,
-        simulator=SimpleNamespace(supported_terms=frozenset(terms)),
+        simulator=SimpleNamespace(
+            supported_terms=frozenset(terms), options=SimpleNamespace(contact=contact)
+        ),
         simulator_name="sim",
         identified=SimpleNamespace(terms={}),
         world=SimpleNamespace(gravity=(0.0, 0.0, -9.8), ground_height=0.0),
@@ -249,6 +249,11 @@ def test_the_law_tested_uses_only_features_the_simulator_applies():
     with_contact = _law(x={"contact": 1.0})
     law, reason = law_to_test(_context({"expression"}), samples, with_contact)
     assert reason is None and law["axes"]["x"]["terms"][0]["feature"] == "v_x"
+    with_dp = _law(x={"dp_x": 1.0})
+    single = _context({"expression"}, contact="single_field")
+    law, _ = law_to_test(single, samples, with_dp)  # discovered again without dp, dv
+    assert {t["feature"] for t in law["axes"]["x"]["terms"]} <= set(NODE_FEATURES)
+    assert law_to_test(_context({"expression"}), samples, with_dp)[0] is with_dp
     assert law_to_test(_context({"wind"}), samples, with_contact)[1].endswith("implement it")
     excluded = _context({"expression"}, diagnose={"terms": [], "exclude": ["expression"]})
     assert "diagnose.exclude" in law_to_test(excluded, samples, with_contact)[1]

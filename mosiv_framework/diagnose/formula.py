@@ -68,7 +68,8 @@ def law_to_test(ctx, samples: dict, discovered: dict | None) -> tuple[dict | Non
         NAME in section.exclude or (section.terms and NAME not in section.terms)
     ):
         return None, f"{NAME}: left out by the recipe's diagnose.terms / diagnose.exclude"
-    contact = ctx.recipe.simulator.get("contact", None)
+    # the simulator's own option: identification may have chosen the contact (identify.contact)
+    contact = getattr(getattr(ctx.simulator, "options", None), "contact", None)
     features = applicable_features(ctx.simulator, contact)
     if features is None:
         return None, f"{NAME}: simulator {ctx.simulator_name!r} does not implement it"
