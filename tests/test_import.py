@@ -7,11 +7,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 import pytest
 import torch
 
 from mosiv_framework.capture import CaptureError, ImportSettings, RigFrame, import_recording
-from mosiv_framework.capture.colmap import read_colmap, write_colmap_text
+from mosiv_framework.capture.colmap import read_colmap, write_colmap
 from mosiv_framework.capture.lens import (
     Distortion,
     Intrinsics,
@@ -71,9 +72,9 @@ def intrinsics(cam) -> Intrinsics:
     return Intrinsics(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
 
 
-def write_colmap(folder: Path, cameras) -> None:
+def write_model(folder: Path, cameras) -> None:
     names = [f"{cam.id}.mp4" for cam in cameras]
-    write_colmap_text(folder, cameras, names=names, distortion=LENS, rig=RIG)
+    write_colmap(folder, cameras, names=names, distortion=LENS, rig=RIG)
 
 
 def write_capture(scene_dir: Path, out: Path, late=LATE, drop_video: str | None = None) -> Path:
@@ -87,7 +88,7 @@ def write_capture(scene_dir: Path, out: Path, late=LATE, drop_video: str | None 
         frames = np.stack([scene.rgb(cam.id, t) for t in range(late.get(cam.id, 0), N_FRAMES)])
         frames = distort_frames(frames, intrinsics(cam), LENS)
         iio2.mimwrite(out / "videos" / f"{cam.id}.mp4", list(frames), fps=24, quality=10)
-    write_colmap(out / "sparse" / "0", scene.cameras)
+    write_model(out / "sparse" / "0", scene.cameras)
     return out
 
 
@@ -228,7 +229,6 @@ def test_nerfstudio_cameras_match(scene, tmp_path):
 
 
 def test_binary_colmap_model_reads_as_text(capture, tmp_path):
-    pycolmap = pytest.importorskip("pycolmap")
     rec = pycolmap.Reconstruction(str(capture / "sparse" / "0"))
     rec.write_binary(str(tmp_path))
     known = {f"cam_{i:02d}" for i in range(4)}
@@ -278,7 +278,8 @@ def test_unknown_colmap_camera_model(capture, tmp_path):
     c = copy_capture(capture, tmp_path)
     path = c / "sparse" / "0" / "cameras.txt"
     lines = path.read_text().splitlines()
-    lines[2] = lines[2].replace("OPENCV", "FOV").rsplit(" ", 3)[0]
+    first = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    lines[first] = lines[first].replace("OPENCV", "FOV").rsplit(" ", 3)[0]
     path.write_text("\n".join(lines) + "\n")
     expect_error(
         settings(c, tmp_path / "s"),
@@ -294,7 +295,7 @@ def test_pose_with_the_scene_behind_the_camera(scene, tmp_path):
     # half a turn about the camera's y axis: it looks away from the scene
     cameras[2] = replace(cameras[2], world_to_camera=turn @ cameras[2].world_to_camera)
     c = copy_capture(write_capture(scene, tmp_path / "orig"), tmp_path)
-    write_colmap(c / "sparse" / "0", cameras)
+    write_model(c / "sparse" / "0", cameras)
     expect_error(settings(c, tmp_path / "s"), CaptureError, "images.txt", "'cam_02'", "behind")
 
 

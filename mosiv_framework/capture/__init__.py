@@ -6,8 +6,8 @@ COLMAP model or a nerfstudio ``transforms.json``) into a ``mosiv-scene/1`` folde
 such a rig delivers it (``write``), so that the import can be benchmarked against ground truth.
 
 One module per job, shared by both directions: ``video`` (frames), ``colmap`` (COLMAP models,
-read and written) and ``nerfstudio`` (cameras), ``lens`` (distortion and its inverse, frames
-remapped through it), ``rotations`` (quaternions, rigid transforms), ``offsets`` (time offsets),
+read and written through pycolmap) and ``nerfstudio`` (cameras), ``lens`` (distortion and its
+inverse, frames remapped through it), ``rotations`` (up axis to +z), ``offsets`` (time offsets),
 ``align`` (units, up axis, ground; the rig frame a capture is written in), ``domain`` (visual
 hull, domain), ``materials`` (objects), ``importer`` and ``write`` (the steps in order).
 """

@@ -7,6 +7,8 @@ Layout of the capture folder::
     sparse/0/cameras.txt       COLMAP text model (OPENCV or RADIAL, with the distortion)
     sparse/0/images.txt        world-to-camera pose per camera, in the rig's units and up axis
     sparse/0/points3D.txt      empty
+    sparse/0/rigs.txt          one trivial rig per camera (COLMAP 3.12 and later)
+    sparse/0/frames.txt        one frame per camera, with its pose
     reference_gt/              only with ``with_reference``: the scene's gt/ for benchmarking
 
 What a rig does not know stays out: instance masks, object count and materials, the ground
@@ -26,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from mosiv_framework.capture.align import RigFrame
-from mosiv_framework.capture.colmap import camera_line, write_colmap_text
+from mosiv_framework.capture.colmap import colmap_params, write_colmap
 from mosiv_framework.capture.common import refuse_non_empty
 from mosiv_framework.capture.lens import Distortion, distort_frames
 from mosiv_framework.capture.offsets import parse_offsets
@@ -82,7 +84,7 @@ def _check_options(scene, crf, offsets, distortion: Distortion, camera_model: st
         )
     for cam in scene.cameras:  # before any video is written: a model that cannot describe
         try:  # a camera must not leave a half-written capture behind
-            camera_line(0, cam, distortion, camera_model, (cam.width, cam.height))
+            colmap_params(cam, distortion, camera_model)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
     return starts
@@ -137,7 +139,7 @@ def write_capture(
     refuse_non_empty(out, "capture folder")
     starts = _check_options(scene, crf, offsets, distortion, camera_model)
     entries = _write_videos(scene, out, starts, distortion, crf)
-    write_colmap_text(
+    write_colmap(
         out / "sparse" / "0",
         scene.cameras,
         names=[e["colmap_image"] for e in entries],
