@@ -4,6 +4,7 @@ lens, COLMAP text cameras in cm with y up, cameras that started late) comes back
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 import torch
 
 from mosiv_framework.capture import CaptureError, ImportSettings, RigFrame, import_recording
-from mosiv_framework.capture.colmap import read_colmap, write_colmap
+from mosiv_framework.capture.colmap import MODEL_FILES, read_colmap, write_colmap
 from mosiv_framework.capture.lens import (
     Distortion,
     Intrinsics,
@@ -240,10 +241,69 @@ def test_binary_colmap_model_reads_as_text(capture, tmp_path):
         assert binary[cid].intrinsics == cam.intrinsics and binary[cid].distortion == cam.distortion
 
 
+# ------------------------------------------------------ COLMAP models written and read back
+def varied_cameras(scene: Path, same_focal: bool) -> list:
+    """The scene's cameras with focal lengths and principal points that differ per camera (and
+    fx != fy unless ``same_focal``), so a mix-up between cameras or parameters shows."""
+    from dataclasses import replace
+
+    return [
+        replace(
+            cam,
+            fx=cam.fx * (1 + 0.01 * i),
+            fy=cam.fx * (1 + 0.01 * i) if same_focal else cam.fy * (1 - 0.02 * i),
+            cx=cam.cx + 0.5 + 0.25 * i,
+            cy=cam.cy - 0.75 * i,
+        )
+        for i, cam in enumerate(read_scene(scene).cameras)
+    ]
+
+
+@pytest.mark.parametrize("binary", [False, True], ids=["text", "binary"])
+@pytest.mark.parametrize("model", ["OPENCV", "RADIAL"])
+def test_writer_and_reader_round_trip(scene, tmp_path, model, binary):
+    lens = LENS if model == "OPENCV" else Distortion(k1=LENS.k1, k2=LENS.k2)
+    cameras = varied_cameras(scene, same_focal=model == "RADIAL")
+    names = [f"{cam.id}/frame_0001.png" for cam in cameras]  # the parent folder names the camera
+    sizes = [(cam.width + 2 * i, cam.height + i) for i, cam in enumerate(cameras)]
+    write_colmap(tmp_path, cameras, names=names, sizes=sizes, distortion=lens, model=model,
+                 rig=RIG, binary=binary)  # fmt: skip
+    ext = ".bin" if binary else ".txt"
+    assert {f"{name}{ext}" for name in MODEL_FILES} <= {p.name for p in tmp_path.iterdir()}
+    got = {c.id: c for c in read_colmap(tmp_path, {cam.id for cam in cameras})}
+    assert sorted(got) == [cam.id for cam in cameras]
+    for cam, size in zip(cameras, sizes):
+        back = got[cam.id]
+        assert back.model == model and f"images{ext}" in back.origin
+        k = back.intrinsics
+        assert (k.width, k.height) == size
+        np.testing.assert_allclose(
+            [k.fx, k.fy, k.cx, k.cy], [cam.fx, cam.fy, cam.cx, cam.cy], rtol=0, atol=1e-9
+        )
+        d, want = back.distortion.as_dict(), lens.as_dict()
+        np.testing.assert_allclose([d[n] for n in want], list(want.values()), rtol=0, atol=1e-9)
+        # poses in the rig's world (cm, y up), and back in the scene's (m, z up)
+        w2c = cam.world_to_camera.numpy()
+        np.testing.assert_allclose(back.world_to_camera, RIG.world_to_camera(w2c), atol=1e-9)
+        back_in_scene = RIG.scene_world_to_camera(back.world_to_camera)
+        np.testing.assert_allclose(back_in_scene, w2c, rtol=0, atol=1e-9)
+
+
+def test_model_without_rigs_and_frames_reads_the_same(scene, tmp_path):
+    """Models of COLMAP before 3.12 have no rigs and frames files; the images hold the poses."""
+    cameras, known = read_scene(scene).cameras, set(read_scene(scene).camera_ids)
+    write_model(tmp_path / "new", cameras)
+    old = Path(shutil.copytree(tmp_path / "new", tmp_path / "old"))
+    (old / "rigs.txt").unlink()
+    (old / "frames.txt").unlink()
+    new_cams = {c.id: c for c in read_colmap(tmp_path / "new", known)}
+    for cam in read_colmap(old, known):
+        np.testing.assert_array_equal(cam.world_to_camera, new_cams[cam.id].world_to_camera)
+        assert cam.intrinsics == new_cams[cam.id].intrinsics
+
+
 # ------------------------------------------------------------------------------- bad input
 def copy_capture(capture: Path, tmp_path: Path) -> Path:
-    import shutil
-
     return Path(shutil.copytree(capture, tmp_path / "c"))
 
 
@@ -285,6 +345,68 @@ def test_unknown_colmap_camera_model(capture, tmp_path):
         settings(c, tmp_path / "s"),
         CaptureError, "cameras.txt", "'FOV'", "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV",
     )  # fmt: skip
+
+
+def first_camera_line(path: Path) -> tuple[list[str], int]:
+    lines = path.read_text().splitlines()
+    return lines, next(i for i, line in enumerate(lines) if not line.startswith("#"))
+
+
+def test_colmap_model_name_that_colmap_does_not_know(scene, tmp_path):
+    write_model(tmp_path, read_scene(scene).cameras)
+    lines, first = first_camera_line(tmp_path / "cameras.txt")
+    lines[first] = lines[first].replace("OPENCV", "OPENCV_PLUS")
+    (tmp_path / "cameras.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(CaptureError) as info:
+        read_colmap(tmp_path, set(read_scene(scene).camera_ids))
+    message = str(info.value)
+    for word in ("cameras.txt", f"line {first + 1}", "'OPENCV_PLUS'", "is unknown",
+                 "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV"):  # fmt: skip
+        assert word in message, (word, message)
+
+
+def test_binary_colmap_model_id_that_colmap_does_not_know(scene, tmp_path):
+    cameras = read_scene(scene).cameras
+    write_colmap(tmp_path, cameras, names=[f"{c.id}.mp4" for c in cameras], binary=True)
+    data = bytearray((tmp_path / "cameras.bin").read_bytes())
+    # cameras.bin: camera count (uint64), then per camera its id (uint32) and model id (int32)
+    data[12:16] = (999).to_bytes(4, "little")
+    (tmp_path / "cameras.bin").write_bytes(bytes(data))
+    with pytest.raises(CaptureError) as info:
+        read_colmap(tmp_path, {c.id for c in cameras})
+    message = str(info.value)
+    assert str(tmp_path) in message and ".bin model" in message, message
+    assert "camera model" in message.lower(), message
+    assert "supported models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL" in message, message
+
+
+def test_missing_colmap_file_is_named(capture, tmp_path):
+    c = copy_capture(capture, tmp_path)
+    (c / "sparse" / "0" / "images.txt").unlink()
+    expect_error(settings(c, tmp_path / "s"), CaptureError, "images.txt missing", "points3D")
+
+
+@pytest.mark.parametrize("binary", [False, True], ids=["text", "binary"])
+def test_colmap_folder_without_a_model(scene, tmp_path, binary):
+    cameras, known = read_scene(scene).cameras, set(read_scene(scene).camera_ids)
+    names = [f"{c.id}.mp4" for c in cameras]
+    write_colmap(tmp_path / "m", cameras, names=names, binary=binary)
+    ext = ".bin" if binary else ".txt"
+    (tmp_path / "m" / f"points3D{ext}").unlink()
+    with pytest.raises(CaptureError, match=f"points3D\\{ext} missing"):
+        read_colmap(tmp_path / "m", known)
+    with pytest.raises(CaptureError, match="does not exist or is not a folder"):
+        read_colmap(tmp_path / "nowhere", known)
+
+
+def test_colmap_camera_with_zero_focal_length(scene, tmp_path):
+    write_model(tmp_path, read_scene(scene).cameras)
+    lines, first = first_camera_line(tmp_path / "cameras.txt")
+    tok = lines[first].split()  # CAMERA_ID MODEL WIDTH HEIGHT fx fy ...
+    lines[first] = " ".join([*tok[:4], "0", *tok[5:]])
+    (tmp_path / "cameras.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(CaptureError, match=r"cameras\.txt: camera 1: .*must be positive.*fx=0\.0"):
+        read_colmap(tmp_path, set(read_scene(scene).camera_ids))
 
 
 def test_pose_with_the_scene_behind_the_camera(scene, tmp_path):
