@@ -389,18 +389,20 @@ def _fill(text: str, **indents) -> str:
     return textwrap.fill(text, 100, break_long_words=False, break_on_hyphens=False, **indents)
 
 
-def replace_section(text: str, body: str, *, title: str = SECTION) -> str:
+def replace_section(
+    text: str, body: str, *, title: str = SECTION, before: str = SECTION_BEFORE
+) -> str:
     """``text`` with its ``## title`` section (up to the next level-2 heading) replaced by
-    ``body``; a missing section goes before ``## SECTION_BEFORE``, else at the end."""
+    ``body``; a missing section goes before ``## before``, else at the end."""
     lines = text.splitlines(keepends=True)
     heads = [i for i, line in enumerate(lines) if line.startswith("## ")]
     body = body.rstrip("\n") + "\n\n"
     start = next((i for i in heads if lines[i].strip() == f"## {title}"), None)
     if start is None:
-        before = next((i for i in heads if lines[i].strip() == f"## {SECTION_BEFORE}"), None)
-        if before is None:
+        at = next((i for i in heads if lines[i].strip() == f"## {before}"), None)
+        if at is None:
             return text.rstrip("\n") + "\n\n" + body.rstrip("\n") + "\n"
-        return "".join(lines[:before]) + body + "".join(lines[before:])
+        return "".join(lines[:at]) + body + "".join(lines[at:])
     end = next((i for i in heads if i > start), len(lines))
     if end == len(lines):
         body = body.rstrip("\n") + "\n"
