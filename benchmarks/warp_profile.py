@@ -231,7 +231,7 @@ def time_forward(setup: Setup, rec: Recorder, start: ParticleState, frame: int) 
     """One frame's forward launches from ``start``, uncaptured, as phase "forward"."""
     run = setup.run
     run.a.copy_from(start)
-    run.set_clock(frame)
+    run.begin_frame(frame, run.grid)
     with rec.phase("forward"):
         run._frame_launches()
 
@@ -250,14 +250,14 @@ def profiled_adjoint(run: MPMRun, rec: Recorder, start: ParticleState, frame: in
     ws = run.backward_workspace()
     with rec.phase("load checkpoint"):
         ws.work[0].copy_from(start)
-        run.set_clock(frame)
+        run.begin_frame(frame, ws.grid)
     with rec.phase("re-simulation"):
         boxes = ws.resimulate(run)
     with rec.phase("seed/finish copies"):
         ws.seed()
     for s in range(run.substeps - 1, -1, -1):
         with rec.phase("zero gradients"):
-            ws.prepare_substep(s, boxes[s])
+            ws.prepare_substep(run, s, boxes[s])
         with rec.phase("taped replay"):
             tape = ws.record_substep(run, s, boxes[s])
         run_tape_backward(rec, tape)

@@ -81,7 +81,8 @@ class BackwardWorkspace:
         self.work = [ParticleState(n, dev, requires_grad=True) for _ in range(run.substeps + 1)]
         self.grid = Grid(run.layout, dev, requires_grad=True, batch=run.batch)
         self.carry = ParticleState(n, dev, requires_grad=True)
-        self._graph = None
+        #: the captured adjoint, per value of MPMRun.centres (the launches differ)
+        self._graphs: dict[bool, wp.Graph] = {}
 
     def nbytes(self) -> int:
         grid = sum(a.capacity * 2 for a in self.grid.arrays())
@@ -92,13 +93,14 @@ class BackwardWorkspace:
         parameter gradients accumulate in run.tables. Raises SimulationDiverged if the
         re-simulated frame blew up."""
         self.work[0].copy_from(start)
-        run.set_clock(frame)
+        run.begin_frame(frame, self.grid)
         if wp.get_device(run.device).is_cuda:
-            if self._graph is None:
+            graph = self._graphs.get(run.centres)
+            if graph is None:
                 with wp.ScopedCapture(device=run.device, force_module_load=True) as capture:
                     self._launches(run)
-                self._graph = capture.graph
-            wp.capture_launch(self._graph)
+                graph = self._graphs[run.centres] = capture.graph
+            wp.capture_launch(graph)
         else:
             self._launches(run)
         run.check_divergence(frame)
@@ -110,7 +112,7 @@ class BackwardWorkspace:
         boxes = self.resimulate(run)
         self.seed()
         for s in range(run.substeps - 1, -1, -1):
-            self.prepare_substep(s, boxes[s])
+            self.prepare_substep(run, s, boxes[s])
             self.record_substep(run, s, boxes[s]).backward()
             # no tape.reset(): it would zero every gradient, parameters included
         self.finish()
@@ -123,7 +125,7 @@ class BackwardWorkspace:
         boxes = []
         for s in range(run.substeps):
             boxes.append(run.active_box(work[s]))
-            grid.clear(boxes[s])
+            grid.clear(boxes[s], sums=run.centres)
             run.substep(work[s], work[s + 1], grid, s, boxes[s])
         return boxes
 
@@ -131,12 +133,12 @@ class BackwardWorkspace:
         """d(loss)/d(state at the frame's end), held by ``carry``, onto the last substep's state."""
         self.work[-1].copy_grad_from(self.carry)
 
-    def prepare_substep(self, s: int, box: NodeBox) -> None:
+    def prepare_substep(self, run, s: int, box: NodeBox) -> None:
         """Zero what substep ``s``'s adjoint accumulates into (its input state's and the grid's
         gradients) and the grid values its replay accumulates into."""
         self.work[s].zero_grad()
-        self.grid.zero_grad(box)
-        self.grid.clear(box)
+        self.grid.zero_grad(box, sums=run.centres)
+        self.grid.clear(box, sums=run.centres)
 
     def record_substep(self, run, s: int, box: NodeBox) -> wp.Tape:
         """Substep ``s`` (work[s] -> work[s + 1]) on a fresh tape, ready for ``backward``: its

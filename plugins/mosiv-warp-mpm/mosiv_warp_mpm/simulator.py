@@ -125,7 +125,8 @@ class MPMRun:
         self.checkpoints: list[ParticleState] = []
         self._checkpoint_pool: list[ParticleState] = []  # reused between rollouts
         self._backward = None  # autograd.BackwardWorkspace, made on the first backward
-        self._graph = None
+        #: the frame's captured CUDA graph, per value of ``centres`` (the launches differ)
+        self._graphs: dict[bool, wp.Graph] = {}
         self.ground_on = int(world.ground_height is not None)
         z0 = layout.origin[2]
         self.ground_k = ((world.ground_height or 0.0) - z0) / layout.dx + 1e-4
@@ -140,10 +141,30 @@ class MPMRun:
         wp.copy(self.obj, wp.from_torch(obj_index.to(torch.int32).contiguous(), dtype=wp.int32))
         wp.copy(self.volume, wp.from_torch(volumes.float().contiguous()))
 
+    @property
+    def centres(self) -> bool:
+        """Whether this rollout's substeps sum the other objects' centres (``centre_sums``):
+        with several fields and an expression that uses them (ObjectTables.relative, set by
+        ``tables.load``). Otherwise neither the sums' kernels nor their memsets are launched,
+        and a CUDA graph is captured per value of this flag."""
+        return self.layout.fields > 1 and self.tables.relative
+
     def set_clock(self, frame: int) -> None:
         """The start time of ``frame`` (1-based: the frame that ``advance_frame(frame)`` makes),
-        outside any captured graph, so that one graph serves every frame."""
-        self.clock.fill_((frame - 1) / self.world.fps)
+        outside any captured graph, so that one graph serves every frame; only when some
+        member has the expression term, its only reader."""
+        if self.tables.expression:
+            self.clock.fill_((frame - 1) / self.world.fps)
+
+    def begin_frame(self, frame: int, grid: Grid) -> None:
+        """Before ``frame``'s launches on ``grid``, outside any captured graph: the clock, and
+        the per-field sums zeroed where an expression reads them without computing them (its
+        other-object coefficients are 0) while an earlier rollout of this run left values."""
+        self.set_clock(frame)
+        if self.centres:
+            grid.sums_written = True
+        elif grid.sums_written and self.tables.expression:
+            grid.clear_sums()
 
     # -- one substep -----------------------------------------------------------------------
     def expression_inputs(self, grid: Grid, s: int) -> K.ExpressionInputs:
@@ -158,12 +179,11 @@ class MPMRun:
 
     def centre_sums(self, grid: Grid, box: NodeBox) -> None:
         """The other objects' summed centres per field (expression_kernels.py), for an
-        expression of the other objects' features: launched on CUDA always (one captured graph
-        serves rollouts with and without it; the kernels test the switch), on the CPU only
-        when some member's expression uses them."""
-        lay = self.layout
-        if lay.fields < 2 or not (self.tables.relative or wp.get_device(self.device).is_cuda):
+        expression of the other objects' features: launched only when some member's expression
+        uses them (``centres``; the kernels skip the other members)."""
+        if not self.centres:
             return
+        lay = self.layout
         box_lo, box_dims = wp.vec3i(*box.lo), wp.vec3i(*box.dims)
         wp.launch(
             XK.field_moments,
@@ -252,10 +272,10 @@ class MPMRun:
     # -- forward ----------------------------------------------------------------------------
     def _frame_launches(self) -> None:
         self.flag.fill_(K.NO_FLAG)
-        src, dst = self.a, self.b
+        src, dst, sums = self.a, self.b, self.centres
         for s in range(self.substeps):
             box = self.active_box(src)
-            self.grid.clear(box)
+            self.grid.clear(box, sums=sums)
             self.substep(src, dst, self.grid, s, box)
             src, dst = dst, src
         if src is not self.a:  # odd substep count: the result sits in b
@@ -265,16 +285,17 @@ class MPMRun:
         """Advance state ``a`` by one video frame; raise SimulationDiverged if it blew up
         (``check``; batched runs read ``divergences`` per member instead).
 
-        On CUDA the frame's launches are captured once into a graph and replayed, so the
-        substep loop costs no Python per substep.
+        On CUDA the frame's launches are captured once (per value of ``centres``) into a graph
+        and replayed, so the substep loop costs no Python per substep.
         """
-        self.set_clock(frame)
+        self.begin_frame(frame, self.grid)
         if wp.get_device(self.device).is_cuda:
-            if self._graph is None:
+            graph = self._graphs.get(self.centres)
+            if graph is None:
                 with wp.ScopedCapture(device=self.device, force_module_load=True) as capture:
                     self._frame_launches()
-                self._graph = capture.graph
-            wp.capture_launch(self._graph)
+                graph = self._graphs[self.centres] = capture.graph
+            wp.capture_launch(graph)
         else:
             self._frame_launches()
         if check:

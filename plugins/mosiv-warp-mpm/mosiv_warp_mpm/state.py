@@ -192,6 +192,9 @@ class Grid:
         self.rel_v = wp.zeros(fields, dtype=wp.vec3, **kw)
         self.rel_n = wp.zeros(fields, dtype=float, **kw)
         self.layout, self.device, self.batch = layout, device, batch
+        #: whether the per-field sums may hold values of an earlier substep (``clear``'s
+        #: ``sums``); ``clear_sums`` zeroes them
+        self.sums_written = False
 
     def arrays(self) -> list[wp.array]:
         return [self.m, self.mv, self.gm, self.pm, self.vs, self.v]
@@ -200,18 +203,27 @@ class Grid:
         """The per-field sums (one entry per field, not per node)."""
         return [self.moment_m, self.moment_mx, self.moment_mv, self.rel_p, self.rel_v, self.rel_n]
 
-    def clear(self, box: NodeBox) -> None:
-        """Zero what P2G accumulates into, on the nodes of ``box``, and the per-field sums
-        (with several fields: one field has no other objects)."""
+    def clear(self, box: NodeBox, *, sums: bool) -> None:
+        """Zero what P2G accumulates into, on the nodes of ``box``, and, when this substep
+        computes them (``sums``: MPMRun.centres), the per-field sums."""
         self._zero([self.m, self.mv, self.gm, self.pm, self.vs, self.v], box, velocities=False)
-        if self.layout.fields > 1:
+        if sums:
             for a in self.field_arrays():
                 a.zero_()
 
-    def zero_grad(self, box: NodeBox) -> None:
+    def clear_sums(self) -> None:
+        """Zero the per-field sums' values, for substeps that read them without computing them
+        (an expression without the other objects' features multiplies them by 0)."""
+        for a in self.field_arrays():
+            a.zero_()
+        self.sums_written = False
+
+    def zero_grad(self, box: NodeBox, *, sums: bool) -> None:
+        """Zero the gradients of the nodes of ``box`` and, with ``sums``, of the per-field
+        sums (without, nothing reads theirs: only the sums' kernels back-propagate them)."""
         if self.m.grad is not None:
             self._zero([a.grad for a in self.arrays()], box, velocities=True)
-            if self.layout.fields > 1:
+            if sums:
                 for a in self.field_arrays():
                     a.grad.zero_()
 
@@ -263,7 +275,9 @@ class ObjectTables:
         self.ground_restitution = wp.zeros(batch, dtype=float, **kw)
         self.expr_switch = wp.zeros(2 * batch, dtype=float, **kw)
         self.expr_coef = wp.zeros(batch * N_FEATURES, dtype=wp.vec3, **kw)
-        #: whether some member's expression uses the other objects (set by ``load``)
+        #: whether some member has the expression term, and whether some member's expression
+        #: uses the other objects (set by ``load``): the run launches what the term needs only then
+        self.expression = False
         self.relative = False
 
     def _parts(self) -> list[tuple[wp.array, int]]:
@@ -295,6 +309,7 @@ class ObjectTables:
             block = rows[:, at : at + size]
             arr.assign(block.reshape(arr.numpy().shape))
             if arr is self.expr_switch:
+                self.expression = bool((block[:, 0] > 0.5).any())
                 self.relative = bool((block[:, 1] > 0.5).any())
             at += size
 
