@@ -33,7 +33,8 @@ nuisance model) on the held-out frames.
 
 Verdicts: "missing physics" (a candidate passed every test), "discrepancy" (a candidate
 improved the model but a generic per-object correction explains as much, or its coefficient
-differs between objects: the model differs from the recording, but no physical effect explains
+differs between objects, or refitted on a second grid it loses or its coefficient moves
+(``grid_stability``): the model differs from the recording, but no physical effect explains
 it), "unexplained" (the residual is above the noise floor and no candidate improved the
 model), "no missing physics" (the residual is at noise level).
 """
@@ -178,6 +179,10 @@ class Evidence:
     nuisance_drop: float | None = None
     nuisance_spread: float | None = None
     passes_nuisance: bool = True
+    #: the check at a second grid resolution (``grid_stability.check_candidate``'s record)
+    grid: dict | None = None
+    #: its outcome; True where it did not run (off, or the candidate was not accepted)
+    passes_grid: bool = True
 
     @property
     def explains(self) -> bool:
@@ -188,7 +193,9 @@ class Evidence:
 
     @property
     def accepted(self) -> bool:
-        return self.explains and self.passes_consistency and self.passes_nuisance
+        return (
+            self.explains and self.passes_consistency and self.passes_nuisance and self.passes_grid
+        )
 
     def to_json(self) -> dict:
         return {
@@ -222,6 +229,8 @@ class Evidence:
             if self.nuisance_spread is None
             else finite_or_none(self.nuisance_spread),
             "passes_nuisance": self.passes_nuisance,
+            "grid": self.grid,
+            "passes_grid": self.passes_grid,
         }
 
 

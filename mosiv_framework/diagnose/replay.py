@@ -30,6 +30,7 @@ from mosiv_framework.diagnose.decide import (
     apply_effect_test,
     apply_interval_test,
     apply_physical_tests,
+    rank_evidence,
     verdict,
     weigh,
 )
@@ -142,7 +143,9 @@ def _redecide(diagnosis: dict, tables: dict, options: DecideOptions) -> list[Evi
         e.reidentified = bool(saved[e.name].get("reidentified", False))
         e.value = saved[e.name].get("value")
         e.diverged = saved[e.name].get("diverged")
-    return ranked
+        # the check at a second grid refitted models, which a replay cannot: its outcome stays
+        e.grid, e.passes_grid = saved[e.name].get("grid"), saved[e.name].get("passes_grid", True)
+    return rank_evidence(ranked, min_drop=options.min_drop)
 
 
 def _accepted(before: dict | None, ranked: list[Evidence]) -> dict | None:

@@ -305,6 +305,13 @@ class DiagnoseSection:
     #: a further refit start at the far end of the screening's walk for contact and material
     #: candidates (``diagnose.diagnosis.refit_starts``); default off
     far_start: bool | None = None
+    #: before an effect is named, refit it and the null on a second grid and require the same
+    #: evidence and coefficients there (``diagnose.grid_stability``); default: the budget's (on
+    #: in full, off in small). grid_factor: the second grid over simulator.grid (default 0.75);
+    #: grid_tolerance: the allowed difference in combined 95 % half-widths (default 1)
+    grid_check: bool | None = None
+    grid_factor: float | None = None
+    grid_tolerance: float | None = None
 
     @staticmethod
     def value_problems(values: dict[str, Any]) -> list[str]:
@@ -322,7 +329,40 @@ class DiagnoseSection:
         lr = values.get("refit_velocity_lr")
         if lr is not None and not lr > 0:
             out.append(f"diagnose.refit_velocity_lr={lr!r}: must be a positive step in m/s")
-        return out
+        return out + grid_option_problems(values)
+
+
+#: the second grid over simulator.grid a recipe may ask the grid check for (besides 1)
+GRID_FACTOR_RANGE = (0.25, 4.0)
+
+
+def grid_option_problems(values: dict[str, Any]) -> list[str]:
+    """What is wrong with a ``diagnose`` section's grid-check keys (None: the default), each
+    problem naming the key, its value and the valid values."""
+    out = []
+    check = values.get("grid_check")
+    if check is not None and not isinstance(check, bool):
+        out.append(f"diagnose.grid_check={check!r}: valid values are true, false or null")
+    factor, tolerance = values.get("grid_factor"), values.get("grid_tolerance")
+    low, high = GRID_FACTOR_RANGE
+    if factor is not None and not (_is_number(factor) and low <= factor <= high and factor != 1):
+        out.append(
+            f"diagnose.grid_factor={factor!r}: valid values are numbers from {low:g} to "
+            f"{high:g} other than 1 (the second grid over simulator.grid, e.g. 0.75 or 1.5), "
+            "or null"
+        )
+    if tolerance is not None and not (
+        _is_number(tolerance) and tolerance > 0 and math.isfinite(tolerance)
+    ):
+        out.append(
+            f"diagnose.grid_tolerance={tolerance!r}: valid values are positive numbers (the "
+            "allowed difference in combined 95 % half-widths), or null"
+        )
+    return out
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 @dataclass
