@@ -46,6 +46,7 @@ from mosiv_framework.diagnose.formula import (
     run_velocity_change,
     scene_up,
 )
+from mosiv_framework.diagnose.grid_stability import check_grid, grid_options
 from mosiv_framework.diagnose.hypothesise import choose_refits, regression_estimate, screen
 from mosiv_framework.diagnose.interval import coefficient_interval
 from mosiv_framework.diagnose.kinematics import run_samples
@@ -111,9 +112,10 @@ class Budget:
     the better of that and its refit is kept), the backtracking steps that end every
     refit (``RefitOptions.polish``), the refit's initial-velocity step (m/s per step) and
     whether contact and material candidates get a start at the far end of the screening's
-    walk (``refit_starts``). A recipe's ``diagnose`` section may set max_candidates,
-    bootstrap, starts, iterations, polish, far_start and (as ``refit_velocity_lr``)
-    velocity_lr."""
+    walk (``refit_starts``), and whether a named effect must be stable across grid
+    resolution (``grid_stability``). A recipe's ``diagnose`` section may set max_candidates,
+    bootstrap, starts, iterations, polish, far_start, grid_check and (as
+    ``refit_velocity_lr``) velocity_lr."""
 
     max_candidates: int
     iterations: int
@@ -125,6 +127,7 @@ class Budget:
     polish: int = 0
     velocity_lr: float = RefitOptions.velocity_lr
     far_start: bool = False
+    grid_check: bool = False
 
 
 BUDGETS = {
@@ -141,6 +144,7 @@ BUDGETS = {
         settle=20,
         reidentify=True,
         polish=10,
+        grid_check=True,  # the null's refit and one per named effect, beside 5 fresh fits
     ),
 }
 
@@ -196,6 +200,7 @@ def resolve_budget(budget: str | Budget, section=None) -> Budget:
         "polish": ("polish", int),
         "refit_velocity_lr": ("velocity_lr", float),
         "far_start": ("far_start", bool),
+        "grid_check": ("grid_check", bool),
     }
     return replace(
         budget,
@@ -550,7 +555,7 @@ def diagnose_run(
         simulator_overrides: simulator options replacing the recipe's (e.g. the device).
     """
     plan = _plan(run_dir, budget, simulator_overrides)
-    ctx = plan.ctx
+    ctx, grid = plan.ctx, grid_options(plan)  # a bad diagnose.grid_factor fails before refits
     plan.say(f"locating the mismatch over {ctx.observed_frames} observed frames")
     location = plan.steps.get("locate", lambda: locate(ctx))
     before = frame_errors(ctx, ctx.identified_rollout())
@@ -564,7 +569,7 @@ def diagnose_run(
     }
     found = {"screens": [], "fits": [], "evidence": [], "errors": {}, "accepted": None}
     if location.significant:
-        found = _investigate(plan, location, rule)
+        found = check_grid(plan, location, rule, _investigate(plan, location, rule), grid)
         result.update(
             resolution_floor=found["resolution_floor"],
             skipped_candidates=found["skipped_candidates"],
@@ -575,6 +580,7 @@ def diagnose_run(
         # then that formula as a model, judged like the library terms (``formula``)
         result["discovered"] = discover_law(ctx, found["samples"])
         found = _test_formula(plan, location, rule, found, result["discovered"])
+        found = check_grid(plan, location, rule, found, grid)
         result["formula"] = found["formula"]
         result["skipped_candidates"] += found["formula"].get("skipped", [])
     result["verdict"] = verdict(location.significant, found["evidence"])

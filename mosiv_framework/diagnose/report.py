@@ -18,6 +18,7 @@ from mosiv_framework.diagnose.context import RunContext
 from mosiv_framework.diagnose.decide import finite_or_none
 from mosiv_framework.diagnose.floor import summarise_floor
 from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT
+from mosiv_framework.diagnose.grid_stability import grid_lines, grid_summary
 from mosiv_framework.diagnose.locate import Location, plot_location
 from mosiv_framework.recipes.terms import IDENTIFY_KEY
 
@@ -232,6 +233,8 @@ def _summary(location: Location, result: dict, observed: int) -> dict:
         "discovered": result.get("discovered"),
         # that law tested as a model (``formula``): the law, its refit with intervals
         "formula": result.get("formula"),
+        # the check at a second grid (``grid_stability``): who was checked, why one was not named
+        "grid_stability": grid_summary(result["evidence"]),
         # time of this attempt; the steps it took from an earlier, cut-off one (``steps.py``)
         "time_s": result["time_s"],
         "resumed_steps": result.get("resumed_steps", []),
@@ -286,7 +289,8 @@ def _markdown(s: dict) -> str:
         lines += [
             "The model differs from the recording, but no physical effect explains it: a "
             "per-object smooth correction predicts as well as every candidate that improved "
-            "the model, or the candidate's coefficient differs between objects.",
+            "the model, or the candidate's coefficient differs between objects, or it is "
+            "not stable across grid resolution.",
             "",
         ]
     if s["accepted"] is not None:
@@ -298,7 +302,7 @@ def _markdown(s: dict) -> str:
         lines += _formula_lines(s["formula"])
     lines += _error_lines(s["errors"])
     if s["evidence"]:
-        lines += _evidence_lines(s)
+        lines += _evidence_lines(s) + grid_lines(s["evidence"])
     if s["screening"]:
         lines += _screening_lines(s["screening"])
     return "\n".join(lines)
