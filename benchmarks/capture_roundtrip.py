@@ -11,7 +11,7 @@ way. Reported per run: identified E of every object, its relative error to the t
 imported run's E relative to the direct run's (E is frame-free), and the future Chamfer distance
 (mm^2) against each scene's own ground truth.
 
-Paper size (GPU; the issue's targets: E within 10 % and future CD within 20 % of the direct run)::
+Paper size (GPU; the targets: E within 10 % and future CD within 20 % of the direct run)::
 
     python benchmarks/capture_roundtrip.py --out runs/capture_roundtrip
 

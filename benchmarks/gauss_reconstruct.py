@@ -1,4 +1,4 @@
-"""Benchmark of the ``gauss-dynamic`` reconstructor (issue 6's acceptance scene).
+"""Benchmark of the ``gauss-dynamic`` reconstructor (its acceptance scene).
 
 Generates the two-object synth scene of the issue (11 cameras, 30 frames, 128x128) unless
 ``--scene`` names an existing one, reconstructs it, and writes one JSON object (also printed)
@@ -29,7 +29,7 @@ from mosiv_framework.metrics import chamfer_floor_mm2
 from mosiv_framework.registry import get_registry
 from mosiv_framework.scene import read_scene
 
-#: the issue's acceptance thresholds (reported next to the measured values)
+#: the acceptance thresholds (reported next to the measured values)
 TARGETS = {"psnr_db": 30.0, "iou_min": 0.9, "chamfer_mm2_max": 4.0, "contact_ratio_max": 2.0}
 
 
@@ -54,7 +54,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def generate_scene(args: argparse.Namespace) -> Path:
-    """The issue's scene: 2 objects, ``--cameras`` views, ``--frames`` frames, simulated by
+    """The acceptance scene: 2 objects, ``--cameras`` views, ``--frames`` frames, simulated by
     warp-mpm on the benchmark device."""
     root = args.scene_dir or Path(tempfile.mkdtemp(prefix="gauss_bench_")) / "scene"
     options = {

@@ -5,7 +5,7 @@ F-F, S-S; E elastic, P plasticine, F newtonian fluid, S sand), run the same reci
 (``identify.method=gradient`` and ``identify.method=library``) and tabulate the parameter errors
 of the gradient fit (elastic E %, yield stress %, sand friction angle in degrees, initial
 velocity %), the observed and future Chamfer of both methods and the future ratio
-library / ours, against the targets of issue 8 (E within 15 %, yield within 25 %, friction angle
+library / ours, against the own-synth targets (E within 15 %, yield within 25 %, friction angle
 within 5 deg, v0 within 5 %, ratio at least 5; the table and summary are built in
 ``identify_suite_table.py``). Writes ``table.json`` and ``table.md`` into the output folder; a
 rerun into the same folder reuses finished stages and keeps the rows of pairs it does not run.

@@ -1,7 +1,7 @@
 """The identify suite's table: summary against the targets, markdown, and its RESULTS section.
 
 ``benchmarks/identify_suite.py`` runs the pairs; this module turns their rows into what is read:
-per error kind the median and worst case against the targets of issue 8 (E within 15 %, yield
+per error kind the median and worst case against the own-synth targets (E within 15 %, yield
 within 25 %, friction angle within 5 deg, v0 within 5 %, future-CD ratio library / ours at least
 5), set for and met by the paper-range suite (docs/RESULTS.md, "Identification (oracle
 reconstructor)"); the settings a table was run with (the generator's ranges, where
@@ -60,7 +60,7 @@ def _ok(row: dict) -> bool:
 
 def summarise(rows: list[dict]) -> dict:
     """Per error kind over every object of every scene: count, median and worst, and whether
-    the worst case meets the issue's target; the same for the future-CD ratio (worst = least)."""
+    the worst case meets its target; the same for the future-CD ratio (worst = least)."""
     good = [r for r in rows if _ok(r)]
     out: dict = {"scenes": len(rows), "failed": [r["scene"] for r in rows if not _ok(r)]}
     for key, _, target, _unit in TARGETS:

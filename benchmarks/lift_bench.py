@@ -10,7 +10,7 @@ Usage: python benchmarks/lift_bench.py [--scene DIR] [--cell 0.004] [--particles
 2. The oracle's ground-truth points are lifted (Gaussians seeded from the points); with the
    default cell of 4 mm and 8 particles per cell that is ~100k particles.
 3. If a ``gauss-dynamic`` reconstructor is registered, it is fitted and its reconstruction is
-   lifted too, with the rest-state PSNR of its bound Gaussians (the issue's >= 28 dB check).
+   lifted too, with the rest-state PSNR of its bound Gaussians (the >= 28 dB check).
 Prints one JSON document: per run the lift time (s), particles, peak resident memory (GiB),
 volume error and IoU per object against gt/points.npz, and the PSNR (full image, objects only).
 """

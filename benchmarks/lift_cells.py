@@ -1,4 +1,4 @@
-"""How the lift's cell size bounds its voxel IoU on the generated shapes (issue 7).
+"""How the lift's cell size bounds its voxel IoU on the generated shapes.
 
 Usage:
     python benchmarks/lift_cells.py ceiling --shapes pawn,banana --draws 2 --cells 0.006,0.003

@@ -1,4 +1,4 @@
-"""Issue 7's Done-when checks on TRAINED ``gauss-dynamic`` Gaussians, for the paper's 10 shapes.
+"""The lifting acceptance checks on TRAINED ``gauss-dynamic`` Gaussians, for the paper's 10 shapes.
 
 Usage:
     python benchmarks/lift_shapes.py --device cuda --out runs/lift_shapes
@@ -19,7 +19,7 @@ Five generated two-object scenes (fixed seeds) cover the ten shapes of the paper
    bound trained Gaussians against the recorded frame 0 (full image, and objects only: pixels
    inside the recorded or rendered silhouettes).
 Writes ``lift_shapes.json`` and ``lift_shapes.md`` (one table row per shape, pass/fail against
-the issue's thresholds) into ``--out``; progress goes to stdout.
+the acceptance thresholds) into ``--out``; progress goes to stdout.
 
 Presets: ``full`` (default; 128 px, 11 cameras, 6 mm lattice, lifted on a 3 mm cell and scored
 on the 6 mm lattice, 26 virtual views of 96 px, sized for ~1 min per scene on one H200) and
@@ -57,7 +57,7 @@ MATERIALS = [
     "plasticine,elastic",
 ]
 
-#: issue 7's thresholds
+#: the lifting acceptance thresholds
 TARGETS = {"volume_error": 0.10, "iou": 0.8, "min_gap_cells": 0.5, "psnr_db": 28.0}
 
 PRESETS = {
@@ -185,7 +185,7 @@ def lift_scene(recon, scene, lift_options: dict, *, gt_spacing: float) -> dict:
 
 
 def verdicts(score: dict, k: str) -> dict[str, bool]:
-    """Pass/fail of each of the issue's checks for object ``k`` of a scored lift."""
+    """Pass/fail of each acceptance check for object ``k`` of a scored lift."""
     obj = score["objects"][k]
     return {
         "volume": abs(obj["volume_error"]) <= TARGETS["volume_error"],

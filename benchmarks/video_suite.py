@@ -13,7 +13,7 @@ and ``ablation.png`` into ``--out``; a rerun into the same folder reuses finishe
     python benchmarks/video_suite.py --recipe recipes/video_quickstart.yaml \
         --out runs/video_suite --jobs 2 scene.source.n_frames=14 scene.source.observed_frames=9
 
-Issue 8's from-video targets: mean observed PSNR >= 30 dB and mean future PSNR >= 27 dB over
+The from-video targets: mean observed PSNR >= 30 dB and mean future PSNR >= 27 dB over
 the scenes (paper: 30.5 and 28.3), object-wise losses better than scene-wise ones.
 """
 

@@ -11,7 +11,7 @@ segmenter's hull). The imported scene's reference ground truth is the capture's,
 import.json's alignment and matched to the import's object ids by mask overlap, so both runs
 are scored the same way and compared object by object.
 
-The issue's targets (E within 10 %, future CD within 20 % of the direct run) are for the paper
+The targets (E within 10 %, future CD within 20 % of the direct run) are for the paper
 size on a GPU (benchmarks/capture_roundtrip.py without --quick). The tiny CPU version cannot
 test them: MEASURED on the 2-core development machine (other jobs running), with 5
 identification iterations neither run identifies E (direct: 1.87e3 and 1.2e5 Pa, the latter at

@@ -44,7 +44,7 @@ def test_valid_scene_has_no_problems(pristine):
 
 
 def test_done_when_three_problems_are_all_reported(scene):
-    """The issue's acceptance test: a removed frame, a mask id 7 not declared and a non-rigid
+    """The acceptance test: a removed frame, a mask id 7 not declared and a non-rigid
     extrinsic are reported together, each with its file, and the exit code is 1."""
     (scene / "rgb" / "cam_01" / "0002.png").unlink()
     mask = iio.imread(scene / "masks" / "cam_00" / "0001.png")

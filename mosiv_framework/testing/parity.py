@@ -35,13 +35,13 @@ TOLERANCES = {
     "law_stress_rel": 1e-3,
     # return-mapped F is O(1); float32 SVD round-trip error is ~1e-6; 1e-4 absolute
     "law_F_abs": 1e-4,
-    # positions after 10 frames: the 1e-3 of the domain size. Two float32 MPM codes
+    # positions after 10 frames: the parity target, 1e-3 of the domain size. Two float32 MPM codes
     # accumulate atomics in different orders, so bitwise equality is impossible; 1e-3 of a
     # 1 m domain is 1 mm, a fraction of a 1/32 m grid cell.
     "positions_frac": 1e-3,
     # per-object centroids are order-insensitive averages, checked at the same bound
     "centroid_frac": 1e-3,
-    # gradients: the 5% relative; both backends differentiate the same discrete map,
+    # gradients: the parity target, 5% relative; both backends differentiate the same discrete map,
     # but float32 adjoints through contact and return maps amplify round-off
     "gradient_rel": 0.05,
     # gradients smaller than this fraction of the largest gradient of the same rollout are

@@ -60,7 +60,7 @@ class DynamicGaussOptions:
             by default: the hull is larger than the body where few cameras carve it, and the
             term pulls Gaussians out to fill it (a lift from 6 cameras grew by 30 %); with 11
             cameras, 0.01 keeps a flattening body's Gaussians on it (docs/BENCHMARKS.md "The
-            hull term at the issue's settings", which also chose lambda_radius's default);
+            hull term at the acceptance settings", which also chose lambda_radius's default);
         lr_position (m per step scale), lr_radius, lr_color, lr_opacity, lr_network,
             lr_background: Adam learning rates (log-radius, logits and weights are unitless);
         network_warmup: steps over which the networks' learning rate ramps up linearly from
@@ -77,7 +77,7 @@ class DynamicGaussOptions:
     Per-frame refinement (``refine.py``), after training:
         refine_iterations: steps fitting a free centre and log-radius offset per Gaussian and
             frame, networks, colours and opacities frozen (0: off, the plain eq. 1 model). With
-            11 cameras, 2000 steps took issue 6's worst collision-frame IoU from 0.67 to 0.99
+            11 cameras, 2000 steps took the acceptance scene's worst collision-frame IoU from 0.67 to 0.99
             and cut the Chamfer (docs/BENCHMARKS.md "Per-frame refinement"); off by default
             because with few cameras the free offsets fit the views better than the 3D shape;
         lr_refine_position: Adam learning rate of the centre offsets, in hull voxels per step;

@@ -5,7 +5,7 @@ by ``gauss-dynamic`` with a short CPU schedule and its frame-0 Gaussians are lif
 lattice's own 8 mm grid. (The mosiv-gauss tests fit a scene too, but on a 15 mm lattice at
 48 px: too coarse to measure a lift's volume and voxel IoU, so this module fits its own.)
 
-The issue's thresholds (volume within 10%, IoU >= 0.8, PSNR >= 28 dB) are for full-size fits
+The acceptance thresholds (volume within 10%, IoU >= 0.8, PSNR >= 28 dB) are for full-size fits
 (benchmarks/lift_shapes.py); this scale's thresholds are looser and stated below. Measured on
 the 2-core development machine (2026-11-21, fit seeds 0, 1, 2; about 12 s for the module):
 volume error +0.5% to +7.7%, voxel IoU 0.755-0.838, full-image rest-state PSNR 44.6-46.0 dB,

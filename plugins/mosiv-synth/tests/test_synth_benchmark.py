@@ -1,4 +1,4 @@
-"""Benchmark guarantees of the generator (issue 5, "done when"):
+"""Benchmark guarantees of the generator (its acceptance checks):
 
 - ground-truth particles of frame 0 projected through cameras.json land inside their own
   object's mask (>= 95 % of the points each view shows) at the benchmark's 128 px, 11 cameras;
@@ -197,7 +197,7 @@ def test_concealed_effect_only_in_gt_effects(concealed_scenes, kind):
 
 # ------------------------------------------------------------------- the command line
 def test_tiny_scene_from_the_command_line_passes_check(tmp_path, capsys):
-    """``mosiv data synth`` with the issue's tiny settings (48x48, 4 cameras, 8 frames)."""
+    """``mosiv data synth`` with the tiny settings (48x48, 4 cameras, 8 frames)."""
     from mosiv_framework.cli.main import main
 
     out = tmp_path / "tiny"
