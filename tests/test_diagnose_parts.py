@@ -1555,6 +1555,60 @@ def test_refit_keeps_a_model_whose_every_prediction_diverges_as_evidence():
     assert replaces(predicts, fit) and not replaces(fit, predicts)
 
 
+def test_a_refit_whose_every_start_diverges_is_rejected_as_evidence_not_raised():
+    """Every start of a candidate's refit diverges in its first rollout (a discovered law's did
+    on two control scenes and ended the diagnosis): the model is kept at its first start with
+    an infinite fit loss, the simulator's place in ``diverged`` and its rollout up to the frame
+    before; a refit continued from the best model's state that diverges again leaves it as it
+    was; its evidence stays strict JSON and the report gives the reason it was not accepted."""
+    from mosiv_framework.diagnose.candidates import build_candidates
+    from mosiv_framework.diagnose.model import RefitOptions, converge_candidates, refit
+    from mosiv_framework.diagnose.report import _evidence_lines, _evidence_row
+    from mosiv_framework.pipeline.params import ParameterVector
+
+    class Context(_ScalarLoss, _FakeContext):
+        asked: list = []
+
+        def parameter_vector(self, params=None):
+            v = torch.zeros(3) if params is None else params.initial_velocity[1]
+            return ParameterVector.create({1: "elastic"}, {1: v.clone()}, ground_friction=None)
+
+        def simulate(self, params, *, frames):
+            self.asked.append(("wind" in params.terms, frames))
+            if "wind" in params.terms and (frames is None or frames >= 3):
+                raise _diverged(frame=3)  # the wind blows the bodies apart in frame 3
+            return ((params.initial_velocity[1] - 1.0) ** 2).sum()
+
+    ctx = Context(frozenset({"wind"}))
+    wind = next(c for c in build_candidates(ctx)[0] if c.name == "wind")
+    options = RefitOptions(iterations=2)
+    null = refit(ctx, None, fit_frames=[1, 2, 3], options=options)
+    starts = [(torch.tensor([0.0, 2.5, 0.0]), {1: torch.full((3,), 0.1)}), (torch.ones(3), None)]
+    ctx.asked = []
+    fit = refit(ctx, wind, fit_frames=[1, 2, 3], starts=starts, options=options)
+    assert fit.refit_diverged and fit.trajectory is None and fit.shared is None
+    assert fit.diverged == (
+        "refit diverged at object 2, frame 3, substep 1 (a particle moved too far)"
+    )
+    assert fit.loss == math.inf and fit.starts == []
+    assert fit.theta.tolist() == [0.0, 2.5, 0.0]  # the first start, velocity change and all
+    assert torch.allclose(fit.params.initial_velocity[1], torch.full((3,), 0.1))
+    assert fit.n_params == null.n_params + 3
+    # one rollout per start, then the frames before the divergence
+    assert ctx.asked == [(True, 3), (True, 3), (True, 2)] and fit.reached is not None
+    assert null.diverged is None and not null.refit_diverged
+
+    assert converge_candidates(ctx, null, [fit], fit_frames=[1, 2, 3], options=options) == [fit]
+
+    e = Evidence("wind", -math.inf, math.inf, math.nan, False, False, fit.loss, 3)
+    e.diverged = fit.diverged
+    saved = json.loads(json.dumps(e.to_json(), allow_nan=False))
+    assert saved["fit_loss_m2"] is None and not saved["accepted"]
+    assert "| fail (refit diverged) |" in _evidence_row(saved)
+    text = "\n".join(_evidence_lines({"evidence": [saved], "frames": {"fit": [1], "heldout": []}}))
+    assert "`wind` was not accepted: refit diverged at object 2, frame 3, substep 1" in text
+
+
 def test_a_diverged_null_is_continued_from_a_candidate_state_that_predicts():
     """The null fits the fit frames best but its prediction diverged: it is refitted again
     from a candidate's shared state, and that refit, which predicts, replaces it although it

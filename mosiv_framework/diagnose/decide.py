@@ -169,8 +169,8 @@ class Evidence:
     effect: dict | None = None
     #: the effect test (``min_effect``); True where not required or not measured
     passes_effect: bool = True
-    #: where the candidate's prediction diverged (``model.Fit.diverged``): the simulator's
-    #: message, the reason its held-out test failed
+    #: where the candidate's refit or prediction diverged (``model.Fit.diverged``): the
+    #: simulator's place and message, the reason its held-out test failed
     diverged: str | None = None
     #: the coefficient per object and its agreement (``physical.consistency``)
     consistency: dict | None = None
@@ -208,7 +208,9 @@ class Evidence:
             "passes_heldout": self.passes_heldout,
             "passes_bic": self.passes_bic,
             "accepted": self.accepted,
-            "fit_loss_m2": self.fit_loss,
+            # infinite where the refit diverged (``model.diverged_refit``); None in a replay of
+            # such a file
+            "fit_loss_m2": None if self.fit_loss is None else finite_or_none(self.fit_loss),
             "new_coefficients": self.n_new,
             "theta": self.theta,
             "started_from": self.started_from,

@@ -96,6 +96,23 @@ class Fit:
     #: so that the frames it reached, the fit frames among them, still have errors
     reached: Trajectory | None = None
 
+    @property
+    def refit_diverged(self) -> bool:
+        """Whether no start of the refit got through the fit frames (``diverged_refit``), as
+        opposed to a refit whose prediction over all frames diverged (``predict``)."""
+        return is_refit_divergence(self.diverged)
+
+
+#: how ``Fit.diverged`` begins where the refit itself diverged (``diverged_refit``); where only
+#: the prediction did, it is the simulator's own message (``predict``)
+REFIT_DIVERGED = "refit diverged"
+
+
+def is_refit_divergence(diverged: str | None) -> bool:
+    """Whether a ``Fit.diverged`` message (or diagnosis.json's ``diverged``) says that the
+    refit itself diverged, not only its prediction."""
+    return diverged is not None and diverged.startswith(REFIT_DIVERGED)
+
 
 def count_free(vector: ParameterVector) -> int:
     """Free scalars of ``vector`` (the parameter count of the information criterion)."""
@@ -120,45 +137,105 @@ def refit(
     coefficient is optimised as theta = scale * u with scale the larger of |start| and the
     candidate's natural step, so one learning rate suits coefficients of any unit. Returns the
     best start whose prediction over all frames succeeds (``predict``); a start whose rollouts
-    all diverge is skipped. The free parameters start at ``base`` (default: the run's
-    identified values).
+    all diverge is skipped, and where every start's does, the model is kept with that
+    divergence as evidence (``diverged_refit``). The free parameters start at ``base``
+    (default: the run's identified values).
     """
     if not starts:
         starts = [(torch.zeros(0) if candidate is None else candidate.zero(), None)]
     ends: list[Fit] = []  # each start's best point
+    failures: list[SimulationDiverged] = []  # why each other start got nowhere
     settled = False
     for start, velocity_change in starts:
         # the regression start (it brings a velocity change) first settles the shared parameters
         settle = 0
         if candidate is not None and velocity_change is not None and not settled:
             settle, settled = options.settle, True
-        end = _fit_start(
-            ctx,
-            candidate,
-            start,
-            velocity_change,
-            fit_frames=fit_frames,
-            base=base,
-            settle=settle,
-            options=options,
-        )
-        if end is not None:
-            ends.append(end)
+        try:
+            end = _fit_start(
+                ctx,
+                candidate,
+                start,
+                velocity_change,
+                fit_frames=fit_frames,
+                base=base,
+                settle=settle,
+                options=options,
+            )
+        except SimulationDiverged as exc:
+            failures.append(exc)
+            continue
+        ends.append(end)
     if not ends:
-        raise SimulationDiverged(
-            object_id=-1,
-            frame=-1,
-            substep=-1,
-            reason=f"every refit start of {_model_name(candidate)} diverged",
-            advice="lower the refit learning rates or raise the simulator's substeps",
-        )
+        return diverged_refit(ctx, candidate, starts[0], failures[0], base=base)
     best = predict(ctx, sorted(ends, key=lambda f: f.loss))  # stable: the first start on ties
     best.starts = [(end.theta.tolist(), end.loss) for end in ends]
     return best
 
 
-def _model_name(candidate: Candidate | None) -> str:
-    return candidate.name if candidate is not None else "the null model"
+def diverged_refit(
+    ctx: RunContext,
+    candidate: Candidate | None,
+    start: tuple[torch.Tensor, dict | None],
+    exc: SimulationDiverged,
+    *,
+    base: SimulationParams | None = None,
+) -> Fit:
+    """The model of a refit none of whose starts got through the fit frames: at its first
+    ``start``, with an infinite fit loss, no trajectory, ``diverged`` the simulator's place
+    of the first start's divergence (``exc``) and ``reached`` its rollout up to the frame
+    before.
+
+    The rule of ``predict``, applied one step earlier: a model the simulator cannot carry
+    (a discovered law's refit can blow up on a control scene) must not end the whole
+    diagnosis, so it is kept as evidence that cannot be accepted (``decide.frame_errors``: the
+    frames it did not reach are infinitely wrong, so it fails the held-out test and the
+    information criterion) and the report gives the reason. No refitted shared parameters
+    (``shared`` None): no other model may continue from a state that was never fitted.
+    """
+    theta, velocity_change = start
+    vector = _start_vector(ctx, base, velocity_change)
+    if candidate is not None:
+        theta = candidate.clamp(theta.detach().float())
+        params = candidate.apply(vector.physical(), theta)
+    else:
+        theta, params = torch.zeros(0), vector.physical()
+    fit = Fit(
+        "null" if candidate is None else candidate.name,
+        candidate,
+        params.detached(),
+        theta,
+        math.inf,
+        count_free(vector) + (candidate.dim if candidate is not None else 0),
+    )
+    fit.diverged = (
+        f"{REFIT_DIVERGED} at object {exc.object_id}, frame {exc.frame}, substep {exc.substep}"
+        f" ({exc.reason})"
+    )
+    fit.reached = _reached(ctx, fit.params, exc)
+    return fit
+
+
+def _reached(ctx: RunContext, params: SimulationParams, exc: SimulationDiverged):
+    """The rollout of ``params`` up to the frame before the one it diverged in (``exc``), the
+    frames the simulator passed; None if that diverges too."""
+    try:
+        return ctx.rollout(params, frames=max(exc.frame - 1, 0))
+    except SimulationDiverged:
+        return None
+
+
+def _start_vector(
+    ctx: RunContext, base: SimulationParams | None, velocity_change: dict | None
+) -> ParameterVector:
+    """The free parameters at ``base`` (default: the run's identified values) with a start's
+    initial-velocity change per object added."""
+    vector = ctx.parameter_vector(base)
+    if velocity_change is not None:
+        with torch.no_grad():
+            for k, dv in velocity_change.items():
+                vector.velocity[k].add_(dv)
+    return vector
 
 
 def _fit_start(
@@ -171,14 +248,11 @@ def _fit_start(
     base: SimulationParams | None,
     settle: int,
     options: RefitOptions,
-) -> Fit | None:
+) -> Fit:
     """One start of ``refit``: its descent (``_descend``) and the best point it reached, as a
-    fit; None if not even its first rollout succeeded."""
-    vector = ctx.parameter_vector(base)
-    if velocity_change is not None:
-        with torch.no_grad():
-            for k, dv in velocity_change.items():
-                vector.velocity[k].add_(dv)
+    fit. Raises SimulationDiverged (the simulator's, where it gave one) if not even its first
+    rollout succeeded."""
+    vector = _start_vector(ctx, base, velocity_change)
     if candidate is not None:
         theta_start = candidate.clamp(start.detach().float())
         scale = torch.maximum(theta_start.abs(), candidate.step)
@@ -186,11 +260,17 @@ def _fit_start(
     else:
         scale = torch.ones(0)
         u = torch.zeros(0, requires_grad=True)
-    loss, best, history = _descend(
+    loss, best, history, failure = _descend(
         ctx, candidate, vector, u, scale, fit_frames=fit_frames, settle=settle, options=options
     )
     if best is None:
-        return None
+        raise failure or SimulationDiverged(
+            object_id=-1,
+            frame=-1,
+            substep=-1,
+            reason="the loss at the start is not finite",
+            advice="lower the refit learning rates or raise the simulator's substeps",
+        )
     restore(vector, u, best)
     theta = (u * scale).detach() if candidate is not None else torch.zeros(0)
     return Fit(
@@ -227,24 +307,25 @@ def _descend(
     fit_frames: list[int],
     settle: int,
     options: RefitOptions,
-) -> tuple[float, dict | None, list[float]]:
+) -> tuple[float, dict | None, list[float], SimulationDiverged | None]:
     """Adam from the leaves' current values: ``settle`` steps with the coefficient held, the
     ``iterations``, then ``polish`` backtracking steps (``RefitOptions``). Returns the lowest
-    loss, the ``snapshot`` where it was reached (None if no rollout succeeded) and the loss of
-    every step."""
+    loss, the ``snapshot`` where it was reached (None if no rollout succeeded), the loss of
+    every step and the divergence that ended the descent (None if none did)."""
     horizon = max(fit_frames)
     optimizer = _optimizer(vector, candidate, u, options)
     leaves = [p for g in optimizer.param_groups for p in g["params"]]
     best_start, best_grads = (math.inf, None), None
-    history = []
+    history, failure = [], None
     main = settle + options.iterations
     for step in range(main + options.polish + 1):  # the last pass only scores
         optimizer.zero_grad()
         params = assemble(vector, candidate, u, scale)
         try:
             traj = ctx.simulate(params, frames=horizon)
-        except SimulationDiverged:
+        except SimulationDiverged as exc:
             if step < main or not options.polish or best_grads is None:
+                failure = exc
                 break
             traj = None  # a polishing step too long for the simulator: take it back
         if traj is not None:
@@ -269,7 +350,7 @@ def _descend(
                 leaf.clamp_(0.0, 1.0)
             if candidate is not None:
                 u.copy_(candidate.clamp(u * scale) / scale)
-    return best_start[0], best_start[1], history
+    return best_start[0], best_start[1], history, failure
 
 
 def _back_to_best(optimizer, vector, u, best: dict, leaves: list, best_grads: list) -> None:
@@ -306,10 +387,7 @@ def predict(ctx: RunContext, ranked: list[Fit]) -> Fit:
             failures.append(exc)
     best, exc = ranked[0], failures[0]
     best.diverged = str(exc)
-    try:  # the simulator passed every frame before the one it diverged in
-        best.reached = ctx.rollout(best.params, frames=max(exc.frame - 1, 0))
-    except SimulationDiverged:
-        best.reached = None
+    best.reached = _reached(ctx, best.params, exc)  # the frames before the divergence
     return best
 
 
@@ -375,10 +453,8 @@ def converge_null(
             best_loss, best_fit = loss, fit
     if best_fit is None:
         return null
-    try:
-        warm = refit(ctx, None, fit_frames=fit_frames, base=best_fit.shared, options=options)
-    except SimulationDiverged:
-        return null
+    # a refit that diverges keeps its divergence (``diverged_refit``) and replaces nothing
+    warm = refit(ctx, None, fit_frames=fit_frames, base=best_fit.shared, options=options)
     if not replaces(warm, null):
         return null
     warm.started_from = best_fit.name
@@ -415,19 +491,15 @@ def converge_candidates(
         if fit.candidate is None or fit is source or settled:
             converged.append(fit)
             continue
-        try:
-            warm = refit(
-                ctx,
-                fit.candidate,
-                fit_frames=fit_frames,
-                starts=[(fit.theta, {})],  # an empty velocity change: settle first
-                base=source.shared,
-                options=options,
-            )
-        except SimulationDiverged:
-            converged.append(fit)
-            continue
-        if replaces(warm, fit):
+        warm = refit(
+            ctx,
+            fit.candidate,
+            fit_frames=fit_frames,
+            starts=[(fit.theta, {})],  # an empty velocity change: settle first
+            base=source.shared,
+            options=options,
+        )
+        if replaces(warm, fit):  # not where it diverged again (``diverged_refit``)
             warm.started_from = source.name
             warm.starts = fit.starts + warm.starts
             converged.append(warm)

@@ -20,6 +20,7 @@ from mosiv_framework.diagnose.floor import summarise_floor
 from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT
 from mosiv_framework.diagnose.grid_stability import grid_lines, grid_summary
 from mosiv_framework.diagnose.locate import Location, plot_location
+from mosiv_framework.diagnose.model import is_refit_divergence
 from mosiv_framework.recipes.terms import IDENTIFY_KEY
 
 MM2 = 1e6  # m^2 -> mm^2, the unit metrics.json reports Chamfer errors in
@@ -437,6 +438,12 @@ def _formula_lines(record: dict) -> list[str]:
     outcome = "accepted" if record["accepted"] else "not accepted"
     if record.get("failed"):
         outcome += f" (failed: {', '.join(record['failed'])})"
+    if record.get("refitted") is None:  # its refit diverged (``model.diverged_refit``)
+        return lines + [
+            f"`{record['tested']}` was applied by the simulator on its grid nodes (the "
+            f"`expression` term): {outcome}; {record.get('diverged') or 'no refit'}.",
+            "",
+        ]
     lines += [
         f"`{record['tested']}` was applied by the simulator on its grid nodes (the "
         "`expression` term), refitted with the run's free parameters and judged like the "
@@ -488,13 +495,19 @@ def _evidence_lines(s: dict) -> list[str]:
     lines += [_evidence_row(e) for e in s["evidence"]]
     lines.append("")
     lines += _physical_lines(s["evidence"])
-    # why a candidate whose prediction blew up was not accepted, in the simulator's words
+    # why a candidate whose refit or prediction blew up was not accepted, in the simulator's
+    # words
     diverged = [e for e in s["evidence"] if e.get("diverged")]
-    lines += [
-        f"- `{e['name']}` was not accepted: its prediction diverged ({e['diverged']})."
-        for e in diverged
-    ]
+    lines += [f"- `{e['name']}` was not accepted: {_divergence(e['diverged'])}." for e in diverged]
     return lines + ([""] if diverged else [])
+
+
+def _divergence(diverged: str) -> str:
+    """A ``Fit.diverged`` message as the report says it: the refit's own
+    (``model.diverged_refit``) as it is, a prediction's (the simulator's) introduced."""
+    if is_refit_divergence(diverged):
+        return diverged
+    return f"its prediction diverged ({diverged})"
 
 
 def _physical_lines(evidence: list[dict]) -> list[str]:
@@ -557,7 +570,9 @@ def _evidence_row(e: dict) -> str:
         interval += " (includes zero)"
     held = "pass" if e["passes_heldout"] else "fail"
     if e.get("diverged"):
-        held += " (prediction diverged)"
+        held += (
+            " (refit diverged)" if is_refit_divergence(e["diverged"]) else " (prediction diverged)"
+        )
     return (
         f"| {e['name']}{mark} | {theta} | {interval} | {_pct(e['heldout_drop'])} | "
         f"{_pct(e['heldout_spread'])} | "
