@@ -176,6 +176,48 @@ def test_control_accepts_nothing(control):
     assert json.loads((root / "diagnosis.json").read_text())["accepted"] is None
 
 
+def test_a_discovered_law_whose_refit_diverges_is_rejected_and_the_diagnosis_goes_on(
+    control, tmp_path, monkeypatch
+):
+    """Where every refit start of the discovered law diverges (as on two control scenes of
+    this recipe recorded at grid 48), the law is rejected like any candidate the simulator
+    cannot carry, with the simulator's place of the divergence in diagnosis.json and the
+    report, and the diagnosis reaches its verdict: no effect named. Here the simulator blows up
+    whenever the law is applied; a smaller budget than the small one keeps the test quick."""
+    from dataclasses import replace
+
+    from mosiv_framework.diagnose.diagnosis import BUDGETS
+    from mosiv_framework.errors import SimulationDiverged
+    from mosiv_framework.registry import get_registry
+
+    root = tmp_path / "run"
+    shutil.copytree(control[0], root)
+    simulator = type(get_registry().create("simulator", "warp-mpm", {"device": "cpu"}))
+    rollout = simulator.rollout
+
+    def blows_up_with_the_law(self, particles, params, **kwargs):
+        if "expression" in params.terms:
+            raise SimulationDiverged(
+                object_id=1, frame=2, substep=7, reason="non-finite position", advice="test"
+            )
+        return rollout(self, particles, params, **kwargs)
+
+    monkeypatch.setattr(simulator, "rollout", blows_up_with_the_law)
+    budget = replace(BUDGETS["small"], max_candidates=1, iterations=2, starts=1, bootstrap=50)
+    diagnosis = diagnose_run(root, budget=budget)
+
+    reason = "refit diverged at object 1, frame 2, substep 7 (non-finite position)"
+    assert diagnosis["formula"]["tested"]  # the control's residual gave a law to test
+    assert diagnosis["accepted"] is None and diagnosis["verdict"] != "missing physics"
+    law = next(e for e in diagnosis["evidence"] if e["name"] == "expression")
+    assert not law["accepted"] and not law["passes_heldout"] and law["diverged"] == reason
+    saved = json.loads((root / "diagnosis.json").read_text())
+    assert saved["formula"]["diverged"] == reason and saved["formula"]["refitted"] is None
+    assert not saved["formula"]["accepted"]
+    text = (root / "diagnosis.md").read_text()
+    assert f"`expression` was not accepted: {reason}." in text
+
+
 def test_the_resolution_floor_is_recorded_and_small_beside_a_real_effect(wind, control):
     """The null's prediction on resampled particles (``diagnose/floor.py``) is written beside
     the evidence; on the wind scene, the wind's held-out improvement is far above it."""

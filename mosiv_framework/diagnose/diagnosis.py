@@ -530,11 +530,13 @@ def _test_formula(plan: _Plan, location, rule: DecideOptions, found: dict, disco
     judged = _judge(plan, location, null, fits, rule)
     mine = next(f for f in fits if f.name == candidate.name)
     evidence = next(e for e in judged["evidence"] if e.name == candidate.name)
+    refitted = formula_record(candidate, mine.theta, evidence.interval)
     record = {
         "tested": law["formula"],
-        "refitted": formula_record(candidate, mine.theta, evidence.interval),
+        "refitted": None if mine.refit_diverged else refitted,  # ``model.diverged_refit``
         "accepted": evidence.accepted,
         "failed": failed_tests(evidence),
+        "diverged": mine.diverged,
     }
     return {**found, **judged, "null": null, "fits": fits, "formula": record}
 
