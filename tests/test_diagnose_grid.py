@@ -203,6 +203,30 @@ def test_losing_the_held_out_test_at_the_second_grid_fails_the_check():
     assert all(c["agrees"] for c in e.grid["coefficients"])
 
 
+def test_a_refit_that_diverges_at_the_second_grid_fails_the_check_with_its_place():
+    """No start of the effect's refit at the second grid got through the fit frames
+    (``model.diverged_refit``): the check fails with the simulator's place of the divergence,
+    and nothing is weighed or compared there."""
+    ctx = _stub_context()
+    models = _StubModels({("wind", 18): [2.5, 0.0, 0.0]})
+    stub_refit = models.refit
+    reason = "refit diverged at object 1, frame 3, substep 2 (non-finite position)"
+
+    def diverges(ctx, candidate, **kwargs):
+        fit = stub_refit(ctx, candidate, **kwargs)
+        if candidate is not None:
+            fit.loss, fit.trajectory, fit.diverged = math.inf, None, reason
+        return fit
+
+    models.refit = diverges
+    out, _ = _check(_found(ctx), models, ctx)
+    e = out["evidence"][0]
+    assert e.explains and not e.passes_grid and not e.accepted
+    assert verdict(True, out["evidence"]) == "discrepancy" and out["accepted"] is None
+    assert e.grid["failed"] == [f"at the second grid: {reason}"]
+    assert e.grid["reason"] == GRID_REASON and "coefficients" not in e.grid
+
+
 def test_the_next_accepted_candidate_is_checked_when_the_first_is_unstable():
     ctx = _stub_context()
     models = _StubModels({("wind", 18): [1.0, 0.0, 0.0], ("linear_drag", 18): [2.5]})

@@ -53,7 +53,7 @@ from mosiv_framework.diagnose.grid_resolution import (
 from mosiv_framework.diagnose.interval import coefficient_interval
 from mosiv_framework.diagnose.kinematics import run_samples
 from mosiv_framework.diagnose.model import Fit, refit
-from mosiv_framework.errors import ConfigError, SimulationDiverged
+from mosiv_framework.errors import ConfigError
 from mosiv_framework.expression import NAME as EXPRESSION
 from mosiv_framework.recipes.schema import grid_option_problems
 
@@ -206,7 +206,7 @@ def grid_verdict(
     and where the refit there diverged. {"stable", "failed": the tests failed, "reason"}."""
     failed = []
     if diverged is not None:
-        failed.append(f"refit diverged at the second grid ({diverged})")
+        failed.append(f"at the second grid: {diverged}")
     if weighed is not None and not weighed.passes_heldout:
         failed.append("held-out test at the second grid")
     if weighed is not None and not weighed.passes_bic:
@@ -290,17 +290,16 @@ def check_candidate(
         "grid": [grid.first.grid, grid.second.grid],
         "substeps": [grid.first.substeps, grid.second.substeps],
     }
-    try:
-        fit2 = hooks.refit(
-            grid.ctx,
-            fit.candidate,
-            fit_frames=plan.fit_frames,
-            starts=grid_starts(fit, plan.budget.starts),
-            base=_shared(fit),
-            options=grid_refit_options(plan),
-        )
-    except SimulationDiverged as exc:
-        return {**record, **grid_verdict(None, [], None, diverged=str(exc))}
+    fit2 = hooks.refit(
+        grid.ctx,
+        fit.candidate,
+        fit_frames=plan.fit_frames,
+        starts=grid_starts(fit, plan.budget.starts),
+        base=_shared(fit),
+        options=grid_refit_options(plan),
+    )
+    if fit2.refit_diverged:  # no start got through the fit frames (``model.diverged_refit``)
+        return {**record, **grid_verdict(None, [], None, diverged=fit2.diverged)}
     errors = {**grid.errors, name: hooks.errors(grid.ctx, fit2)}
     weighed = weigh(
         errors,
