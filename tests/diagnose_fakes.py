@@ -1,0 +1,50 @@
+"""Fakes shared by the diagnosis tests (tests/test_diagnose_parts_*.py): an elastic/sand pair's
+parameters, a RunContext stand-in for building and screening candidates, and a simulator
+divergence."""
+
+from __future__ import annotations
+
+import torch
+
+
+def _elastic_pair_params():
+    from mosiv_framework.types import ObjectParams, SimulationParams
+
+    elastic = {"E": torch.tensor(5e4), "nu": torch.tensor(0.25), "rho": torch.tensor(1e3)}
+    elastic["friction"] = torch.tensor(0.3)
+    sand = {**elastic, "friction_angle": torch.tensor(30.0)}
+    return SimulationParams(
+        {1: ObjectParams("elastic", elastic), 2: ObjectParams("sand", sand)},
+        {1: torch.zeros(3), 2: torch.zeros(3)},
+        torch.tensor(0.3),
+        {},
+    )
+
+
+class _FakeContext:
+    """The few RunContext members that candidate building and screening read, for an elastic
+    pair on a simulator supporting ``terms`` (subclasses add rollouts and a loss)."""
+
+    identified = _elastic_pair_params()
+    object_ids = [1, 2]
+    simulator_name = "fake"
+    fps = 24.0
+
+    def __init__(self, terms: frozenset[str], *, ground_height: float | None = None):
+        from types import SimpleNamespace
+
+        self.simulator = SimpleNamespace(supported_terms=terms)
+        self.world = SimpleNamespace(gravity=(0.0, 0.0, -9.81), ground_height=ground_height)
+
+    def parameter_vector(self):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(normalized={"obj1.friction": None})  # no friction candidate
+
+
+def _diverged(frame: int = 18) -> Exception:
+    from mosiv_framework.errors import SimulationDiverged
+
+    return SimulationDiverged(
+        object_id=2, frame=frame, substep=1, reason="a particle moved too far", advice="test"
+    )

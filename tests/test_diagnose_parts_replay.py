@@ -1,0 +1,166 @@
+"""Unit tests of replaying kept diagnoses (benchmarks/data/diagnosis_rule_cases and the other
+diagnoses kept under benchmarks/data) under the current decision rule and format (no
+simulator)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+#: benchmarks/data/, where kept diagnoses are found by their content, not by folder names
+KEPT = Path(__file__).resolve().parents[1] / "benchmarks" / "data"
+
+
+def _kept_diagnosis(entry: str, accepted: str, match=lambda diagnosis: True) -> Path:
+    """The first diagnosis.json of suite entry ``entry`` kept under benchmarks/data/ that
+    accepted ``accepted`` as it ran and satisfies ``match``."""
+    for path in sorted(KEPT.glob(f"**/{entry}/diagnosis.json")):
+        diagnosis = json.loads(path.read_text())
+        if (diagnosis.get("accepted") or {}).get("name") == accepted and match(diagnosis):
+            return path
+    pytest.fail(f"no diagnosis of {entry} accepting {accepted} is kept under {KEPT}")
+
+
+def _interval_includes_zero(diagnosis: dict) -> bool:
+    return any(lo <= 0.0 <= hi for lo, hi in diagnosis["accepted"]["interval_95"].values())
+
+
+def test_replaying_with_the_interval_test_reports_the_out_of_library_entry_unexplained():
+    """An out-of-library entry (a concealed drag with drag out of the library) that ran
+    without the interval test accepted material damping with a viscosity interval of
+    [0, 18.9] Pa s; replayed with the interval test it is unexplained, and a true effect's
+    diagnosis of the same suite (its interval clear of zero) is unchanged."""
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.replay import replay_diagnosis
+
+    outside_path = _kept_diagnosis(
+        "outside-quadratic_drag", "material_damping", _interval_includes_zero
+    )
+    outside = json.loads(outside_path.read_text())
+    true_path = outside_path.parents[1] / "material_damping-0" / "diagnosis.json"
+    true = json.loads(true_path.read_text())
+    strict = DecideOptions(**{**outside["rule"], "require_nonzero": True})
+    assert replay_diagnosis(outside)["accepted"]["name"] == "material_damping"
+    replayed = replay_diagnosis(outside, strict)
+    assert replayed["verdict"] == "unexplained" and replayed["accepted"] is None
+    assert replay_diagnosis(true, strict)["accepted"]["name"] == "material_damping"
+
+
+def test_replaying_the_gravity_entry_names_gravity_not_a_vertical_wind():
+    """A gravity-1 entry (gravity 7.5 m/s^2 instead of 9.81) diagnosed before the special-case
+    preference accepted a nearly vertical wind; the decision with the preference names the
+    gravity change, from the saved error tables alone. Files of the unversioned layout without
+    a recorded ``special_case_of`` use the built-in declaration."""
+    from mosiv_framework.diagnose.candidates import SPECIAL_CASES
+    from mosiv_framework.diagnose.replay import replay_diagnosis, saved_special_cases
+
+    diagnosis = json.loads(_kept_diagnosis("gravity-1", "wind").read_text())
+    assert "format" not in diagnosis  # the unversioned layout
+    assert diagnosis["accepted"]["name"] == "wind"  # as it ran, before the preference
+    assert saved_special_cases(diagnosis)["gravity"] == SPECIAL_CASES["gravity"] == ("wind",)
+    replayed = replay_diagnosis(diagnosis)
+    assert replayed["verdict"] == "missing physics" and replayed["accepted"]["name"] == "gravity"
+    assert replayed["evidence"][0]["special_case_of"] == ["wind"]
+    assert replayed["evidence"][1]["name"] == "wind" and replayed["evidence"][1]["accepted"]
+    assert replayed["evidence"][0]["theta"] == pytest.approx([-2.19], abs=0.01)  # kept from file
+    # a file that records each fit's physical value: a newly accepted term carries it
+    for e in diagnosis["evidence"]:
+        if e["name"] == "gravity":
+            e["value"] = {"acceleration": [0.0, 0.0, -7.62]}
+    assert replay_diagnosis(diagnosis)["accepted"]["value"] == {"acceleration": [0.0, 0.0, -7.62]}
+
+
+def test_a_replayed_suite_folder_without_scenes_scores_coefficients_from_the_entries(tmp_path):
+    """benchmarks/data keeps diagnoses without their scenes; a replay scores the coefficient
+    error against the entry's conceal spec (what the generator wrote to gt/effects.json)."""
+    import shutil
+
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.replay import replay_suite
+
+    kept = _kept_diagnosis("wind-0", "wind").parent
+    shutil.copytree(kept, tmp_path / "wind-0")
+    summary = replay_suite(tmp_path, DecideOptions())
+    (score,) = summary["scores"]
+    saved = json.loads((kept / "score.json").read_text())
+    assert score["correct"] and score["accepted"] == "wind"
+    assert score["coefficient_error"] == pytest.approx(saved["coefficient_error"], rel=1e-9)
+    assert "control-0" in summary["missing"]
+
+
+def test_a_diagnosis_of_an_unknown_format_is_refused_naming_the_file_field_and_values(tmp_path):
+    """A diagnosis.json of a format this version cannot read (e.g. from a newer MOSIV) is not
+    misread: the replay stops with the file, the field, its value and the supported values."""
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT, FormatError
+    from mosiv_framework.diagnose.replay import replay_suite
+
+    diagnosis = json.loads(_kept_diagnosis("wind-0", "wind").read_text())
+    path = tmp_path / "wind-0" / "diagnosis.json"
+    path.parent.mkdir()
+    path.write_text(json.dumps({**diagnosis, "format": "mosiv-diagnosis/99"}))
+    with pytest.raises(FormatError) as info:
+        replay_suite(tmp_path, DecideOptions())
+    message = str(info.value)
+    assert str(path) in message and "'format'" in message
+    assert "'mosiv-diagnosis/99'" in message and repr(DIAGNOSIS_FORMAT) in message
+
+
+def test_kept_diagnoses_of_the_unversioned_layout_replay_to_their_own_decision():
+    """Files written before diagnosis.json carried a format replay, under the rule they record
+    (or the one their layout implies), to the verdict and term they recorded; the one change
+    allowed is the special-case preference, which names the special case of the term they
+    accepted (a gravity change for a vertical wind)."""
+    from mosiv_framework.diagnose.candidates import SPECIAL_CASES
+    from mosiv_framework.diagnose.replay import replay_diagnosis
+
+    paths = sorted(KEPT.glob("**/diagnosis.json"))
+    unversioned = [p for p in paths if "format" not in json.loads(p.read_text())]
+    assert unversioned
+    changed = 0
+    for path in unversioned:
+        saved = json.loads(path.read_text())
+        replayed = replay_diagnosis(saved, source=path)
+        assert replayed["verdict"] == saved["verdict"], path
+        before = (saved["accepted"] or {}).get("name")
+        after = (replayed["accepted"] or {}).get("name")
+        changed += after != before
+        assert after == before or before in SPECIAL_CASES.get(after, ()), path
+    assert changed < len(unversioned)
+
+
+def test_the_format_field_decides_how_a_diagnosis_is_read():
+    """The unversioned layout gets what its fields leave out from the layout (a file without a
+    rule ran BIC margin 2 without the interval test; the accepted interval stands for the
+    evidence's); a versioned file is read as written. A complete unversioned file replays the
+    same once it carries the current format."""
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT
+    from mosiv_framework.diagnose.replay import (
+        replay_diagnosis,
+        saved_intervals,
+        saved_rule,
+        saved_special_cases,
+    )
+
+    saved = json.loads(_kept_diagnosis("outside-quadratic_drag", "material_damping").read_text())
+    rule_less = {k: v for k, v in saved.items() if k != "rule"}
+    legacy = saved_rule(rule_less)
+    assert legacy.bic_margin == 2.0 and not legacy.require_nonzero and legacy.min_effect == 0.0
+    assert "material_damping" in saved_intervals(saved)  # from accepted.interval_95
+    versioned = {**saved, "format": DIAGNOSIS_FORMAT}
+    assert "material_damping" not in saved_intervals(versioned)
+    assert all(v == () for v in saved_special_cases(versioned).values())
+
+    complete = json.loads(_kept_diagnosis("gravity-1", "gravity").read_text())
+    # a file written before the physical-evidence tests lacks only their thresholds; without a
+    # nuisance table or consistency records those tests leave its decision as it was
+    physical = {"nuisance_degree", "nuisance_min_drop", "consistency_level"}
+    assert set(complete["rule"]) | physical == set(DecideOptions().__dict__)
+    assert all("special_case_of" in e for e in complete["evidence"])
+    as_unversioned = replay_diagnosis(complete)
+    as_versioned = replay_diagnosis({**complete, "format": DIAGNOSIS_FORMAT})
+    as_versioned.pop("format")
+    assert as_versioned == as_unversioned
