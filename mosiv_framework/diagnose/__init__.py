@@ -9,6 +9,7 @@ information-criterion evidence), ``report`` (diagnosis.json / diagnosis.md), ``s
 a finished suite under another acceptance rule, from the saved error tables).
 """
 
-from mosiv_framework.diagnose.diagnosis import BUDGETS, Budget, diagnose_run, split_frames
+from mosiv_framework.diagnose.budget import BUDGETS, Budget
+from mosiv_framework.diagnose.diagnosis import diagnose_run, split_frames
 
 __all__ = ["BUDGETS", "Budget", "diagnose_run", "split_frames"]
