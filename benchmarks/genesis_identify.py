@@ -4,10 +4,15 @@ Runs one recipe (default ``recipes/genesis_oracle.yaml``: oracle reconstructor, 
 lifter, warp-mpm, a data-independent start and a global search before gradient descent) on
 every scene of a suite folder that ``mosiv data suite OUT --source genesis --ranges wide``
 made, and tabulates per scene and object the raw and gauge-free errors of every parameter,
-whether its 95 % interval holds the truth and what kind of interval it is, the observed and
-future Chamfer (CD) and earth mover's distance (EMD), wall time and peak memory; then the
-suite against its targets. warp-mpm is not the engine that made these scenes, so unlike
-``benchmarks/identify_suite.py`` the model is not exact here.
+whether its 95 % interval holds the truth, what kind of interval it is and by which method
+(and, for a sandwich interval, the same of the Laplace interval from the same probes, which
+the run's identify history keeps), per scene the contact between objects it identified with
+(under ``identify.contact: auto`` with both modes' losses), the observed and future Chamfer
+(CD) and earth mover's distance (EMD), wall time and peak memory; then the suite against its
+targets, the interval coverage for the method used and for the Laplace intervals of the same
+runs. warp-mpm is not the engine that made these scenes, so unlike
+``benchmarks/identify_suite.py`` the model is not exact here. The rows, tables and the
+RESULTS section are ``benchmarks/genesis_identify_table.py``'s.
 
     python benchmarks/genesis_identify.py --scenes runs/genesis --out runs/genesis_identify
     python benchmarks/genesis_identify.py --scenes runs/genesis --out runs/genesis_identify \
@@ -118,7 +123,17 @@ def run_scene(scene: Path, *, recipe: Path, out: Path, sets: list[str]) -> dict:
         data=data,
         device=_device_name(cfg),
         code=code_version(),
+        history=_history(run_dir),
     )
+
+
+def _history(run_dir: Path) -> list[dict] | None:
+    """The run's identify/history.json records (None without one: a run that did not
+    identify), whose interval record holds the Laplace intervals beside the sandwich ones."""
+    from mosiv_framework.pipeline.formats import read_history
+
+    path = run_dir / "identify" / "history.json"
+    return read_history(path) if path.is_file() else None
 
 
 def _earlier(out: Path) -> dict[str, dict]:

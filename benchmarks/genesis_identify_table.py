@@ -15,6 +15,8 @@ from pathlib import Path
 
 from identify_suite_table import _fmt
 
+from mosiv_framework.pipeline.uncertainty import INTERVALS_PHASE
+
 #: the section of docs/RESULTS.md this benchmark owns
 SECTION = "Identification on Genesis scenes"
 #: a new section goes before this one (the file's order: oracle, then video results)
@@ -33,6 +35,11 @@ PARAMS = (
 )
 #: interval kinds, as the table abbreviates them
 KINDS = {"two-sided": "2s", "lower-bound": ">=", "upper-bound": "<=", "unconstrained": "free"}
+#: interval methods (identify.interval_method), as the table abbreviates them
+METHODS = {"sandwich": "sw", "laplace": "lap"}
+#: the contact of a row made before rows recorded it: every such run identified with the
+#: recipe's fixed simulator.contact, which recipes/genesis_oracle.yaml left at multi_field
+UNRECORDED_CONTACT = {"choice": "fixed", "mode": "multi_field"}
 #: the suite's targets: (key, title, comparison, target, unit)
 TARGETS = (
     ("E_finite", "median E error, objects with a two-sided E interval", "<=", 20.0, "%"),
@@ -46,22 +53,33 @@ TARGETS = (
     ("future_cd", "mean future CD", "<=", 450.0, "mm^2"),
     ("time", "longest wall time per scene", "<", 600.0, "s"),
 )
+#: the coverage target for the Laplace intervals of the same runs, shown where rows hold them
+LAPLACE_TARGET = (
+    "coverage_laplace",
+    "95 % Laplace intervals of the same runs holding the truth",
+    ">=",
+    90.0,
+    "%",
+)
 
 
 # --------------------------------------------------------------------------------------------
 # per-scene rows (pure functions of metrics.json)
 
 
-def object_entries(metrics: dict) -> dict[str, dict]:
+def object_entries(metrics: dict, laplace: dict | None = None) -> dict[str, dict]:
     """Per object of ``metrics`` (a run's metrics.json): its family and, per parameter, the
-    errors and the 95 % interval's kind and coverage.
+    errors and the 95 % interval's kind, method and coverage, and with ``laplace`` (the run's
+    Laplace intervals, ``history_laplace``) the Laplace interval's kind and coverage.
 
     Each parameter entry has ``raw`` (relative error %, or None), ``gauge_free`` (% after the
     density gauge, for densities and stresses), ``deg`` (friction angle, absolute), ``error``
     (what the targets use: gauge-free, else degrees, else raw), ``kind`` (of the interval, None
     without one), ``covered`` (None without truth or interval), ``value`` (as identified; a
     density or stress in the truth's gauge, the value its gauge-free error compares) and
-    ``true`` (None without truth). Coverage of a density or stress is judged in the gauge
+    ``true`` (None without truth), ``method`` (the interval's, None without one or where
+    identified.json does not name it) and ``laplace`` (``{"kind", "covered"}`` of the Laplace
+    interval, None without ``laplace``). Coverage of a density or stress is judged in the gauge
     too: the interval is of the identified value, which holds the first object's density at
     its assumed value, so it is rescaled by true / assumed density of that object before it
     is compared with the truth.
@@ -72,12 +90,14 @@ def object_entries(metrics: dict) -> dict[str, dict]:
     gauge = _gauge(errors)
     out: dict[str, dict] = {}
     for k, obj in (identified.get("objects") or {}).items():
-        truth = errors.get(str(k), {})
-        names = [n for n, _ in PARAMS if n in truth or n in intervals.get(f"obj{k}", {})]
+        truth, own = errors.get(str(k), {}), intervals.get(f"obj{k}", {})
+        names = [n for n, _ in PARAMS if n in truth or n in own]
         params = {}
         for name in names:
-            err, interval = truth.get(name), intervals.get(f"obj{k}", {}).get(name)
-            params[name] = _param_entry(err, interval, gauge)
+            params[name] = _param_entry(truth.get(name), own.get(name), gauge)
+            if laplace is not None:
+                other = laplace.get(f"obj{k}", {}).get(name)
+                params[name]["laplace"] = _laplace_entry(truth.get(name), other, gauge)
         out[str(k)] = {"family": obj.get("family"), "params": params}
     return out
 
@@ -95,7 +115,8 @@ def _gauge(errors: dict) -> float | None:
 def _param_entry(err: dict | None, interval: dict | None, gauge: float | None) -> dict:
     entry = {"raw": None, "gauge_free": None, "deg": None, "error": None}
     entry["kind"] = interval.get("kind") if interval else None
-    entry["covered"] = entry["value"] = entry["true"] = None
+    entry["method"] = interval.get("method") if interval else None
+    entry["covered"] = entry["value"] = entry["true"] = entry["laplace"] = None
     if err is None:
         return entry
     if "abs_error_deg" in err:
@@ -105,28 +126,64 @@ def _param_entry(err: dict | None, interval: dict | None, gauge: float | None) -
         if "rel_error_gauge_free" in err:
             entry["gauge_free"] = 100.0 * float(err["rel_error_gauge_free"])
         entry["error"] = entry["raw"] if entry["gauge_free"] is None else entry["gauge_free"]
-    scale = gauge if (entry["gauge_free"] is not None and gauge) else 1.0
+    scale = _scale(err, gauge)
     value = err.get("value")
     entry["value"] = value * scale if isinstance(value, (int, float)) else value
     entry["true"] = err.get("true")
-    if interval is not None and isinstance(err.get("true"), (int, float)):
-        low, high = interval.get("low"), interval.get("high")
-        true = float(err["true"])
-        entry["covered"] = (low is None or true >= low * scale) and (
-            high is None or true <= high * scale
-        )
+    entry["covered"] = _covers(interval, err.get("true"), scale)
     return entry
 
 
+def _laplace_entry(err: dict | None, interval: dict | None, gauge: float | None) -> dict | None:
+    """The Laplace interval's kind and whether it holds the truth (judged as ``_param_entry``
+    judges the run's own interval); None without an interval."""
+    if interval is None:
+        return None
+    covered = None if err is None else _covers(interval, err.get("true"), _scale(err, gauge))
+    return {"kind": interval.get("kind"), "covered": covered}
+
+
+def _scale(err: dict, gauge: float | None) -> float:
+    """What takes an identified density or stress (one with a gauge-free error) into the
+    truth's gauge; 1 for anything else."""
+    gauge_free = "rel_error_gauge_free" in err and "abs_error_deg" not in err
+    return gauge if (gauge_free and gauge) else 1.0
+
+
+def _covers(interval: dict | None, true, scale: float) -> bool | None:
+    """Whether ``interval``, times ``scale`` (into the truth's gauge), holds ``true``; None
+    without an interval or a scalar truth."""
+    if interval is None or not isinstance(true, (int, float)):
+        return None
+    low, high = interval.get("low"), interval.get("high")
+    return (low is None or true >= low * scale) and (high is None or true <= high * scale)
+
+
 def scene_row(
-    name: str, metrics: dict, *, time_s: float, data: dict, device: str, code: str
+    name: str,
+    metrics: dict,
+    *,
+    time_s: float,
+    data: dict,
+    device: str,
+    code: str,
+    history: list[dict] | None = None,
 ) -> dict:
-    """One table row: the scene's objects (``object_entries``), its CD and EMD over the
-    observed and future frames, wall time and peak memory, and where it came from."""
+    """One table row: the scene's objects (``object_entries``, with the Laplace intervals of
+    ``history``, the run's identify/history.json entries), the contact the run identified
+    with (``contact``: identified.json's ``choice``, ``mode`` and under ``auto`` the
+    ``recipe_mode``, each mode's ``losses`` and the ``margin``; None for a simulator without
+    contact modes), its CD and EMD over the observed and future frames, wall time and peak
+    memory, and where it came from."""
     future = metrics.get("future") or {}
+    contact = (metrics.get("params") or {}).get("contact")
+    if contact is not None:
+        keep = ("choice", "mode", "recipe_mode", "losses", "margin")
+        contact = {k: contact[k] for k in keep if k in contact}
     return {
         "scene": name,
-        "objects": object_entries(metrics),
+        "contact": contact,
+        "objects": object_entries(metrics, history_laplace(history)),
         "observed_cd_mm2": metrics["observed"]["cd_mm2"],
         "observed_emd_mm": metrics["observed"]["emd_mm"],
         "future_cd_mm2": future.get("cd_mm2"),
@@ -139,6 +196,20 @@ def scene_row(
     }
 
 
+def history_laplace(history: list[dict] | None) -> dict | None:
+    """The Laplace intervals among a run's identify history records: the last interval
+    record's ``laplace`` (a sandwich run keeps those of the same probes there), or its
+    ``intervals`` where they are Laplace's; None without an interval record."""
+    records = [h for h in history or [] if h.get("phase") == INTERVALS_PHASE]
+    if not records:
+        return None
+    if "laplace" in records[-1]:
+        return records[-1]["laplace"]
+    # a record that names no method comes from before the sandwich existed: Laplace's
+    laplace = records[-1].get("method", "laplace") == "laplace"
+    return records[-1].get("intervals") if laplace else None
+
+
 # --------------------------------------------------------------------------------------------
 # the suite against its targets
 
@@ -149,7 +220,11 @@ def summarise(rows: list[dict]) -> dict:
 
     The E statistics pool every object with an E (elastic, plasticine, sand); the interval
     coverage counts the intervals that claim something (unconstrained ones hold any value and
-    are counted apart, ``unconstrained``), over parameters with a known truth.
+    are counted apart, ``unconstrained``), over parameters with a known truth, and counts
+    those intervals by ``methods``. ``coverage_laplace`` is the same of the Laplace intervals
+    of the runs whose history holds them (a sandwich run's from the same probes; ``n`` 0 where
+    no row has them), against the same target; ``contact`` counts the rows by the contact
+    they identified with (``contact_label``).
     """
     good = [r for r in rows if "error" not in r]
     entries = [
@@ -161,7 +236,6 @@ def summarise(rows: list[dict]) -> dict:
     e = [p for name, p in entries if name == "E" and p["error"] is not None]
     e_kinds = [p["kind"] for p in e if p["kind"] is not None]
     finite = [p["error"] for p in e if p["kind"] == "two-sided"]
-    claims = [p for _, p in entries if p["covered"] is not None and p["kind"] != "unconstrained"]
     out: dict = {"scenes": len(rows), "failed": [r["scene"] for r in rows if "error" in r]}
     out["E_finite"] = _median_stat(finite)
     out["E_within_50"] = _share([p["error"] <= 50.0 for p in e])
@@ -171,18 +245,49 @@ def summarise(rows: list[dict]) -> dict:
         out[key] = _median_stat(
             [p["error"] for n, p in entries if n == key and p["error"] is not None]
         )
-    out["coverage"] = _share([bool(p["covered"]) for p in claims])
-    out["coverage"]["unconstrained"] = sum(
-        p["kind"] == "unconstrained" and p["covered"] is not None for _, p in entries
+    out["coverage"] = _coverage([(p["kind"], p["covered"]) for _, p in entries])
+    out["coverage"]["methods"] = _counts(
+        p.get("method") or "not recorded" for _, p in entries if p["covered"] is not None
     )
+    laplace = [p.get("laplace") for _, p in entries if p.get("laplace") is not None]
+    out["coverage_laplace"] = _coverage([(p["kind"], p["covered"]) for p in laplace])
+    out["contact"] = _counts(contact_label(r) for r in good)
     futures = [r["future_cd_mm2"] for r in good if r["future_cd_mm2"] is not None]
     out["future_cd"] = {"value": statistics.fmean(futures) if futures else None, "n": len(futures)}
     times = [r["time_s"] for r in good]
     out["time"] = {"value": max(times) if times else None, "n": len(times)}
-    for key, _title, op, target, _unit in TARGETS:
+    for key, _title, op, target, _unit in (*TARGETS, LAPLACE_TARGET):
         stat = out[key]
         stat.update(op=op, target=target, met=_meets(stat["value"], op, target))
     return out
+
+
+def _coverage(intervals: list[tuple[str | None, bool | None]]) -> dict:
+    """Of (kind, covered) pairs with a known truth: the share of those that claim something
+    holding it, and the number of unconstrained ones (which hold any value)."""
+    judged = [(kind, covered) for kind, covered in intervals if covered is not None]
+    out = _share([bool(covered) for kind, covered in judged if kind != "unconstrained"])
+    out["unconstrained"] = sum(kind == "unconstrained" for kind, _ in judged)
+    return out
+
+
+def _counts(labels) -> dict[str, int]:
+    """How often each label occurs, most frequent first."""
+    counts: dict[str, int] = {}
+    for label in labels:
+        counts[label] = counts.get(label, 0) + 1
+    return dict(sorted(counts.items(), key=lambda item: -item[1]))
+
+
+def contact_label(row: dict) -> str:
+    """The contact a row identified with: 'single_field (auto)', 'multi_field (recipe)' (the
+    recipe's fixed mode; also for rows from before rows recorded it), or '-' (a simulator
+    without contact modes)."""
+    contact = row.get("contact", UNRECORDED_CONTACT)
+    if not contact:
+        return "-"
+    how = "auto" if contact.get("choice") == "auto" else "recipe"
+    return f"{contact.get('mode')} ({how})"
 
 
 def _median_stat(values: list[float]) -> dict:
@@ -215,7 +320,9 @@ def make_table(rows: list[dict]) -> dict:
 
 def _cell(p: dict | None) -> str:
     """One parameter of one object: gauge-free / raw error (or degrees, or raw), then the
-    interval's kind and whether it holds the truth."""
+    interval's method, kind and whether it holds the truth, and after ';' the same of the
+    Laplace interval from the same probes where the run's interval is another method's (a
+    ';' because a '|' would end the markdown cell)."""
     if p is None:
         return "-"
     if p["deg"] is not None:
@@ -225,14 +332,30 @@ def _cell(p: dict | None) -> str:
     else:
         text = _fmt(p["raw"])
     if p["kind"] is not None:
-        mark = "" if p["covered"] is None else (" in" if p["covered"] else " out")
-        text += f" [{KINDS.get(p['kind'], p['kind'])}{mark}]"
+        method = p.get("method")
+        own = _interval_text(p["kind"], p["covered"], method)
+        laplace = p.get("laplace")
+        if laplace is not None and method not in (None, "laplace"):  # else they are the same
+            own += "; " + _interval_text(laplace["kind"], laplace["covered"], "laplace")
+        text += f" [{own}]"
     return text
 
 
+def _interval_text(kind: str, covered: bool | None, method: str | None) -> str:
+    """'sw 2s in': the method (left out where not recorded), the kind, whether it holds."""
+    mark = "" if covered is None else (" in" if covered else " out")
+    name = "" if method is None else f"{METHODS.get(method, method)} "
+    return f"{name}{KINDS.get(kind, kind)}{mark}"
+
+
 def markdown(table: dict) -> str:
-    """Per object errors, per scene CD/EMD/time/memory, and the summary against the targets."""
-    rows, summary = table["rows"], table["summary"]
+    """Per object errors, per scene contact/CD/EMD/time/memory, and the summary against the
+    targets."""
+    rows = table["rows"]
+    return "\n\n".join([_object_table(rows), _scene_table(rows), _summary(table["summary"])])
+
+
+def _object_table(rows: list[dict]) -> str:
     used = [
         (n, title)
         for n, title in PARAMS
@@ -252,29 +375,68 @@ def markdown(table: dict) -> str:
         "Errors of densities and stresses: gauge-free / raw (%); friction angle: absolute (deg);"
         " v0: |v - v_true| / |v_true| (%). [2s] two-sided 95 % interval, [>=] lower bound only,"
         " [<=] upper bound only, [free] unconstrained; in / out: the interval holds / misses the"
-        " truth (densities and stresses after the density gauge).",
-        "",
-        "| scene | observed CD mm^2 | observed EMD mm | future CD mm^2 | future EMD mm | time s"
-        " | peak memory GB |",
-        "|---|---|---|---|---|---|---|",
+        " truth (densities and stresses after the density gauge); sw / lap: a sandwich / Laplace"
+        " interval (no name: the row does not record the method), after ';' the Laplace interval"
+        " from the same probes, kept in the run's identify history.",
+    ]
+    return "\n".join(lines)
+
+
+def _scene_table(rows: list[dict]) -> str:
+    lines = [
+        "| scene | contact | observed CD mm^2 | observed EMD mm | future CD mm^2 | future EMD mm"
+        " | time s | peak memory GB |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "error" in r:
             continue
-        values = [r[key] for key in _SCENE_COLUMNS]
-        lines.append(f"| {r['scene']} | " + " | ".join(_fmt(v) for v in values) + " |")
-    lines += ["", "| quantity | n | value | target | status |", "|---|---|---|---|---|"]
-    for key, title, op, target, unit in TARGETS:
+        values = " | ".join(_fmt(r[key]) for key in _SCENE_COLUMNS)
+        lines.append(f"| {r['scene']} | {_contact_cell(r)} | {values} |")
+    lines += [
+        "",
+        "contact: the contact between objects identification used: (recipe) the recipe's fixed"
+        " simulator.contact; (auto) chosen from the observed frames, followed by each mode's"
+        " loss over them after its brief fit (docs/PHYSICS.md, Choosing the contact from the"
+        " data).",
+    ]
+    return "\n".join(lines)
+
+
+def _contact_cell(row: dict) -> str:
+    """``contact_label`` and, for a choice from the data, each mode's loss."""
+    losses = (row.get("contact") or {}).get("losses")
+    if not losses:
+        return contact_label(row)
+    each = ", ".join(f"{m} {'diverged' if v is None else _fmt(v)}" for m, v in losses.items())
+    return f"{contact_label(row)}: {each}"
+
+
+def _summary(summary: dict) -> str:
+    """The quantities against their targets, the Laplace intervals' coverage where the rows
+    hold them, and the counts behind them."""
+    lines = ["| quantity | n | value | target | status |", "|---|---|---|---|---|"]
+    laplace = summary.get("coverage_laplace") or {"n": 0, "unconstrained": 0}
+    shown = (*TARGETS, LAPLACE_TARGET) if laplace["n"] + laplace["unconstrained"] else TARGETS
+    for key, title, op, target, unit in shown:
         lines.append(_summary_line(title, summary[key], f"{op} {target:g} {unit}", unit))
     extra = [
         f"E intervals one-sided: {summary['E_not_finite'].get('one_sided', 0)}",
         f"unconstrained intervals (not counted in the coverage): "
         f"{summary['coverage'].get('unconstrained', 0)}",
     ]
-    lines.append("\n" + "; ".join(extra) + ".")
+    if laplace["n"] + laplace["unconstrained"]:
+        extra.append(f"unconstrained Laplace intervals: {laplace['unconstrained']}")
+    for name, counts in (
+        ("interval methods", summary["coverage"].get("methods")),
+        ("contact", summary.get("contact")),
+    ):
+        if counts:
+            extra.append(f"{name}: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    text = "\n".join(lines) + "\n\n" + "; ".join(extra) + "."
     if summary["failed"]:
-        lines.append(f"\nfailed scenes: {', '.join(summary['failed'])}")
-    return "\n".join(lines) + "\n"
+        text += f"\n\nfailed scenes: {', '.join(summary['failed'])}"
+    return text + "\n"
 
 
 _SCENE_COLUMNS = (

@@ -168,6 +168,134 @@ def test_a_missed_interval_lowers_the_coverage():
     assert s["coverage"]["count"] == 1 and s["coverage"]["n"] == 2  # the two E intervals
 
 
+def _tagged(intervals: dict, method: str) -> dict:
+    """``intervals`` (obj -> name -> interval) with each interval naming its ``method``."""
+    return {o: {n: {**i, "method": method} for n, i in p.items()} for o, p in intervals.items()}
+
+
+def test_contact_interval_method_and_laplace_intervals_of_the_same_runs():
+    bench = _bench()
+    # scene A: identify.contact auto chose single_field; sandwich intervals, and the history's
+    # interval record keeps the Laplace intervals of the same probes. Density gauge 0.8: E of
+    # object 1 is exact in the gauge (1.25e5 * 0.8 = 1e5), object 2's is 2e5 * 0.8 = 1.6e5
+    a = _metrics(
+        e_true=[1e5, 1e5], e_value=[1.25e5, 2e5], rho1=800.0, kind="two-sided", future_cd=1.0
+    )
+    sandwich = {
+        "obj1": {"E": _interval(1.0e5, 1.5e5, "two-sided")},  # 0.8e5..1.2e5 in the gauge: in
+        "obj2": {
+            "E": _interval(1.0e5, None, "lower-bound"),  # >= 0.8e5: in
+            "yield_stress": _interval(None, None, "unconstrained"),
+        },
+    }
+    laplace = {
+        "obj1": {"E": _interval(1.2e5, 1.3e5, "two-sided")},  # 0.96e5..1.04e5: in (raw: out)
+        "obj2": {
+            "E": _interval(1.9e5, 2.1e5, "two-sided"),  # 1.52e5..1.68e5: out
+            "yield_stress": _interval(2400.0, 2450.0, "two-sided"),  # 1920..1960 vs 2000: out
+        },
+    }
+    a["params"]["intervals"] = _tagged(sandwich, "sandwich")
+    a["params"]["contact"] = {
+        "choice": "auto",
+        "mode": "single_field",
+        "recipe_mode": "multi_field",
+        "losses": {"multi_field": 0.04, "single_field": 0.01},
+        "margin": 0.05,
+        "frames": 9,
+    }
+    history_a = [
+        {"phase": "param", "iteration": 0, "loss": 1.0},
+        {
+            "phase": "intervals",
+            "method": "sandwich",
+            "intervals": _tagged(sandwich, "sandwich"),
+            "laplace": _tagged(laplace, "laplace"),
+        },
+    ]
+    # scene B: the recipe's fixed contact and Laplace intervals (the history's record has no
+    # separate Laplace ones: its intervals are Laplace's); E of object 2 is missed
+    b = _metrics(
+        e_true=[1e5, 1e5], e_value=[1e5, 2e5], rho1=1000.0, kind="two-sided", future_cd=1.0
+    )
+    b["params"]["intervals"] = _tagged(b["params"]["intervals"], "laplace")
+    b["params"]["contact"] = {"choice": "fixed", "mode": "single_field"}
+    history_b = [{"phase": "intervals", "method": "laplace", "intervals": b["params"]["intervals"]}]
+    # scene C: a simulator without contact modes, no history
+    c = _metrics(
+        e_true=[1e5, 1e5], e_value=[1e5, 1e5], rho1=1000.0, kind="two-sided", future_cd=1.0
+    )
+    kw = {"time_s": 1.0, "data": {}, "device": "X", "code": "c"}
+    rows = [
+        bench.scene_row("A", a, history=history_a, **kw),
+        bench.scene_row("B", b, history=history_b, **kw),
+        bench.scene_row("C", c, **kw),
+    ]
+    assert rows[0]["contact"] == {k: v for k, v in a["params"]["contact"].items() if k != "frames"}
+    assert rows[2]["contact"] is None
+    e1 = rows[0]["objects"]["1"]["params"]["E"]
+    assert e1["method"] == "sandwich" and e1["covered"] is True
+    assert e1["laplace"] == {"kind": "two-sided", "covered": True}
+    yield2 = rows[0]["objects"]["2"]["params"]["yield_stress"]
+    assert yield2["kind"] == "unconstrained" and yield2["laplace"]["covered"] is False
+    assert rows[1]["objects"]["2"]["params"]["E"]["laplace"] == {
+        "kind": "two-sided",
+        "covered": False,
+    }
+    assert rows[2]["objects"]["1"]["params"]["E"]["laplace"] is None
+    table = bench.make_table(rows)
+    s = table["summary"]
+    # the runs' own intervals: A's two E in (its yield stress unconstrained), B's E 1 in and
+    # E 2 out, C's two in (its intervals name no method)
+    assert (s["coverage"]["count"], s["coverage"]["n"], s["coverage"]["unconstrained"]) == (
+        5,
+        6,
+        1,
+    )
+    assert s["coverage"]["methods"] == {"sandwich": 3, "laplace": 2, "not recorded": 2}
+    # the Laplace intervals of A and B (C's history holds none): A's E 1, B's E 1 in; A's E 2,
+    # A's yield stress, B's E 2 out
+    laplace_stat = s["coverage_laplace"]
+    assert (laplace_stat["count"], laplace_stat["n"], laplace_stat["unconstrained"]) == (2, 5, 0)
+    assert laplace_stat["value"] == pytest.approx(40.0) and laplace_stat["met"] is False
+    assert s["contact"] == {"single_field (auto)": 1, "single_field (recipe)": 1, "-": 1}
+    text = bench.markdown(table)
+    assert "| A | 1 elastic | 0 / 25 [sw 2s in; lap 2s in] |" in text
+    assert "| A | 2 plasticine | 60 / 100 [sw >= in; lap 2s out] |" in text
+    assert "| B | 2 plasticine | 100 / 100 [lap 2s out] |" in text
+    assert "| C | 1 elastic | 0 / 0 [2s in] |" in text
+    assert "| A | single_field (auto): multi_field 0.04, single_field 0.01 | 1 |" in text
+    assert "| B | single_field (recipe) | 1 |" in text and "| C | - | 1 |" in text
+    assert (
+        "| 95 % Laplace intervals of the same runs holding the truth | 5 | 40 % (2 of 5) "
+        "| >= 90 % | not met |"
+    ) in text
+    assert "interval methods: sandwich 3, laplace 2, not recorded 2" in text
+
+
+def test_committed_rows_without_contact_or_method_render_as_before():
+    """Rows made before rows recorded the contact and the interval method: the recipe's
+    multi_field contact, no method, no Laplace line, and the committed summary's numbers."""
+    bench = _bench()
+    folder = ROOT / "benchmarks" / "data" / "genesis_identify"
+    committed = json.loads((folder / "table.json").read_text())
+    rows = [json.loads(p.read_text()) for p in sorted(folder.glob("scene_*.json"))]
+    assert rows and all("contact" not in r for r in rows)
+    table = bench.make_table(rows)
+    s = table["summary"]
+    for key, *_ in bench.TARGETS:
+        for field in ("value", "n", "count", "worst", "met"):
+            assert s[key].get(field) == committed["summary"][key].get(field), (key, field)
+    assert s["coverage_laplace"]["n"] == 0 and s["contact"] == {"multi_field (recipe)": len(rows)}
+    judged = s["coverage"]["n"] + s["coverage"]["unconstrained"]
+    assert s["coverage"]["methods"] == {"not recorded": judged}
+    text = bench.markdown(table)
+    assert "| E-S | 1 elastic | 63.3 / 52.8 [free in] |" in text
+    assert "| E-S | multi_field (recipe) | 132 |" in text
+    assert "Laplace intervals of the same runs" not in text
+    assert f"interval methods: not recorded {judged}; contact: multi_field (recipe) 13." in text
+
+
 def test_results_section_replacement_changes_only_that_section(tmp_path):
     bench = _bench()
     table = bench.make_table(_rows(bench)[:2])
@@ -247,6 +375,16 @@ def test_end_to_end_on_the_tiny_genesis_scene(tmp_path):
     assert sand["E"]["kind"] in bench.KINDS and sand["E"]["gauge_free"] is not None
     assert row["device"] == "CPU" and row["data"]["seed"] == truth["generator_params"]["seed"]
     assert table["summary"]["initial_velocity"]["n"] == 2
+    # the recipe chooses the contact from the data and asks for sandwich intervals, whose
+    # history keeps the Laplace intervals of the same probes
+    assert row["contact"]["choice"] == "auto" and row["contact"]["mode"] in row["contact"]["losses"]
+    assert set(row["contact"]["losses"]) == {"multi_field", "single_field"}
+    assert sand["E"]["method"] == "sandwich" and sand["E"]["laplace"]["kind"] in bench.KINDS
+    laplace = table["summary"]["coverage_laplace"]
+    assert laplace["n"] + laplace["unconstrained"] == sum(
+        table["summary"]["coverage"]["methods"].values()
+    )
     text = results.read_text()
     assert f"## {bench.SECTION}" in text and text.endswith("## From video\n\nkept\n")
     assert "--scenes SCENES --out OUT" in text and str(tmp_path) not in text
+    assert f"| E-S | {row['contact']['mode']} (auto): multi_field " in text
