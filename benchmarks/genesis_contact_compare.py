@@ -26,7 +26,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from genesis_identify import _fill, replace_section
+from genesis_identify import KEEP_MARKER, _fill, replace_section  # noqa: F401
 
 SECTION = "Contact mode on Genesis scenes"
 #: besides E, the parameter that tells each family apart (None: E only)

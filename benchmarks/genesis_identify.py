@@ -38,6 +38,7 @@ import traceback
 from pathlib import Path
 
 from genesis_identify_table import (  # noqa: F401 (other benchmarks import these from here)
+    KEEP_MARKER,
     KINDS,
     PARAMS,
     SECTION,

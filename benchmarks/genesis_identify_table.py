@@ -524,11 +524,17 @@ def _fill(text: str, **indents) -> str:
     return textwrap.fill(text, 100, break_long_words=False, break_on_hyphens=False, **indents)
 
 
+#: a line that starts the part of a section written by hand (the reading of its numbers): a
+#: regenerated section keeps everything from this line to the section's end
+KEEP_MARKER = "<!-- written by hand below: kept when the section above is regenerated -->"
+
+
 def replace_section(
     text: str, body: str, *, title: str = SECTION, before: str = SECTION_BEFORE
 ) -> str:
     """``text`` with its ``## title`` section (up to the next level-2 heading) replaced by
-    ``body``; a missing section goes before ``## before``, else at the end."""
+    ``body``; a missing section goes before ``## before``, else at the end. From a
+    ``KEEP_MARKER`` line on, the old section is kept after the new body."""
     lines = text.splitlines(keepends=True)
     heads = [i for i, line in enumerate(lines) if line.startswith("## ")]
     body = body.rstrip("\n") + "\n\n"
@@ -539,6 +545,9 @@ def replace_section(
             return text.rstrip("\n") + "\n\n" + body.rstrip("\n") + "\n"
         return "".join(lines[:at]) + body + "".join(lines[at:])
     end = next((i for i in heads if i > start), len(lines))
+    kept = next((i for i in range(start, end) if lines[i].strip() == KEEP_MARKER), None)
+    if kept is not None:  # the reading written by hand stays below the regenerated numbers
+        body += "".join(lines[kept:end]).rstrip("\n") + "\n\n"
     if end == len(lines):
         body = body.rstrip("\n") + "\n"
     return "".join(lines[:start]) + body + "".join(lines[end:])

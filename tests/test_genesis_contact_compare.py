@@ -95,3 +95,23 @@ def test_a_folder_without_rows_is_refused(tmp_path, compare_module):
     (tmp_path / "empty").mkdir()
     with pytest.raises(SystemExit, match="no parts/SCENE.json"):
         compare_module.read_rows(tmp_path / "empty")
+
+
+def test_a_section_keeps_its_hand_written_reading_when_regenerated(tmp_path, compare_module):
+    first = _write(tmp_path / "a", [_row("E-S", [40.0], 10.0, 100.0, 900.0)], parts=True)
+    second = _write(tmp_path / "b", [_row("E-S", [20.0], 12.0, 50.0, 1200.0)], parts=True)
+    results = tmp_path / "RESULTS.md"
+    results.write_text("# Results\n\n## From video\n\ntext\n")
+    compare_module.main([str(first), str(second), "--write-results", str(results)])
+    marker = compare_module.KEEP_MARKER
+    text = results.read_text().replace(
+        "\n## From video", f"\n{marker}\n**Reading.** kept words.\n\n## From video"
+    )
+    results.write_text(text)
+    second_rows = [_row("E-S", [5.0], 12.0, 50.0, 1200.0)]
+    _write(tmp_path / "b", second_rows, parts=True)
+    compare_module.main([str(first), str(second), "--write-results", str(results)])
+    text = results.read_text()
+    assert "40 / 5 |" in text  # the numbers are the new ones
+    assert text.count(marker) == 1 and "**Reading.** kept words." in text
+    assert text.index("kept words") < text.index("## From video")
