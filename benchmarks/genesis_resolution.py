@@ -195,11 +195,13 @@ def describe(plan: dict) -> str:
 def open_study(out: Path, record: dict) -> None:
     """Make ``out`` this study's folder: a new or empty one gets ``study.json`` first; one
     holding it must hold the same recipe and overrides (a rerun resumes); any other non-empty
-    folder is refused, so no file of the user's is overwritten."""
+    folder is refused, so no file of the user's is overwritten. ``record["format"]`` names the
+    kind of study (benchmarks/genesis_noise.py keeps its own record in the same file), so one
+    kind's folder is refused to another."""
     marker = out / STUDY
     entries = sorted(os.listdir(out)) if out.is_dir() else []
     if STUDY in entries:
-        held = read_study(out)
+        held = read_study(out, record["format"])
         if (held.get("recipe"), held.get("overrides")) != (record["recipe"], record["overrides"]):
             raise SystemExit(
                 f"--out {out} holds a study of {held.get('recipe')} with --set "
@@ -222,13 +224,13 @@ def open_study(out: Path, record: dict) -> None:
     os.replace(temporary, marker)
 
 
-def read_study(out: Path) -> dict:
+def read_study(out: Path, fmt: str = FORMAT) -> dict:
     try:
         held = json.loads((out / STUDY).read_text())
     except (OSError, ValueError) as exc:
         raise SystemExit(f"{out / STUDY}: not a readable study record ({exc})") from None
-    if not isinstance(held, dict) or held.get("format") != FORMAT:
-        raise SystemExit(f"{out / STUDY}: not a {FORMAT} record; choose another --out")
+    if not isinstance(held, dict) or held.get("format") != fmt:
+        raise SystemExit(f"{out / STUDY}: not a {fmt} record; choose another --out")
     return held
 
 

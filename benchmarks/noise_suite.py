@@ -14,6 +14,16 @@ reuses finished runs.
 
 PSNR and SSIM need images of the prediction, which the oracle path (no Gaussians) does not
 have; the paper's noise tables perturb Gaussians and report them.
+
+That is the own-synth mode: one scene the recipe generates. With ``--scenes DIR`` (a suite
+folder of ``mosiv data suite DIR --source genesis --ranges wide``) every Genesis scene is
+identified as ``benchmarks/genesis_identify.py`` does (``recipes/genesis_oracle.yaml``), at each
+noise setting, one process per (scene, setting) (``--part``; ``--merge`` builds the table), and
+``--write-results`` writes the section "Sensitivity to reconstruction noise on Genesis scenes";
+see ``benchmarks/genesis_noise.py``:
+
+    python benchmarks/noise_suite.py --scenes runs/genesis --out runs/genesis_noise \\
+        --jobs 8 --gpus-per-task 0.125 --write-results docs/RESULTS.md
 """
 
 from __future__ import annotations
@@ -21,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import time
 import traceback
 from pathlib import Path
@@ -70,13 +81,28 @@ def _run_one(job: dict) -> dict:
     return row
 
 
+def settings(levels) -> list[tuple[str, float]]:
+    """(kind, alpha) of every run: the reference ("none", 0) first, then every kind at every
+    level."""
+    return [("none", 0.0)] + [(kind, alpha) for kind in KINDS for alpha in levels]
+
+
+def setting_name(kind: str, alpha: float) -> str:
+    """The run's folder name: "reference", or "iid-0.02" (kind and alpha)."""
+    return "reference" if kind == "none" else f"{kind}-{alpha:g}"
+
+
+def noise_overrides(kind: str, alpha: float) -> list[str]:
+    """The recipe overrides that add the noise of ``kind`` at ``alpha`` to the oracle's points."""
+    return [] if kind == "none" else [f"reconstructor.{KINDS[kind]}={alpha}"]
+
+
 def jobs_for(*, recipe: Path, out: Path, extra: list[str], threads: int, levels) -> list[dict]:
     """The reference (alpha 0) first, then every kind at every level; one shared scene."""
-    settings = [("none", 0.0)] + [(kind, alpha) for kind in KINDS for alpha in levels]
     jobs = []
-    for kind, alpha in settings:
-        name = "reference" if kind == "none" else f"{kind}-{alpha:g}"
-        noise = [] if kind == "none" else [f"reconstructor.{KINDS[kind]}={alpha}"]
+    for kind, alpha in settings(levels):
+        name = setting_name(kind, alpha)
+        noise = noise_overrides(kind, alpha)
         overrides = [f"scene.path={out / 'scene'}", *extra, *noise, f"output.dir={out / name}"]
         jobs.append(
             {
@@ -177,30 +203,89 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--recipe", type=Path, default=Path("recipes/paper.yaml"))
-    parser.add_argument("--out", type=Path, default=Path("runs/noise_suite"))
+#: flags of the Genesis mode only (given without --scenes or --merge they are refused)
+GENESIS_FLAGS = ("only", "set", "write_results", "part", "noise", "alpha")
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    """Both modes' flags; the mode's checks (``check_mode``) follow."""
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0],
+        epilog="Own-synth mode: --recipe, --out, --levels, --threads and key=value overrides. "
+        "Genesis mode (with --scenes, or --merge): benchmarks/genesis_noise.py.",
+    )
+    parser.add_argument(
+        "--recipe",
+        type=Path,
+        default=None,
+        help="default: recipes/paper.yaml, with --scenes recipes/genesis_oracle.yaml",
+    )
+    parser.add_argument("--out", type=Path, default=None, help="default: runs/noise_suite")
     add_scale_flags(parser, "settings")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
+    parser.add_argument("--threads", type=int, default=None, help="torch threads per run (1)")
     parser.add_argument(
         "--levels", default=",".join(f"{a:g}" for a in LEVELS), help="comma-separated alphas"
     )
-    parser.add_argument("overrides", nargs="*", help="key=value recipe overrides for every run")
+    genesis = parser.add_argument_group("Genesis mode")
+    genesis.add_argument("--scenes", type=Path, help="a `mosiv data suite --source genesis` folder")
+    genesis.add_argument("--only", default=None, help="comma-separated scene names (E-P,...)")
+    genesis.add_argument("--set", action="append", default=[], help="key=value recipe override")
+    genesis.add_argument("--write-results", type=Path, default=None, help="e.g. docs/RESULTS.md")
+    genesis.add_argument("--merge", action="store_true", help="only merge OUT/parts into tables")
+    genesis.add_argument("--part", action="store_true", help="run one scene (--only) and noise")
+    genesis.add_argument("--noise", choices=("none", *KINDS), help="with --part: the noise kind")
+    genesis.add_argument("--alpha", type=float, help="with --part: the noise level (0 for none)")
+    parser.add_argument("overrides", nargs="*", help="own-synth: key=value recipe overrides")
     args = parser.parse_args(argv)
     try:
-        levels = tuple(float(a) for a in args.levels.split(",") if a.strip())
+        args.levels = tuple(float(a) for a in args.levels.split(",") if a.strip())
     except ValueError:
-        raise SystemExit(f"--levels {args.levels!r}: give comma-separated numbers") from None
-    if not levels or any(a <= 0 for a in levels):
-        raise SystemExit(f"--levels {args.levels!r}: every level must be > 0")
+        parser.error(f"--levels {args.levels!r}: give comma-separated numbers")
+    if not args.levels or any(a <= 0 for a in args.levels):
+        parser.error(f"--levels {','.join(f'{a:g}' for a in args.levels)}: every level must be > 0")
+    check_mode(parser, args)
+    return args
+
+
+def check_mode(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse flags of the other mode, so a run never silently ignores one."""
+    args.genesis = args.scenes is not None or args.merge
+    if args.genesis:
+        if args.overrides:
+            parser.error(
+                f"{args.overrides[0]}: with --scenes give recipe overrides as --set key=value"
+            )
+        if args.threads is not None:
+            parser.error("--threads: own-synth mode only (each Genesis run is a process)")
+        if args.out is None:
+            parser.error("--out is required with --scenes or --merge")
+        return
+    given = [
+        f"--{f.replace('_', '-')}"
+        for f in GENESIS_FLAGS
+        if getattr(args, f) not in (None, False, [])
+    ]
+    if given:
+        parser.error(f"{given[0]}: only with --scenes (the Genesis mode)")
+    args.recipe = args.recipe or Path("recipes/paper.yaml")
+    args.out = args.out or Path("runs/noise_suite")
+    args.threads = 1 if args.threads is None else args.threads
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    args = parse_args(argv)
+    if args.genesis:
+        import genesis_noise
+
+        return genesis_noise.run(args, argv)
     result = run_suite(
         recipe=args.recipe,
         out=args.out,
         extra=args.overrides,
         scale=scale_options(args),
         threads=args.threads,
-        levels=levels,
+        levels=args.levels,
     )
     print(markdown(result["rows"]))
     return 0
