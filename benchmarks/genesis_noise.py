@@ -108,8 +108,8 @@ def write_part(path: Path, row: dict) -> None:
     os.replace(partial, path)
 
 
-def run_part(args, root: Path, name: str) -> int:
-    """One (scene, noise setting) in this process: its row into ``parts/``; 1 when it failed."""
+def part_setting(args) -> tuple[str, float]:
+    """(kind, alpha) of a ``--part`` run from ``--noise`` and ``--alpha``."""
     if args.noise is None or (args.noise != "none" and args.alpha is None):
         raise SystemExit("--part: give --noise none, or --noise iid|shared with --alpha A")
     alpha = 0.0 if args.alpha is None else args.alpha
@@ -117,9 +117,14 @@ def run_part(args, root: Path, name: str) -> int:
         raise SystemExit(
             f"--noise {args.noise} --alpha {alpha:g}: alpha is 0 without noise and > 0 with it"
         )
+    return args.noise, alpha
+
+
+def run_part(args, root: Path, name: str, kind: str, alpha: float) -> int:
+    """One (scene, noise setting) in this process: its row into ``parts/``; 1 when it failed."""
     recipe = args.recipe or RECIPE
-    row = run_setting(root / name, args.noise, alpha, recipe=recipe, out=args.out, sets=args.set)
-    write_part(part_path(args.out, name, args.noise, alpha), row)
+    row = run_setting(root / name, kind, alpha, recipe=recipe, out=args.out, sets=args.set)
+    write_part(part_path(args.out, name, kind, alpha), row)
     return 1 if "error" in row else 0
 
 
@@ -348,7 +353,8 @@ def markdown(table: dict, *, plot_link: str | None = None) -> str:
 def section_text(table: dict, *, command: str, date: str) -> str:
     """The RESULTS.md section: what was run, on what, and the tables."""
     rows, record = table["rows"], table.get("study") or {}
-    one_per_scene = list({r["scene"]: r for r in rows}.values())
+    # a scene's row that says where the scene came from (an error row of a dead process does not)
+    one_per_scene = list({r["scene"]: r for r in sorted(rows, key=lambda r: "data" in r)}.values())
     devices = sorted({r["device"] for r in rows if _ok(r) and r.get("device")})
     codes = sorted({r["code"] for r in rows if r.get("code")})
     levels = sorted({r["alpha"] for r in rows if r["kind"] != "none"})
@@ -404,8 +410,9 @@ def run(args, argv: list[str]) -> int:
         if args.part:
             if len(names) != 1:
                 raise SystemExit(f"--part runs one scene: give --only one of {', '.join(names)}")
+            kind, alpha = part_setting(args)
             open_study(args.out, record)
-            return run_part(args, args.scenes, names[0])
+            return run_part(args, args.scenes, names[0], kind, alpha)
         scale = scale_options(args)
         open_study(args.out, record)
         run_study(args, recipe, names, scale)
