@@ -3,7 +3,9 @@
 MOSIV's simulators model objects that touch in two ways (``simulator.contact``, docs/PHYSICS.md
 "Contact between objects"): ``multi_field``, one velocity field per object with Coulomb
 friction between them, where bodies part after an impact, and ``single_field``, one field for
-all objects, where bodies that touch stick (classic MPM, and how Genesis solves its scenes). A
+all objects, where bodies that touch share velocities with no friction between them (classic
+MPM, and how Genesis solves its scenes; plastic bodies stay together, elastic ones can spring
+apart). A
 recording does not say which of the two its world has, so ``identify.contact: auto`` lets the
 data decide:
 

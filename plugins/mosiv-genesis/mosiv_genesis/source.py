@@ -33,8 +33,8 @@ from mosiv_genesis.options import GENESIS_KINDS, GenesisOptions
 # adds Coulomb friction (its coup_friction, 0.1 by default) on the nodes at or below it: MOSIV's
 # ground with ground_friction 0.1 (docs/PHYSICS.md, Ground friction)
 MPM_BOUNDARY_CELLS = 3
-# Genesis' MPM solves every body on one grid: bodies that touch share grid velocities and stick
-# (no friction coefficient between them); gt/params.json says so, for identification
+# Genesis' MPM solves every body on one grid: bodies that touch share grid velocities (no
+# friction coefficient between them; elastic bodies can still spring apart); gt/params.json says so, for identification
 CONTACT_MODE = "single_grid"
 
 
