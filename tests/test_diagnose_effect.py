@@ -21,7 +21,7 @@ from mosiv_framework.diagnose.decide import DecideOptions, Evidence, apply_effec
 from mosiv_framework.diagnose.effect import measure_effect, resolved, summarise_effect
 from mosiv_framework.diagnose.replay import replay_diagnosis
 from mosiv_framework.diagnose.report import MM2
-from mosiv_framework.registry import get_registry
+from mosiv_framework.testing.pytest_plugin import require_simulator
 from mosiv_framework.testing.shapes import block, default_params
 from mosiv_framework.types import World
 
@@ -31,9 +31,7 @@ FRAMES = 4
 
 
 def test_a_steady_acceleration_moves_a_free_body_by_half_a_t_squared():
-    if "warp-mpm" not in get_registry().names("simulator"):  # an optional plugin
-        pytest.skip("simulator 'warp-mpm' is not installed")
-    sim = get_registry().create(
+    sim = require_simulator("warp-mpm").create(
         "simulator", "warp-mpm", {"grid": 16, "substeps": SUBSTEPS, "device": "cpu"}
     )
     world = World((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), gravity=(0.0, 0.0, 0.0), ground_height=None)
