@@ -380,13 +380,7 @@ def profile_backward(setup: Setup, args) -> Profile:
     work = run.n * run.substeps
     return Profile(
         mode="backward",
-        device=args.device,
-        timing="cuda activity" if cuda else "cpu wall per launch group",
-        particles=run.n,
-        grid=args.grid,
-        substeps=run.substeps,
-        family=args.family,
-        order=args.order,
+        **_workload(run, args, cuda),
         rows=rows,
         total_ms=total,
         wall_ms=rec.wall_ms,
@@ -402,6 +396,19 @@ def profile_backward(setup: Setup, args) -> Profile:
     )
 
 
+def _workload(run, args, cuda: bool) -> dict:
+    """The fields of a Profile that say what was timed and how, the same in both modes."""
+    return {
+        "device": args.device,
+        "timing": "cuda activity" if cuda else "cpu wall per launch group",
+        "particles": run.n,
+        "grid": args.grid,
+        "substeps": run.substeps,
+        "family": args.family,
+        "order": args.order,
+    }
+
+
 def profile_forward(setup: Setup, args) -> Profile:
     run, cuda = setup.run, wp.get_device(args.device).is_cuda
     start = start_state(setup, args.frame)
@@ -415,13 +422,7 @@ def profile_forward(setup: Setup, args) -> Profile:
     total = sum(r.ms for r in rows)
     return Profile(
         mode="forward",
-        device=args.device,
-        timing="cuda activity" if cuda else "cpu wall per launch group",
-        particles=run.n,
-        grid=args.grid,
-        substeps=run.substeps,
-        family=args.family,
-        order=args.order,
+        **_workload(run, args, cuda),
         rows=rows,
         total_ms=total,
         wall_ms=wall * 1e3,
