@@ -14,6 +14,17 @@ On CUDA one frame's adjoint (re-simulation, tapes and their reverse launches: ab
 per substep) is captured once into a graph and replayed for every frame and, because the
 simulator keeps the run, for every later rollout of the same layout: launched from Python it
 cost about 2 ms per substep, far more than the kernels themselves.
+
+Parameter gradients: in Warp the adjoint of a read a[i] is atomic_add(adj_a[i]), so taped
+kernels reading the per-object tables in every particle thread would add every particle's
+contribution into the same few addresses each substep: contended atomics (they dominated the
+adjoint P2G and G2P on a GPU) summed in float32 in schedule order. Instead each particle gets its
+own copy of its object's law parameters, density and viscosity once per backward
+(state.ParticleParams, ``begin_parameters``), the taped P2G and G2P read the copy (their
+adjoints add into one address per particle), and after each frame the per-particle gradients
+are summed per object in float64 (``collect_parameter_gradients``). The grid kernels still read
+their per-member coefficients (body acceleration, drag, ground, friction, the expression's) per
+node from the tables: those adjoints remain float32 atomics onto a few addresses.
 """
 
 from __future__ import annotations
@@ -22,7 +33,7 @@ import torch
 import warp as wp
 
 from mosiv_warp_mpm import kernels as K
-from mosiv_warp_mpm.state import Grid, NodeBox, ParticleState
+from mosiv_warp_mpm.state import Grid, NodeBox, ParticleParams, ParticleState
 
 
 class WarpRollout(torch.autograd.Function):
@@ -48,11 +59,13 @@ class WarpRollout(torch.autograd.Function):
             grad_pos = torch.zeros(ctx.frames + 1, run.n, 3, device=torch_dev)
         grad_pos = grad_pos.to(torch_dev, torch.float32)
         carry_x = wp.to_torch(ws.carry.x.grad)
+        ws.begin_parameters(run)
         try:
             for f in range(ctx.frames, 0, -1):
                 carry_x += grad_pos[f]
                 _warp_waits_for_torch(run.device)  # the graph reads carry_x
                 ws.adjoint_frame(run, run.checkpoints[f - 1], frame=f)
+                ws.collect_parameter_gradients(run)
         finally:
             run.release_checkpoints()  # the run may now serve the next differentiable rollout
         carry_x += grad_pos[0]
@@ -71,6 +84,30 @@ def _warp_waits_for_torch(device: str) -> None:
         wp.get_stream(device).wait_stream(wp.stream_from_torch(torch_stream))
 
 
+def _torch_waits_for_warp(device: str) -> None:
+    """Order torch's current stream after work already queued on Warp's stream (CUDA only)."""
+    if wp.get_device(device).is_cuda:
+        torch_stream = torch.cuda.current_stream(wp.device_to_torch(device))
+        torch_stream.wait_stream(wp.stream_to_torch(wp.get_stream(device)))
+
+
+def segment_sums(values: torch.Tensor, index: torch.Tensor, count: int) -> torch.Tensor:
+    """Sum the rows of ``values`` by segment.
+
+    Args:
+        values: [N, C] rows (float64 for an accurate sum).
+        index: [N] segment of each row, in [0, count).
+        count: number of segments.
+
+    Returns:
+        [count, C]: row s is the sum of the rows whose index is s. One masked torch.sum per
+        segment (a tree reduction in a fixed order on every device, where index_add_ would add
+        with atomics in schedule order on CUDA); the segments are a rollout's few objects.
+    """
+    rows = [torch.where((index == s)[:, None], values, 0.0).sum(0) for s in range(count)]
+    return torch.stack(rows) if rows else values.new_zeros(0, values.shape[1])
+
+
 class BackwardWorkspace:
     """Buffers of one frame's adjoint: a particle state per substep boundary (values and
     gradients), one grid and ``carry``, whose gradient holds d(loss)/d(state) at a frame
@@ -81,12 +118,63 @@ class BackwardWorkspace:
         self.work = [ParticleState(n, dev, requires_grad=True) for _ in range(run.substeps + 1)]
         self.grid = Grid(run.layout, dev, requires_grad=True, batch=run.batch)
         self.carry = ParticleState(n, dev, requires_grad=True)
+        #: each particle's copy of its object's parameters, read by the taped P2G and G2P
+        self.gathered = ParticleParams(n, dev)
+        #: False: the taped kernels read the per-object tables instead, every particle's
+        #: parameter adjoint added by float32 atomics into the tables' few gradient entries each
+        #: substep (the accumulation before the copies; tests and warp_profile.py compare)
+        self.gather_parameters = True
+        #: float64 [B K, 7] per-object sums of the law parameters', density's and viscosity's
+        #: gradients over the frames back-propagated so far (``collect_parameter_gradients``)
+        self._parameter_sums: torch.Tensor | None = None
+        self._obj: torch.Tensor | None = None
         #: the captured adjoint, per value of MPMRun.centres (the launches differ)
         self._graphs: dict[bool, wp.Graph] = {}
 
     def nbytes(self) -> int:
         grid = sum(a.capacity * 2 for a in self.grid.arrays())
-        return sum(w.nbytes() for w in self.work) + grid
+        return sum(w.nbytes() for w in self.work) + grid + self.gathered.nbytes()
+
+    def begin_parameters(self, run) -> None:
+        """Before a rollout's backward (after ``run.tables.zero_grad``): copy each particle's
+        object's law parameters, density and viscosity into ``gathered`` (the tables hold the
+        rollout's values until its backward ends), zero their gradients and the sums."""
+        if not self.gather_parameters:
+            return
+        t = run.tables
+        wp.launch(
+            K.gather_particle_params,
+            dim=run.n,
+            inputs=[run.obj, t.params, t.rho, t.damping, t.k],
+            outputs=self.gathered.arrays(),
+            device=run.device,
+        )
+        for a in self.gathered.arrays():
+            a.grad.zero_()
+        self._obj = wp.to_torch(run.obj).long()
+        dev = wp.device_to_torch(run.device)
+        self._parameter_sums = torch.zeros(t.batch * t.k, 7, dtype=torch.float64, device=dev)
+
+    def collect_parameter_gradients(self, run) -> None:
+        """After a frame's adjoint: sum the particles' parameter gradients per object in
+        float64 into the rollout's sums, zero them for the next frame, and write the sums into
+        the tables' gradients (float32; viscosity summed over each member's objects), where
+        ObjectTables.grad_theta reads them."""
+        if not self.gather_parameters:
+            return
+        _torch_waits_for_warp(run.device)
+        g = self.gathered
+        grads = [wp.to_torch(a.grad) for a in g.arrays()]
+        per_particle = torch.cat([grads[0], grads[1][:, None], grads[2][:, None]], dim=1)
+        sums = self._parameter_sums
+        sums += segment_sums(per_particle.double(), self._obj, sums.shape[0])
+        for grad in grads:
+            grad.zero_()
+        t = run.tables
+        wp.to_torch(t.params.grad).copy_(sums[:, :5])
+        wp.to_torch(t.rho.grad).copy_(sums[:, 5])
+        wp.to_torch(t.damping.grad).copy_(sums[:, 6].view(t.batch, t.k).sum(1))
+        _warp_waits_for_torch(run.device)  # later Warp work reads or zeroes these arrays
 
     def adjoint_frame(self, run, start: ParticleState, *, frame: int) -> None:
         """carry.grad: d(loss)/d(state at the frame's end) -> d(loss)/d(state at its start);
@@ -143,11 +231,14 @@ class BackwardWorkspace:
     def record_substep(self, run, s: int, box: NodeBox) -> wp.Tape:
         """Substep ``s`` (work[s] -> work[s + 1]) on a fresh tape, ready for ``backward``: its
         grid update runs again, rebuilding the grid that later substeps overwrote; its G2P is
-        only recorded, since the re-simulation already wrote G2P's result into work[s + 1]."""
+        only recorded, since the re-simulation already wrote G2P's result into work[s + 1].
+        Both read the particles' parameter copies (``gathered``) unless
+        ``gather_parameters`` is off."""
+        gathered = self.gathered if self.gather_parameters else None
         tape = wp.Tape()
         with tape:
-            run.grid_update(self.work[s], self.grid, s, box)
-        run.record_g2p(tape, self.work[s], self.work[s + 1], self.grid, s)
+            run.grid_update(self.work[s], self.grid, s, box, gathered)
+        run.record_g2p(tape, self.work[s], self.work[s + 1], self.grid, s, gathered)
         return tape
 
     def finish(self) -> None:

@@ -100,6 +100,65 @@ def kelvin_voigt_tau(eta: float, F: wp.mat33, L: wp.mat33):
     return (eta * J) * (L + wp.transpose(L))
 
 
+@wp.func
+def p2g_particle(
+    p: int,
+    f: int,
+    law: int,
+    law_params: vec5,
+    density: float,
+    viscosity: float,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    plastic_J: wp.array(dtype=float),
+    volume: wp.array(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    with_normals: int,
+    ground_k: float,
+    grid_m: wp.array(dtype=float),
+    grid_mv: wp.array(dtype=wp.vec3),
+    grid_gm: wp.array(dtype=wp.vec3),
+    grid_pm: wp.array(dtype=wp.vec3),
+):
+    # MLS-MPM P2G of particle p into field f: m w, w (m v + (-dt 4/dx^2 V0 tau + m C) dpos),
+    # m grad w (contact normals); m = density V0, tau = the law's Kirchhoff stress + the
+    # material_damping viscous stress. On ground-layer nodes also w (m v + m C dpos): the
+    # arriving momentum, before this substep's stress impulse
+    m = density * volume[p]
+    inv_dx = 1.0 / dx
+    tau = kirchhoff_stress(law, law_params, F[p], C[p], plastic_J[p])
+    tau = tau + kelvin_voigt_tau(viscosity, F[p], C[p])
+    affine = (-dt * 4.0 * inv_dx * inv_dx * volume[p]) * tau + m * C[p]
+    xl = (x[p] - origin) * inv_dx
+    base = cell_base(xl)
+    fx = xl - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    W = bspline_weights(fx)
+    D = bspline_slopes(fx)
+    mom = m * v[p]
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                w = W[i, 0] * W[j, 1] * W[k, 2]
+                grad_w = inv_dx * wp.vec3(
+                    D[i, 0] * W[j, 1] * W[k, 2],
+                    W[i, 0] * D[j, 1] * W[k, 2],
+                    W[i, 0] * W[j, 1] * D[k, 2],
+                )
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                n = node_index(f, base[0] + i, base[1] + j, base[2] + k, nodes)
+                wp.atomic_add(grid_m, n, w * m)
+                wp.atomic_add(grid_mv, n, w * (mom + affine * dpos))
+                if float(base[2] + k) <= ground_k:  # for ground_restitution (ground_contact)
+                    wp.atomic_add(grid_pm, n, w * (mom + m * (C[p] * dpos)))
+                if with_normals != 0:  # contact normals matter only with several fields
+                    wp.atomic_add(grid_gm, n, m * grad_w)
+
+
 @wp.kernel
 def p2g(
     x: wp.array(dtype=wp.vec3),
@@ -126,40 +185,74 @@ def p2g(
     grid_gm: wp.array(dtype=wp.vec3),
     grid_pm: wp.array(dtype=wp.vec3),
 ):
-    # MLS-MPM P2G: m w, w (m v + (-dt 4/dx^2 V0 tau + m C) dpos), m grad w (contact normals);
-    # tau = the law's Kirchhoff stress + the material_damping viscous stress. On ground-layer
-    # nodes also w (m v + m C dpos): the arriving momentum, before this substep's stress impulse
+    # P2G (p2g_particle) with the particle's object's law parameters, density and viscosity
+    # read from the per-object tables: the forward rollouts' kernel (nothing differentiates it)
     p = wp.tid()
     o = obj[p]
-    f = field_of[o]
-    m = rho[o] * volume[p]
-    inv_dx = 1.0 / dx
-    tau = kirchhoff_stress(law_of[o], params[o], F[p], C[p], plastic_J[p])
-    tau = tau + kelvin_voigt_tau(damping[o // objects_per_member], F[p], C[p])
-    affine = (-dt * 4.0 * inv_dx * inv_dx * volume[p]) * tau + m * C[p]
-    xl = (x[p] - origin) * inv_dx
-    base = cell_base(xl)
-    fx = xl - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    W = bspline_weights(fx)
-    D = bspline_slopes(fx)
-    mom = m * v[p]
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                w = W[i, 0] * W[j, 1] * W[k, 2]
-                grad_w = inv_dx * wp.vec3(
-                    D[i, 0] * W[j, 1] * W[k, 2],
-                    W[i, 0] * D[j, 1] * W[k, 2],
-                    W[i, 0] * W[j, 1] * D[k, 2],
-                )
-                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                n = node_index(f, base[0] + i, base[1] + j, base[2] + k, nodes)
-                wp.atomic_add(grid_m, n, w * m)
-                wp.atomic_add(grid_mv, n, w * (mom + affine * dpos))
-                if float(base[2] + k) <= ground_k:  # for ground_restitution (ground_contact)
-                    wp.atomic_add(grid_pm, n, w * (mom + m * (C[p] * dpos)))
-                if with_normals != 0:  # contact normals matter only with several fields
-                    wp.atomic_add(grid_gm, n, m * grad_w)
+    p2g_particle(
+        p, field_of[o], law_of[o], params[o], rho[o], damping[o // objects_per_member],
+        x, v, C, F, plastic_J, volume, origin, dx, dt, nodes, with_normals, ground_k,
+        grid_m, grid_mv, grid_gm, grid_pm,
+    )  # fmt: skip
+
+
+@wp.kernel
+def p2g_gathered(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    plastic_J: wp.array(dtype=float),
+    volume: wp.array(dtype=float),
+    obj: wp.array(dtype=int),
+    law_of: wp.array(dtype=int),
+    field_of: wp.array(dtype=int),
+    particle_params: wp.array(dtype=vec5),
+    particle_rho: wp.array(dtype=float),
+    particle_damping: wp.array(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    with_normals: int,
+    ground_k: float,
+    grid_m: wp.array(dtype=float),
+    grid_mv: wp.array(dtype=wp.vec3),
+    grid_gm: wp.array(dtype=wp.vec3),
+    grid_pm: wp.array(dtype=wp.vec3),
+):
+    # P2G (p2g_particle) with particle p's own copy of its parameters (gather_particle_params):
+    # the taped kernel. Warp's adjoint of a read a[i] is atomic_add(adj_a[i]), so reading the
+    # per-object tables here would add into a handful of addresses from every particle thread
+    # (contended, and summed in float32 in schedule order); reading a[p] adds into one address
+    # per particle, summed per object later in float64 (autograd.BackwardWorkspace)
+    p = wp.tid()
+    o = obj[p]
+    p2g_particle(
+        p, field_of[o], law_of[o], particle_params[p], particle_rho[p], particle_damping[p],
+        x, v, C, F, plastic_J, volume, origin, dx, dt, nodes, with_normals, ground_k,
+        grid_m, grid_mv, grid_gm, grid_pm,
+    )  # fmt: skip
+
+
+@wp.kernel
+def gather_particle_params(
+    obj: wp.array(dtype=int),
+    params: wp.array(dtype=vec5),
+    rho: wp.array(dtype=float),
+    damping: wp.array(dtype=float),
+    objects_per_member: int,
+    particle_params: wp.array(dtype=vec5),
+    particle_rho: wp.array(dtype=float),
+    particle_damping: wp.array(dtype=float),
+):
+    # particle p's copy of what P2G and G2P read per object: law parameters and density of
+    # its object o, the material_damping viscosity of its batch member o // K
+    p = wp.tid()
+    o = obj[p]
+    particle_params[p] = params[o]
+    particle_rho[p] = rho[o]
+    particle_damping[p] = damping[o // objects_per_member]
 
 
 @wp.struct
@@ -320,15 +413,16 @@ def grid_boundaries(
         grid_v[n] = v
 
 
-@wp.kernel
-def g2p(
+@wp.func
+def g2p_particle(
+    p: int,
+    o: int,
+    f: int,
+    law: int,
+    law_params: vec5,
     x: wp.array(dtype=wp.vec3),
     F: wp.array(dtype=wp.mat33),
     plastic_J: wp.array(dtype=float),
-    obj: wp.array(dtype=int),
-    law_of: wp.array(dtype=int),
-    field_of: wp.array(dtype=int),
-    params: wp.array(dtype=vec5),
     grid_v: wp.array(dtype=wp.vec3),
     origin: wp.vec3,
     dx: float,
@@ -342,10 +436,8 @@ def g2p(
     F_out: wp.array(dtype=wp.mat33),
     plastic_J_out: wp.array(dtype=float),
 ):
-    # MLS-MPM G2P: v = sum w v_i, C = 4/dx^2 sum w v_i dpos^T, F <- return_map((I + dt C) F), x += dt v
-    p = wp.tid()
-    o = obj[p]
-    f = field_of[o]
+    # MLS-MPM G2P of particle p (object o) from field f: v = sum w v_i,
+    # C = 4/dx^2 sum w v_i dpos^T, F <- return_map((I + dt C) F), x += dt v
     inv_dx = 1.0 / dx
     xl = (x[p] - origin) * inv_dx
     base = cell_base(xl)
@@ -362,7 +454,7 @@ def g2p(
                 vn += w * gv
                 Cn += (4.0 * inv_dx * inv_dx * w) * wp.outer(gv, dpos)
     F_trial = (wp.identity(n=3, dtype=float) + dt * Cn) * F[p]
-    Fn, pj = return_map(law_of[o], params[o], F_trial, plastic_J[p], dt)
+    Fn, pj = return_map(law, law_params, F_trial, plastic_J[p], dt)
     xn = x[p] + dt * vn
     finite = wp.isfinite(xn) and wp.isfinite(vn) and wp.isfinite(Fn) and wp.isfinite(Cn)
     finite = finite and wp.isfinite(pj)
@@ -387,3 +479,67 @@ def g2p(
     C_out[p] = Cn
     F_out[p] = Fn
     plastic_J_out[p] = pj
+
+
+@wp.kernel
+def g2p(
+    x: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    plastic_J: wp.array(dtype=float),
+    obj: wp.array(dtype=int),
+    law_of: wp.array(dtype=int),
+    field_of: wp.array(dtype=int),
+    params: wp.array(dtype=vec5),
+    grid_v: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    substep: int,
+    flag: wp.array(dtype=int),
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    C_out: wp.array(dtype=wp.mat33),
+    F_out: wp.array(dtype=wp.mat33),
+    plastic_J_out: wp.array(dtype=float),
+):
+    # G2P (g2p_particle) with the object's law parameters read from the per-object table:
+    # the forward rollouts' kernel
+    p = wp.tid()
+    o = obj[p]
+    g2p_particle(
+        p, o, field_of[o], law_of[o], params[o], x, F, plastic_J, grid_v, origin, dx, dt,
+        nodes, substep, flag, x_out, v_out, C_out, F_out, plastic_J_out,
+    )  # fmt: skip
+
+
+@wp.kernel
+def g2p_gathered(
+    x: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    plastic_J: wp.array(dtype=float),
+    obj: wp.array(dtype=int),
+    law_of: wp.array(dtype=int),
+    field_of: wp.array(dtype=int),
+    particle_params: wp.array(dtype=vec5),
+    grid_v: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    substep: int,
+    flag: wp.array(dtype=int),
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    C_out: wp.array(dtype=wp.mat33),
+    F_out: wp.array(dtype=wp.mat33),
+    plastic_J_out: wp.array(dtype=float),
+):
+    # G2P (g2p_particle) with particle p's own copy of its law parameters: the taped kernel,
+    # whose parameter adjoint lands on one address per particle (see p2g_gathered)
+    p = wp.tid()
+    o = obj[p]
+    g2p_particle(
+        p, o, field_of[o], law_of[o], particle_params[p], x, F, plastic_J, grid_v, origin, dx,
+        dt, nodes, substep, flag, x_out, v_out, C_out, F_out, plastic_J_out,
+    )  # fmt: skip

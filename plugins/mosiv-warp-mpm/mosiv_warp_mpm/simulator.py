@@ -24,7 +24,14 @@ from mosiv_warp_mpm.options import WarpMPMOptions
 
 # re-exported: batched.py, tests and benchmarks import them from this module
 from mosiv_warp_mpm.packing import TERMS, check_inputs, initial_velocities, pack_theta
-from mosiv_warp_mpm.state import Grid, GridLayout, NodeBox, ObjectTables, ParticleState
+from mosiv_warp_mpm.state import (
+    Grid,
+    GridLayout,
+    NodeBox,
+    ObjectTables,
+    ParticleParams,
+    ParticleState,
+)
 
 _WARP_READY = False
 
@@ -215,38 +222,67 @@ class MPMRun:
         """P2G, grid update (contact, ground, walls, terms) and G2P from src into dst; the grid
         kernels visit the nodes of ``box`` (``active_box(src)``), cleared beforehand."""
         self.grid_update(src, grid, s, box)
-        inputs, outputs = self._g2p_args(src, dst, grid, s)
-        wp.launch(K.g2p, dim=self.n, inputs=inputs, outputs=outputs, device=self.device)
+        kernel, inputs, outputs = self._g2p_args(src, dst, grid, s)
+        wp.launch(kernel, dim=self.n, inputs=inputs, outputs=outputs, device=self.device)
 
     def record_g2p(
-        self, tape: wp.Tape, src: ParticleState, dst: ParticleState, grid: Grid, s: int
+        self,
+        tape: wp.Tape,
+        src: ParticleState,
+        dst: ParticleState,
+        grid: Grid,
+        s: int,
+        gathered: ParticleParams | None = None,
     ) -> None:
         """Put substep ``s``'s G2P on ``tape`` without running it, for a replay whose ``dst``
         already holds G2P's result (the backward's re-simulation wrote it): G2P's adjoint reads
         only its inputs and its outputs' gradients, so running it again would only rewrite
-        ``dst`` with the same values."""
-        inputs, outputs = self._g2p_args(src, dst, grid, s)
-        tape.record_launch(K.g2p, self.n, 0, inputs, outputs, self.device)
+        ``dst`` with the same values. ``gathered``: see ``grid_update``."""
+        kernel, inputs, outputs = self._g2p_args(src, dst, grid, s, gathered)
+        tape.record_launch(kernel, self.n, 0, inputs, outputs, self.device)
 
-    def _g2p_args(self, src: ParticleState, dst: ParticleState, grid: Grid, s: int) -> tuple:
+    def _g2p_args(
+        self, src: ParticleState, dst: ParticleState, grid: Grid, s: int, gathered=None
+    ) -> tuple:
         lay, t = self.layout, self.tables
         origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
-        inputs = [src.x, src.F, src.plastic_J, self.obj, t.law_of, t.field_of, t.params]
+        kernel, law_params = (
+            (K.g2p, t.params) if gathered is None else (K.g2p_gathered, gathered.params)
+        )
+        inputs = [src.x, src.F, src.plastic_J, self.obj, t.law_of, t.field_of, law_params]
         inputs += [grid.v, origin, lay.dx, self.dt, nodes, s, self.flag]
-        return inputs, [dst.x, dst.v, dst.C, dst.F, dst.plastic_J]
+        return kernel, inputs, [dst.x, dst.v, dst.C, dst.F, dst.plastic_J]
 
-    def grid_update(self, src: ParticleState, grid: Grid, s: int, box: NodeBox) -> None:
+    def grid_update(
+        self,
+        src: ParticleState,
+        grid: Grid,
+        s: int,
+        box: NodeBox,
+        gathered: ParticleParams | None = None,
+    ) -> None:
         """P2G from src, then the grid's free velocity and boundaries, on the nodes of ``box``
-        (cleared beforehand): the grid velocities ``grid.v`` that G2P reads."""
+        (cleared beforehand): the grid velocities ``grid.v`` that G2P reads.
+
+        ``gathered``: None, P2G reads the per-object tables (forward rollouts, re-simulation);
+        else the particles' own copies of them (kernels.p2g_gathered: the taped replay, whose
+        parameter adjoints then land on one address per particle). Same values, same results.
+        """
         lay, t, dev = self.layout, self.tables, self.device
         origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
         box_lo, box_dims = wp.vec3i(*box.lo), wp.vec3i(*box.dims)
+        if gathered is None:
+            p2g, law_inputs = K.p2g, [t.params, t.rho, t.damping]
+            member_input = [t.k]  # damping is per member: object o // K
+        else:
+            p2g, law_inputs = K.p2g_gathered, gathered.arrays()
+            member_input = []
         wp.launch(
-            K.p2g,
+            p2g,
             dim=self.n,
             inputs=[src.x, src.v, src.C, src.F, src.plastic_J, self.volume, self.obj]
-            + [t.law_of, t.field_of, t.params, t.rho, t.damping, origin, lay.dx, self.dt, nodes]
-            + [int(lay.fields > 1), self.ground_k if self.ground_on else -1.0, t.k],
+            + [t.law_of, t.field_of, *law_inputs, origin, lay.dx, self.dt, nodes]
+            + [int(lay.fields > 1), self.ground_k if self.ground_on else -1.0, *member_input],
             outputs=[grid.m, grid.mv, grid.gm, grid.pm],
             device=dev,
         )
