@@ -24,7 +24,14 @@ Writes ``OUT/table.json`` and ``OUT/table.md`` (a rerun into the same folder res
 stages and keeps the rows of scenes it does not run); ``--write-results`` replaces the section
 "Identification on Genesis scenes" of that markdown file with the table, the command, the
 machine, the date, the code version and the data. With ``--jobs N`` each scene runs as a Ray
-task in its own process (output in ``OUT/parts/SCENE.log``), as in identify_suite.
+task in its own process (output in ``OUT/parts/SCENE.log``), as in identify_suite. Where Ray
+is not installed (a GPU machine without a package index), run one ``--part`` process per scene
+yourself (each writes ``OUT/parts/SCENE.json``), then ``--merge`` builds the table from those
+rows (and with ``--write-results`` the section):
+
+    python benchmarks/genesis_identify.py --scenes runs/genesis --out runs/gid --only E-S --part
+    python benchmarks/genesis_identify.py --scenes runs/genesis --out runs/gid --merge \
+        --write-results docs/RESULTS.md
 """
 
 from __future__ import annotations
@@ -164,6 +171,21 @@ def run_part(args, name: str) -> None:
     (args.out / "parts" / f"{name}.json").write_text(json.dumps(row, indent=2) + "\n")
 
 
+def merge(args, names: list[str]) -> dict:
+    """The table from the rows that ``--part`` processes wrote into ``out/parts`` (a scene
+    without a part file keeps its earlier row, if any). Pass the parts' --set flags again:
+    the table records them."""
+    rows = _earlier(args.out)
+    parts = {n: args.out / "parts" / f"{n}.json" for n in names}
+    found = {n: json.loads(p.read_text()) for n, p in parts.items() if p.is_file()}
+    if not found:
+        raise SystemExit(
+            f"--merge: no rows in {args.out / 'parts'}; run the --part processes first"
+        )
+    rows.update(found)
+    return save_table(args.out, rows, recipe=args.recipe, sets=args.set)
+
+
 def run_parallel(args, names: list[str], scale: dict) -> dict:
     """Each scene as a Ray task running this script with ``--part``; rows merged after."""
     parts = args.out / "parts"
@@ -239,15 +261,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", action="append", default=[], help="key=value recipe override")
     parser.add_argument("--write-results", type=Path, default=None, help="e.g. docs/RESULTS.md")
     add_scale_flags(parser, "scenes")
-    parser.add_argument("--part", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--part", action="store_true", help="run one scene (--only), row only")
+    parser.add_argument(
+        "--merge", action="store_true", help="the table from the --part rows in OUT/parts"
+    )
     args = parser.parse_args(argv)
+    if args.part and args.merge:
+        parser.error("--part runs one scene and --merge tabulates the parts: give one of them")
     scale = scale_options(args)
     names = find_scenes(args.scenes, args.only)
     (args.out / "parts").mkdir(parents=True, exist_ok=True)
     if args.part:
         run_part(args, names[0])
         return 0
-    if scale["jobs"] != 1 and len(names) > 1:
+    if args.merge:
+        table = merge(args, names)
+    elif scale["jobs"] != 1 and len(names) > 1:
         table = run_parallel(args, names, scale)
     else:
         table = run_serial(args, names)

@@ -341,6 +341,41 @@ def test_command_line_names_no_machine_paths():
     )
 
 
+def test_merge_tabulates_the_part_rows(tmp_path):
+    """--merge: the rows that --part processes wrote (ordered by scene name), the summary over
+    them and the RESULTS section; a scene without a part keeps its earlier row."""
+    bench = _bench()
+    data = ROOT / "benchmarks" / "data" / "genesis_identify"
+    scenes, out = tmp_path / "scenes", tmp_path / "out"
+    (out / "parts").mkdir(parents=True)
+    scenes.mkdir()
+    for name in ("P-P", "E-E", "S-S"):
+        (scenes / name).symlink_to(TINY, target_is_directory=True)
+    (scenes / "suite.json").write_text(json.dumps({"scenes": {"S-S": {}, "E-E": {}, "P-P": {}}}))
+    for name in ("E-E", "P-P"):
+        row = (data / f"scene_{name}.json").read_text()
+        (out / "parts" / f"{name}.json").write_text(row)
+    earlier = json.loads((data / "scene_S-S.json").read_text())
+    (out / "table.json").write_text(json.dumps({"rows": [earlier]}))
+    results = tmp_path / "RESULTS.md"
+    results.write_text("# Results\n")
+    argv = ["--scenes", str(scenes), "--out", str(out), "--merge", "--write-results", str(results)]
+    assert bench.main(argv) == 0
+    table = json.loads((out / "table.json").read_text())
+    assert [r["scene"] for r in table["rows"]] == ["E-E", "P-P", "S-S"]
+    assert table["rows"][2] == earlier
+    expected = bench.make_table(table["rows"])["summary"]
+    assert table["summary"] == json.loads(json.dumps(expected))
+    assert f"## {bench.SECTION}" in results.read_text()
+    with pytest.raises(SystemExit):
+        bench.main(["--scenes", str(scenes), "--out", str(out), "--merge", "--part"])
+    for part in (out / "parts").glob("*.json"):
+        part.unlink()
+    (out / "table.json").unlink()
+    with pytest.raises(SystemExit, match="no rows"):
+        bench.main(["--scenes", str(scenes), "--out", str(out), "--merge"])
+
+
 def test_end_to_end_on_the_tiny_genesis_scene(tmp_path):
     """The whole command on CPU: a row per scene, table files, and the RESULTS section."""
     bench = _bench()
