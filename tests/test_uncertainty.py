@@ -17,6 +17,7 @@ from mosiv_framework.pipeline.rundir import RunDir
 from mosiv_framework.pipeline.uncertainty import (
     Z95,
     attach_intervals,
+    box_reach,
     covered,
     laplace_intervals,
     mark_coverage,
@@ -72,6 +73,45 @@ def test_correlated_parameters_get_their_marginal_interval():
         n=20,
     )
     assert [got["kind"] for got in found] == ["unconstrained", "unconstrained", "two-sided"]
+
+
+def test_a_saddle_direction_widens_each_coordinate_by_its_reach_within_the_box():
+    # H = R diag(4, -0.05) R^T, R a rotation by 30 degrees: the loss falls along
+    # v = (-sin 30, cos 30) = (-0.5, 0.866). From u0 = (0.4, 0.5) the box lets v be followed
+    # for t in [-0.577, 0.577] (coordinate 2 reaches 0 and 1 first), which moves coordinate 1
+    # by 0.5 * 0.577 = 0.289 either way; its curved part is the Laplace width of the direction
+    # (cos 30, sin 30) with curvature 4: [H^+]_11 = cos^2 30 / 4. Coordinate 2 spans the box.
+    c, s = math.cos(math.pi / 6), math.sin(math.pi / 6)
+    rotation = torch.tensor([[c, -s], [s, c]], dtype=torch.float64)
+    hessian = rotation @ torch.diag(torch.tensor([4.0, -0.05], dtype=torch.float64)) @ rotation.T
+    u0 = [0.4, 0.5]
+    first, second = laplace_intervals(
+        quadratic(1e-3, hessian.tolist(), u0), torch.tensor(u0, dtype=torch.float64), n=20
+    )
+    reach = 0.5 * (0.5 / c)
+    half = Z95 * math.sqrt(2 * 1e-3 / 20 * c**2 / 4)
+    assert first["kind"] == "two-sided"
+    assert first["low"] == pytest.approx(0.4 - reach - half, rel=1e-6)
+    assert first["high"] == pytest.approx(0.4 + reach + half, rel=1e-6)
+    assert second["kind"] == "unconstrained"
+
+
+def test_box_reach_of_flat_directions():
+    u0 = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    # along the first axis alone: from 0.2 down to 0 and up to 1
+    down, up = box_reach(u0, torch.tensor([[1.0], [0.0], [0.0]], dtype=torch.float64))
+    assert down.tolist() == pytest.approx([0.2, 0.0, 0.0])
+    assert up.tolist() == pytest.approx([0.8, 0.0, 0.0])
+    # along (1, 0, 1)/sqrt 2 the third coordinate stops the way up after 0.1, the first the
+    # way down after 0.2; two directions add their reaches
+    v = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0]], dtype=torch.float64) / torch.tensor(
+        [math.sqrt(2), 1.0], dtype=torch.float64
+    )
+    down, up = box_reach(u0, v)
+    assert down.tolist() == pytest.approx([0.2, 0.5, 0.2])
+    assert up.tolist() == pytest.approx([0.1, 0.5, 0.1])
+    down, up = box_reach(u0, torch.zeros(3, 0, dtype=torch.float64))
+    assert down.tolist() == [0.0, 0.0, 0.0] and up.tolist() == [0.0, 0.0, 0.0]
 
 
 def test_an_interval_past_a_bound_keeps_only_the_side_the_data_support():

@@ -27,8 +27,13 @@ parameter within a step of its bound, for a second-order one-sided difference). 
 is the wider of the sandwich one and the Laplace one (``interval_estimates`` says why).
 
 A parameter along which the loss does not change (zero curvature, e.g. a yield stress above
-every stress the motion reaches) is ``unconstrained``; so is one with weight on a direction of
-(near) zero or negative curvature, whose marginal variance is then unbounded. Where an interval
+every stress the motion reaches) is ``unconstrained``. A direction of the Hessian with (near)
+zero or negative curvature (a trade-off the data cannot settle, or a saddle of a model that is
+not the data's) is followed as far as the box [0, 1]^d lets it from u0: each coordinate's
+interval widens by how far that segment moves it. The coordinates that make up such a direction
+reach their bounds (``unconstrained`` or one-sided); one with little weight on it widens a
+little, instead of every coordinate inheriting an unbounded variance from it (which on Genesis
+scenes left every interval unconstrained). Where an interval
 runs past one of the parameter's bounds, only the other side is supported by the data:
 ``E >= x`` (``lower-bound``, ``high`` None) or ``E <= x`` (``upper-bound``, ``low`` None).
 Every probe draws the same random point subsets (the losses' generators are set back before
@@ -175,8 +180,10 @@ def interval_estimates(
     [H^-1 J H^-1]_ii (``sandwich.hac_meat``) with Student's t quantile. The sandwich interval
     is the wider of the two: J comes from a few blocks and is itself uncertain, and a misfit
     that all blocks share (no disagreement between them) leaves J small while the Laplace
-    width still reflects it. Coordinates without curvature, or with weight on a direction of
-    (near) zero or negative curvature, are ``unconstrained`` under both.
+    width still reflects it. Both use the inverse of H on its curved directions; the
+    directions of (near) zero or negative curvature widen each coordinate by how far following
+    them within the box moves it (``box_reach``). Coordinates without curvature of their own
+    are ``unconstrained`` under both.
 
     Returns:
         ``{"laplace": [...], "sandwich": [...] or None (no scores), "blocks": T, "lag": L}``.
@@ -200,25 +207,58 @@ def interval_estimates(
     if not seen:
         return out
     values, vectors = torch.linalg.eigh(hessian[seen][:, seen])
-    # zero or negative curvature: an unbounded variance along that direction, which every
-    # coordinate with weight on it inherits (its interval then spans the whole range)
-    values = values.clamp(min=RANK_TOL * max(float(values.max()), 1e-300))
-    inverse = (vectors / values) @ vectors.T
+    # the inverse on the curved directions; the flat or negative ones are followed to the box
+    curved = values > RANK_TOL * max(float(values.max()), 1e-300)
+    kept = vectors[:, curved]
+    inverse = (kept / values[curved]) @ kept.T
+    down, up = box_reach(u0[seen].double(), vectors[:, ~curved])
     laplace = Z95 * (torch.diagonal(inverse) * 2.0 * max(l0, 0.0) / max(n, 1)).sqrt()
     for j, i in enumerate(seen):
-        out["laplace"][i] = _interval(float(u0[i]), float(laplace[j]))
+        reach = (float(down[j]), float(up[j]))
+        out["laplace"][i] = _interval(float(u0[i]), float(laplace[j]), reach)
     if scores is None or scores.shape[0] < 2 or not bool(torch.isfinite(scores).all()):
         return out  # the spread between blocks is unknown: the sandwich stays unconstrained
     cov = sandwich_covariance(inverse, hac_meat(scores[:, seen], out["lag"]))
     robust = t_quantile(out["blocks"]) * torch.diagonal(cov).clamp(min=0.0).sqrt()
     for j, i in enumerate(seen):
-        out["sandwich"][i] = _interval(float(u0[i]), max(float(robust[j]), float(laplace[j])))
+        half = max(float(robust[j]), float(laplace[j]))
+        out["sandwich"][i] = _interval(float(u0[i]), half, (float(down[j]), float(up[j])))
     return out
 
 
-def _interval(u0: float, half: float) -> dict:
-    """``u0 +- half`` in [0, 1], one-sided or unconstrained where it runs past a bound."""
-    low, high = u0 - half, u0 + half
+def box_reach(u0: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """How far each coordinate moves down and up when u0 is moved along each direction (a
+    column of ``directions``, [d, m]) as far as the box [0, 1]^d allows, both ways.
+
+    Along a direction v the segment u0 + t v stays in the box for t in [t_lo, t_hi] (t_lo <= 0
+    <= t_hi, set by the coordinates that reach a bound first); coordinate i then spans
+    u0_i + t v_i over that range. The directions' reaches add up (each can be followed on its
+    own, so the sum bounds what any combination reaches).
+
+    Returns:
+        (down [d], up [d]): the distances below and above u0, zero without directions.
+    """
+    d = u0.numel()
+    down = torch.zeros(d, dtype=torch.float64)
+    up = torch.zeros(d, dtype=torch.float64)
+    for v in directions.double().T:
+        moving = v.abs() > 1e-12
+        if not bool(moving.any()):
+            continue
+        # the t at which each moving coordinate reaches 0 and 1
+        to_zero, to_one = -u0[moving] / v[moving], (1.0 - u0[moving]) / v[moving]
+        t_lo = float(torch.minimum(to_zero, to_one).max().clamp(max=0.0))
+        t_hi = float(torch.maximum(to_zero, to_one).min().clamp(min=0.0))
+        ends = torch.stack([t_lo * v, t_hi * v])
+        down += (-ends.min(dim=0).values).clamp(min=0.0)
+        up += ends.max(dim=0).values.clamp(min=0.0)
+    return down, up
+
+
+def _interval(u0: float, half: float, reach: tuple[float, float] = (0.0, 0.0)) -> dict:
+    """``u0 +- half``, widened by ``reach`` (down, up: what flat directions move u0 by, see
+    ``box_reach``), in [0, 1]: one-sided or unconstrained where it runs past a bound."""
+    low, high = u0 - half - reach[0], u0 + half + reach[1]
     if low < 0.0 and high > 1.0:
         return {"low": None, "high": None, "kind": "unconstrained"}
     if low < 0.0:
