@@ -29,6 +29,21 @@ def add_parsers(sub) -> None:
     ev.add_argument("run_dir")
     ev.set_defaults(handler=run_eval)
 
+    iv = sub.add_parser(
+        "intervals",
+        help="compute a finished run's parameter intervals again (another --method, or newer "
+        "interval code) without identifying again",
+    )
+    iv.add_argument("run_dir")
+    iv.add_argument(
+        "--method",
+        choices=("laplace", "sandwich"),
+        help="default: the run's identify.interval_method",
+    )
+    iv.add_argument("--device", help="simulator device, e.g. cpu or cuda (default: the run's)")
+    iv.add_argument("--scene", help="the run's scene folder, where it has moved since the run")
+    iv.set_defaults(handler=run_intervals)
+
     sim = sub.add_parser(
         "simulate",
         help="novel interactions from a finished run: swapped materials, edited parameters, "
@@ -103,6 +118,26 @@ def check_scene_path(path: str | Path) -> None:
             f"holds scene.json, cameras.json, rgb/ and masks/ (or a new folder for scene.source "
             f"to generate the scene into)"
         )
+
+
+def run_intervals(args) -> int:
+    from mosiv_framework.pipeline.reinterval import recompute_intervals
+
+    run_dir = require_run_folder(args.run_dir)
+    if args.scene is not None:
+        require_folder(args.scene, "--scene", "the scene folder the run was made from")
+    record = recompute_intervals(
+        run_dir, method=args.method, device=args.device, scene_path=args.scene
+    )
+    print(f"{record['method']} 95 % intervals of {run_dir} (frames 1..{record['horizon']}):")
+    for owner, entries in sorted(record["intervals"].items()):
+        entries = {"": entries} if "kind" in entries else entries
+        for name, got in sorted(entries.items()):
+            low, high = got["low"], got["high"]
+            span = f"{'-' if low is None else f'{low:.4g}'} .. {'-' if high is None else f'{high:.4g}'}"
+            print(f"  {owner}{'.' + name if name else ''}: {got['kind']} {span}")
+    print("written into identify/history.json, identified.json and metrics.json")
+    return 0
 
 
 def run_recipe(args) -> int:

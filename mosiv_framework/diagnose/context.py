@@ -176,10 +176,17 @@ class RunContext:
         return identified_terms(section)
 
 
-def load_run(run_dir: str | Path, *, simulator_overrides: dict | None = None) -> RunContext:
+def load_run(
+    run_dir: str | Path,
+    *,
+    simulator_overrides: dict | None = None,
+    scene_path: str | Path | None = None,
+) -> RunContext:
     """Load a finished run folder; raises ConfigError naming what is missing.
 
-    ``simulator_overrides`` replaces simulator options of the recipe (e.g. ``device``).
+    ``simulator_overrides`` replaces simulator options of the recipe (e.g. ``device``);
+    ``scene_path`` reads the scene from there instead of the recipe's ``scene.path`` (a run
+    folder copied from another machine).
     """
     rd = RunDir(run_dir)
     missing = [name for name in REQUIRED if not rd.path(name).is_file()]
@@ -193,7 +200,7 @@ def load_run(run_dir: str | Path, *, simulator_overrides: dict | None = None) ->
     return build_context(
         rd,
         recipe,
-        read_scene(recipe.scene.path),
+        read_scene(recipe.scene.path if scene_path is None else scene_path),
         rd.load_torch("reconstruction.pt"),
         rd.load_torch("particles.pt"),
         ParameterVector.from_json(identified_json),
