@@ -9,6 +9,10 @@ member b carries object index o = b K + k (K objects per member), so the per-obj
 B K rows, member-major, and object o's field is b F + f (F fields per member): B grids, one
 after the other in the flat arrays. Per-member scalars (body acceleration, drag, damping, ground
 coefficients) are indexed by b. A single rollout is the batch of one (b = 0).
+
+P2G and G2P read the law parameters, density and viscosity from the per-object tables or, in
+the backward's taped replay, from each particle's copy of them (``per_particle``,
+parameter_rows): same values, same results, but uncontended parameter adjoints.
 """
 
 from __future__ import annotations
@@ -101,38 +105,81 @@ def kelvin_voigt_tau(eta: float, F: wp.mat33, L: wp.mat33):
 
 
 @wp.func
-def p2g_particle(
-    p: int,
-    f: int,
-    law: int,
-    law_params: vec5,
-    density: float,
-    viscosity: float,
+def parameter_rows(p: int, o: int, objects_per_member: int, per_particle: int):
+    # rows of particle p's values in the parameter arrays P2G and G2P read: the per-object
+    # tables (ObjectTables: object o, member o // K) or, with per_particle, the particles' own
+    # copies (ParticleParams: row p in both). The taped kernels read the copies: Warp's adjoint
+    # of a read a[i] is atomic_add(adj_a[i]), so reading the tables would add every particle's
+    # share into the same few addresses each substep (contended, and summed in float32 in
+    # schedule order); the copies' adjoints land on one address per particle, summed per object
+    # in float64 after each frame (autograd.BackwardWorkspace)
+    q = o
+    b = o // objects_per_member
+    if per_particle != 0:
+        q = p
+        b = p
+    return q, b
+
+
+@wp.kernel
+def gather_particle_params(
+    obj: wp.array(dtype=int),
+    params: wp.array(dtype=vec5),
+    rho: wp.array(dtype=float),
+    damping: wp.array(dtype=float),
+    objects_per_member: int,
+    particle_params: wp.array(dtype=vec5),
+    particle_rho: wp.array(dtype=float),
+    particle_damping: wp.array(dtype=float),
+):
+    # particle p's copy of what P2G and G2P read per object (state.ParticleParams): law
+    # parameters and density of its object o, material_damping viscosity of its member o // K
+    p = wp.tid()
+    o = obj[p]
+    particle_params[p] = params[o]
+    particle_rho[p] = rho[o]
+    particle_damping[p] = damping[o // objects_per_member]
+
+
+@wp.kernel
+def p2g(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     C: wp.array(dtype=wp.mat33),
     F: wp.array(dtype=wp.mat33),
     plastic_J: wp.array(dtype=float),
     volume: wp.array(dtype=float),
+    obj: wp.array(dtype=int),
+    law_of: wp.array(dtype=int),
+    field_of: wp.array(dtype=int),
+    params: wp.array(dtype=vec5),
+    rho: wp.array(dtype=float),
+    damping: wp.array(dtype=float),
     origin: wp.vec3,
     dx: float,
     dt: float,
     nodes: wp.vec3i,
     with_normals: int,
     ground_k: float,
+    objects_per_member: int,
+    per_particle: int,
     grid_m: wp.array(dtype=float),
     grid_mv: wp.array(dtype=wp.vec3),
     grid_gm: wp.array(dtype=wp.vec3),
     grid_pm: wp.array(dtype=wp.vec3),
 ):
-    # MLS-MPM P2G of particle p into field f: m w, w (m v + (-dt 4/dx^2 V0 tau + m C) dpos),
-    # m grad w (contact normals); m = density V0, tau = the law's Kirchhoff stress + the
-    # material_damping viscous stress. On ground-layer nodes also w (m v + m C dpos): the
-    # arriving momentum, before this substep's stress impulse
-    m = density * volume[p]
+    # per_particle: read the particle's parameter copies, not the tables (parameter_rows).
+    # MLS-MPM P2G: m w, w (m v + (-dt 4/dx^2 V0 tau + m C) dpos), m grad w (contact normals);
+    # tau = the law's Kirchhoff stress + the material_damping viscous stress. On ground-layer
+    # nodes also w (m v + m C dpos): the arriving momentum, before this substep's stress impulse
+    p = wp.tid()
+    o = obj[p]
+    f = field_of[o]
+    q, b = parameter_rows(p, o, objects_per_member, per_particle)
+    m = rho[q] * volume[p]
     inv_dx = 1.0 / dx
-    tau = kirchhoff_stress(law, law_params, F[p], C[p], plastic_J[p])
-    tau = tau + kelvin_voigt_tau(viscosity, F[p], C[p])
+    tau = kirchhoff_stress(law_of[o], params[q], F[p], C[p], plastic_J[p])
+    tau = tau + kelvin_voigt_tau(damping[b], F[p], C[p])
     affine = (-dt * 4.0 * inv_dx * inv_dx * volume[p]) * tau + m * C[p]
     xl = (x[p] - origin) * inv_dx
     base = cell_base(xl)
@@ -157,102 +204,6 @@ def p2g_particle(
                     wp.atomic_add(grid_pm, n, w * (mom + m * (C[p] * dpos)))
                 if with_normals != 0:  # contact normals matter only with several fields
                     wp.atomic_add(grid_gm, n, m * grad_w)
-
-
-@wp.kernel
-def p2g(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    plastic_J: wp.array(dtype=float),
-    volume: wp.array(dtype=float),
-    obj: wp.array(dtype=int),
-    law_of: wp.array(dtype=int),
-    field_of: wp.array(dtype=int),
-    params: wp.array(dtype=vec5),
-    rho: wp.array(dtype=float),
-    damping: wp.array(dtype=float),
-    origin: wp.vec3,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    with_normals: int,
-    ground_k: float,
-    objects_per_member: int,
-    grid_m: wp.array(dtype=float),
-    grid_mv: wp.array(dtype=wp.vec3),
-    grid_gm: wp.array(dtype=wp.vec3),
-    grid_pm: wp.array(dtype=wp.vec3),
-):
-    # P2G (p2g_particle) with the particle's object's law parameters, density and viscosity
-    # read from the per-object tables: the forward rollouts' kernel (nothing differentiates it)
-    p = wp.tid()
-    o = obj[p]
-    p2g_particle(
-        p, field_of[o], law_of[o], params[o], rho[o], damping[o // objects_per_member],
-        x, v, C, F, plastic_J, volume, origin, dx, dt, nodes, with_normals, ground_k,
-        grid_m, grid_mv, grid_gm, grid_pm,
-    )  # fmt: skip
-
-
-@wp.kernel
-def p2g_gathered(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    plastic_J: wp.array(dtype=float),
-    volume: wp.array(dtype=float),
-    obj: wp.array(dtype=int),
-    law_of: wp.array(dtype=int),
-    field_of: wp.array(dtype=int),
-    particle_params: wp.array(dtype=vec5),
-    particle_rho: wp.array(dtype=float),
-    particle_damping: wp.array(dtype=float),
-    origin: wp.vec3,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    with_normals: int,
-    ground_k: float,
-    grid_m: wp.array(dtype=float),
-    grid_mv: wp.array(dtype=wp.vec3),
-    grid_gm: wp.array(dtype=wp.vec3),
-    grid_pm: wp.array(dtype=wp.vec3),
-):
-    # P2G (p2g_particle) with particle p's own copy of its parameters (gather_particle_params):
-    # the taped kernel. Warp's adjoint of a read a[i] is atomic_add(adj_a[i]), so reading the
-    # per-object tables here would add into a handful of addresses from every particle thread
-    # (contended, and summed in float32 in schedule order); reading a[p] adds into one address
-    # per particle, summed per object later in float64 (autograd.BackwardWorkspace)
-    p = wp.tid()
-    o = obj[p]
-    p2g_particle(
-        p, field_of[o], law_of[o], particle_params[p], particle_rho[p], particle_damping[p],
-        x, v, C, F, plastic_J, volume, origin, dx, dt, nodes, with_normals, ground_k,
-        grid_m, grid_mv, grid_gm, grid_pm,
-    )  # fmt: skip
-
-
-@wp.kernel
-def gather_particle_params(
-    obj: wp.array(dtype=int),
-    params: wp.array(dtype=vec5),
-    rho: wp.array(dtype=float),
-    damping: wp.array(dtype=float),
-    objects_per_member: int,
-    particle_params: wp.array(dtype=vec5),
-    particle_rho: wp.array(dtype=float),
-    particle_damping: wp.array(dtype=float),
-):
-    # particle p's copy of what P2G and G2P read per object: law parameters and density of
-    # its object o, the material_damping viscosity of its batch member o // K
-    p = wp.tid()
-    o = obj[p]
-    particle_params[p] = params[o]
-    particle_rho[p] = rho[o]
-    particle_damping[p] = damping[o // objects_per_member]
 
 
 @wp.struct
@@ -413,16 +364,16 @@ def grid_boundaries(
         grid_v[n] = v
 
 
-@wp.func
-def g2p_particle(
-    p: int,
-    o: int,
-    f: int,
-    law: int,
-    law_params: vec5,
+@wp.kernel
+def g2p(
     x: wp.array(dtype=wp.vec3),
     F: wp.array(dtype=wp.mat33),
     plastic_J: wp.array(dtype=float),
+    obj: wp.array(dtype=int),
+    law_of: wp.array(dtype=int),
+    field_of: wp.array(dtype=int),
+    params: wp.array(dtype=vec5),
+    per_particle: int,
     grid_v: wp.array(dtype=wp.vec3),
     origin: wp.vec3,
     dx: float,
@@ -436,8 +387,11 @@ def g2p_particle(
     F_out: wp.array(dtype=wp.mat33),
     plastic_J_out: wp.array(dtype=float),
 ):
-    # MLS-MPM G2P of particle p (object o) from field f: v = sum w v_i,
-    # C = 4/dx^2 sum w v_i dpos^T, F <- return_map((I + dt C) F), x += dt v
+    # MLS-MPM G2P: v = sum w v_i, C = 4/dx^2 sum w v_i dpos^T, F <- return_map((I + dt C) F), x += dt v;
+    # the law's parameters from the object's table row or, per_particle, the particle's copy
+    p = wp.tid()
+    o = obj[p]
+    f = field_of[o]
     inv_dx = 1.0 / dx
     xl = (x[p] - origin) * inv_dx
     base = cell_base(xl)
@@ -454,7 +408,8 @@ def g2p_particle(
                 vn += w * gv
                 Cn += (4.0 * inv_dx * inv_dx * w) * wp.outer(gv, dpos)
     F_trial = (wp.identity(n=3, dtype=float) + dt * Cn) * F[p]
-    Fn, pj = return_map(law, law_params, F_trial, plastic_J[p], dt)
+    q, b = parameter_rows(p, o, 1, per_particle)
+    Fn, pj = return_map(law_of[o], params[q], F_trial, plastic_J[p], dt)
     xn = x[p] + dt * vn
     finite = wp.isfinite(xn) and wp.isfinite(vn) and wp.isfinite(Fn) and wp.isfinite(Cn)
     finite = finite and wp.isfinite(pj)
@@ -479,67 +434,3 @@ def g2p_particle(
     C_out[p] = Cn
     F_out[p] = Fn
     plastic_J_out[p] = pj
-
-
-@wp.kernel
-def g2p(
-    x: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    plastic_J: wp.array(dtype=float),
-    obj: wp.array(dtype=int),
-    law_of: wp.array(dtype=int),
-    field_of: wp.array(dtype=int),
-    params: wp.array(dtype=vec5),
-    grid_v: wp.array(dtype=wp.vec3),
-    origin: wp.vec3,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    substep: int,
-    flag: wp.array(dtype=int),
-    x_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-    C_out: wp.array(dtype=wp.mat33),
-    F_out: wp.array(dtype=wp.mat33),
-    plastic_J_out: wp.array(dtype=float),
-):
-    # G2P (g2p_particle) with the object's law parameters read from the per-object table:
-    # the forward rollouts' kernel
-    p = wp.tid()
-    o = obj[p]
-    g2p_particle(
-        p, o, field_of[o], law_of[o], params[o], x, F, plastic_J, grid_v, origin, dx, dt,
-        nodes, substep, flag, x_out, v_out, C_out, F_out, plastic_J_out,
-    )  # fmt: skip
-
-
-@wp.kernel
-def g2p_gathered(
-    x: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    plastic_J: wp.array(dtype=float),
-    obj: wp.array(dtype=int),
-    law_of: wp.array(dtype=int),
-    field_of: wp.array(dtype=int),
-    particle_params: wp.array(dtype=vec5),
-    grid_v: wp.array(dtype=wp.vec3),
-    origin: wp.vec3,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    substep: int,
-    flag: wp.array(dtype=int),
-    x_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-    C_out: wp.array(dtype=wp.mat33),
-    F_out: wp.array(dtype=wp.mat33),
-    plastic_J_out: wp.array(dtype=float),
-):
-    # G2P (g2p_particle) with particle p's own copy of its law parameters: the taped kernel,
-    # whose parameter adjoint lands on one address per particle (see p2g_gathered)
-    p = wp.tid()
-    o = obj[p]
-    g2p_particle(
-        p, o, field_of[o], law_of[o], particle_params[p], x, F, plastic_J, grid_v, origin, dx,
-        dt, nodes, substep, flag, x_out, v_out, C_out, F_out, plastic_J_out,
-    )  # fmt: skip

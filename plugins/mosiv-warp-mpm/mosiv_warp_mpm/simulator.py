@@ -222,8 +222,8 @@ class MPMRun:
         """P2G, grid update (contact, ground, walls, terms) and G2P from src into dst; the grid
         kernels visit the nodes of ``box`` (``active_box(src)``), cleared beforehand."""
         self.grid_update(src, grid, s, box)
-        kernel, inputs, outputs = self._g2p_args(src, dst, grid, s)
-        wp.launch(kernel, dim=self.n, inputs=inputs, outputs=outputs, device=self.device)
+        inputs, outputs = self._g2p_args(src, dst, grid, s)
+        wp.launch(K.g2p, dim=self.n, inputs=inputs, outputs=outputs, device=self.device)
 
     def record_g2p(
         self,
@@ -238,20 +238,18 @@ class MPMRun:
         already holds G2P's result (the backward's re-simulation wrote it): G2P's adjoint reads
         only its inputs and its outputs' gradients, so running it again would only rewrite
         ``dst`` with the same values. ``gathered``: see ``grid_update``."""
-        kernel, inputs, outputs = self._g2p_args(src, dst, grid, s, gathered)
-        tape.record_launch(kernel, self.n, 0, inputs, outputs, self.device)
+        inputs, outputs = self._g2p_args(src, dst, grid, s, gathered)
+        tape.record_launch(K.g2p, self.n, 0, inputs, outputs, self.device)
 
     def _g2p_args(
         self, src: ParticleState, dst: ParticleState, grid: Grid, s: int, gathered=None
     ) -> tuple:
         lay, t = self.layout, self.tables
         origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
-        kernel, law_params = (
-            (K.g2p, t.params) if gathered is None else (K.g2p_gathered, gathered.params)
-        )
+        law_params = t.params if gathered is None else gathered.params
         inputs = [src.x, src.F, src.plastic_J, self.obj, t.law_of, t.field_of, law_params]
-        inputs += [grid.v, origin, lay.dx, self.dt, nodes, s, self.flag]
-        return kernel, inputs, [dst.x, dst.v, dst.C, dst.F, dst.plastic_J]
+        inputs += [int(gathered is not None), grid.v, origin, lay.dx, self.dt, nodes, s, self.flag]
+        return inputs, [dst.x, dst.v, dst.C, dst.F, dst.plastic_J]
 
     def grid_update(
         self,
@@ -265,24 +263,20 @@ class MPMRun:
         (cleared beforehand): the grid velocities ``grid.v`` that G2P reads.
 
         ``gathered``: None, P2G reads the per-object tables (forward rollouts, re-simulation);
-        else the particles' own copies of them (kernels.p2g_gathered: the taped replay, whose
-        parameter adjoints then land on one address per particle). Same values, same results.
+        else the particles' own copies of them (the taped replay, whose parameter adjoints then
+        land on one address per particle: kernels.parameter_rows). Same values, same results.
         """
         lay, t, dev = self.layout, self.tables, self.device
         origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
         box_lo, box_dims = wp.vec3i(*box.lo), wp.vec3i(*box.dims)
-        if gathered is None:
-            p2g, law_inputs = K.p2g, [t.params, t.rho, t.damping]
-            member_input = [t.k]  # damping is per member: object o // K
-        else:
-            p2g, law_inputs = K.p2g_gathered, gathered.arrays()
-            member_input = []
+        law_inputs = [t.params, t.rho, t.damping] if gathered is None else gathered.arrays()
         wp.launch(
-            p2g,
+            K.p2g,
             dim=self.n,
             inputs=[src.x, src.v, src.C, src.F, src.plastic_J, self.volume, self.obj]
             + [t.law_of, t.field_of, *law_inputs, origin, lay.dx, self.dt, nodes]
-            + [int(lay.fields > 1), self.ground_k if self.ground_on else -1.0, *member_input],
+            + [int(lay.fields > 1), self.ground_k if self.ground_on else -1.0, t.k]
+            + [int(gathered is not None)],
             outputs=[grid.m, grid.mv, grid.gm, grid.pm],
             device=dev,
         )

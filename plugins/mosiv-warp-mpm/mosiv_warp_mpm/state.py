@@ -129,7 +129,7 @@ class ParticleState:
 class ParticleParams:
     """Each particle's copy of the per-object values P2G and G2P read: law parameters ``params``
     [N] vec5, density ``rho`` [N] (kg/m^3) and material_damping viscosity ``damping`` [N]
-    (Pa s), with gradients. The taped kernels (kernels.p2g_gathered, g2p_gathered) read these
+    (Pa s), with gradients. The taped P2G and G2P read these (kernels.parameter_rows)
     instead of ObjectTables, so that their parameter adjoints add into one address per particle
     rather than into a handful shared by all particles (autograd.BackwardWorkspace reduces them
     per object). Memory: 7 float32 values and 7 gradients, 56 bytes a particle (56 MB at 1M
