@@ -3,13 +3,16 @@
 Usage (GPU machine):
     python benchmarks/warp_profile.py [--particles 1000000] [--grid 128] [--substeps 50]
     python benchmarks/warp_profile.py --backward [--ablate-parameter-gradients] [--json OUT]
+    python benchmarks/warp_profile.py --backward --table-reads   # the adjoint before the copies
     python benchmarks/warp_profile.py --backward --family plasticine   # a law with an SVD
 
 Forward: the summed CUDA time of each kernel over one frame (no graph capture, so Warp can
-time every launch). Backward: one frame's adjoint as autograd.BackwardWorkspace runs it -- load
-the frame's checkpoint, re-simulate the frame keeping every substep's state, then per substep in
-reverse: zero the gradients, replay the substep under a Warp tape, run the tape's adjoint
-kernels -- each phase timed on its own, summed per (phase, kernel) with launch counts, sorted,
+time every launch). Backward: one frame's adjoint as autograd.WarpRollout.backward runs it for
+a one-frame rollout -- copy each particle's parameters (once per rollout), load the frame's
+checkpoint, re-simulate the frame keeping every substep's state, then per substep in reverse:
+zero the gradients, replay the substep under a Warp tape, run the tape's adjoint kernels; then
+sum the per-particle parameter gradients per object (once per frame, torch, timed by its wall
+clock) -- each phase timed on its own, summed per (phase, kernel) with launch counts, sorted,
 with each row's share of the backward total. Beside it: the forward frame, the implied
 particle-substeps/s of forward + backward, the same frame through the captured CUDA graphs that
 rollouts replay, peak GPU memory, and a check that the profiled schedule gives the real path's
@@ -26,15 +29,24 @@ re-simulation and the taped replay), zeroes gradients, and launches four adjoint
 
 1. Contended atomics on the parameter adjoints. In Warp the adjoint of an array read a[i] is
    atomic_add(adj_a[i], ...) (native/array.h, adj_address), issued by every thread even when
-   the value is zero. p2g reads params[o] (5 floats), rho[o] and damping[b] in every particle
-   thread and g2p reads params[o] again: 12 atomic adds per particle and substep onto 7
+   the value is zero. p2g read params[o] (5 floats), rho[o] and damping[b] in every particle
+   thread and g2p read params[o] again: 12 atomic adds per particle and substep onto 7
    addresses (one object in the bench), 12 M same-address atomics a substep at 1M particles,
-   which the L2 serialises. The grid kernels add accel, drag, the expression switch, friction
-   and the ground coefficients per node with mass. Confirmed if the adjoint p2g and g2p rows
-   dwarf their forward rows and --ablate-parameter-gradients (the tables' gradient arrays
-   removed, so Warp skips those atomics) recovers most of the time. The fix would reduce
-   parameter adjoints per block before one atomic (a tiled sum), which changes the summation
-   order, so gradients would no longer be bit-identical.
+   which the L2 serialises, summed in float32 in schedule order. Confirmed by this profile on
+   an H100: the adjoint p2g and g2p rows dwarfed their forward rows, and the profiled
+   schedule's parameter gradients differed from the real path's far beyond round-off. Fixed:
+   the taped p2g and g2p read each particle's own copy of its object's values
+   (state.ParticleParams, 56 bytes a particle; kernels.parameter_rows), copied once per
+   rollout (the "gather parameters" row), so their adjoints add into one address per
+   particle; after each frame the per-particle gradients are summed per object in float64
+   (torch, in a fixed order: the "reduce parameter gradients" row). Forward rollouts read the
+   tables as before (the same kernels, per_particle = 0). --table-reads profiles the taped
+   kernels reading the tables, as before the copies, for comparison. Not fixed: the grid kernels
+   still add accel, drag, the expression switch and coefficients, friction and the ground
+   coefficients per node with mass into the tables' few gradient entries (float32 atomics).
+   --ablate-parameter-gradients removes every parameter gradient (the copies' and the
+   tables', friction's excepted), so Warp skips those atomics: what it recovers is what the
+   parameter adjoints still cost.
 2. Recomputation. Every substep's forward runs three times (rollout, re-simulation, taped
    replay) and each Warp adjoint kernel replays its forward body before its reverse sweep. That
    bounds it at a few forward substeps (about 2.5 ms of the 24): the re-simulation and replay
@@ -109,6 +121,7 @@ class Profile:
     substeps: int
     family: str
     order: str
+    parameter_reads: str  # the taped kernels read the particles' "copies" or the "tables"
     rows: list[Row]
     total_ms: float  # sum of the rows
     wall_ms: float  # wall of the timed phases (uncaptured launches, each phase synchronised)
@@ -145,12 +158,18 @@ class Recorder:
         entry[1] += ms
 
     @contextmanager
-    def phase(self, phase: str, group: str = "all launches (wall)"):
-        flt = wp.TIMING_ALL if self.cuda else 0
+    def phase(self, phase: str, group: str = "all launches (wall)", *, wall: bool = False):
+        """Time what runs inside as ``phase``; ``wall``: as one row of its wall clock on CUDA
+        too (work Warp does not see, such as torch's)."""
+        flt = wp.TIMING_ALL if self.cuda and not wall else 0
         with wp.ScopedTimer(phase, print=False, synchronize=True, cuda_filter=flt) as timer:
+            if wall and self.cuda:
+                torch.cuda.synchronize()
             yield
+            if wall and self.cuda:
+                torch.cuda.synchronize()
         self.wall_ms += timer.elapsed
-        if not self.cuda:
+        if not self.cuda or wall:
             self.add(phase, group, timer.elapsed)
             return
         for r in timer.timing_results:
@@ -208,6 +227,8 @@ def build(args) -> Setup:
         obj_index=torch.zeros(n, dtype=torch.int64, device=dev),
         volumes=particles.volumes.to(dev)[order],
     )
+    if args.backward:
+        run.backward_workspace().gather_parameters = not args.table_reads
     params = family_params(args.family, dev)
     theta = pack_theta(params, [1], world.gravity, dev)
     v0 = params.initial_velocity[1].expand(n, 3).contiguous()
@@ -244,10 +265,17 @@ def seed_loss(run: MPMRun) -> None:
     ws.carry.x.grad.fill_(1.0)
 
 
-def profiled_adjoint(run: MPMRun, rec: Recorder, start: ParticleState, frame: int) -> None:
-    """autograd.BackwardWorkspace._launches phase by phase, each under the recorder (the
-    profile's check compares its gradients with the real path's)."""
+def profiled_adjoint(
+    run: MPMRun, rec: Recorder, start: ParticleState, frame: int, *, parameters: bool = True
+) -> None:
+    """A one-frame rollout's backward (autograd.WarpRollout.backward, its frame's
+    BackwardWorkspace._launches) phase by phase, each under the recorder (the profile's check
+    compares its gradients with the real path's). ``parameters``: copy the particles'
+    parameters before and sum their gradients after (off: the ablation, which copied them)."""
     ws = run.backward_workspace()
+    if parameters:
+        with rec.phase("gather parameters"):
+            ws.begin_parameters(run)
     with rec.phase("load checkpoint"):
         ws.work[0].copy_from(start)
         run.begin_frame(frame, ws.grid)
@@ -264,6 +292,9 @@ def profiled_adjoint(run: MPMRun, rec: Recorder, start: ParticleState, frame: in
     with rec.phase("seed/finish copies"):
         ws.finish()
     run.check_divergence(frame)
+    if parameters:
+        with rec.phase("reduce parameter gradients", wall=True):
+            ws.collect_parameter_gradients(run)
 
 
 def run_tape_backward(rec: Recorder, tape: wp.Tape) -> None:
@@ -313,7 +344,9 @@ def graph_frame_ms(setup: Setup, start: ParticleState, frame: int, reps: int) ->
             run.advance_frame(frame)
         seed_loss(run)
         with wp.ScopedTimer("adjoint", print=False, synchronize=True) as b:
+            ws.begin_parameters(run)  # once per rollout: here a one-frame one
             ws.adjoint_frame(run, start, frame=frame)
+            ws.collect_parameter_gradients(run)
         if rep:
             fwd.append(t.elapsed)
             bwd.append(b.elapsed)
@@ -336,23 +369,27 @@ def memory(setup: Setup) -> dict:
 
 
 def without_parameter_gradients(setup: Setup, start: ParticleState, frame: int) -> dict:
-    """The profiled adjoint again with the parameter tables' gradient arrays removed, so that
-    Warp's adjoints skip their per-object atomics (suspect 1): ms per (phase, name) and total.
-    Friction keeps its gradient: field_sums' hand-written adjoint writes into it unchecked
-    (read once per node with mass, not per particle)."""
+    """The profiled adjoint again with every parameter gradient array removed (the particles'
+    copies' and the tables'), so that Warp's adjoints skip their parameter atomics (suspect 1):
+    ms per (phase, name) and total. The copies' values are gathered first (the taped kernels
+    read them); no gradient is summed. Friction keeps its gradient: field_sums' hand-written
+    adjoint writes into it unchecked (read once per node with mass, not per particle)."""
     run = setup.run
+    ws = run.backward_workspace()
+    ws.begin_parameters(run)
+    arrays = [*vars(run.tables).values(), *ws.gathered.arrays()]
     tables = [
         a
-        for a in vars(run.tables).values()
+        for a in arrays
         if isinstance(a, wp.array) and a.requires_grad and a is not run.tables.friction
     ]
     for a in tables:
         a.requires_grad = False
     try:
-        run.backward_workspace().carry.zero_grad()
-        run.backward_workspace().carry.x.grad.fill_(1.0)
+        ws.carry.zero_grad()
+        ws.carry.x.grad.fill_(1.0)
         rec = Recorder(wp.get_device(run.device).is_cuda)
-        profiled_adjoint(run, rec, start, frame)
+        profiled_adjoint(run, rec, start, frame, parameters=False)
     finally:
         for a in tables:
             a.requires_grad = True  # fresh zero gradients; the captured graph is not replayed
@@ -406,6 +443,7 @@ def _workload(run, args, cuda: bool) -> dict:
         "substeps": run.substeps,
         "family": args.family,
         "order": args.order,
+        "parameter_reads": "tables" if args.table_reads else "copies",
     }
 
 
@@ -440,6 +478,11 @@ def report(p: Profile, target: float) -> str:
     head = (
         f"{p.mode}: N={p.particles} grid={p.grid} substeps={p.substeps} family={p.family} "
         f"order={p.order} device={p.device}; timing: {p.timing}"
+        + (
+            f"; taped kernels read the parameter {p.parameter_reads}"
+            if p.mode == "backward"
+            else ""
+        )
     )
     lines = [head]
     if p.timing != "cuda activity":
@@ -447,10 +490,10 @@ def report(p: Profile, target: float) -> str:
             "  (CPU: Warp times CUDA activity only, so each row is a launch group's wall time; "
             "the adjoint is timed per recorded launch)"
         )
-    lines.append(f"  {'phase':<20} {'activity':<42} {'launches':>8} {'ms':>10} {'share':>6}")
+    lines.append(f"  {'phase':<26} {'activity':<42} {'launches':>8} {'ms':>10} {'share':>6}")
     for r in p.rows:
         share = 100 * r.ms / p.total_ms if p.total_ms else 0.0
-        lines.append(f"  {r.phase:<20} {r.name:<42} {r.launches:>8} {r.ms:>10.2f} {share:>5.1f}%")
+        lines.append(f"  {r.phase:<26} {r.name:<42} {r.launches:>8} {r.ms:>10.2f} {share:>5.1f}%")
     lines.append(f"  total {p.total_ms:.2f} ms (wall of the timed phases {p.wall_ms:.2f} ms)")
     work = p.particles * p.substeps
     if p.mode == "forward":
@@ -516,7 +559,7 @@ def kernel_table(p: Profile) -> str:
 def ablation_report(p: Profile) -> str:
     """Adjoint rows with and without the parameter tables' gradients (suspect 1)."""
     without = {(r["phase"], r["name"]): r["ms"] for r in p.ablation["rows"]}
-    lines = ["  without parameter gradients (Warp skips the per-object atomics):"]
+    lines = ["  without parameter gradients (Warp skips the parameter atomics):"]
     for r in p.rows:
         if r.phase == "adjoint":
             other = without.get((r.phase, r.name), 0.0)
@@ -554,9 +597,18 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         action="store_true",
         help="backward: also profile the adjoint without the parameter tables' gradients",
     )
+    ap.add_argument(
+        "--table-reads",
+        dest="table_reads",
+        action="store_true",
+        help="backward: the taped kernels read the per-object tables, as before the particles' "
+        "parameter copies (BackwardWorkspace.gather_parameters off), for comparison",
+    )
     ap.add_argument("--target", type=float, default=3e8, help="particle-substeps/s to compare")
     ap.add_argument("--json", default=None, help="also write the profile to this JSON file")
     args = ap.parse_args(argv)
+    if args.table_reads and not args.backward:
+        ap.error("--table-reads profiles the backward: add --backward")
     for name in ("particles", "grid", "substeps", "frame", "reps"):
         if getattr(args, name) < 1:
             ap.error(f"--{name} must be at least 1, got {getattr(args, name)}")
