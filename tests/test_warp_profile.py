@@ -43,6 +43,8 @@ def test_backward_profile_reports_each_adjoint_kernel(profile_module, tmp_path, 
         assert f"backward kernel {kernel}" in text
     groups = {"load checkpoint": 1, "re-simulation": 1, "seed/finish copies": 2}
     groups |= {"zero gradients": SUBSTEPS, "taped replay": SUBSTEPS}
+    # the particles' parameter copies: gathered once, their gradients summed per object once
+    groups |= {"gather parameters": 1, "reduce parameter gradients": 1}
     for phase, launches in groups.items():
         row = rows[(phase, "all launches (wall)")]
         assert row.launches == launches and row.ms > 0, row
