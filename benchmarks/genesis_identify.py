@@ -150,7 +150,7 @@ def _earlier(out: Path) -> dict[str, dict]:
 
 
 def save_table(out: Path, rows: dict[str, dict], *, recipe: Path, sets: list[str]) -> dict:
-    table = {"recipe": str(recipe), "overrides": sets, **make_table(list(rows.values()))}
+    table = {"recipe": _portable(str(recipe)), "overrides": sets, **make_table(list(rows.values()))}
     (out / "table.json").write_text(json.dumps(table, indent=2) + "\n")
     (out / "table.md").write_text(markdown(table))
     return table

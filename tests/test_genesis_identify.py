@@ -277,7 +277,7 @@ def test_committed_rows_without_contact_or_method_render_as_before():
     """Rows made before rows recorded the contact and the interval method: the recipe's
     multi_field contact, no method, no Laplace line, and the committed summary's numbers."""
     bench = _bench()
-    folder = ROOT / "benchmarks" / "data" / "genesis_identify"
+    folder = ROOT / "benchmarks" / "data" / "genesis_identify_multi_field"
     committed = json.loads((folder / "table.json").read_text())
     rows = [json.loads(p.read_text()) for p in sorted(folder.glob("scene_*.json"))]
     assert rows and all("contact" not in r for r in rows)
