@@ -306,3 +306,21 @@ def test_docs_list_every_exit_status_and_every_command():
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     missing = [name for name in sub.choices if f"`mosiv {name}" not in text]
     assert missing == []
+
+
+def test_building_the_parser_loads_no_heavy_library():
+    """``mosiv --help`` and every command's parsing stay fast: building the parser imports
+    neither torch nor the capture package's pycolmap and imageio (they load when a command
+    runs). Checked in a fresh interpreter, where nothing was imported before."""
+    import subprocess
+    import sys
+
+    probe = (
+        "import sys\n"
+        "from mosiv_framework.cli.main import build_parser\n"
+        "build_parser()\n"
+        "heavy = ('torch', 'pycolmap', 'imageio', 'warp', 'taichi')\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in heavy))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout

@@ -12,20 +12,28 @@ inverse, frames remapped through it), ``rotations`` (up axis to +z), ``offsets``
 hull, domain), ``materials`` (objects), ``importer`` and ``write`` (the steps in order).
 """
 
-from mosiv_framework.capture.align import RigFrame
-from mosiv_framework.capture.common import CaptureError, SourceCamera
-from mosiv_framework.capture.importer import ImportSettings, find_inputs, import_recording
-from mosiv_framework.capture.lens import Distortion
-from mosiv_framework.capture.write import CAPTURE_FORMAT, write_capture
+from __future__ import annotations
 
-__all__ = [
-    "CAPTURE_FORMAT",
-    "CaptureError",
-    "Distortion",
-    "ImportSettings",
-    "RigFrame",
-    "SourceCamera",
-    "find_inputs",
-    "import_recording",
-    "write_capture",
-]
+import importlib
+
+#: the package's names and the module each comes from, imported on first use: the CLI reads
+#: ``capture.options`` to build its parser, which must not load pycolmap, imageio or torch
+_EXPORTS = {
+    "CAPTURE_FORMAT": "write",
+    "CaptureError": "common",
+    "Distortion": "lens",
+    "ImportSettings": "importer",
+    "RigFrame": "align",
+    "SourceCamera": "common",
+    "find_inputs": "importer",
+    "import_recording": "importer",
+    "write_capture": "write",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)

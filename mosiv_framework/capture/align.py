@@ -15,14 +15,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mosiv_framework.capture.common import CaptureError, SourceCamera
+from mosiv_framework.capture.options import AXES, METRES_PER_UNIT
 from mosiv_framework.capture.rotations import rotation_to_z
 from mosiv_framework.scene.cameras import Camera
-
-#: metres per unit of the unit names ``--units`` accepts (a positive number works too)
-METRES_PER_UNIT: dict[str, float] = {
-    "m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048,
-}  # fmt: skip
-AXES = {"x": 0, "y": 1, "z": 2}
 
 
 def parse_units(text: str | None) -> float:

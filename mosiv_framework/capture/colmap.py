@@ -25,6 +25,7 @@ from mosiv_framework.capture.common import (
     no_frames_message,
 )
 from mosiv_framework.capture.lens import Distortion, Intrinsics
+from mosiv_framework.capture.options import WRITE_MODELS
 
 #: supported camera models -> their parameters in COLMAP's order, named as ``Distortion`` and
 #: ``Intrinsics`` name them (``f``: fx = fy)
@@ -35,8 +36,6 @@ MODELS: dict[str, tuple[str, ...]] = {
     "RADIAL": ("f", "cx", "cy", "k1", "k2"),
     "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
 }
-#: models the writer can write (both hold the lens; RADIAL needs fx = fy and no p1, p2)
-WRITE_MODELS = ("OPENCV", "RADIAL")
 #: the files of a model, each as .txt or .bin
 MODEL_FILES = ("cameras", "images", "points3D")
 

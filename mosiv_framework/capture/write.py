@@ -32,11 +32,10 @@ from mosiv_framework.capture.colmap import colmap_params, write_colmap
 from mosiv_framework.capture.common import refuse_non_empty
 from mosiv_framework.capture.lens import Distortion, distort_frames
 from mosiv_framework.capture.offsets import parse_offsets
+from mosiv_framework.capture.options import DEFAULT_CRF
 from mosiv_framework.errors import ConfigError
 
 CAPTURE_FORMAT = "mosiv-capture/1"
-#: H.264 constant rate factor: 0 lossless .. 51 worst; 18 is visually lossless for most content
-DEFAULT_CRF = 18
 
 
 def _even(frame: np.ndarray) -> np.ndarray:

@@ -27,9 +27,8 @@ def add_parser(sub) -> None:
 
 def add_capture_parser(dsub) -> None:
     """``data capture`` under the ``data`` command's sub-parsers ``dsub``."""
-    from mosiv_framework.capture.align import AXES, METRES_PER_UNIT
-    from mosiv_framework.capture.colmap import WRITE_MODELS
-    from mosiv_framework.capture.write import DEFAULT_CRF
+    # the choices only: the capture package itself loads pycolmap and imageio when it runs
+    from mosiv_framework.capture.options import AXES, DEFAULT_CRF, METRES_PER_UNIT, WRITE_MODELS
 
     p = dsub.add_parser(
         "capture",
