@@ -380,6 +380,22 @@ def test_binary_colmap_model_id_that_colmap_does_not_know(scene, tmp_path):
     assert "supported models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL" in message, message
 
 
+@pytest.mark.parametrize("name", ["cameras.bin", "images.bin"])
+@pytest.mark.parametrize("keep", [0.5, -5, 3])  # half, all but 5 bytes, less than the count
+def test_truncated_binary_colmap_file_is_named(scene, tmp_path, name, keep):
+    # pycolmap reads such files as garbage or fails with an allocation error
+    cameras = read_scene(scene).cameras
+    write_colmap(tmp_path, cameras, names=[f"{c.id}.mp4" for c in cameras], binary=True)
+    data = (tmp_path / name).read_bytes()
+    cut = int(len(data) * keep) if isinstance(keep, float) else keep % len(data)
+    (tmp_path / name).write_bytes(data[:cut])
+    with pytest.raises(CaptureError) as info:
+        read_colmap(tmp_path, {c.id for c in cameras})
+    message = str(info.value)
+    assert str(tmp_path / name) in message and "truncated" in message, message
+    assert f"has {cut}" in message or f"{cut} bytes" in message, message
+
+
 def test_missing_colmap_file_is_named(capture, tmp_path):
     c = copy_capture(capture, tmp_path)
     (c / "sparse" / "0" / "images.txt").unlink()

@@ -72,13 +72,74 @@ def _unknown_model_name(path: Path) -> str | None:
     return None
 
 
+def _binary_size_problem(path: Path, records) -> str | None:
+    """Where a binary model file's records, read by their own counts and sizes, do not end
+    exactly at its end: a truncated or padded file, which pycolmap reads as garbage or fails
+    on with an allocation error. ``records(data)`` yields each record's byte length."""
+    data = path.read_bytes()
+    if len(data) < 8:
+        return f"{path}: {len(data)} bytes, shorter than its record count; the file is truncated"
+    end = 8
+    try:
+        for length in records(data):
+            end += length
+            if end > len(data):
+                break
+    except ValueError:  # an unknown camera model id: pycolmap's reading names it
+        return None
+    if end == len(data):
+        return None
+    count = int.from_bytes(data[:8], "little")
+    return (
+        f"{path}: its {count} records take {end} bytes or more but the file has {len(data)}; "
+        "the file is truncated or not a COLMAP binary model"
+    )
+
+
+def _camera_records(data: bytes):
+    """Byte lengths of cameras.bin's records: id (uint32), model id (int32), width and height
+    (uint64), then the model's parameters (float64)."""
+    count, at = int.from_bytes(data[:8], "little"), 8
+    for _ in range(count):
+        if at + 8 > len(data):
+            yield 24  # runs past the end
+            return
+        model = int.from_bytes(data[at + 4 : at + 8], "little", signed=True)
+        n = len(
+            pycolmap.Camera.create_from_model_id(1, pycolmap.CameraModelId(model), 1.0, 1, 1).params
+        )
+        yield 24 + 8 * n
+        at += 24 + 8 * n
+
+
+def _image_records(data: bytes):
+    """Byte lengths of images.bin's records: id (uint32), rotation (4 float64), translation
+    (3 float64), camera id (uint32), a NUL-terminated name, the number of 2-D points (uint64)
+    and 24 bytes per point."""
+    count, at = int.from_bytes(data[:8], "little"), 8
+    for _ in range(count):
+        name_end = data.find(b"\0", at + 64)
+        if name_end < 0 or name_end + 9 > len(data):
+            yield len(data) + 1 - at  # runs past the end
+            return
+        points = int.from_bytes(data[name_end + 1 : name_end + 9], "little")
+        length = name_end + 9 - at + 24 * points
+        yield length
+        at += length
+
+
 def _load(root: Path) -> tuple[pycolmap.Reconstruction, str]:
     """The model in ``root`` and the extension of its files; CaptureError when unreadable."""
     ext = _model_extension(root)
+    if ext == ".bin":
+        for name, records in (("cameras", _camera_records), ("images", _image_records)):
+            problem = _binary_size_problem(root / f"{name}.bin", records)
+            if problem:
+                raise CaptureError(problem)
     rec = pycolmap.Reconstruction()
     try:
         (rec.read_binary if ext == ".bin" else rec.read_text)(str(root))
-    except (ValueError, IndexError, KeyError, RuntimeError) as exc:
+    except (ValueError, IndexError, KeyError, RuntimeError, MemoryError) as exc:
         unknown = _unknown_model_name(root / "cameras.txt") if ext == ".txt" else None
         # pycolmap prefixes its failed checks with the C++ source line: of no use here
         reason = re.sub(r"^\[[^\]]*\]\s*", "", str(exc)).strip()
