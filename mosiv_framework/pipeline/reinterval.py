@@ -21,12 +21,7 @@ from omegaconf import OmegaConf
 from mosiv_framework.pipeline import formats
 from mosiv_framework.pipeline.identification import stage_objective, start_vector
 from mosiv_framework.pipeline.phases import Fit, build_phases
-from mosiv_framework.pipeline.uncertainty import (
-    INTERVALS_PHASE,
-    attach_intervals,
-    interval_record,
-    mark_coverage,
-)
+from mosiv_framework.pipeline.uncertainty import attach_intervals, interval_record, mark_coverage
 
 
 def recompute_intervals(
@@ -123,4 +118,4 @@ def _write(rd, record: dict) -> None:
         rd.save_json("metrics.json", metrics)
 
 
-__all__ = ["INTERVALS_PHASE", "identified_vector", "recompute_intervals"]
+__all__ = ["identified_vector", "recompute_intervals"]
