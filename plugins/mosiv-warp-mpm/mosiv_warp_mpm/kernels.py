@@ -13,6 +13,11 @@ coefficients) are indexed by b. A single rollout is the batch of one (b = 0).
 P2G and G2P read the law parameters, density and viscosity from the per-object tables or, in
 the backward's taped replay, from each particle's copy of them (``per_particle``,
 parameter_rows): same values, same results, but uncontended parameter adjoints.
+
+P2G and G2P read each particle array once per thread, into a local used from then on: Warp's
+adjoint of a read a[p] is an atomic add into a's gradient at p, one per read in the code (P2G
+read C[p] three times and once more in each of the 27 unrolled nodes), while a local's adjoint
+sums its uses in registers and adds once. The forward is the same arithmetic on the same values.
 """
 
 from __future__ import annotations
@@ -176,17 +181,25 @@ def p2g(
     o = obj[p]
     f = field_of[o]
     q, b = parameter_rows(p, o, objects_per_member, per_particle)
-    m = rho[q] * volume[p]
+    # each particle array read once (module docstring): C is used three times and once per
+    # ground-layer node, F and the volume twice
+    xp = x[p]
+    vp = v[p]
+    Cp = C[p]
+    Fp = F[p]
+    Jp = plastic_J[p]
+    vol = volume[p]
+    m = rho[q] * vol
     inv_dx = 1.0 / dx
-    tau = kirchhoff_stress(law_of[o], params[q], F[p], C[p], plastic_J[p])
-    tau = tau + kelvin_voigt_tau(damping[b], F[p], C[p])
-    affine = (-dt * 4.0 * inv_dx * inv_dx * volume[p]) * tau + m * C[p]
-    xl = (x[p] - origin) * inv_dx
+    tau = kirchhoff_stress(law_of[o], params[q], Fp, Cp, Jp)
+    tau = tau + kelvin_voigt_tau(damping[b], Fp, Cp)
+    affine = (-dt * 4.0 * inv_dx * inv_dx * vol) * tau + m * Cp
+    xl = (xp - origin) * inv_dx
     base = cell_base(xl)
     fx = xl - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     W = bspline_weights(fx)
     D = bspline_slopes(fx)
-    mom = m * v[p]
+    mom = m * vp
     for i in range(3):
         for j in range(3):
             for k in range(3):
@@ -201,7 +214,7 @@ def p2g(
                 wp.atomic_add(grid_m, n, w * m)
                 wp.atomic_add(grid_mv, n, w * (mom + affine * dpos))
                 if float(base[2] + k) <= ground_k:  # for ground_restitution (ground_contact)
-                    wp.atomic_add(grid_pm, n, w * (mom + m * (C[p] * dpos)))
+                    wp.atomic_add(grid_pm, n, w * (mom + m * (Cp * dpos)))
                 if with_normals != 0:  # contact normals matter only with several fields
                     wp.atomic_add(grid_gm, n, m * grad_w)
 
@@ -392,8 +405,9 @@ def g2p(
     p = wp.tid()
     o = obj[p]
     f = field_of[o]
+    xp = x[p]  # read once (module docstring): the position is used two or three times
     inv_dx = 1.0 / dx
-    xl = (x[p] - origin) * inv_dx
+    xl = (xp - origin) * inv_dx
     base = cell_base(xl)
     fx = xl - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     W = bspline_weights(fx)
@@ -410,13 +424,13 @@ def g2p(
     F_trial = (wp.identity(n=3, dtype=float) + dt * Cn) * F[p]
     q, b = parameter_rows(p, o, 1, per_particle)
     Fn, pj = return_map(law_of[o], params[q], F_trial, plastic_J[p], dt)
-    xn = x[p] + dt * vn
+    xn = xp + dt * vn
     finite = wp.isfinite(xn) and wp.isfinite(vn) and wp.isfinite(Fn) and wp.isfinite(Cn)
     finite = finite and wp.isfinite(pj)
     if not finite:
         # keep the state usable (no out-of-grid index next substep); the host raises at frame end
         wp.atomic_min(flag, o, substep * 4 + REASON_NONFINITE)
-        xn = x[p]
+        xn = xp
         vn = wp.vec3()
         Cn = wp.mat33()
         Fn = wp.identity(n=3, dtype=float)
