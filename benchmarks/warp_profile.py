@@ -54,9 +54,15 @@ re-simulation and the taped replay), zeroes gradients, and launches four adjoint
    written into work[s + 1] (G2P's adjoint reads its inputs, not its outputs): MPMRun.record_g2p
    now puts it on the tape without running it, so the replay row is the grid update alone.
 3. Adjoint scatter. The adjoint g2p atomically adds 27 vec3 per particle into grid_v's gradient
-   (the forward P2G's pattern, 20 ms a frame in the forward profile), and each read of x, v, C,
-   F in p2g becomes an atomic into its gradient (C[p] three times, plus once per ground-layer
-   node; F twice). Shows in the adjoint rows that remain after the ablation.
+   (the forward P2G's pattern, 20 ms a frame in the forward profile): one distinct node per
+   read, inherent to the scatter. Each read of a particle array in p2g used to become an atomic
+   into its gradient (C[p] three times plus once per ground-layer node, F and the volume twice;
+   x two or three times in g2p). Fixed: p2g and g2p read each particle array once per thread
+   into a local (kernels.py, module docstring), so the adjoint sums each particle's uses in
+   registers and adds once per array; the forward is the same arithmetic (bit for bit on the
+   CPU), the gradients equal the previous kernels' to float32 round-off (F's gradient
+   regrouped: tests/test_transfer_reads.py in the plugin). Not yet measured on a GPU; what is
+   left of the adjoint rows after the ablation is the grid scatter and gather themselves.
 4. SVD adjoint. Not on the bench workload: elastic is neo-Hookean (no SVD) with an identity
    return map. Plasticine, sand, non_newtonian and snow go through svd.proper_svd and its
    hand-written adjoint: --family measures them.
