@@ -101,7 +101,8 @@ def _identified_value(params, key: str) -> torch.Tensor | None:
 def _write(rd, record: dict) -> None:
     """The record appended to the history, and the intervals in identified.json and
     metrics.json (coverage marks made again) where those files exist."""
-    history = formats.read_history(rd.path("identify/history.json"))
+    path = rd.path("identify/history.json")
+    history = formats.read_history(path) if path.is_file() else []  # e.g. a library run
     history.append(record)
     rd.save_json("identify/history.json", formats.stamped_entries(formats.HISTORY, history))
     identified = rd.load_json("identified.json")
