@@ -8,11 +8,11 @@ Usage (GPU machine):
 
 Forward: the summed CUDA time of each kernel over one frame (no graph capture, so Warp can
 time every launch). Backward: one frame's adjoint as autograd.WarpRollout.backward runs it for
-a one-frame rollout -- copy each particle's parameters (once per rollout), load the frame's
-checkpoint, re-simulate the frame keeping every substep's state, then per substep in reverse:
-zero the gradients, replay the substep under a Warp tape, run the tape's adjoint kernels; then
-sum the per-particle parameter gradients per object (once per frame, torch, timed by its wall
-clock) -- each phase timed on its own, summed per (phase, kernel) with launch counts, sorted,
+a one-frame rollout -- copy each particle's parameters and each grid node's body acceleration
+and drag (once per rollout), load the frame's checkpoint, re-simulate the frame keeping every
+substep's state, then per substep in reverse: zero the gradients, replay the substep under a
+Warp tape, run the tape's adjoint kernels; then sum the per-particle parameter gradients per
+object and the per-node ones per member (once per frame, torch, timed by its wall clock) -- each phase timed on its own, summed per (phase, kernel) with launch counts, sorted,
 with each row's share of the backward total. Beside it: the forward frame, the implied
 particle-substeps/s of forward + backward, the same frame through the captured CUDA graphs that
 rollouts replay, peak GPU memory, and a check that the profiled schedule gives the real path's
@@ -40,13 +40,21 @@ re-simulation and the taped replay), zeroes gradients, and launches four adjoint
    rollout (the "gather parameters" row), so their adjoints add into one address per
    particle; after each frame the per-particle gradients are summed per object in float64
    (torch, in a fixed order: the "reduce parameter gradients" row). Forward rollouts read the
-   tables as before (the same kernels, per_particle = 0). --table-reads profiles the taped
-   kernels reading the tables, as before the copies, for comparison. Not fixed: the grid kernels
-   still add accel, drag, the expression switch and coefficients, friction and the ground
-   coefficients per node with mass into the tables' few gradient entries (float32 atomics).
-   --ablate-parameter-gradients removes every parameter gradient (the copies' and the
-   tables', friction's excepted), so Warp skips those atomics: what it recovers is what the
-   parameter adjoints still cost.
+   tables as before (the same kernels, per_particle = 0). The grid: measured on an H100 (1M
+   particles, grid 128), the adjoint grid_free_velocity took 44.4 ms a frame, 7.1 without
+   parameter gradients: every node with mass read its member's accel (vec3), two drag
+   coefficients and the expression switch, some 6 float32 atomics per node onto 6 addresses.
+   Fixed the same way: the taped grid_free_velocity reads each node's copy of accel and drag
+   (state.NodeCoefficients, 40 bytes a node, 98 MB at grid 128; per_node = 1), gathered with
+   the particles' copies, its gradients summed per member in float64 in the reduce row; the
+   switch (only compared, so no gradient) from a copy without a gradient, which Warp's adjoint
+   skips, as do the taped field_moments and other_centres. Not yet measured on a GPU. Not
+   fixed: the expression's coefficients (when the term is on), friction and the ground
+   coefficients are still read per node from the tables, their adjoints float32 atomics onto
+   a few addresses. --table-reads profiles the taped kernels reading the tables, as before the
+   copies (particles' and nodes'), for comparison. --ablate-parameter-gradients removes every
+   parameter gradient (the copies' and the tables', friction's excepted), so Warp skips those
+   atomics: what it recovers is what the parameter adjoints still cost.
 2. Recomputation. Every substep's forward runs three times (rollout, re-simulation, taped
    replay) and each Warp adjoint kernel replays its forward body before its reverse sweep. That
    bounds it at a few forward substeps (about 2.5 ms of the 24): the re-simulation and replay
@@ -277,7 +285,8 @@ def profiled_adjoint(
     """A one-frame rollout's backward (autograd.WarpRollout.backward, its frame's
     BackwardWorkspace._launches) phase by phase, each under the recorder (the profile's check
     compares its gradients with the real path's). ``parameters``: copy the particles'
-    parameters before and sum their gradients after (off: the ablation, which copied them)."""
+    parameters and the nodes' coefficients before and sum their gradients after (off: the
+    ablation, which copied them)."""
     ws = run.backward_workspace()
     if parameters:
         with rec.phase("gather parameters"):
@@ -377,13 +386,13 @@ def memory(setup: Setup) -> dict:
 def without_parameter_gradients(setup: Setup, start: ParticleState, frame: int) -> dict:
     """The profiled adjoint again with every parameter gradient array removed (the particles'
     copies' and the tables'), so that Warp's adjoints skip their parameter atomics (suspect 1):
-    ms per (phase, name) and total. The copies' values are gathered first (the taped kernels
-    read them); no gradient is summed. Friction keeps its gradient: field_sums' hand-written
+    ms per (phase, name) and total. The copies' values (the particles' and the nodes') are
+    gathered first (the taped kernels read them); no gradient is summed. Friction keeps its gradient: field_sums' hand-written
     adjoint writes into it unchecked (read once per node with mass, not per particle)."""
     run = setup.run
     ws = run.backward_workspace()
     ws.begin_parameters(run)
-    arrays = [*vars(run.tables).values(), *ws.gathered.arrays()]
+    arrays = [*vars(run.tables).values(), *ws.parameter_copies()]
     tables = [
         a
         for a in arrays
@@ -608,7 +617,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         dest="table_reads",
         action="store_true",
         help="backward: the taped kernels read the per-object tables, as before the particles' "
-        "parameter copies (BackwardWorkspace.gather_parameters off), for comparison",
+        "and the nodes' parameter copies (BackwardWorkspace.gather_parameters off), for "
+        "comparison",
     )
     ap.add_argument("--target", type=float, default=3e8, help="particle-substeps/s to compare")
     ap.add_argument("--json", default=None, help="also write the profile to this JSON file")

@@ -22,9 +22,13 @@ adjoint P2G and G2P on a GPU) summed in float32 in schedule order. Instead each 
 own copy of its object's law parameters, density and viscosity once per backward
 (state.ParticleParams, ``begin_parameters``), the taped P2G and G2P read the copy (their
 adjoints add into one address per particle), and after each frame the per-particle gradients
-are summed per object in float64 (``collect_parameter_gradients``). The grid kernels still read
-their per-member coefficients (body acceleration, drag, ground, friction, the expression's) per
-node from the tables: those adjoints remain float32 atomics onto a few addresses.
+are summed per object in float64 (``collect_parameter_gradients``). The same for the grid: the
+taped grid_free_velocity read its member's body acceleration and drag in every node with mass,
+so each node gets its own copy (state.NodeCoefficients, 40 bytes a node), summed per member in
+float64 after each frame; it reads the expression switches, whose gradient is zero (they are
+only compared), from a copy without a gradient, so no atomics at all. Still read per node from
+the tables, their adjoints float32 atomics onto a few addresses: the expression's coefficients,
+and grid_boundaries' friction and ground coefficients.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ import torch
 import warp as wp
 
 from mosiv_warp_mpm import kernels as K
-from mosiv_warp_mpm.state import Grid, NodeBox, ParticleParams, ParticleState
+from mosiv_warp_mpm.state import Grid, NodeBox, NodeCoefficients, ParticleParams, ParticleState
 
 
 class WarpRollout(torch.autograd.Function):
@@ -120,25 +124,38 @@ class BackwardWorkspace:
         self.carry = ParticleState(n, dev, requires_grad=True)
         #: each particle's copy of its object's parameters, read by the taped P2G and G2P
         self.gathered = ParticleParams(n, dev)
-        #: False: the taped kernels read the per-object tables instead, every particle's
-        #: parameter adjoint added by float32 atomics into the tables' few gradient entries each
-        #: substep (the accumulation before the copies; tests and warp_profile.py compare)
+        #: each grid node's copy of its member's body acceleration and drag, read by the taped
+        #: grid_free_velocity, and the expression switches without a gradient
+        self.node_coefficients = NodeCoefficients(run.batch * run.layout.size, run.batch, dev)
+        #: False: the taped kernels read the per-object tables instead, every particle's and
+        #: node's parameter adjoint added by float32 atomics into the tables' few gradient
+        #: entries each substep (the accumulation before the copies; tests and warp_profile.py
+        #: compare)
         self.gather_parameters = True
         #: float64 [B K, 7] per-object sums of the law parameters', density's and viscosity's
-        #: gradients over the frames back-propagated so far (``collect_parameter_gradients``)
+        #: gradients over the frames back-propagated so far, and [B, 5] per-member sums of the
+        #: body acceleration's and drag's (``collect_parameter_gradients``)
         self._parameter_sums: torch.Tensor | None = None
+        self._coefficient_sums: torch.Tensor | None = None
         self._obj: torch.Tensor | None = None
         #: the captured adjoint, per value of MPMRun.centres (the launches differ)
         self._graphs: dict[bool, wp.Graph] = {}
 
     def nbytes(self) -> int:
         grid = sum(a.capacity * 2 for a in self.grid.arrays())
-        return sum(w.nbytes() for w in self.work) + grid + self.gathered.nbytes()
+        copies = self.gathered.nbytes() + self.node_coefficients.nbytes()
+        return sum(w.nbytes() for w in self.work) + grid + copies
+
+    def parameter_copies(self) -> list[wp.array]:
+        """The particles' and the nodes' parameter copies that have gradients."""
+        return [*self.gathered.arrays(), *self.node_coefficients.arrays()]
 
     def begin_parameters(self, run) -> None:
         """Before a rollout's backward (after ``run.tables.zero_grad``): copy each particle's
-        object's law parameters, density and viscosity into ``gathered`` (the tables hold the
-        rollout's values until its backward ends), zero their gradients and the sums."""
+        object's law parameters, density and viscosity into ``gathered`` and each node's
+        member's body acceleration, drag and expression switches into ``node_coefficients``
+        (the tables hold the rollout's values until its backward ends), zero their gradients
+        and the sums."""
         if not self.gather_parameters:
             return
         t = run.tables
@@ -149,17 +166,28 @@ class BackwardWorkspace:
             outputs=self.gathered.arrays(),
             device=run.device,
         )
-        for a in self.gathered.arrays():
+        c = self.node_coefficients
+        wp.launch(
+            K.gather_node_coefficients,
+            dim=c.accel.shape[0],
+            inputs=[t.accel, t.drag, run.layout.size],
+            outputs=c.arrays(),
+            device=run.device,
+        )
+        wp.copy(c.expr_switch, t.expr_switch)
+        for a in self.parameter_copies():
             a.grad.zero_()
         self._obj = wp.to_torch(run.obj).long()
         dev = wp.device_to_torch(run.device)
         self._parameter_sums = torch.zeros(t.batch * t.k, 7, dtype=torch.float64, device=dev)
+        self._coefficient_sums = torch.zeros(t.batch, 5, dtype=torch.float64, device=dev)
 
     def collect_parameter_gradients(self, run) -> None:
-        """After a frame's adjoint: sum the particles' parameter gradients per object in
-        float64 into the rollout's sums, zero them for the next frame, and write the sums into
-        the tables' gradients (float32; viscosity summed over each member's objects), where
-        ObjectTables.grad_theta reads them."""
+        """After a frame's adjoint: sum the particles' parameter gradients per object and the
+        nodes' coefficient gradients per member in float64 into the rollout's sums, zero them
+        for the next frame, and write the sums into the tables' gradients (float32; viscosity
+        summed over each member's objects), where ObjectTables.grad_theta reads them. The
+        expression switches' gradient stays the tables' (zero: only compared)."""
         if not self.gather_parameters:
             return
         _torch_waits_for_warp(run.device)
@@ -174,7 +202,24 @@ class BackwardWorkspace:
         wp.to_torch(t.params.grad).copy_(sums[:, :5])
         wp.to_torch(t.rho.grad).copy_(sums[:, 5])
         wp.to_torch(t.damping.grad).copy_(sums[:, 6].view(t.batch, t.k).sum(1))
+        self._collect_coefficient_gradients(run)
         _warp_waits_for_torch(run.device)  # later Warp work reads or zeroes these arrays
+
+    def _collect_coefficient_gradients(self, run) -> None:
+        """The nodes' body acceleration and drag gradients summed per member (the flat nodes
+        are member-major: member b's are rows b S .. (b + 1) S - 1) in float64, one torch.sum
+        per array (a fixed-order reduction, where index_add_ would add in schedule order on
+        CUDA), into the rollout's sums and the tables' gradients; the nodes' zeroed."""
+        t, c = run.tables, self.node_coefficients
+        accel = wp.to_torch(c.accel.grad)
+        drag = wp.to_torch(c.drag.grad)
+        sums = self._coefficient_sums
+        sums[:, :3] += accel.view(t.batch, -1, 3).sum(1, dtype=torch.float64)
+        sums[:, 3:] += drag.view(t.batch, -1, 2).sum(1, dtype=torch.float64)
+        accel.zero_()
+        drag.zero_()
+        wp.to_torch(t.accel.grad).copy_(sums[:, :3])
+        wp.to_torch(t.drag.grad).copy_(sums[:, 3:].reshape(-1))
 
     def adjoint_frame(self, run, start: ParticleState, *, frame: int) -> None:
         """carry.grad: d(loss)/d(state at the frame's end) -> d(loss)/d(state at its start);
@@ -232,12 +277,13 @@ class BackwardWorkspace:
         """Substep ``s`` (work[s] -> work[s + 1]) on a fresh tape, ready for ``backward``: its
         grid update runs again, rebuilding the grid that later substeps overwrote; its G2P is
         only recorded, since the re-simulation already wrote G2P's result into work[s + 1].
-        Both read the particles' parameter copies (``gathered``) unless
-        ``gather_parameters`` is off."""
+        Both read the particles' parameter copies (``gathered``) and the grid the nodes' copies
+        (``node_coefficients``) unless ``gather_parameters`` is off."""
         gathered = self.gathered if self.gather_parameters else None
+        coefficients = self.node_coefficients if self.gather_parameters else None
         tape = wp.Tape()
         with tape:
-            run.grid_update(self.work[s], self.grid, s, box, gathered)
+            run.grid_update(self.work[s], self.grid, s, box, gathered, coefficients)
         run.record_g2p(tape, self.work[s], self.work[s + 1], self.grid, s, gathered)
         return tape
 

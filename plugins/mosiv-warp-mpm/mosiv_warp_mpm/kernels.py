@@ -12,7 +12,9 @@ coefficients) are indexed by b. A single rollout is the batch of one (b = 0).
 
 P2G and G2P read the law parameters, density and viscosity from the per-object tables or, in
 the backward's taped replay, from each particle's copy of them (``per_particle``,
-parameter_rows): same values, same results, but uncontended parameter adjoints.
+parameter_rows): same values, same results, but uncontended parameter adjoints. Likewise
+grid_free_velocity reads the body acceleration and drag from the per-member tables or, taped,
+from each node's copy (``per_node``, state.NodeCoefficients).
 
 P2G and G2P read each particle array once per thread, into a local used from then on: Warp's
 adjoint of a read a[p] is an atomic add into a's gradient at p, one per read in the code (P2G
@@ -147,6 +149,23 @@ def gather_particle_params(
 
 
 @wp.kernel
+def gather_node_coefficients(
+    accel: wp.array(dtype=wp.vec3),
+    drag: wp.array(dtype=float),
+    member_nodes: int,
+    node_accel: wp.array(dtype=wp.vec3),
+    node_drag: wp.array(dtype=float),
+):
+    # flat node n's copy of what grid_free_velocity reads per member (state.NodeCoefficients):
+    # body acceleration and drag of member n // member_nodes (member_nodes = GridLayout.size)
+    n = wp.tid()
+    b = n // member_nodes
+    node_accel[n] = accel[b]
+    node_drag[2 * n] = drag[2 * b]
+    node_drag[2 * n + 1] = drag[2 * b + 1]
+
+
+@wp.kernel
 def p2g(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
@@ -222,9 +241,10 @@ def p2g(
 @wp.struct
 class ExpressionInputs:
     """What the expression term reads at a node (expression_kernels.py): the switches (``on``,
-    ObjectTables.expr_switch; ``switch`` is a C++ keyword) and coefficients (ObjectTables), the other objects' summed centres (Grid), the frame's start
-    time (s, MPMRun.clock), the substep within the frame, the grid origin (m) and spacing (m),
-    the scene's up and its ground height (m)."""
+    ObjectTables.expr_switch or, taped, its copy without a gradient NodeCoefficients.expr_switch;
+    ``switch`` is a C++ keyword) and coefficients (ObjectTables), the other objects' summed
+    centres (Grid), the frame's start time (s, MPMRun.clock), the substep within the frame, the
+    grid origin (m) and spacing (m), the scene's up and its ground height (m)."""
 
     on: wp.array(dtype=float)
     coef: wp.array(dtype=wp.vec3)
@@ -245,6 +265,7 @@ def grid_free_velocity(
     grid_mv: wp.array(dtype=wp.vec3),
     accel: wp.array(dtype=wp.vec3),
     drag: wp.array(dtype=float),
+    per_node: int,
     expr: ExpressionInputs,
     dt: float,
     box_lo: wp.vec3i,
@@ -254,17 +275,24 @@ def grid_free_velocity(
     grid_vs: wp.array(dtype=wp.vec3),
 ):
     # v = mv/m + dt (g + wind - c_lin v - c_quad |v| v + expression), on every field's nodes of
-    # the box; the expression (a member's switch) at the node's position and the substep's time
+    # the box; the expression (a member's switch) at the node's position and the substep's time.
+    # per_node: accel and drag from the node's copies (row n, state.NodeCoefficients), not the
+    # member's table row b: Warp's adjoint of a read a[i] is atomic_add(adj_a[i]), so the tables
+    # would take every node's share on a few addresses (contended float32 atomics); the copies
+    # take one address per node, summed per member in float64 after each frame
     t = wp.tid()
     count = box_dims[0] * box_dims[1] * box_dims[2]
     n = box_node(t, box_lo, box_dims, nodes)
     field = t // count
     b = field // fields_per_member  # batch member
+    r = b
+    if per_node != 0:
+        r = n
     m = grid_m[n]
     vf = wp.vec3()
     if m > MASS_EPS:
         vs = grid_mv[n] / m
-        a = accel[b] - drag[2 * b] * vs - drag[2 * b + 1] * safe_norm(vs) * vs
+        a = accel[r] - drag[2 * r] * vs - drag[2 * r + 1] * safe_norm(vs) * vs
         if expr.on[2 * b] > 0.5:
             c = box_ijk(t % count, box_lo, box_dims)
             x = expr.origin + expr.dx * wp.vec3(float(c[0]), float(c[1]), float(c[2]))

@@ -28,6 +28,7 @@ from mosiv_warp_mpm.state import (
     Grid,
     GridLayout,
     NodeBox,
+    NodeCoefficients,
     ObjectTables,
     ParticleParams,
     ParticleState,
@@ -174,28 +175,35 @@ class MPMRun:
             grid.clear_sums()
 
     # -- one substep -----------------------------------------------------------------------
-    def expression_inputs(self, grid: Grid, s: int) -> K.ExpressionInputs:
-        """The expression term's kernel inputs at substep ``s`` of a frame."""
+    def expression_inputs(
+        self, grid: Grid, s: int, switch: wp.array | None = None
+    ) -> K.ExpressionInputs:
+        """The expression term's kernel inputs at substep ``s`` of a frame; ``switch``: the
+        switches to read instead of the table's (NodeCoefficients.expr_switch)."""
         expr = K.ExpressionInputs()
-        expr.on, expr.coef = self.tables.expr_switch, self.tables.expr_coef
+        expr.on = self.tables.expr_switch if switch is None else switch
+        expr.coef = self.tables.expr_coef
         expr.rel_p, expr.rel_v, expr.rel_n = grid.rel_p, grid.rel_v, grid.rel_n
         expr.clock, expr.substep = self.clock, s
         expr.origin, expr.dx = wp.vec3(*self.layout.origin), self.layout.dx
         expr.up, expr.ground = self.up, float(self.world.ground_height or 0.0)
         return expr
 
-    def centre_sums(self, grid: Grid, box: NodeBox) -> None:
+    def centre_sums(self, grid: Grid, box: NodeBox, switch: wp.array | None = None) -> None:
         """The other objects' summed centres per field (expression_kernels.py), for an
         expression of the other objects' features: launched only when some member's expression
-        uses them (``centres``; the kernels skip the other members)."""
+        uses them (``centres``; the kernels skip the other members). ``switch``: as in
+        ``expression_inputs``."""
         if not self.centres:
             return
+        if switch is None:
+            switch = self.tables.expr_switch
         lay = self.layout
         box_lo, box_dims = wp.vec3i(*box.lo), wp.vec3i(*box.dims)
         wp.launch(
             XK.field_moments,
             dim=self.batch * lay.fields * box.count,
-            inputs=[grid.m, grid.mv, self.tables.expr_switch, wp.vec3(*lay.origin), lay.dx]
+            inputs=[grid.m, grid.mv, switch, wp.vec3(*lay.origin), lay.dx]
             + [box_lo, box_dims, wp.vec3i(*lay.nodes), lay.fields],
             outputs=[grid.moment_m, grid.moment_mx, grid.moment_mv],
             device=self.device,
@@ -203,8 +211,7 @@ class MPMRun:
         wp.launch(
             XK.other_centres,
             dim=self.batch * lay.fields * lay.fields,
-            inputs=[grid.moment_m, grid.moment_mx, grid.moment_mv, self.tables.expr_switch]
-            + [lay.fields],
+            inputs=[grid.moment_m, grid.moment_mx, grid.moment_mv, switch, lay.fields],
             outputs=[grid.rel_p, grid.rel_v, grid.rel_n],
             device=self.device,
         )
@@ -258,13 +265,16 @@ class MPMRun:
         s: int,
         box: NodeBox,
         gathered: ParticleParams | None = None,
+        coefficients: NodeCoefficients | None = None,
     ) -> None:
         """P2G from src, then the grid's free velocity and boundaries, on the nodes of ``box``
         (cleared beforehand): the grid velocities ``grid.v`` that G2P reads.
 
         ``gathered``: None, P2G reads the per-object tables (forward rollouts, re-simulation);
         else the particles' own copies of them (the taped replay, whose parameter adjoints then
-        land on one address per particle: kernels.parameter_rows). Same values, same results.
+        land on one address per particle: kernels.parameter_rows). ``coefficients``: likewise
+        for grid_free_velocity's body acceleration and drag (the nodes' copies, ``per_node``)
+        and the expression switches (a copy without a gradient). Same values, same results.
         """
         lay, t, dev = self.layout, self.tables, self.device
         origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
@@ -280,12 +290,15 @@ class MPMRun:
             outputs=[grid.m, grid.mv, grid.gm, grid.pm],
             device=dev,
         )
-        self.centre_sums(grid, box)
+        c = coefficients
+        switch = None if c is None else c.expr_switch
+        self.centre_sums(grid, box, switch)
+        coef_inputs = [t.accel, t.drag, 0] if c is None else [c.accel, c.drag, 1]
         wp.launch(
             K.grid_free_velocity,
             dim=self.batch * lay.fields * box.count,
-            inputs=[grid.m, grid.mv, t.accel, t.drag, self.expression_inputs(grid, s), self.dt]
-            + [box_lo, box_dims, nodes, lay.fields],
+            inputs=[grid.m, grid.mv, *coef_inputs, self.expression_inputs(grid, s, switch)]
+            + [self.dt, box_lo, box_dims, nodes, lay.fields],
             outputs=[grid.vs],
             device=dev,
         )

@@ -7,6 +7,13 @@ tables, and Warp's adjoints added every particle's share into the tables' gradie
 atomics each substep. Both are the same sums in another order: on a multi-object scene (two
 laws, contact, ground, material damping) they agree to float32 round-off, the rollout itself
 is bit for bit the same, and the gradients that do not go through the copies are unchanged.
+
+Likewise the taped grid_free_velocity reads each grid node's copy of its member's body
+acceleration and drag (state.NodeCoefficients), summed per member in float64 after each frame,
+and the expression switches from a copy without a gradient: on a scene with gravity, wind,
+linear and quadratic drag and an expression of the other objects' features, all identified,
+the acceleration and drag gradients agree with the table reads' to float32 round-off and the
+rest as above.
 """
 
 from __future__ import annotations
@@ -23,9 +30,26 @@ WORLD = World((0.0, 0.0, 0.0), (0.5, 0.5, 0.5), ground_height=0.0, fps=24.0)
 #: |new - old| <= RTOL |old| per quantity that goes through the copies: each is a sum over
 #: particles and substeps in float32 either way, in another order (measured: up to 1e-5)
 RTOL = {"E": 1e-4, "nu": 1e-4, "yield_stress": 1e-4, "rho": 1e-4, "viscosity": 1e-4}
+#: the same for the per-member coefficients that go through the nodes' copies, by full name
+TERM_RTOL = {
+    "term.gravity.acceleration": 1e-4,
+    "term.wind.acceleration": 1e-4,
+    "term.linear_drag.coefficient": 1e-4,
+    "term.quadratic_drag.coefficient": 1e-4,
+}
+#: body acceleration, drag, and an expression of local and other-object features (the centre
+#: sums run and read the switches' copy); the expression's coefficients are read from the
+#: tables either way, so their gradients are unchanged bit for bit
+TERMS = {
+    "gravity": {"acceleration": [0.0, 0.0, -9.8]},
+    "wind": {"acceleration": [0.8, -0.3, 0.0]},
+    "linear_drag": {"coefficient": 0.6},
+    "quadratic_drag": {"coefficient": 0.4},
+    "expression": {"a_x:dp_x": 0.5, "a_z:v_z": -0.2},
+}
 
 
-def _scene():
+def _scene(terms: dict | None = None):
     a = sphere((0.30, 0.25, 0.07), 0.05, spacing=1.0 / 64, object_id=1, material="elastic")
     b = sphere((0.40, 0.25, 0.09), 0.05, spacing=1.0 / 64, object_id=2, material="plasticine")
     p = combine([a, b])
@@ -33,16 +57,19 @@ def _scene():
         p,
         overrides={1: {"friction": 0.3}, 2: {"friction": 0.2}},
         velocities={1: (2.0, 0.0, -0.5), 2: (-0.5, 0.0, -1.0)},
-        terms={"material_damping": {"viscosity": 2.0}},
+        terms={"material_damping": {"viscosity": 2.0}, **(terms or {})},
         requires_grad=True,
     )
     return p, params
 
 
-def _rollout(sim, *, gather: bool) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def _rollout(
+    sim, *, gather: bool, terms: dict | None = None
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Positions and the gradients of a weighted sum of them, with the taped kernels reading
-    the particles' copies (``gather``) or the per-object tables."""
-    p, params = _scene()
+    the particles' and the nodes' copies (``gather``) or the per-object tables; ``terms``:
+    physics terms added to the scene."""
+    p, params = _scene(terms)
     traj = sim.rollout(p, params, world=WORLD, frames=3)
     sim._grad_run.backward_workspace().gather_parameters = gather
     weights = torch.randn(len(p), 3, generator=torch.Generator().manual_seed(2))
@@ -63,33 +90,55 @@ def sim(make_warp_simulator):
     return make_warp_simulator(grid=16, substeps=30)
 
 
+def _compare(new: dict, old: dict, rtol: dict[str, float]) -> set[str]:
+    """Assert the copies' gradients ``new`` equal the table reads' ``old``: within ``rtol``
+    (by full name, else by the name's last part) relative to the largest magnitude, the others
+    bit for bit; returns the keys of ``rtol`` checked."""
+    assert new.keys() == old.keys()
+    checked = set()
+    for name, g in old.items():
+        key = name if name in rtol else name.rsplit(".", 1)[-1]
+        if key in rtol:
+            assert float(g.abs().max()) > 0.0, name
+            err = float((new[name] - g).abs().max()) / float(g.abs().max())
+            assert err <= rtol[key], f"{name}: {new[name]} vs {g} ({err:.2g})"
+            checked.add(key)
+        else:  # initial velocities, friction, ground, expression: not through the copies
+            assert _same(new[name], g), name
+    return checked
+
+
 def test_gathered_parameter_gradients_match_the_table_reads(sim) -> None:
     pos_new, new = _rollout(sim, gather=True)
     pos_old, old = _rollout(sim, gather=False)
     assert _same(pos_new, pos_old)
-    assert new.keys() == old.keys()
-    checked = set()
-    for name, g in old.items():
-        quantity = name.rsplit(".", 1)[-1]
-        if quantity in RTOL:
-            assert float(g.abs().max()) > 0.0, name
-            err = float((new[name] - g).abs().max()) / float(g.abs().max())
-            assert err <= RTOL[quantity], f"{name}: {new[name]} vs {g} ({err:.2g})"
-            checked.add(quantity)
-        else:  # initial velocities, friction, ground: not through the copies
-            assert _same(new[name], g), name
-    assert checked == set(RTOL)
+    assert _compare(new, old, RTOL) == set(RTOL)
     # and the gathered path is reproducible: the same rollout gives the same gradients
     _, again = _rollout(sim, gather=True)
     assert all(_same(again[n], g) for n, g in new.items())
 
 
-def test_the_copies_cost_56_bytes_a_particle(sim) -> None:
+def test_node_coefficient_gradients_match_the_table_reads(sim) -> None:
+    pos_new, new = _rollout(sim, gather=True, terms=TERMS)
+    pos_old, old = _rollout(sim, gather=False, terms=TERMS)
+    assert _same(pos_new, pos_old)
+    assert _compare(new, old, RTOL | TERM_RTOL) == set(RTOL | TERM_RTOL)
+    # every expression coefficient has a gradient (the switch's copy gates nothing off)
+    assert all(float(new[f"term.expression.{c}"].abs()) > 0 for c in TERMS["expression"])
+    _, again = _rollout(sim, gather=True, terms=TERMS)
+    assert all(_same(again[n], g) for n, g in new.items())
+
+
+def test_the_copies_cost_56_bytes_a_particle_and_40_a_node(sim) -> None:
     p, _ = _scene()
     _rollout(sim, gather=True)
-    ws = sim._grad_run.backward_workspace()
+    run = sim._grad_run
+    ws = run.backward_workspace()
     assert ws.gathered.nbytes() == 56 * len(p)
-    assert ws.nbytes() > ws.gathered.nbytes()
+    nodes = run.batch * run.layout.size  # every field's nodes, PAD layers included
+    switches = 2 * run.batch * 4
+    assert ws.node_coefficients.nbytes() == 40 * nodes + switches
+    assert ws.nbytes() > ws.gathered.nbytes() + ws.node_coefficients.nbytes()
 
 
 def test_segment_sums_are_float64_sums_per_segment() -> None:
