@@ -13,10 +13,12 @@ g + (a + b). On the CPU every other addend lands on a zero gradient, so it is bi
 from __future__ import annotations
 
 import ast
+import importlib.util
 import inspect
+import sys
 from collections import Counter
+from pathlib import Path
 
-import previous_transfer as previous
 import pytest
 import torch
 import warp as wp
@@ -24,6 +26,23 @@ from mosiv_warp_mpm import kernels as K
 
 from mosiv_framework.testing.shapes import combine, default_params, sphere
 from mosiv_framework.types import World
+
+
+def _load_previous():
+    """The previous kernels, by path: the suite imports test modules with importlib (several
+    plugins have test modules of the same name), so this folder is not on sys.path."""
+    name = "mosiv_warp_mpm_tests_previous_transfer"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(
+            name, Path(__file__).with_name("previous_transfer.py")
+        )
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module  # Warp finds a kernel's module by name
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+previous = _load_previous()
 
 WORLD = World((0.0, 0.0, 0.0), (0.5, 0.5, 0.5), ground_height=0.0, fps=24.0)
 #: |new - old| <= RTOL max |old| per gradient: float32 round-off in F's gradient, carried
