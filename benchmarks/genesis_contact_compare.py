@@ -158,8 +158,9 @@ def section_text(records, labels, *, command: str, runs: tuple[dict, dict]) -> s
         {str(row.get("code", "?")).split("+")[0] for run in runs for row in run.values()}
     )
     intro = (
-        f'The same identification as in "Identification on Genesis scenes" (same recipe, settings '
-        f"and scenes), once with each contact mode: {labels[0]} and {labels[1]}. Compared "
+        'Two runs of the identification of "Identification on Genesis scenes" '
+        "(`benchmarks/genesis_identify.py`) that differ only in the contact between objects "
+        f"(same recipe, settings and scenes otherwise): {labels[0]} and {labels[1]}. Compared "
         f"scenes: {', '.join(scenes)} (those run with both modes). Errors are gauge-free, as above."
     )
     return "\n".join(
