@@ -146,12 +146,15 @@ class RunContext:
             self._rollout_cache[key] = perm[: min(m, n)].sort().values
         return self._rollout_cache[key]
 
-    def parameter_vector(self, params: SimulationParams | None = None) -> ParameterVector:
+    def parameter_vector(
+        self, params: SimulationParams | None = None, *, ceilings: dict | None = None
+    ) -> ParameterVector:
         """Optimisable leaves for the run's free parameters, started at ``params``.
 
         Which parameters are free follows the run's recipe (identify_friction,
         identify_ground_friction, and physics terms marked ``identify``), so a refit changes
         exactly what the run identified; the run's other physics terms stay on, fixed.
+        ``ceilings`` lowers upper bounds as identification did (``ParameterVector.create``).
         """
         params = self.identified if params is None else params
         section = self.recipe.identify
@@ -167,6 +170,7 @@ class RunContext:
             identify_ground_friction=bool(section.identify_ground_friction),
             terms={n: dict(v) for n, v in params.terms.items()},
             identify_terms=tuple(n for n in self.identified_term_names if n in params.terms),
+            ceilings=ceilings,
         )
 
     @property

@@ -222,15 +222,7 @@ def start_vector(
     v0 = initial_velocity_from_points(
         targets, fps=scene.fps, gravity=scene.gravity, frames=free, time_step=step
     )
-    ceilings = None
-    if section.stiffness_cfl > 0 and dx and isinstance(substeps, int) and substeps > 0:
-        ceilings = stiffness_ceilings(
-            families,
-            {},
-            dx=dx,
-            dt=1.0 / (scene.fps * substeps),
-            cfl=section.stiffness_cfl,
-        )
+    ceilings = recipe_ceilings(recipe, scene, families, sim_options)
     plain = OmegaConf.to_container(recipe, resolve=True)
     physics_terms = plain.get("physics_terms") or {}
     vector = ParameterVector.create(
@@ -246,6 +238,18 @@ def start_vector(
     if getattr(section, "start", "defaults") == "centre":
         vector.move_to_centre()  # a data-independent start (identify.start)
     return vector, free
+
+
+def recipe_ceilings(recipe, scene, families: dict[int, str], sim_options: dict) -> dict | None:
+    """The stiffness ceilings identification puts on each object's parameters under the
+    recipe's grid, substeps and ``identify.stiffness_cfl`` (``params.stiffness_ceilings``);
+    None where the recipe sets none."""
+    grid, substeps = sim_options.get("grid"), sim_options.get("substeps")
+    dx = scene.world.extent / grid if isinstance(grid, int) and grid > 0 else None
+    cfl = recipe.identify.stiffness_cfl
+    if not (cfl > 0 and dx and isinstance(substeps, int) and substeps > 0):
+        return None
+    return stiffness_ceilings(families, {}, dx=dx, dt=1.0 / (scene.fps * substeps), cfl=cfl)
 
 
 def _velocity_only(section):

@@ -3,9 +3,9 @@
 ``mosiv intervals RUN``: after the interval code changed, or to switch between the Laplace and
 the sandwich interval (``--method``), a run's intervals are made anew around the parameters it
 identified. The identified values are put into the vector identification itself used (its
-start, ``pipeline.start_vector``: the same bounds and stiffness ceilings, so the same
-normalised coordinates), the probes of ``uncertainty.interval_record`` run around them with the
-run's simulator, contact and objective, and the new record is appended to
+free parameters, bounds and stiffness ceilings, so the same normalised coordinates), the
+probes of ``uncertainty.interval_record`` run around them with the run's simulator, contact
+and objective, and the new record is appended to
 ``identify/history.json`` (earlier records stay; the last one counts), copied into
 ``identified.json`` and into ``metrics.json``'s ``params``, whose ``covered`` marks are made
 again. The run's other files are left as they are.
@@ -15,11 +15,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import torch
 from omegaconf import OmegaConf
 
 from mosiv_framework.pipeline import formats
-from mosiv_framework.pipeline.identification import stage_objective, start_vector
+from mosiv_framework.pipeline.identification import recipe_ceilings, stage_objective
 from mosiv_framework.pipeline.phases import Fit, build_phases
 from mosiv_framework.pipeline.uncertainty import attach_intervals, interval_record, mark_coverage
 
@@ -67,35 +66,13 @@ def recompute_intervals(
 
 
 def identified_vector(ctx):
-    """The run's identified parameters as the leaves of the vector identification started from
-    (its bounds and ceilings), velocities included."""
+    """The run's identified parameters as the leaves of the vector identification fitted
+    (its free parameters, bounds and stiffness ceilings), velocities included."""
     sim_options = OmegaConf.to_container(ctx.recipe.simulator, resolve=True)
     families = {k: p.family for k, p in ctx.identified.objects.items()}
-    vector, _ = start_vector(ctx.recipe, ctx.scene, families, ctx.targets, sim_options)
-    params = ctx.identified
-    with torch.no_grad():
-        for k, v in vector.velocity.items():
-            v.copy_(params.initial_velocity[k].to(v))
-        for key, u in vector.normalized.items():
-            value = _identified_value(params, key)
-            if value is not None:
-                spec = vector.specs[key]
-                u.copy_(spec.to_normalized(value.double()).clamp(0.0, 1.0).to(u))
-    return vector
-
-
-def _identified_value(params, key: str) -> torch.Tensor | None:
-    """The identified value of a leaf key (``objK.NAME``, ``ground_friction`` or
-    ``term.TERM.NAME``), None where the run has none."""
-    if key == "ground_friction":
-        return torch.as_tensor(float(params.ground_friction))
-    if key.startswith("term."):
-        _, term, name = key.split(".", 2)
-        value = params.terms.get(term, {}).get(name)
-        return None if value is None else torch.as_tensor(value)
-    owner, name = key.split(".", 1)
-    value = params.objects[int(owner[3:])].values.get(name)
-    return None if value is None else torch.as_tensor(float(value))
+    return ctx.parameter_vector(
+        ceilings=recipe_ceilings(ctx.recipe, ctx.scene, families, sim_options)
+    )
 
 
 def _write(rd, record: dict) -> None:
