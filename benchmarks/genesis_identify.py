@@ -62,9 +62,9 @@ from genesis_identify_table import (  # noqa: F401 (other benchmarks import thes
     summarise,
     write_results,
 )
-from identify_suite import _run_part, _timed, code_version
+from identify_suite import _timed, code_version
 
-from mosiv_framework.scale import Task, run_tasks
+from mosiv_framework.scale import Task, run_command, run_tasks
 from mosiv_framework.scale.flags import add_scale_flags, scale_options
 
 # --------------------------------------------------------------------------------------------
@@ -197,7 +197,7 @@ def run_parallel(args, names: list[str], scale: dict) -> dict:
         command = [sys.executable, __file__, "--scenes", str(args.scenes), "--only", name]
         command += ["--out", str(args.out), "--recipe", str(args.recipe), "--part"]
         command += [x for s in args.set for x in ("--set", s)]
-        tasks.append(Task(name, _run_part, (command,), parts / f"{name}.log"))
+        tasks.append(Task(name, run_command, (command,), parts / f"{name}.log"))
     for name, outcome in run_tasks(tasks, **scale).items():
         code = outcome.result if outcome.ok else repr(outcome.error)
         print(f"[genesis] {name}: {'done' if code == 0 else f'FAILED ({code})'}", flush=True)

@@ -46,10 +46,10 @@ from genesis_identify_table import (
     summarise,
 )
 from genesis_resolution import open_study, read_study
-from identify_suite import _fmt, _run_part
+from identify_suite import _fmt
 from noise_suite import KINDS, noise_overrides, plot, setting_name, settings
 
-from mosiv_framework.scale import Task, run_tasks
+from mosiv_framework.scale import Task, run_command, run_tasks
 from mosiv_framework.scale.flags import scale_options
 
 HERE = Path(__file__).resolve().parent
@@ -151,7 +151,7 @@ def run_study(args, recipe: Path, names: list[str], scale: dict) -> None:
             log = part.with_suffix(".log")
             log.unlink(missing_ok=True)  # a Ray task appends to it
             command = part_command(args, recipe, name, kind, alpha)
-            tasks.append(Task(part.stem, _run_part, (command,), log))
+            tasks.append(Task(part.stem, run_command, (command,), log))
             which[part.stem] = (name, kind, alpha, part)
     for task, outcome in run_tasks(tasks, **scale).items():
         code = outcome.result if outcome.ok else repr(outcome.error)

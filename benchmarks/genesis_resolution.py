@@ -49,14 +49,14 @@ from genesis_resolution_report import (
     write_csv,
     write_results,
 )
-from identify_suite import _run_part, code_version
+from identify_suite import code_version
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.laws import get_law
 from mosiv_framework.pipeline.params import GAUGE_PARAM, stiffness_ceilings
 from mosiv_framework.recipes import check_recipe
 from mosiv_framework.recipes.stiffness import scene_facts, stiffness_findings
-from mosiv_framework.scale import Task, run_tasks
+from mosiv_framework.scale import Task, run_command, run_tasks
 from mosiv_framework.scale.flags import add_scale_flags, scale_options
 
 SCRIPT = "benchmarks/genesis_resolution.py"
@@ -327,7 +327,7 @@ def run_study(args, root: Path, plans: list[dict], scale: dict) -> None:
             (parts / f"{name}.json").unlink(missing_ok=True)  # no stale row of a crash
             (parts / f"{name}.log").unlink(missing_ok=True)  # the task appends to it
             command = part_command(args, root, plan)
-            tasks.append(Task(name, _run_part, (command,), parts / f"{name}.log"))
+            tasks.append(Task(name, run_command, (command,), parts / f"{name}.log"))
     for name, outcome in run_tasks(tasks, **scale).items():
         code = outcome.result if outcome.ok else repr(outcome.error)
         print(f"[resolution] {name}: {'done' if code == 0 else f'FAILED ({code})'}", flush=True)

@@ -51,7 +51,7 @@ from pathlib import Path
 
 import genesis_identify as gi
 import genesis_video_table as gt
-from identify_suite import _run_part, _timed, code_version
+from identify_suite import _timed, code_version
 from video_suite import (
     SHARED_POLL_S,
     SHARED_STAGES,
@@ -61,7 +61,7 @@ from video_suite import (
     wait_for_shared_stages,
 )
 
-from mosiv_framework.scale import Task, run_tasks
+from mosiv_framework.scale import Task, run_command, run_tasks
 from mosiv_framework.scale.flags import add_scale_flags, scale_options
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -323,7 +323,7 @@ def run_jobs(args, jobs: list[Job], scale: dict) -> None:
         log = part_path(args.out, job).with_suffix(".log")
         log.parent.mkdir(parents=True, exist_ok=True)
         log.unlink(missing_ok=True)  # a Ray task appends to it
-        tasks.append(Task(job.name, _run_part, (part_command(args, job),), log))
+        tasks.append(Task(job.name, run_command, (part_command(args, job),), log))
     for name, outcome in run_tasks(tasks, **scale).items():
         code = outcome.result if outcome.ok else repr(outcome.error)
         print(f"[genesis-video] {name}: {'done' if code == 0 else f'FAILED ({code})'}", flush=True)

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# On the GPU machine (Python 3.12, CUDA torch, no package index): install the staged warp and
-# taichi wheels and this checkout, offline.
-# The warp wheel travels in four parts made by benchmarks/stage_device_parts.sh (the tracked
-# tree is too large beside a 50 MB part).
+# On the GPU machine (Python 3.12, CUDA torch, no package index): install the staged wheels
+# (warp, Ray, taichi where carried) and this checkout, offline.
+# The wheels travel in the parts that benchmarks/stage_device_parts.sh makes (one device call
+# each, copied into /root/stash); the folders packed with them land in /root/stash/data.
 # Usage: source benchmarks/gpu_setup.sh   (repository root; carry .ti and .tideps, the small
 # pure-Python packages taichi needs: dill colorama rich pygments markdown-it-py mdurl)
 set -e
@@ -10,7 +10,7 @@ set -e
 #   split -b 30M .ti/taichi-*.whl .tia/ti.part. ; move ti.part.ab and the small wheels to .tib;
 #   basename of the wheel > .tib/ti.name; carry .tia, then .tib, copying each into /root/stash.
 if [ ! -d /root/site/warp ]; then
-  (cd /root/stash && cat warp.part.* > "$(cat warp.name)")
+  (cd /root/stash && cat bundle.part.* | tar -xf - && mv wheels/*.whl .)
   if [ -f /root/stash/ti.name ]; then
     (cd /root/stash && cat ti.part.* > "$(cat ti.name)")
   fi

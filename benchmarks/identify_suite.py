@@ -76,7 +76,7 @@ from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.recipes.schema import IDENTIFY_STARTS
 from mosiv_framework.registry import get_registry
-from mosiv_framework.scale import Task, run_tasks
+from mosiv_framework.scale import Task, run_command, run_tasks
 from mosiv_framework.scale.flags import add_scale_flags, scale_options
 from mosiv_framework.scene import read_scene
 
@@ -440,7 +440,7 @@ def run_parallel(
         (out / "parts" / f"{pair}.log").unlink(missing_ok=True)  # the task appends to it
         command = [sys.executable, __file__, "--recipe", str(recipe), "--pairs", pair]
         command += ["--out", str(out), "--seed", str(seed), "--part", *extra]
-        tasks.append(Task(pair, _run_part, (command,), out / "parts" / f"{pair}.log"))
+        tasks.append(Task(pair, run_command, (command,), out / "parts" / f"{pair}.log"))
     for name, outcome in run_tasks(tasks, **scale).items():
         code = outcome.result if outcome.ok else repr(outcome.error)
         print(f"[suite] {name}: {'done' if code == 0 else f'FAILED ({code})'}", flush=True)
@@ -451,11 +451,6 @@ def run_parallel(
     ]
     rows = merge_parts(earlier, parts)
     return write_table(out, recipe=recipe, extra=extra, rows=rows, settings=settings)
-
-
-def _run_part(command: list[str]) -> int:
-    """One pair's process; it inherits the task's output file and ``CUDA_VISIBLE_DEVICES``."""
-    return subprocess.run(command).returncode
 
 
 def main(argv: list[str] | None = None) -> int:

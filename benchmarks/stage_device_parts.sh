@@ -1,25 +1,36 @@
 #!/usr/bin/env bash
-# After the warp wheel was staged in three parts (.wp1 .wp2 .wp3: warp.part.*, with warp.name,
-# warp.sha256 and the small wheels in .wp3): re-split it into four ~38 MB parts
-# (.wpa .wpb .wpc .wpd, git-ignored; the small wheels and the wheel's name go with .wpd), so that
-# each part plus the tracked tree (about 17 MB) stays under a device call's 64 MiB.
-# Then, back to back with nothing else in the same batch (the machine goes back 30 s after a call):
-#   run carry [".wpa"]: mkdir -p /root/stash && cp .wpa/* /root/stash/
-#   run carry [".wpb"], then [".wpc"]: cp .wpN/* /root/stash/
-#   run carry [".wpd"]: cp .wpd/* /root/stash/ && source benchmarks/gpu_setup.sh && ...
+# Packs what a GPU machine without a package index needs into parts that each fit one device
+# call beside the tracked tree (64 MiB a call): the warp wheel staged by
+# ../shared/tools/stage-device-wheels.sh (.wp1 .wp2 .wp3, with the small wheels in .wp3), Ray
+# with the dependencies that machine lacks, and any FOLDERs given (a scene suite, say), which
+# land under /root/stash/data/NAME there. One tar, split into 50 MB parts .dv1 .dv2 ...
+# (git-ignored).
+#   bash benchmarks/stage_device_parts.sh [FOLDER ...]
+# Then, back to back with nothing else in the same batch (the machine goes back 30 s after a
+# call), one call per part, each carrying its part:
+#   mkdir -p /root/stash && cp .dvN/* /root/stash/
+# and in the last call (or any later one): source benchmarks/gpu_setup.sh && ...
 set -eu
 [ -f .wp3/warp.name ] || { echo "stage the warp wheel into .wp1 .wp2 .wp3 first" >&2; exit 2; }
+pack=.dvpack
+rm -rf "$pack" .dv[0-9]* && mkdir -p "$pack/wheels" "$pack/data"
+grep -qxF "/.dv*" .git/info/exclude || echo "/.dv*" >> .git/info/exclude
 name=$(cat .wp3/warp.name)
-rm -rf .wpa .wpb .wpc .wpd .wpjoin && mkdir -p .wpa .wpb .wpc .wpd .wpjoin
-for d in /.wpa/ /.wpb/ /.wpc/ /.wpd/ /.wpjoin/; do
-  grep -qxF "$d" .git/info/exclude || echo "$d" >> .git/info/exclude
+cat .wp1/warp.part.* .wp2/warp.part.* .wp3/warp.part.* > "$pack/wheels/$name"
+echo "$(cat .wp3/warp.sha256)  $pack/wheels/$name" | sha256sum -c --quiet
+cp .wp3/*.whl "$pack/wheels/"
+# Ray and what it needs beyond the GPU image's packages (jsonschema and its own)
+python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+  --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
+  -d "$pack/wheels" "ray>=2.9" jsonschema jsonschema-specifications referencing rpds-py
+for folder in "$@"; do
+  cp -r "$folder" "$pack/data/$(basename "$folder")"
 done
-cat .wp1/warp.part.* .wp2/warp.part.* .wp3/warp.part.* > ".wpjoin/$name"
-echo "$(cat .wp3/warp.sha256)  .wpjoin/$name" | sha256sum -c --quiet
-split -b 38m -d ".wpjoin/$name" .wpjoin/warp.part.
-mv .wpjoin/warp.part.00 .wpa/; mv .wpjoin/warp.part.01 .wpb/
-mv .wpjoin/warp.part.02 .wpc/; mv .wpjoin/warp.part.03 .wpd/
-[ ! -e .wpjoin/warp.part.04 ] || { echo "the wheel needs a fifth part" >&2; exit 1; }
-cp .wp3/*.whl .wp3/warp.name .wpd/
-rm -rf .wpjoin
-du -sh .wpa .wpb .wpc .wpd
+tar -cf - -C "$pack" wheels data | split -b 50m -d - "$pack/bundle.part."
+n=0
+for part in "$pack"/bundle.part.*; do
+  n=$((n + 1))
+  mkdir -p ".dv$n" && mv "$part" ".dv$n/"
+done
+rm -rf "$pack"
+du -sh .dv[0-9]*

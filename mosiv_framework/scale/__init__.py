@@ -6,6 +6,6 @@ the model: a local Ray by default, a cluster with ``ray_address``, GPU fractions
 tasks rerun after their worker died, progress logged per entry.
 """
 
-from mosiv_framework.scale.runner import Outcome, Task, TaskDied, run_tasks
+from mosiv_framework.scale.runner import Outcome, Task, TaskDied, run_command, run_tasks
 
-__all__ = ["Outcome", "Task", "TaskDied", "run_tasks"]
+__all__ = ["Outcome", "Task", "TaskDied", "run_command", "run_tasks"]

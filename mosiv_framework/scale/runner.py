@@ -135,6 +135,17 @@ def run_tasks(
     return {name: outcomes[name] for name in names}
 
 
+def run_command(command: Sequence[str]) -> int:
+    """A task body that runs one program (a suite's per-entry process) and returns its exit
+    code; the program inherits the task's log as its output and the GPUs Ray gave the task
+    (``CUDA_VISIBLE_DEVICES``). A function of this installed module, so that a Ray worker can
+    import it whatever script made the task (a function of a script's sibling module cannot
+    be found there)."""
+    import subprocess
+
+    return subprocess.run(list(command)).returncode
+
+
 def _run_here(tasks: Sequence[Task], on_done: Callable[[Outcome], None]) -> dict[str, Outcome]:
     outcomes = {}
     for task in tasks:
