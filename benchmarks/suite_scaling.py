@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 from genesis_identify import _portable, command_line, find_scenes
-from genesis_identify_table import _fill, replace_section
+from genesis_identify_table import _fill, data_description, replace_section
 from suite_scaling_report import agreement, markdown, plot, throughput
 
 from mosiv_framework.scale import Task, run_command, run_tasks
@@ -235,38 +235,61 @@ def save_state(out: Path, state: dict) -> None:
     (out / "scaling.json").write_text(json.dumps(state, indent=1) + "\n")
 
 
+def scene_rows(state: dict) -> list[dict]:
+    """One successful row per scene (its first), for what the data were."""
+    rows: dict[str, dict] = {}
+    for config in state["configurations"].values():
+        for task in config["tasks"]:
+            row = task.get("row")
+            if row and "error" not in row:
+                rows.setdefault(task["scene"], row)
+    return [rows[name] for name in sorted(rows)]
+
+
 def make_report(state: dict) -> dict:
+    """Throughput and agreement of the measured configurations, and a title naming the data
+    and the card for the plot."""
     configs = state["configurations"]
     base = min(configs.values(), key=lambda c: c["count"])["label"]
-    return {"throughput": throughput(configs), "agreement": agreement(configs, base), "base": base}
+    rows = scene_rows(state)
+    devices = sorted({r.get("device", "unknown") for r in rows}) or ["unknown"]
+    repeats = 1 + max(t["repeat"] for c in configs.values() for t in c["tasks"])
+    title = f"{len(rows)} Genesis scenes x {repeats} runs each, {', '.join(devices)}"
+    return {
+        "throughput": throughput(configs),
+        "agreement": agreement(configs, base),
+        "base": base,
+        "title": title,
+    }
 
 
 def section_text(state: dict, report: dict, *, command: str, plot_path: str | None) -> str:
     """The BENCHMARKS.md section: what ran, on what, the two tables and the plot."""
     tasks = [t for c in state["configurations"].values() for t in c["tasks"]]
-    rows = [t["row"] for t in tasks if t.get("row") and "error" not in t["row"]]
+    rows = scene_rows(state)
     devices = sorted({r.get("device", "unknown") for r in rows}) or ["unknown"]
+    codes = sorted({t["row"].get("code", "unknown") for t in tasks if t.get("row")})
     largest = max(c["count"] for c in state["configurations"].values())
-    scenes = sorted({t["scene"] for t in tasks})
     repeats = 1 + max(t["repeat"] for t in tasks)
-    data = sorted({(r.get("data") or {}).get("generator") or "?" for r in rows})
     intro = (
         "`benchmarks/suite_scaling.py` runs the Genesis identification suite "
-        "(`benchmarks/genesis_identify.py`, one Ray task per run) once on each number of GPUs "
-        "of one machine, in one process. Each configuration identifies every scene "
-        f"{repeats} times; the repeats measure the run-to-run spread that the results of "
-        "different GPU counts are compared against (a one-sided Mann-Whitney test on the "
-        "symmetric relative differences, benchmarks/suite_scaling_report.py)."
+        "(`benchmarks/genesis_identify.py`, one Ray task per run, a run being one scene "
+        "identified and evaluated) once on each number of GPUs of one machine, in one process. "
+        f"Each configuration identifies every scene {repeats} times; the repeats measure the "
+        "run-to-run spread that the results of different GPU counts are compared against (a "
+        "one-sided Mann-Whitney test on the symmetric relative differences, "
+        "benchmarks/suite_scaling_report.py)."
     )
     warm = state.get("warmup") or {}
     items = [
         f"Command: `{command}` (the section is written from OUT/scaling.json by the same command "
         "with `--report --write-results docs/BENCHMARKS.md`, on any machine)",
-        f"Machine: {largest} x {', '.join(devices)}. Date {datetime.date.today().isoformat()}. "
-        f"Code {', '.join(sorted({r.get('code', 'unknown') for r in rows}) or ['unknown'])}.",
-        f"Data: {len(scenes)} scenes made by {', '.join(data)} ({', '.join(scenes)}); "
-        f"the recipe `{state['settings']['recipe']}` with "
-        f"{', '.join(state['settings']['sets']) or 'no overrides'}.",
+        f"Machine: {largest} x {', '.join(devices)}. Date {state.get('date', 'unknown')}. "
+        f"Code {', '.join(codes) or 'unknown'}.",
+        f"Data: {data_description(rows)} ({', '.join(r['scene'] for r in rows)}); each run "
+        f"`{state['settings']['recipe']}` with "
+        f"{', '.join(state['settings']['sets']) or 'no overrides'}. Every task's time, "
+        "attempts and row: `benchmarks/data/suite_scaling/scaling.json`.",
         f"Warm-up (untimed, kernels compiled): {', '.join(warm.get('scenes', [])) or 'none'}, "
         f"{warm.get('seconds', 0):.0f} s.",
     ]
@@ -274,7 +297,7 @@ def section_text(state: dict, report: dict, *, command: str, plot_path: str | No
     text += "\n".join(_fill(i, initial_indent="- ", subsequent_indent="  ") for i in items)
     text += "\n\n" + markdown(report)
     if plot_path:
-        text += f"\n![identifications per hour against GPUs]({plot_path})\n"
+        text += f"\n![{report['title']}: scenes identified per hour against GPUs]({plot_path})\n"
     return text
 
 
@@ -340,6 +363,7 @@ def main(argv: list[str] | None = None) -> int:
         args.warmup = [] if args.warmup == "none" else [s for s in args.warmup.split(",") if s]
     state = load_state(args.out, settings_of(args, runs))
     state["command"] = command_line(argv, script="benchmarks/suite_scaling.py")
+    state["date"] = datetime.date.today().isoformat()  # of the measurement, not of a --report
     if "warmup" not in state:
         state["warmup"] = warm_up(args, devices)
         save_state(args.out, state)

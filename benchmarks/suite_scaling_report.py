@@ -168,7 +168,7 @@ def markdown(report: dict) -> str:
     """The throughput table and the agreement table of ``report`` (``suite_scaling``'s)."""
     unit = report["throughput"][0]["unit"].upper()
     lines = [
-        f"| {unit}s | runs at once | runs | wall time | runs per hour | speed-up | "
+        f"| {unit}s | runs at once | runs | wall time | scenes identified per hour | speed-up | "
         "scaling efficiency | median run | retried by Ray | failed |",
         "|---:|---:|---:|---:|---:|---:|---:|---:|---|---|",
     ]
@@ -217,7 +217,7 @@ def plot(report: dict, path) -> None:
         ax.annotate(f"{t['efficiency']:.0%}", (c, r), textcoords="offset points", xytext=(6, -12))
     unit = rows[0]["unit"].upper()
     ax.set_xlabel(f"{unit}s")
-    ax.set_ylabel("identifications per hour")
+    ax.set_ylabel("scenes identified per hour")
     ax.set_xticks(counts)
     ax.set_title(report.get("title", "suite scaling"), fontsize=9)
     ax.legend(loc="upper left", fontsize=8)
