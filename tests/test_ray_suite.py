@@ -22,7 +22,7 @@ ray = pytest.importorskip("ray")
 import mosiv_framework.registry as registry_module  # noqa: E402
 from mosiv_framework.cli.main import main  # noqa: E402
 from mosiv_framework.registry import Registry  # noqa: E402
-from mosiv_framework.scale import Task, TaskDied, run_tasks  # noqa: E402
+from mosiv_framework.scale import Task, TaskDied, run_command, run_tasks  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
@@ -99,6 +99,17 @@ def test_diagnose_suite_runner_on_two_entries_one_killed_once(tmp_path):
     # the dead worker's pid is not the pid that finished the entry
     assert int(marker.read_text()) != outcomes["b"].result["pid"]
     assert outcomes["b"].result["gpus"] in ("", None)  # 0 GPUs asked for: none visible
+
+
+def test_a_process_entry_returns_its_exit_code_and_writes_to_the_entry_log(tmp_path):
+    """run_command, the body of the benchmarks' per-entry processes: the program's output
+    goes to the task's log and its exit code is the outcome's result."""
+    program = "import os, sys; print('entry output'); sys.exit(3 if os.getpid() else 0)"
+    log = tmp_path / "entry.log"
+    task = Task("proc", run_command, ([sys.executable, "-c", program],), log)
+    outcome = run_tasks([task], jobs=2, gpus_per_task=0)["proc"]
+    assert outcome.ok and outcome.result == 3
+    assert "entry output" in log.read_text()
 
 
 def test_an_error_stays_with_its_entry_and_a_death_every_time_fails_it(tmp_path):
