@@ -99,7 +99,9 @@ from dataclasses import asdict, dataclass, field
 
 import torch
 import warp as wp
-from mosiv_warp_mpm.simulator import MPMRun, init_warp, pack_theta, use_deterministic_atomics
+from mosiv_warp_mpm.packing import pack_theta
+from mosiv_warp_mpm.run import MPMRun
+from mosiv_warp_mpm.simulator import init_warp, use_deterministic_atomics
 from mosiv_warp_mpm.state import GridLayout, ParticleState
 from warp_profile_report import ablation_report, kernel_table, report  # noqa: F401 (tests)
 

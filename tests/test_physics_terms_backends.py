@@ -45,7 +45,7 @@ def _simulator(backend: str, grid: int, substeps: int):
 
 def _warp_states(sim, particles, params, world, frames, v0, C0):
     import warp as wp
-    from mosiv_warp_mpm.simulator import pack_theta
+    from mosiv_warp_mpm.packing import pack_theta
     from mosiv_warp_mpm.state import GridLayout
 
     ids = particles.object_list

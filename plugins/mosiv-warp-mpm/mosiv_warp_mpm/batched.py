@@ -26,13 +26,9 @@ import warp as wp
 from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.interfaces import Simulator, member_particles
 from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, World
-from mosiv_warp_mpm.simulator import (
-    MPMRun,
-    WarpMPMSimulator,
-    check_inputs,
-    initial_velocities,
-    pack_theta,
-)
+from mosiv_warp_mpm.packing import check_inputs, initial_velocities, pack_theta
+from mosiv_warp_mpm.run import MPMRun
+from mosiv_warp_mpm.simulator import WarpMPMSimulator
 
 
 def rollout_batch(
