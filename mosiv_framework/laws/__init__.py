@@ -1,4 +1,4 @@
-"""The six built-in constitutive laws of MOSIV, one module per family.
+"""The built-in constitutive laws of MOSIV, one module per family.
 
 Their equations: docs/PHYSICS.md, Constitutive laws.
 
@@ -10,9 +10,11 @@ from __future__ import annotations
 
 from mosiv_framework.laws.base import OBJECT_PARAMS, ConstitutiveLaw, ParamSpec, lame_parameters
 from mosiv_framework.laws.elastic import Elastic
+from mosiv_framework.laws.elastic_corotated import ElasticCorotated
 from mosiv_framework.laws.newtonian import Newtonian
 from mosiv_framework.laws.non_newtonian import NonNewtonian
 from mosiv_framework.laws.plasticine import Plasticine
+from mosiv_framework.laws.plasticine_corotated import PlasticineCorotated
 from mosiv_framework.laws.sand import Sand
 from mosiv_framework.laws.snow import Snow
 
@@ -22,21 +24,43 @@ __all__ = [
     "OBJECT_PARAMS",
     "ConstitutiveLaw",
     "Elastic",
+    "ElasticCorotated",
     "Newtonian",
     "NonNewtonian",
     "ParamSpec",
     "Plasticine",
+    "PlasticineCorotated",
     "Sand",
     "Snow",
     "get_law",
     "lame_parameters",
 ]
 
-#: material family names in scene-format order
-FAMILIES: tuple[str, ...] = ("elastic", "plasticine", "sand", "newtonian", "non_newtonian", "snow")
+#: material family names in scene-format order (the backends' law ids); the corotated variants
+#: come last so that the earlier ids keep their meaning
+FAMILIES: tuple[str, ...] = (
+    "elastic",
+    "plasticine",
+    "sand",
+    "newtonian",
+    "non_newtonian",
+    "snow",
+    "elastic_corotated",
+    "plasticine_corotated",
+)
 
 LAWS: dict[str, ConstitutiveLaw] = {
-    law.name: law for law in (Elastic(), Plasticine(), Sand(), Newtonian(), NonNewtonian(), Snow())
+    law.name: law
+    for law in (
+        Elastic(),
+        Plasticine(),
+        Sand(),
+        Newtonian(),
+        NonNewtonian(),
+        Snow(),
+        ElasticCorotated(),
+        PlasticineCorotated(),
+    )
 }
 assert tuple(LAWS) == FAMILIES, "LAWS must list the families in scene-format order"
 

@@ -10,11 +10,10 @@ import torch
 
 from mosiv_framework.laws.base import ConstitutiveLaw, ParamSpec, lame_parameters
 from mosiv_framework.laws.elastic import YOUNGS_MODULUS
+from mosiv_framework.laws.elastic_corotated import corotated_kirchhoff
 from mosiv_framework.laws.linalg import (
     gather_params,
-    identity_like,
     plastic_j_or_ones,
-    polar_rotation,
 )
 from mosiv_framework.laws.plasticine import isotropic_return
 
@@ -61,12 +60,8 @@ class Snow(ConstitutiveLaw):
         pj = plastic_j_or_ones(plastic_J, like=F)
         # Stomakhin 2013 eq. 3: Lame constants scale with exp(xi (1 - J_p)).
         hardening = torch.exp(d["xi"] * (1.0 - pj))
-        mu, lam = d["mu0"] * hardening, d["lam0"] * hardening
-        R = polar_rotation(F)
-        J = torch.linalg.det(F)
-        # Fixed-corotated Kirchhoff stress: 2 mu (F - R) F^T + lam (J - 1) J I.
-        shear = 2.0 * mu[:, None, None] * (F - R) @ F.transpose(-1, -2)
-        return shear + (lam * (J - 1.0) * J)[:, None, None] * identity_like(F)
+        # the fixed-corotated Kirchhoff stress 2 mu (F - R) F^T + lam (J - 1) J I, hardened
+        return corotated_kirchhoff(F, d["mu0"] * hardening, d["lam0"] * hardening)
 
     def return_map(
         self,

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -261,7 +261,7 @@ def run_stages(recipe, plain, scene, progress: Progress, warnings, *, started) -
         identified = identify_stage(
             recipe,
             scene,
-            particles,
+            with_identified_laws(particles, recipe.identify.laws),
             reconstruction,
             simulator,
             sim_options,
@@ -279,6 +279,18 @@ def run_stages(recipe, plain, scene, progress: Progress, warnings, *, started) -
     stages = dict(scene=scene, particles=particles, reconstruction=reconstruction)
     simulators = (simulator, simulator_refiner(section))
     return evaluate_stage(recipe, stages, identified, simulators, progress, started=started)
+
+
+def with_identified_laws(particles, laws) -> object:
+    """``particles`` with each object's material replaced by the law ``identify.laws`` names
+    for it (the same particles where it names none)."""
+    if not laws:
+        return particles
+    materials = {k: laws.get(family, family) for k, family in particles.materials.items()}
+    for k, family in particles.materials.items():
+        if materials[k] != family:
+            log.info("object %s (%s) is identified with the law %s", k, family, materials[k])
+    return replace(particles, materials=materials)
 
 
 def reconstruct_stage(recipe, scene, progress: Progress):

@@ -112,7 +112,11 @@ class IdentifySection:
     the contact does);
     contact_margin: with contact "auto", the simulator's ``contact`` is kept unless the other
     mode's loss is lower by more than this fraction of its loss (ties, e.g. bodies that never
-    touch in the observed frames, keep it).
+    touch in the observed frames, keep it);
+    laws: the law each scene material is identified with where it is not the family's own,
+    e.g. ``{elastic: elastic_corotated, plasticine: plasticine_corotated}`` (the stress of
+    Genesis's Elastic and ElastoPlastic); the two laws must have the same parameters, so
+    starts, bounds and errors mean the same (empty: every material its own law).
     """
 
     method: str = "gradient"
@@ -159,6 +163,7 @@ class IdentifySection:
     contact: str = "fixed"
     contact_iterations: int = 20
     contact_margin: float = 0.05
+    laws: dict[str, str] = field(default_factory=dict)
 
     @staticmethod
     def value_problems(values: dict[str, Any]) -> list[str]:
@@ -181,12 +186,39 @@ class IdentifySection:
                 f"identify.resync_iterations={values['resync_iterations']!r}: must be >= 1 "
                 "when resync_every > 0"
             )
+        out += law_problems(values.get("laws") or {})
         if values.get("method") == "library" and values.get("library_sweeps", 1) < 1:
             out.append(
                 f"identify.library_sweeps={values['library_sweeps']!r}: must be >= 1 with "
                 "method 'library' (each sweep tries every prototype of every object)"
             )
         return out
+
+
+def law_problems(laws: dict[str, str]) -> list[str]:
+    """``identify.laws``: each key a scene material, each value a law with the same
+    parameters (a variant of its stress, not another material)."""
+    from mosiv_framework.laws import FAMILIES, get_law
+    from mosiv_framework.scene import MATERIAL_FAMILIES
+
+    out = []
+    for material, law in laws.items():
+        where = f"identify.laws.{material}={law!r}"
+        if material not in MATERIAL_FAMILIES:
+            out.append(
+                f"{where}: {material!r} is not a scene material; valid: "
+                f"{', '.join(MATERIAL_FAMILIES)}"
+            )
+        elif law not in FAMILIES:
+            out.append(f"{where}: unknown law; valid: {', '.join(FAMILIES)}")
+        else:
+            own, other = get_law(material).param_names(), get_law(law).param_names()
+            if own != other:
+                out.append(
+                    f"{where}: its parameters {other} differ from {material}'s {own}; "
+                    "name a law with the same parameters"
+                )
+    return out
 
 
 #: (least, greatest, what the value is) of numeric identify settings; None: unbounded.

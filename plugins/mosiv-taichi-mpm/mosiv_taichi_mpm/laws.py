@@ -1,4 +1,4 @@
-"""The six constitutive laws (docs/PHYSICS.md, Constitutive laws) as Taichi functions.
+"""The constitutive laws (docs/PHYSICS.md, Constitutive laws) as Taichi functions.
 
 Every law is split the same way so that the simulator needs only one SVD per particle and
 substep (whose adjoint is written by hand in ``svd_grad.py``, because Taichi cannot
@@ -121,13 +121,27 @@ def non_newtonian_stress(U, s, P):
 
 
 @ti.func
+def corotated_stress(U, s, mu, lam):
+    """Fixed-corotated: tau = 2 mu (F - R) F^T + lam (J - 1) J I = U diag(2 mu (s-1) s) U^T + ..."""
+    J = s[0] * s[1] * s[2]
+    shear = U @ diag3(2.0 * mu * (s - 1.0) * s) @ U.transpose()
+    return shear + lam * (J - 1.0) * J * ti.Matrix.identity(ti.f32, 3)
+
+
+@ti.func
 def snow_stress(U, s, Jp, P):
-    """Fixed-corotated, hardened: tau = 2 mu (F - R) F^T + lam (J - 1) J I = U diag(2 mu (s-1) s) U^T + ..."""
+    """Fixed-corotated with mu, lam hardened by exp(xi (1 - plastic_J))."""
     mu0, lam0 = lame(P[0], P[1])
     h = ti.exp(P[4] * (1.0 - Jp))
-    J = s[0] * s[1] * s[2]
-    shear = U @ diag3(2.0 * mu0 * h * (s - 1.0) * s) @ U.transpose()
-    return shear + lam0 * h * (J - 1.0) * J * ti.Matrix.identity(ti.f32, 3)
+    return corotated_stress(U, s, mu0 * h, lam0 * h)
+
+
+@ti.func
+def elastic_corotated_stress(U, s, P):
+    """Fixed-corotated with P = (E, nu[, yield_stress]): elastic_corotated and
+    plasticine_corotated."""
+    mu, lam = lame(P[0], P[1])
+    return corotated_stress(U, s, mu, lam)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -220,8 +234,10 @@ def kirchhoff_stress(present: ti.template(), law, F, U, s, C, Jp, P):
                 tau = newtonian_stress(F, C, P)
             elif ti.static(present[i] == 4):
                 tau = non_newtonian_stress(U, s, P)
-            else:
+            elif ti.static(present[i] == 5):
                 tau = snow_stress(U, s, Jp, P)
+            else:  # 6 elastic_corotated, 7 plasticine_corotated
+                tau = elastic_corotated_stress(U, s, P)
     return tau
 
 
@@ -233,7 +249,7 @@ def return_map(present: ti.template(), law, F, U, s, V, Jp, P, dt):
     Jp_new = Jp
     for i in ti.static(range(len(present))):
         if law == ti.static(present[i]):
-            if ti.static(present[i] == 1):
+            if ti.static(present[i] == 1 or present[i] == 7):  # von Mises, either stress
                 F_new, s_new = plasticine_return_map(F, U, s, V, P)
             elif ti.static(present[i] == 2):
                 F_new, s_new = sand_return_map(F, U, s, V, P)

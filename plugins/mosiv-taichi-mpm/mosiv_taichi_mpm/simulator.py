@@ -47,6 +47,8 @@ _STIFFNESS_ADVICE = {
     "newtonian": "lower bulk_modulus or viscosity",
     "non_newtonian": "lower bulk_modulus or shear_modulus",
     "snow": "lower E or hardening",
+    "elastic_corotated": "lower E",
+    "plasticine_corotated": "lower E",
 }
 
 

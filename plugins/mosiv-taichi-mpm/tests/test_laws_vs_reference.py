@@ -41,7 +41,7 @@ def test_law_matches_reference(family, simulator_factory):
     pj_err = (pj_new.double() - ref_pj).abs().max().item()
     assert F_err <= F_ABS, f"{family}: return-map F error {F_err:.3g}"
     assert pj_err <= F_ABS, f"{family}: plastic_J error {pj_err:.3g}"
-    if family != "elastic":  # the inputs must exercise plasticity for the check to mean much
+    if family not in ("elastic", "elastic_corotated"):  # the inputs must exercise plasticity
         moved = (ref_F - x["F"].double()).abs().amax(dim=(1, 2)) > 1e-3
         assert bool(moved.any()), f"{family}: no input was projected by the reference"
 

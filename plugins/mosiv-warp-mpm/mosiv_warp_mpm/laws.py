@@ -1,4 +1,4 @@
-"""The six MOSIV constitutive laws as Warp functions (equations: docs/PHYSICS.md,
+"""The MOSIV constitutive laws as Warp functions (equations: docs/PHYSICS.md,
 Constitutive laws).
 
 Every law reads its parameters from one ``vec5`` per object, in the order of
@@ -105,17 +105,21 @@ def newtonian_tau(F: wp.mat33, L: wp.mat33, viscosity: float, bulk: float):
 
 
 @wp.func
-def snow_tau(F: wp.mat33, p: vec5, plastic_J: float):
-    # tau = 2 mu (F - R) F^T + lam (J - 1) J I, mu/lam hardened by exp(xi (1 - J_p))
-    h = wp.exp(p[4] * (1.0 - plastic_J))
-    mu = lame_mu(p[0], p[1]) * h
-    lam = lame_lam(p[0], p[1]) * h
+def corotated_tau(F: wp.mat33, mu: float, lam: float):
+    # tau = 2 mu (F - R) F^T + lam (J - 1) J I  (fixed-corotated)
     U, s, V = proper_svd(F)
     R = U * wp.transpose(V)  # proper rotation even for an inverted F (det F < 0)
     J = wp.determinant(F)
     return 2.0 * mu * (F - R) * wp.transpose(F) + lam * (J - 1.0) * J * wp.identity(
         n=3, dtype=float
     )
+
+
+@wp.func
+def snow_tau(F: wp.mat33, p: vec5, plastic_J: float):
+    # fixed-corotated, mu/lam hardened by exp(xi (1 - J_p))
+    h = wp.exp(p[4] * (1.0 - plastic_J))
+    return corotated_tau(F, lame_mu(p[0], p[1]) * h, lame_lam(p[0], p[1]) * h)
 
 
 @wp.func
@@ -132,8 +136,10 @@ def kirchhoff_stress(law: int, p: vec5, F: wp.mat33, L: wp.mat33, plastic_J: flo
         tau = newtonian_tau(F, L, p[0], p[1])
     elif law == 4:
         tau = hencky_tau(F, p[0], p[1] - 2.0 * p[0] / 3.0)
-    else:
+    elif law == 5:
         tau = snow_tau(F, p, plastic_J)
+    else:  # 6 elastic_corotated, 7 plasticine_corotated: (E, nu[, yield_stress])
+        tau = corotated_tau(F, lame_mu(p[0], p[1]), lame_lam(p[0], p[1]))
     return tau
 
 
@@ -198,7 +204,7 @@ def return_map(law: int, p: vec5, F: wp.mat33, plastic_J: float, dt: float):
     # plastic projection of the trial F; returns (F_new, plastic_J_new)
     out = F
     pj = plastic_J
-    if law == 1:
+    if law == 1 or law == 7:  # plasticine and plasticine_corotated share the return map
         out = von_mises_map(F, lame_mu(p[0], p[1]), p[2], 1.0)
     elif law == 2:
         out = drucker_prager_map(F, p)
