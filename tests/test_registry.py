@@ -27,6 +27,8 @@ def test_installed_plugins_register_their_components():
         "newtonian",
         "non_newtonian",
         "snow",
+        "elastic_corotated",
+        "plasticine_corotated",
     }
     assert {"linear_drag", "quadratic_drag", "wind", "gravity"} <= set(
         registry.names("physics_term")
