@@ -29,6 +29,7 @@ from typing import Any
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.laws import LAWS, get_law
 from mosiv_framework.recipes.schema import IdentifySection
+from mosiv_framework.scene import MATERIAL_FAMILIES
 
 
 @dataclass(frozen=True)
@@ -104,7 +105,8 @@ def stiffness_findings(recipe: Mapping[str, Any], facts: SceneFacts) -> tuple[li
     if not (_is_count(grid) and _is_count(substeps) and cfl > 0 and facts.fps > 0):
         return [], []  # no grid, no cap: nothing the recipe limits
     known = facts.families is not None
-    families = facts.families if known else dict(enumerate(sorted(LAWS), start=1))
+    # a source draws scene materials, never a law variant that only a recipe names
+    families = facts.families if known else dict(enumerate(sorted(MATERIAL_FAMILIES), start=1))
     dx, dt = facts.extent / grid, 1.0 / (facts.fps * substeps)
     ceilings = stiffness_ceilings(families, {}, dx=dx, dt=dt, cfl=cfl)
     # objects whose caps, starts and bounds coincide share one message
