@@ -10,14 +10,8 @@ from __future__ import annotations
 
 import torch
 
-from mosiv_framework.laws.base import ConstitutiveLaw, lame_parameters
-from mosiv_framework.laws.elastic import POISSON_RATIO, YOUNGS_MODULUS
-from mosiv_framework.laws.linalg import (
-    gather_params,
-    identity_like,
-    plastic_j_or_ones,
-    polar_rotation,
-)
+from mosiv_framework.laws.elastic import Elastic
+from mosiv_framework.laws.linalg import identity_like, polar_rotation
 
 Tensor = torch.Tensor
 
@@ -31,20 +25,12 @@ def corotated_kirchhoff(F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
     return shear + (lam * (J - 1.0) * J)[:, None, None] * identity_like(F)
 
 
-class ElasticCorotated(ConstitutiveLaw):
-    """Fixed-corotated: tau = 2 mu (F - R) F^T + lam (J - 1) J I; no plasticity."""
+class ElasticCorotated(Elastic):
+    """Fixed-corotated: tau = 2 mu (F - R) F^T + lam (J - 1) J I; no plasticity (the elastic
+    law's parameters, Lame constants and return map, another stress)."""
 
     name = "elastic_corotated"
-    params = (YOUNGS_MODULUS, POISSON_RATIO)
     description = "elastic solid with the fixed-corotated stress, as Genesis's Elastic (E, nu)"
-
-    def derived(
-        self, values: dict[str, Tensor], *, like: Tensor | None = None
-    ) -> dict[str, Tensor]:
-        """Lame constants mu, lam (Pa) from E (Pa) and nu; [N] when like=F."""
-        E, nu = gather_params(values, ("E", "nu"), like=like, law=self.name)
-        mu, lam = lame_parameters(E, nu)
-        return {"mu": mu, "lam": lam}
 
     def kirchhoff_stress(
         self,
@@ -56,14 +42,3 @@ class ElasticCorotated(ConstitutiveLaw):
     ) -> Tensor:
         d = self.derived(values, like=F)
         return corotated_kirchhoff(F, d["mu"], d["lam"])
-
-    def return_map(
-        self,
-        F: Tensor,
-        values: dict[str, Tensor],
-        *,
-        plastic_J: Tensor | None = None,
-        dt: float = 0.0,
-    ) -> tuple[Tensor, Tensor]:
-        # Purely elastic: every F is admissible.
-        return F, plastic_j_or_ones(plastic_J, like=F)
