@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -36,6 +37,7 @@ from mosiv_framework.pipeline.rundir import (
 from mosiv_framework.recipes import check_stiffness
 from mosiv_framework.registry import get_registry
 from mosiv_framework.scene import read_scene, require_valid_scene
+from mosiv_framework.types import ParticleSet
 
 log = logging.getLogger(__name__)
 
@@ -281,7 +283,7 @@ def run_stages(recipe, plain, scene, progress: Progress, warnings, *, started) -
     return evaluate_stage(recipe, stages, identified, simulators, progress, started=started)
 
 
-def with_identified_laws(particles, laws) -> object:
+def with_identified_laws(particles: ParticleSet, laws: Mapping[str, str]) -> ParticleSet:
     """``particles`` with each object's material replaced by the law ``identify.laws`` names
     for it (the same particles where it names none)."""
     if not laws:
