@@ -25,10 +25,20 @@ data decide:
    ``(1 - identify.contact_margin)`` times the kept mode's loss. Where the bodies never touch
    in the observed frames both modes roll out the same motion and the recipe decides.
 
+The same brief fits also choose the stress (``identify.law_choice: auto``): each contact mode is
+tried with the recipe's laws (``identify.laws``) and with those laws overridden by
+``identify.law_alternatives`` (by default the fixed-corotated stress, which Genesis's Elastic
+and ElastoPlastic use, for elastic and plasticine bodies). The alternative laws have the same
+parameters, so starts, bounds and errors mean the same; the recipe's laws are kept unless the
+alternative fits better by the same margin. A scene whose materials have no alternative tries
+only its own laws. Each combination is a "variant", named by its mode, followed by
+`` + alternatives`` where it uses the alternative laws.
+
 The choice is recorded in the history (phase ``contact``; the brief fits are phase
 ``contact_fit``, the global stage's records tagged with their ``contact`` mode), in
 identified.json under ``contact`` (``choice``, ``mode``, and for ``auto`` the
-``recipe_mode``, each mode's ``losses``, the ``margin`` and the last of the ``frames`` scored)
+``recipe_mode``, each variant's ``losses``, the ``margin`` and the last of the ``frames``
+scored, and with the law choice the chosen ``laws`` set and its ``law_map``, object id -> law)
 and in the log. With ``identify.contact: fixed`` identified.json records the recipe's mode.
 The parameter phase continues from the chosen mode's brief fit, and it, the intervals,
 evaluation and every later rollout of the run (``mosiv eval``, ``mosiv simulate``, ``mosiv
@@ -41,8 +51,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -66,27 +76,62 @@ class ContactModes:
     simulators: dict[str, object]
     default: str
     margin: float
+    #: law set name -> object id -> the law the object is rolled out with; the first set is
+    #: the recipe's (kept unless another fits better by more than ``margin``); empty: the laws
+    #: are not chosen
+    law_sets: dict[str, dict[int, str]] = field(default_factory=dict)
 
     @property
     def order(self) -> list[str]:
         """The modes, the recipe's first."""
         return [self.default] + [m for m in self.simulators if m != self.default]
 
+    def variants(self) -> list[tuple[str, str | None]]:
+        """Every (contact mode, law set) to try, the recipe's first (law set None: not chosen)."""
+        sets = list(self.law_sets) or [None]
+        return [(mode, laws) for mode in self.order for laws in sets]
 
-def contact_modes(simulator_section, simulator, *, margin: float) -> ContactModes:
-    """A ContactModes of ``simulator`` (built from ``simulator_section``, the recipe's) and the
-    same simulator in every other mode of ``CONTACT_MODES``."""
+    def label(self, mode: str, laws: str | None) -> str:
+        """A variant's name in records and logs: its mode, with `` + SET`` after it where it
+        uses another law set than the recipe's."""
+        if laws is None or laws == next(iter(self.law_sets)):
+            return mode
+        return f"{mode} + {laws}"
+
+
+def contact_modes(
+    simulator_section,
+    simulator,
+    *,
+    margin: float,
+    every_mode: bool = True,
+    law_sets: dict[str, dict[int, str]] | None = None,
+) -> ContactModes:
+    """A ContactModes of ``simulator`` (built from ``simulator_section``, the recipe's) and, with
+    ``every_mode``, the same simulator in every other mode of ``CONTACT_MODES``; ``law_sets``
+    as ``ContactModes.law_sets`` (see ``law_sets``)."""
     from mosiv_framework.registry import get_registry
 
     options = dict(OmegaConf.to_container(simulator_section, resolve=True))
-    name, default = options.pop("name"), options["contact"]
+    name, default = options.pop("name"), options.get("contact", "none")
     simulators = {default: simulator}
-    for mode in CONTACT_MODES:
+    for mode in CONTACT_MODES if every_mode else ():
         if mode != default:
             simulators[mode] = get_registry().create(
                 "simulator", name, {**options, "contact": mode}
             )
-    return ContactModes(simulators, default, margin)
+    return ContactModes(simulators, default, margin, dict(law_sets or {}))
+
+
+def law_sets(
+    materials: Mapping[int, str], laws: Mapping[str, str], alternatives: Mapping[str, str]
+) -> dict[str, dict[int, str]]:
+    """The law sets ``identify.law_choice: auto`` tries, object id -> law: ``recipe`` (each
+    scene material's law in ``laws``, else its own) and ``alternatives`` (``laws`` overridden by
+    ``alternatives``), the latter only where it changes some object's law."""
+    recipe = {k: laws.get(m, m) for k, m in materials.items()}
+    other = {k: {**laws, **alternatives}.get(m, m) for k, m in materials.items()}
+    return {"recipe": recipe} if other == recipe else {"recipe": recipe, "alternatives": other}
 
 
 def pick(losses: dict[str, float], default: str, margin: float) -> str:
@@ -126,54 +171,75 @@ def choose_contact(
     """
     start = BestIterate.snapshot(vector)
     draws = _draw_states(fit.objective)
-    losses, leaves = {}, {}
-    for mode in modes.order:
+    losses, leaves, variants = {}, {}, {}
+    for mode, laws in modes.variants():
+        label = modes.label(mode, laws)
+        variants[label] = (mode, laws)
         start.apply(vector)
-        fit.simulator = modes.simulators[mode]
+        _use_variant(modes, fit, vector, mode, laws)
         first = len(history)
         try:
             search(fit)
-        except SimulationDiverged as exc:  # not one rollout of this mode worked
-            log.warning("contact %s: %s", mode, exc)
-            losses[mode], leaves[mode] = math.inf, start
+        except SimulationDiverged as exc:  # not one rollout of this variant worked
+            log.warning("contact %s: %s", label, exc)
+            losses[label], leaves[label] = math.inf, start
             continue
         finally:
             for record in history[first:]:
-                record["contact"] = mode
+                record["contact"] = label
         _restore_draws(draws)
-        losses[mode] = _score(fit, vector, frames)
-        leaves[mode] = BestIterate.snapshot(vector)
-        log.info("contact %s: loss %.6g over frames 1..%d", mode, losses[mode], frames)
-    chosen = pick(losses, modes.default, modes.margin)
+        losses[label] = _score(fit, vector, frames)
+        leaves[label] = BestIterate.snapshot(vector)
+        log.info("contact %s: loss %.6g over frames 1..%d", label, losses[label], frames)
+    default = modes.label(*modes.variants()[0])
+    chosen = pick(losses, default, modes.margin)
+    mode, laws = variants[chosen]
     leaves[chosen].apply(vector)
-    fit.simulator = modes.simulators[chosen]
+    _use_variant(modes, fit, vector, mode, laws)
     record = {
         "phase": PHASE,
         "choice": "auto",
-        "mode": chosen,
+        "mode": mode,
         "recipe_mode": modes.default,
         "losses": {m: (v if math.isfinite(v) else None) for m, v in losses.items()},
         "margin": modes.margin,
         "frames": frames,
         "values": vector.to_json(),
     }
+    if laws is not None:
+        record["laws"] = laws
+        record["law_map"] = {str(k): law for k, law in modes.law_sets[laws].items()}
     history.append(record)
     log.info(
-        "contact between objects: %s (%s; the recipe's %s is kept unless the other mode's "
-        "loss is more than %g %% lower)",
+        "contact between objects: %s (%s; the recipe's %s is kept unless another is more "
+        "than %g %% lower)",
         chosen,
         ", ".join(f"{m} {v:.6g}" for m, v in losses.items()),
-        modes.default,
+        default,
         100 * modes.margin,
     )
     return record
 
 
-def restore_choice(modes: ContactModes, fit: Fit, history: list[dict]) -> None:
-    """After resuming from a checkpoint: put ``fit`` back in the mode the history chose."""
+def restore_choice(modes: ContactModes, fit: Fit, history: list[dict], vector=None) -> None:
+    """After resuming from a checkpoint: put ``fit`` (and ``vector``'s laws) back in the
+    variant the history chose."""
     record = choice_record(history)
     if record is not None and record["mode"] in modes.simulators:
         fit.simulator = modes.simulators[record["mode"]]
+        if vector is not None and record.get("laws") in modes.law_sets:
+            _use_variant(modes, fit, vector, record["mode"], record["laws"])
+
+
+def _use_variant(modes: ContactModes, fit: Fit, vector, mode: str, laws: str | None) -> None:
+    """Roll out in ``mode`` with law set ``laws`` (None: the laws as they are): the simulator,
+    and the laws in ``vector`` and in ``fit``'s particles."""
+    fit.simulator = modes.simulators[mode]
+    if laws is None:
+        return
+    families = modes.law_sets[laws]
+    vector.families.update(families)
+    fit.particles = replace(fit.particles, materials=dict(families))
 
 
 def choice_record(history: list[dict]) -> dict | None:
@@ -187,8 +253,8 @@ def contact_json(history: list[dict], simulator_section) -> dict | None:
     mode; None for a simulator without a ``contact`` option."""
     record = choice_record(history)
     if record is not None:
-        keep = ("choice", "mode", "recipe_mode", "losses", "margin", "frames")
-        return {k: record[k] for k in keep}
+        keep = ("choice", "mode", "recipe_mode", "losses", "margin", "frames", "laws", "law_map")
+        return {k: record[k] for k in keep if k in record}
     mode = simulator_section.get("contact", None)
     return None if mode is None else {"choice": "fixed", "mode": str(mode)}
 

@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.losses import WeightedSum
 from mosiv_framework.pipeline import formats
-from mosiv_framework.pipeline.contact import contact_json, contact_modes
+from mosiv_framework.pipeline.contact import contact_json, contact_modes, law_sets
 from mosiv_framework.pipeline.evaluate import plot_history, plot_parameters
 from mosiv_framework.pipeline.identify import identify
 from mosiv_framework.pipeline.library import library_params, pick_prototypes
@@ -86,8 +86,17 @@ def identify_stage(
     library = section.method == "library"
     _announce(recipe, vector, free, library)
     modes = None
-    if section.contact == "auto":
-        modes = contact_modes(recipe.simulator, simulator, margin=section.contact_margin)
+    if section.contact == "auto" or section.law_choice == "auto":
+        sets = None
+        if section.law_choice == "auto":
+            sets = law_sets(scene.materials, section.laws, section.law_alternatives)
+        modes = contact_modes(
+            recipe.simulator,
+            simulator,
+            margin=section.contact_margin,
+            every_mode=section.contact == "auto",
+            law_sets=sets,
+        )
     vector, history = identify(
         simulator=simulator,
         particles=sim_particles,

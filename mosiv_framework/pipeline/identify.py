@@ -172,7 +172,7 @@ def identify(
     state = IdentifyState(vector, run_dir, config_hash)
     start_phase, start_iter, carried = state.resume()
     if contact is not None:
-        restore_choice(contact, fit, state.history)
+        restore_choice(contact, fit, state.history, vector)
     for index, phase in enumerate(phases):
         runs = phase.iterations > 0 and bool(phase.leaves(vector))
         if index < start_phase or not (runs or isinstance(phase, ParameterPhase)):

@@ -144,12 +144,21 @@ def stage_keys(plain: dict) -> dict[str, str]:
     key = fingerprint(plain["scene"]["path"], plain["reconstructor"])
     keys = {"reconstruct": key}
     keys["lift"] = key = fingerprint(key, plain["lifter"])
-    key = fingerprint(key, plain["simulator"], plain["losses"], plain["identify"])
+    key = fingerprint(key, plain["simulator"], plain["losses"], _identify_key(plain["identify"]))
     if plain.get("physics_terms"):  # only then, so runs made without terms keep their key
         key = fingerprint(key, plain["physics_terms"])
     keys["identify"] = key
     keys["evaluate"] = fingerprint(key, plain["evaluate"])
     return keys
+
+
+def _identify_key(section: dict) -> dict:
+    """What of the identify section its stage key covers: with ``law_choice: fixed`` the law
+    alternatives are never tried, so neither they nor the choice enter the key (runs made
+    before the choice existed keep theirs)."""
+    if section.get("law_choice", "fixed") != "fixed":
+        return section
+    return {k: v for k, v in section.items() if k not in ("law_choice", "law_alternatives")}
 
 
 @dataclass

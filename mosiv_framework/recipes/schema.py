@@ -69,6 +69,12 @@ INTERVAL_METHODS = ("laplace", "sandwich")
 #: the contact between objects: the simulator's ``contact`` as the recipe gives it, or chosen
 #: from the observed frames (``mosiv_framework.pipeline.contact``)
 IDENTIFY_CONTACT = ("fixed", "auto")
+#: the laws: ``identify.laws`` as the recipe gives them, or chosen from the observed frames
+#: between them and ``identify.law_alternatives`` (``mosiv_framework.pipeline.contact``)
+IDENTIFY_LAW_CHOICE = ("fixed", "auto")
+#: the stresses ``law_choice: auto`` tries: Genesis's (and many graphics engines') fixed-
+#: corotated stress beside MOSIV's neo-Hookean elastic and StVK-Hencky plasticine
+DEFAULT_LAW_ALTERNATIVES = {"elastic": "elastic_corotated", "plasticine": "plasticine_corotated"}
 
 
 @dataclass
@@ -116,7 +122,14 @@ class IdentifySection:
     laws: the law each scene material is identified with where it is not the family's own,
     e.g. ``{elastic: elastic_corotated, plasticine: plasticine_corotated}`` (the stress of
     Genesis's Elastic and ElastoPlastic); the two laws must have the same parameters, so
-    starts, bounds and errors mean the same (empty: every material its own law).
+    starts, bounds and errors mean the same (empty: every material its own law);
+    law_choice: "fixed" identifies with ``laws``; "auto" also tries ``laws`` overridden by
+    ``law_alternatives`` and keeps the alternative only if it fits the observed frames better
+    by more than ``contact_margin``, chosen together with the contact as the contact alone is
+    (each combination after its own global stage and ``contact_iterations`` parameter steps;
+    see ``mosiv_framework.pipeline.contact``); the choice is recorded in identified.json;
+    law_alternatives: with law_choice "auto", the law each material is tried with (same
+    parameters as the material's, as for ``laws``).
     """
 
     method: str = "gradient"
@@ -164,6 +177,8 @@ class IdentifySection:
     contact_iterations: int = 20
     contact_margin: float = 0.05
     laws: dict[str, str] = field(default_factory=dict)
+    law_choice: str = "fixed"
+    law_alternatives: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_LAW_ALTERNATIVES))
 
     @staticmethod
     def value_problems(values: dict[str, Any]) -> list[str]:
@@ -177,6 +192,7 @@ class IdentifySection:
                 ("start", IDENTIFY_STARTS),
                 ("interval_method", INTERVAL_METHODS),
                 ("contact", IDENTIFY_CONTACT),
+                ("law_choice", IDENTIFY_LAW_CHOICE),
             )
             if values.get(key) not in valid
         ]
@@ -187,6 +203,8 @@ class IdentifySection:
                 "when resync_every > 0"
             )
         out += law_problems(values.get("laws") or {})
+        alternatives = values.get("law_alternatives") or {}
+        out += law_problems(alternatives, key="identify.law_alternatives")
         if values.get("method") == "library" and values.get("library_sweeps", 1) < 1:
             out.append(
                 f"identify.library_sweeps={values['library_sweeps']!r}: must be >= 1 with "
@@ -195,15 +213,15 @@ class IdentifySection:
         return out
 
 
-def law_problems(laws: dict[str, str]) -> list[str]:
-    """``identify.laws``: each key a scene material, each value a law with the same
-    parameters (a variant of its stress, not another material)."""
+def law_problems(laws: dict[str, str], *, key: str = "identify.laws") -> list[str]:
+    """``laws`` (the recipe's ``key``): each key a scene material, each value a law with the
+    same parameters (a variant of its stress, not another material)."""
     from mosiv_framework.laws import FAMILIES, get_law
     from mosiv_framework.scene import MATERIAL_FAMILIES
 
     out = []
     for material, law in laws.items():
-        where = f"identify.laws.{material}={law!r}"
+        where = f"{key}.{material}={law!r}"
         if material not in MATERIAL_FAMILIES:
             out.append(
                 f"{where}: {material!r} is not a scene material; valid: "

@@ -12,7 +12,7 @@
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
 
@@ -65,6 +65,8 @@ class ScenePlan:
     effects: list[Effect]
     cameras: list[Camera]
     style: Style
+    #: scene material -> the law that simulates it where not its own (SynthOptions.laws)
+    laws: dict[str, str] = field(default_factory=dict)
 
     @property
     def world(self) -> World:
@@ -137,6 +139,7 @@ def plan_scene(opts: SynthOptions) -> ScenePlan:
         effects=effects,
         cameras=cameras,
         style=draw_style(list(shapes), rng, ground_height=GROUND_HEIGHT),
+        laws=dict(opts.laws),
     )
 
 
@@ -230,13 +233,14 @@ def stability_record(plan: ScenePlan, opts: SynthOptions) -> dict:
 def simulated_materials(plan: ScenePlan) -> tuple[list[str], list[dict[str, float]]]:
     """Family and parameters each object is simulated with: the declared ones, except that a
     concealed ``plasticity`` turns every declared elastic body into plasticine (same E, nu)
-    yielding at the concealed stress."""
+    yielding at the concealed stress, and that ``plan.laws`` names the law simulating a
+    material (another stress with the same parameters)."""
     plastic = next((e for e in plan.effects if e.kind == "plasticity"), None)
     families, values = [], []
     for fam, p in zip(plan.materials, plan.params):
         if plastic is not None and fam == "elastic":
             fam, p = "plasticine", {**p, "yield_stress": float(plastic.params["yield_stress"])}
-        families.append(fam)
+        families.append(plan.laws.get(fam, fam))
         values.append(dict(p))
     return families, values
 
@@ -295,6 +299,7 @@ def gt_params_document(plan: ScenePlan, opts: SynthOptions) -> dict:
     return {
         "generator": f"mosiv-synth {version} (simulator {opts.simulator})",
         "generator_params": {
+            **({"laws": dict(plan.laws)} if plan.laws else {}),
             "ground_friction": plan.ground_friction,
             "ground_friction_nominal": plan.ground_friction_nominal,
             "simulator": opts.simulator,

@@ -12,6 +12,7 @@ from typing import Any
 
 from mosiv_framework.conceal import parse_conceal
 from mosiv_framework.errors import ConfigError
+from mosiv_framework.recipes.schema import law_problems
 from mosiv_framework.scene.protocol import check_clip, name_list
 from mosiv_synth.materials import MATERIAL_RANGES, RANGE_PRESETS
 from mosiv_synth.shapes import SHAPE_NAMES
@@ -32,7 +33,10 @@ class SynthOptions:
     simulator's substeps are raised where a stiff draw needs it, see ``mosiv_synth.stability``);
     conceal: "KIND[:param=value,...]" effects separated by
     ";" or a list of them (see ``mosiv_framework.conceal``); seed: everything random derives from
-    it; scene_name: scene name (empty = derived from materials and seed); progress: show a bar.
+    it; scene_name: scene name (empty = derived from materials and seed); progress: show a bar;
+    laws: the law that simulates a material where it is not the material's own, e.g.
+    ``{elastic: elastic_corotated}`` (data made with another stress than identification's
+    default; gt/params.json records it under ``generator_params.laws``).
     """
 
     n_objects: int = 2
@@ -52,6 +56,7 @@ class SynthOptions:
     seed: int = 0
     scene_name: str = ""
     progress: bool = True
+    laws: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         problems: list[str] = []
@@ -84,5 +89,6 @@ class SynthOptions:
             self.conceal = [e.spec() for e in parse_conceal(self.conceal)]
         except ValueError as exc:
             problems.append(f"conceal: {exc}")
+        problems += law_problems(dict(self.laws), key="laws")
         if problems:
             raise ConfigError([f"scene_source synth: {p}" for p in problems])

@@ -22,7 +22,7 @@ CFL_TARGET = 0.45
 VISCOUS_BOUND = 1.0 / 6.0
 VISCOUS_TARGET = 0.15
 
-_E_FAMILIES = ("elastic", "plasticine", "sand", "snow")
+_E_FAMILIES = ("elastic", "plasticine", "sand", "snow", "elastic_corotated", "plasticine_corotated")
 
 
 def p_wave_modulus(family: str, p: dict[str, float]) -> float:
