@@ -5,12 +5,18 @@
 # with the dependencies that machine lacks, and any FOLDERs given (a scene suite, say), which
 # land under /root/stash/data/NAME there. One tar, split into 50 MB parts .dv1 .dv2 ...
 # (git-ignored).
-#   bash benchmarks/stage_device_parts.sh [FOLDER ...]
+#   bash benchmarks/stage_device_parts.sh [--no-ray] [FOLDER ...]
+# (--no-ray: leave Ray out, one part less, for work that runs --part processes itself)
 # Then, back to back with nothing else in the same batch (the machine goes back 30 s after a
 # call), one call per part, each carrying its part:
 #   mkdir -p /root/stash && cp .dvN/* /root/stash/
 # and in the last call (or any later one): source benchmarks/gpu_setup.sh && ...
 set -eu
+with_ray=1
+if [ "${1:-}" = "--no-ray" ]; then
+  with_ray=0
+  shift
+fi
 [ -f .wp3/warp.name ] || { echo "stage the warp wheel into .wp1 .wp2 .wp3 first" >&2; exit 2; }
 pack=.dvpack
 rm -rf "$pack" .dv[0-9]* && mkdir -p "$pack/wheels" "$pack/data"
@@ -20,7 +26,7 @@ cat .wp1/warp.part.* .wp2/warp.part.* .wp3/warp.part.* > "$pack/wheels/$name"
 echo "$(cat .wp3/warp.sha256)  $pack/wheels/$name" | sha256sum -c --quiet
 cp .wp3/*.whl "$pack/wheels/"
 # Ray and what it needs beyond the GPU image's packages (jsonschema and its own)
-python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+[ "$with_ray" = 1 ] && python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
   --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
   -d "$pack/wheels" "ray>=2.9" jsonschema jsonschema-specifications referencing rpds-py
 for folder in "$@"; do
