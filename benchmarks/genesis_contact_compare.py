@@ -1,4 +1,4 @@
-"""Contact mode on Genesis scenes: the same identification with two simulator contact modes.
+"""Contact mode (or another setting) on Genesis scenes: the same identification, two settings.
 
 Genesis solves every body on one grid, so bodies that touch stick. warp-mpm's default contact
 (``multi_field``) gives each object its own field with Coulomb friction between them; its
@@ -14,7 +14,12 @@ of the stiffness and of each family's own parameter, and the observed and future
         --write-results docs/RESULTS.md
 
 A run folder holds its rows as ``parts/SCENE.json`` or (as kept under benchmarks/data)
-``scene_SCENE.json``; only scenes present in both are compared.
+``scene_SCENE.json``; only scenes present in both are compared. ``--section`` and
+``--difference`` compare runs that differ in another setting, e.g. the stress law:
+
+    python benchmarks/genesis_contact_compare.py benchmarks/data/genesis_identify runs/gid-laws \
+        --labels "own laws,laws chosen" --difference "identify.law_choice (fixed, auto)" \
+        --section "Choosing the stress on Genesis scenes" --write-results docs/RESULTS.md
 """
 
 from __future__ import annotations
@@ -33,6 +38,8 @@ SECTION = "Contact mode on Genesis scenes"
 FAMILY_PARAM = {
     "elastic": None,
     "plasticine": "yield_stress",
+    "elastic_corotated": None,
+    "plasticine_corotated": "yield_stress",
     "sand": "friction_angle",
     "newtonian": "bulk_modulus",
 }
@@ -150,7 +157,15 @@ def tallies(records: list[dict], labels: tuple[str, str]) -> str:
     return f"{labels[1]} is lower than {labels[0]} in " + "; ".join(parts) + "."
 
 
-def section_text(records, labels, *, command: str, runs: tuple[dict, dict]) -> str:
+def section_text(
+    records,
+    labels,
+    *,
+    command: str,
+    runs: tuple[dict, dict],
+    section: str = SECTION,
+    difference: str = "the contact between objects",
+) -> str:
     scenes = sorted({r["scene"] for r in records})
     alone = sorted((set(runs[0]) | set(runs[1])) - set(scenes))
     machines = sorted({row.get("device", "?") for run in runs for row in run.values()})
@@ -159,13 +174,13 @@ def section_text(records, labels, *, command: str, runs: tuple[dict, dict]) -> s
     )
     intro = (
         'Two runs of the identification of "Identification on Genesis scenes" '
-        "(`benchmarks/genesis_identify.py`) that differ only in the contact between objects "
+        f"(`benchmarks/genesis_identify.py`) that differ only in {difference} "
         f"(same recipe, settings and scenes otherwise): {labels[0]} and {labels[1]}. Compared "
-        f"scenes: {', '.join(scenes)} (those run with both modes). Errors are gauge-free, as above."
+        f"scenes: {', '.join(scenes)} (those run both ways). Errors are gauge-free, as above."
     )
     return "\n".join(
         [
-            f"## {SECTION}",
+            f"## {section}",
             "",
             _fill(intro),
             "",
@@ -173,7 +188,7 @@ def section_text(records, labels, *, command: str, runs: tuple[dict, dict]) -> s
             f"- Machine: {', '.join(machines)}. Date {datetime.date.today().isoformat()}. "
             f"Code {', '.join(codes)}.",
             "- Data: the Genesis scenes of the section above (wide ranges)."
-            + (f" Run with one mode only, not compared: {', '.join(alone)}." if alone else ""),
+            + (f" Run one way only, not compared: {', '.join(alone)}." if alone else ""),
             "",
             markdown(records, labels),
             "",
@@ -189,6 +204,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("second", type=Path, help="rows of the second contact mode")
     parser.add_argument("--labels", default="multi_field,single_field")
     parser.add_argument("--write-results", type=Path, default=None)
+    parser.add_argument("--section", default=SECTION, help="the RESULTS section's title")
+    parser.add_argument(
+        "--difference",
+        default="the contact between objects",
+        help="what the two runs differ in, as the section's first sentence names it",
+    )
     args = parser.parse_args(argv)
     labels = tuple(args.labels.split(","))
     if len(labels) != 2:
@@ -201,8 +222,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.write_results is not None:
         command = "python benchmarks/genesis_contact_compare.py " + " ".join(argv)
         text = args.write_results.read_text()
-        body = section_text(records, labels, command=command, runs=runs)
-        args.write_results.write_text(replace_section(text, body, title=SECTION))
+        body = section_text(
+            records,
+            labels,
+            command=command,
+            runs=runs,
+            section=args.section,
+            difference=args.difference,
+        )
+        args.write_results.write_text(replace_section(text, body, title=args.section))
     return 0
 
 

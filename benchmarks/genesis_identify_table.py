@@ -178,7 +178,7 @@ def scene_row(
     future = metrics.get("future") or {}
     contact = (metrics.get("params") or {}).get("contact")
     if contact is not None:
-        keep = ("choice", "mode", "recipe_mode", "losses", "margin")
+        keep = ("choice", "mode", "recipe_mode", "losses", "margin", "laws")
         contact = {k: contact[k] for k in keep if k in contact}
     return {
         "scene": name,
@@ -287,7 +287,9 @@ def contact_label(row: dict) -> str:
     if not contact:
         return "-"
     how = "auto" if contact.get("choice") == "auto" else "recipe"
-    return f"{contact.get('mode')} ({how})"
+    laws = contact.get("laws")
+    variant = contact.get("mode") if laws in (None, "recipe") else f"{contact['mode']} + {laws}"
+    return f"{variant} ({how})"
 
 
 def _median_stat(values: list[float]) -> dict:
