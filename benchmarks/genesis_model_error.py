@@ -7,8 +7,9 @@ optimisation. For every scene of a suite folder (``mosiv data suite OUT --source
 and every configuration (a stress-law mapping, a contact between objects, a grid and a
 substep count), the recipe's oracle reconstructor and gt-points lifter give the frame-0
 particles, each object gets its true parameters from ``gt/params.json`` (the ground's Coulomb
-coefficient is Genesis's 0.1; a Genesis Liquid has no viscosity, so a newtonian body keeps the
-law's default viscosity), and the rollout over every frame is scored against
+coefficient is Genesis's 0.1; a parameter the truth does not give keeps the law's default:
+scenes made before gt/params.json recorded a Genesis liquid's viscosity roll their newtonian
+bodies out at the default), and the rollout over every frame is scored against
 ``gt/points.npz`` (observed and future Chamfer and EMD).
 
     python benchmarks/genesis_model_error.py --scenes runs/genesis --out runs/model_error \\

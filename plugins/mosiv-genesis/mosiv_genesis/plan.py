@@ -70,7 +70,7 @@ GENESIS_FAMILIES = tuple(EXTRA)
 # the soft end slumps under its own weight (~1-3 kPa at the base), the hard end yields only
 # in the stiffer draws' impacts. Sand 20 deg (glass beads) to 45 deg (crushed rock). Snow's
 # clamps over a factor ~2-3 around the paper's. Genesis' Liquid has no viscosity parameter: its
-# shear stress comes from E and nu, so the E decades also span its viscous response.
+# viscosity is mu times the substep (scene_format_params), so the E decades span it too.
 WIDE_COMMON = {"E": (1.0e4, 1.0e6), "nu": (0.15, 0.4), "rho": (500.0, 2000.0)}
 WIDE_EXTRA = {
     "elastic": {},
@@ -169,16 +169,25 @@ def required_substeps(
     return max(int(requested), math.ceil(need), math.ceil(hint - 1e-9))
 
 
-def scene_format_params(family: str, p: dict[str, float]) -> dict[str, float]:
+def scene_format_params(family: str, p: dict[str, float], *, substep_dt: float) -> dict[str, float]:
     """The mosiv-scene/1 names that mean the same thing in Genesis' model.
 
-    Genesis' Liquid is not our Newtonian law: its pressure term lam J (J - 1) has bulk modulus
-    lam = E nu / ((1 + nu)(1 - 2 nu)) at J = 1, and its shear term is an elastic stress reset
-    every substep, so only density and bulk modulus carry over; E and nu stay generator_params.
+    Genesis' viscous Liquid resets F to J^(1/3) I every substep and takes the fixed-corotated
+    stress 2 mu (F - R) F^T + lam J (J - 1) I of the next substep's F = J^(1/3) (I + dt C). To
+    first order in dt C and J - 1 that is 2 mu dt D + (lam + 2 mu / 3)(J - 1) I (D the strain
+    rate, the symmetric part of C): a Newtonian fluid of viscosity mu dt (``substep_dt``, the
+    engine's substep in s) and bulk modulus lam + 2 mu / 3 = E / (3 (1 - 2 nu)), which is what
+    MOSIV's newtonian law has at J = 1 (docs/PHYSICS.md, Genesis's laws). E and nu stay
+    generator_params.
     """
     if family == "newtonian":
-        lam = p["E"] * p["nu"] / ((1.0 + p["nu"]) * (1.0 - 2.0 * p["nu"]))
-        return {"rho": p["rho"], "bulk_modulus": lam}
+        e, nu = p["E"], p["nu"]
+        mu = e / (2.0 * (1.0 + nu))
+        return {
+            "rho": p["rho"],
+            "bulk_modulus": e / (3.0 * (1.0 - 2.0 * nu)),
+            "viscosity": mu * substep_dt,
+        }
     keep = ("E", "nu", "rho", "yield_stress", "friction_angle")
     return {k: v for k, v in p.items() if k in keep}
 

@@ -392,7 +392,7 @@ def _gt_document(plan: _Plan, starts, velocities, opts: GenesisOptions) -> dict:
                 "id": i,
                 "name": shapes[i - 1],
                 "material": fam,
-                "params": P.scene_format_params(fam, p),
+                "params": P.scene_format_params(fam, p, substep_dt=dt),
                 "generator_params": dict(p),
                 "initial_velocity": [float(x) for x in velocities[i - 1]],
                 "initial_centroid": [float(x) for x in starts[i - 1]],

@@ -14,8 +14,14 @@ from mosiv_framework.testing import physics_cases
 from mosiv_framework.testing.shapes import block, combine, default_params
 from mosiv_framework.types import World
 
+#: the corotated variants are left to the parity test, which holds this backend's gradients of
+#: every law to warp-mpm's (tests/test_parity.py, themselves checked against differences in
+#: plugins/mosiv-warp-mpm); their stress and return map are those snow and plasticine run here,
+#: and each of these checks takes about two minutes of CI
+OWN_CHECK = tuple(f for f in FAMILIES if not f.endswith("_corotated"))
 
-@pytest.mark.parametrize("family", FAMILIES)
+
+@pytest.mark.parametrize("family", OWN_CHECK)
 def test_shared_gradient_check(family, simulator_factory):
     report = physics_cases.gradient_check(simulator_factory, family)
     print(family, report)
