@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import shlex
 import statistics
 import sys
 from pathlib import Path
@@ -220,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("the two runs share no scene")
     print(markdown(records, labels))
     if args.write_results is not None:
-        command = "python benchmarks/genesis_contact_compare.py " + " ".join(argv)
+        command = "python benchmarks/genesis_contact_compare.py " + shlex.join(argv)
         text = args.write_results.read_text()
         body = section_text(
             records,
