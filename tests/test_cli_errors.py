@@ -262,6 +262,10 @@ def test_an_unexpected_error_is_one_line_pointing_to_verbose(capsys, tmp_path, m
 
 
 # ------------------------------------------------------------------------------- Ctrl-C
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_ends_with_one_line_naming_the_run_folder(tmp_path):
     pytest.importorskip("mosiv_warp_mpm")
     run_dir = tmp_path / "run"
@@ -271,6 +275,9 @@ def test_ctrl_c_ends_with_one_line_naming_the_run_folder(tmp_path):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        # a shell starts background jobs with SIGINT ignored, and children inherit that (Python
+        # then installs no handler): give the run the disposition a terminal's Ctrl-C meets
+        preexec_fn=_default_sigint,
     )
     seen, deadline = [], time.monotonic() + 300
     while time.monotonic() < deadline:  # the identify stage has begun: earlier ones are done
