@@ -289,7 +289,11 @@ def test_ctrl_c_ends_with_one_line_naming_the_run_folder(tmp_path):
     proc.send_signal(signal.SIGINT)
     _, rest = proc.communicate(timeout=120)
     err = "".join(seen) + rest
-    assert proc.returncode == errors.EXIT_INTERRUPTED, err
+    # 130, or killed by SIGINT, which a shell reports as 130 as well: when the interrupt was
+    # raised inside code a C extension ran (torch's lazy imports at the first optimiser step),
+    # CPython notes it as unhandled even though mosiv caught it, and after a normal shutdown
+    # re-raises SIGINT on itself (seen in 1 of 6 runs under load, strace: kill(self, SIGINT))
+    assert proc.returncode in (errors.EXIT_INTERRUPTED, -signal.SIGINT), err
     assert "Traceback" not in err
     said = [line for line in err.splitlines() if "interrupted" in line]
     assert said == [
