@@ -129,7 +129,9 @@ class IdentifySection:
     (each combination after its own global stage and ``contact_iterations`` parameter steps;
     see ``mosiv_framework.pipeline.contact``); the choice is recorded in identified.json;
     law_alternatives: with law_choice "auto", the law each material is tried with (same
-    parameters as the material's, as for ``laws``).
+    parameters as the material's, as for ``laws``); a recipe's entries are merged with the
+    defaults, so to try no alternative for a material map it to its own law
+    (``law_alternatives.plasticine=plasticine``).
     """
 
     method: str = "gradient"
