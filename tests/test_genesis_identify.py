@@ -423,3 +423,26 @@ def test_end_to_end_on_the_tiny_genesis_scene(tmp_path):
     assert f"## {bench.SECTION}" in text and text.endswith("## From video\n\nkept\n")
     assert "--scenes SCENES --out OUT" in text and str(tmp_path) not in text
     assert f"| E-S | {row['contact']['mode']} (auto): multi_field " in text
+
+
+def test_a_row_names_the_law_set_its_variant_used():
+    """With identify.law_choice the row keeps the chosen law set, and the label says it."""
+    bench = _bench()
+    metrics = _metrics(
+        e_true=[1e5, 1e5], e_value=[1e5, 1e5], rho1=1000.0, kind="two-sided", future_cd=1.0
+    )
+    metrics["params"]["contact"] = {
+        "choice": "auto",
+        "mode": "single_field",
+        "recipe_mode": "multi_field",
+        "losses": {"multi_field": 0.2, "single_field + alternatives": 0.1},
+        "margin": 0.05,
+        "laws": "alternatives",
+        "law_map": {"1": "elastic_corotated"},
+    }
+    row = bench.scene_row("A", metrics, time_s=1.0, data={}, device="CPU", code="x")
+    assert row["contact"]["laws"] == "alternatives" and "law_map" not in row["contact"]
+    label = sys.modules["genesis_identify_table"].contact_label
+    assert label(row) == "single_field + alternatives (auto)"
+    row["contact"]["laws"] = "recipe"
+    assert label(row) == "single_field (auto)"
