@@ -314,12 +314,19 @@ def test_view_errors_name_the_folder_and_what_is_missing(case, run, tmp_path, ca
     assert str(folder) in err and all(w in err for w in words), err
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_view_serves_until_ctrl_c_then_ends_with_130(run):
     proc = subprocess.Popen(
         [sys.executable, "-m", "mosiv_framework.cli.main", "view", str(run), "--port", "0"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        # a shell starts background jobs with SIGINT ignored and children inherit it: give the
+        # server the disposition a terminal's Ctrl-C meets
+        preexec_fn=_default_sigint,
     )
     try:
         line = proc.stdout.readline()  # printed once the server listens
