@@ -291,9 +291,10 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "model_error.md").write_text(markdown(rows))
     print(markdown(rows))
     if args.write_results is not None:
-        shown = [
-            a for i, a in enumerate(argv) if "--measured-with" not in argv[max(i - 1, 0) : i + 1]
-        ]
+        shown = list(argv)
+        if "--measured-with" in shown:  # the report's own command, without the quoted one
+            at = shown.index("--measured-with")
+            del shown[at : at + 2]
         command = "python benchmarks/genesis_model_error.py " + shlex.join(shown)
         measured = args.measured_with or command
         body = section_text(rows, command=measured, report=command)

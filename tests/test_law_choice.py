@@ -29,6 +29,7 @@ from mosiv_framework.pipeline.run import stage_keys
 from mosiv_framework.recipes import load_recipe, validate_recipe
 from mosiv_framework.registry import get_registry
 from mosiv_framework.testing.pytest_plugin import require_simulator
+from mosiv_framework.types import ParticleSet
 
 RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "diagnose_small.yaml"
 #: the stress the data are made with -> the recipe's own law for elastic bodies (the other one)
@@ -149,15 +150,9 @@ def test_a_resumed_run_keeps_the_chosen_laws():
         "multi_field + alternatives",
     ]
     vector = ParameterVector.create({1: "elastic"}, {1: torch.zeros(3)}, ground_friction=None)
-    particles = SimpleNamespace(materials={1: "elastic"})
+    particles = ParticleSet(torch.zeros(1, 3), torch.ones(1), torch.ones(1).long(), {1: "elastic"})
     fit = SimpleNamespace(simulator=None, particles=particles)
     chosen = {"phase": "contact", "mode": "multi_field", "laws": "alternatives"}
-    # replace() needs a dataclass: the real Fit's particles are a ParticleSet
-    from mosiv_framework.types import ParticleSet
-
-    fit.particles = ParticleSet(
-        torch.zeros(1, 3), torch.ones(1), torch.ones(1).long(), {1: "elastic"}
-    )
     restore_choice(modes, fit, [{"phase": "params"}, chosen], vector)
     assert fit.simulator == "sim"
     assert vector.families == {1: "elastic_corotated"}
