@@ -19,7 +19,8 @@ lucky mix (a Poisson ratio of 0.015 with a friction of 1.7) in a basin the desce
 leave: on the quickstart scene the future Chamfer distance went from 132 to 3090 mm^2 (with
 scale parameters only, the stage keeps the law defaults there). A candidate's loss is still only
 a guess at its basin: a yield stress above every stress reached fits a short window well and has
-no gradient to come back with (see ``identify.global_candidates`` in the recipe schema).
+no gradient to come back with. ``coordinate_polish`` (``identify.global_polish``) then scans each
+searched parameter alone from the best candidate, which finds the edge of such a plateau.
 Rollouts run without a tape over frames ``1..frames``; a candidate the simulator cannot follow
 scores ``inf``. Every candidate and its loss are recorded in the history (phase ``global``,
 keyed ``global_loss`` so loss plots of the gradient phases are not mixed with it).
@@ -40,6 +41,8 @@ log = logging.getLogger(__name__)
 
 #: the history's phase name of the global stage
 PHASE = "global"
+#: the history's phase name of the coordinate sweep after it
+POLISH = "global-polish"
 
 
 def searched_keys(vector: ParameterVector) -> list[str]:
@@ -113,6 +116,58 @@ def global_search(
         _short(vector, keys),
     )
     return {"best": best, "best_loss": best_loss, "start_loss": start_loss, "losses": losses}
+
+
+def coordinate_polish(
+    fit, vector: ParameterVector, *, points: int, frames: int, history: list
+) -> dict:
+    """One sweep over the searched parameters, one at a time: each is set to ``points`` values
+    spread evenly over its normalised range (log-even for scale parameters) with the others
+    held, and kept at the best of those and its current value. Leaves ``vector`` at the result.
+
+    The Sobol design samples all parameters jointly, so with a few candidates each parameter
+    gets only a few values, and a candidate can win with one of them far off where the loss
+    over the window does not depend on it, e.g. a yield stress above every stress the body
+    reaches, whose gradient is then exactly zero and which descent can never lower. A scan
+    along each coordinate finds such plateaus' edges at ``points`` rollouts a parameter.
+
+    Args:
+        fit: a ``phases.Fit`` (simulator, particles, world, targets, objective).
+        vector: the parameter vector, changed in place (velocities are kept).
+        points: values tried per parameter (0: nothing is done).
+        frames: the last frame of the rollouts.
+        history: the identification history; one record per rollout (phase ``global-polish``).
+
+    Returns:
+        ``{"start_loss", "best_loss", "changed": [keys moved]}``.
+    """
+    keys = searched_keys(vector)
+    if points <= 0 or not keys:
+        return {"start_loss": math.nan, "best_loss": math.nan, "changed": []}
+    best_loss = start_loss = _score(fit, vector, frames)
+    changed = []
+    for key in keys:
+        leaf = vector.normalized[key]
+        kept = leaf.detach().clone()
+        for j in range(points):
+            with torch.no_grad():
+                leaf.fill_((j + 0.5) / points)
+            loss = _score(fit, vector, frames)
+            history.append({**_record(j, frames, loss, vector), "phase": POLISH, "parameter": key})
+            if loss < best_loss:
+                best_loss, kept = loss, leaf.detach().clone()
+                changed.append(key)
+        with torch.no_grad():
+            leaf.copy_(kept)
+    changed = sorted(set(changed))
+    log.info(
+        "global polish: loss %.4g -> %.4g, moved %s%s",
+        start_loss,
+        best_loss,
+        ", ".join(changed) or "nothing",
+        _short(vector, keys),
+    )
+    return {"start_loss": start_loss, "best_loss": best_loss, "changed": changed}
 
 
 def _score(fit, vector: ParameterVector, frames: int) -> float:

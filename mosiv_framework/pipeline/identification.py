@@ -193,7 +193,7 @@ def _choose_prototypes(
         observed_frames=scene.observed_frames,
         objective=objective,
         velocities=vector.velocity,
-        ground_friction=float(physical.ground_friction),
+        ground_friction=float(physical.ground_friction.detach()),
         terms=physical.terms,
         scope=section.library_scope,
         sweeps=section.library_sweeps,

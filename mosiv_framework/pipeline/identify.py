@@ -41,7 +41,7 @@ from tqdm import tqdm
 from mosiv_framework.errors import ConfigError, SimulationDiverged
 from mosiv_framework.losses import WeightedSum
 from mosiv_framework.pipeline.contact import ContactModes, choose_contact, restore_choice
-from mosiv_framework.pipeline.global_search import global_search
+from mosiv_framework.pipeline.global_search import coordinate_polish, global_search
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.pipeline.phases import (
     BestIterate,
@@ -209,6 +209,7 @@ def _global_stage(
     frames = int(getattr(section, "global_frames", 0) or 0)
     frames = phase.last if frames <= 0 else min(frames, phase.last)
     brief = int(getattr(section, "contact_iterations", 0) or 0) if search else 0
+    polish = int(getattr(section, "global_polish", 0) or 0) if search else 0
 
     def stage(fit_in_mode: Fit) -> None:
         if candidates > 0:
@@ -220,6 +221,10 @@ def _global_stage(
                 frames=frames,
                 seed=int(getattr(section, "seed", 0) or 0),
                 history=state.history,
+            )
+        if polish > 0:
+            coordinate_polish(
+                fit_in_mode, state.vector, points=polish, frames=frames, history=state.history
             )
         if contact is not None and brief > 0:
             # the brief fit of a contact mode: the whole window from the first step, no

@@ -100,6 +100,10 @@ class IdentifySection:
     parameters and within the law bounds and stiffness ceilings, and start the descent from
     the best of them and the start (0: off; see ``mosiv_framework.pipeline.global_search``);
     global_frames: the last frame those rollouts cover (0: the whole observed window);
+    global_polish: after those candidates, scan each of the same parameters alone over this
+    many values spread over its range, the others held, and keep the best (0: off): a joint
+    design leaves each parameter few values, and a yield stress above every stress reached
+    has no gradient to come back with (``global_search.coordinate_polish``);
     intervals: after identification, a 95 % interval per identified parameter (two-sided, or
     the one-sided bound the data support, or "unconstrained"), stored in identified.json under
     ``intervals`` (see ``mosiv_framework.pipeline.uncertainty``);
@@ -173,6 +177,7 @@ class IdentifySection:
     #: without a tape, the start included
     global_candidates: int = 0
     global_frames: int = 0
+    global_polish: int = 0
     intervals: bool = True
     interval_method: str = "laplace"
     contact: str = "fixed"
@@ -260,6 +265,7 @@ IDENTIFY_RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "library_sweeps": (0, None, "coordinate sweeps of the library baseline"),
     "global_candidates": (0, None, "candidates of the global stage (0 = off)"),
     "global_frames": (0, None, "last frame of the global stage's rollouts (0 = all observed)"),
+    "global_polish": (0, None, "values per parameter of the global stage's coordinate scan"),
     "contact_iterations": (0, None, "parameter steps of each contact mode's brief fit"),
     "contact_margin": (0.0, 1.0, "the fraction by which the other contact mode must fit better"),
 }

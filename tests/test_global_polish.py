@@ -1,0 +1,126 @@
+"""The coordinate sweep after the global stage (``identify.global_polish``): a parameter left
+on a plateau of the loss, where its gradient is exactly zero, is moved off it; a start the
+sweep cannot beat is kept; every rollout is recorded."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from mosiv_framework.interfaces import Simulator
+from mosiv_framework.losses import WeightedSum
+from mosiv_framework.pipeline.global_search import POLISH, coordinate_polish
+from mosiv_framework.pipeline.params import ParameterVector
+from mosiv_framework.pipeline.phases import Fit
+from mosiv_framework.pipeline.run import stage_keys
+from mosiv_framework.registry import get_registry
+from mosiv_framework.types import ParticleSet, Trajectory, World
+
+FPS = 24.0
+YIELD_REACHED = 1e3  # the largest stress the toy body reaches: a yield above it never acts
+TRUE_E, TRUE_YIELD = 1e4, 1e2
+
+
+class YieldPlateau(Simulator):
+    """One point drifting in x at a speed set by log10(E / 1e4) and in y by how far the yield
+    stress lies below the largest stress reached (zero above it: the plateau a body that
+    never yields puts in the loss). At the truth (E = 1e4, yield 1e2 Pa) it stays put."""
+
+    def rollout(self, particles, params, *, world, frames):
+        values = params.objects[1].values
+        e, y = values["E"], values["yield_stress"]
+        flow = torch.clamp(math.log10(YIELD_REACHED) - torch.log10(y), min=0.0)
+        speed = torch.stack(
+            [
+                torch.log10(e / TRUE_E),
+                flow - (math.log10(YIELD_REACHED) - math.log10(TRUE_YIELD)),
+                torch.zeros(()),
+            ]
+        )
+        t = torch.arange(frames + 1, dtype=torch.float32) / world.fps
+        x = particles.positions[None] + t[:, None, None] * speed
+        return Trajectory(x, particles.object_ids, world.fps)
+
+
+def _toy(e: float, yield_stress: float):
+    world = World((0, 0, 0), (1, 1, 1), gravity=(0, 0, 0), ground_height=None, fps=FPS)
+    particles = ParticleSet(
+        torch.tensor([[0.5, 0.5, 0.5]]),
+        torch.ones(1),
+        torch.ones(1, dtype=torch.long),
+        {1: "plasticine"},
+    )
+    targets = {1: particles.positions[None].repeat(6, 1, 1)}  # at rest: the truth
+    objective = WeightedSum({"chamfer": get_registry().create("loss", "chamfer", {})})
+    vector = ParameterVector.create(
+        {1: "plasticine"},
+        {1: torch.zeros(3)},
+        values={1: {"E": e, "yield_stress": yield_stress}},
+        identify=("E", "yield_stress"),
+        ground_friction=None,
+    )
+    return Fit(YieldPlateau(), particles, world, targets, objective), vector
+
+
+def _values(vector: ParameterVector) -> dict[str, float]:
+    return {k: float(v.detach()) for k, v in vector.physical().objects[1].values.items()}
+
+
+def test_a_yield_stress_on_the_plateau_has_no_gradient_and_the_sweep_moves_it_off():
+    fit, vector = _toy(e=TRUE_E, yield_stress=1e5)
+    key = "obj1.yield_stress"
+    # on the plateau the window's loss does not depend on the yield stress: its gradient is
+    # exactly zero, so descent could never move it
+    leaf = vector.normalized[key]
+    leaf.requires_grad_(True)
+    loss = fit.objective(*fit.rollout_geometry(vector, 5))
+    (grad,) = torch.autograd.grad(loss, leaf)
+    leaf.requires_grad_(False)
+    assert float(loss.detach()) > 0.0 and float(grad) == 0.0
+
+    history: list[dict] = []
+    result = coordinate_polish(fit, vector, points=6, frames=5, history=history)
+    found = _values(vector)
+    # six values over 10-1e6 Pa in log space: the best lies within half a step (5/12 decade)
+    assert abs(math.log10(found["yield_stress"]) - math.log10(TRUE_YIELD)) <= 5 / 12 + 1e-6
+    assert found["E"] == pytest.approx(TRUE_E, rel=1e-4)  # already best: kept
+    assert result["best_loss"] < result["start_loss"] and result["changed"] == [key]
+    records = [h for h in history if h["phase"] == POLISH]
+    assert len(records) == len(history) == 2 * 6  # two parameters, six values each
+    assert {h["parameter"] for h in records} == {"obj1.E", key}
+
+
+def test_the_sweep_keeps_a_start_it_cannot_beat():
+    fit, vector = _toy(e=TRUE_E, yield_stress=TRUE_YIELD)
+    result = coordinate_polish(fit, vector, points=5, frames=5, history=[])
+    assert result["changed"] == [] and result["best_loss"] == result["start_loss"]
+    found = _values(vector)
+    assert found["E"] == pytest.approx(TRUE_E, rel=1e-4)
+    assert found["yield_stress"] == pytest.approx(TRUE_YIELD, rel=1e-4)
+
+
+def test_no_points_no_rollouts():
+    fit, vector = _toy(e=1e6, yield_stress=1e5)
+    history: list[dict] = []
+    result = coordinate_polish(fit, vector, points=0, frames=5, history=history)
+    assert history == [] and result["changed"] == []
+    assert _values(vector)["yield_stress"] == pytest.approx(1e5, rel=1e-4)
+
+
+def test_the_sweep_enters_the_stage_key_only_when_it_is_on():
+    def keys(**identify) -> str:
+        recipe = {
+            "scene": {"path": "scene"},
+            "reconstructor": {"name": "oracle"},
+            "lifter": {"name": "gt-points"},
+            "simulator": {"name": "warp-mpm"},
+            "losses": {},
+            "identify": {"contact": "fixed", **identify},
+            "evaluate": {},
+        }
+        return stage_keys(recipe)["identify"]
+
+    assert keys(global_polish=0) == keys()  # runs made before the sweep keep their keys
+    assert keys(global_polish=6) != keys()
