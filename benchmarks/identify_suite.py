@@ -117,17 +117,25 @@ def setting_overrides(args: argparse.Namespace) -> list[str]:
     return [f"{SETTING_FLAGS[n]}={v}" for n, v in values.items() if v is not None]
 
 
-def suite_settings(recipe: Path, extra: list[str]) -> dict:
+def suite_settings(recipe: Path, extra: list[str], *, seed: int = 0) -> dict:
     """What the rows of one table share, from the recipe as overridden: the ranges the scenes
-    are drawn from (``scene.source.ranges``), where identification starts (``identify.start``)
-    and the candidates of its global stage (``identify.global_candidates``)."""
+    are drawn from (``scene.source.ranges``), where identification starts (``identify.start``),
+    the candidates of its global stage (``identify.global_candidates``) and, where set, its
+    coordinate sweep (``identify.global_polish``) and the first pair's scene seed (``--seed``;
+    both left out at 0, so tables written before they existed keep their settings)."""
     cfg = load_recipe(recipe, extra)
     source = cfg.scene.get("source") or {}
-    return {
+    settings = {
         "ranges": str(source.get("ranges", "paper")),
         "start": str(cfg.identify.start),
         "global_candidates": int(cfg.identify.global_candidates),
     }
+    polish = int(getattr(cfg.identify, "global_polish", 0) or 0)
+    if polish:
+        settings["global_polish"] = polish
+    if seed:
+        settings["seed"] = seed
+    return settings
 
 
 def errors_of(metrics: dict) -> dict[str, list[float]]:
@@ -495,7 +503,7 @@ def main(argv: list[str] | None = None) -> int:
     scale = scale_options(args)
     selected = select_pairs(pairs=args.pairs, scenes=args.scenes)
     extra = [*setting_overrides(args), *args.overrides]
-    settings = suite_settings(args.recipe, extra)
+    settings = suite_settings(args.recipe, extra, seed=args.seed)
     args.out.mkdir(parents=True, exist_ok=True)
     common = dict(recipe=args.recipe, selected=selected, out=args.out, seed=args.seed)
     common.update(extra=extra, settings=settings)

@@ -141,3 +141,18 @@ def test_wide_ranges_and_the_centre_start_in_one_command(tmp_path):
     assert suite.scene_substeps(recipe, overrides, ranges="wide") == ["simulator.substeps=40"]
     with pytest.raises(SystemExit, match="drawn from the 'wide' ranges"):
         suite.scene_substeps(recipe, overrides, ranges="paper")
+
+
+def test_the_sweep_and_the_seed_are_settings_of_a_table_only_when_set():
+    suite = _suite()
+    recipe = ROOT / "recipes" / "quickstart.yaml"
+    plain = suite.suite_settings(recipe, [])
+    assert plain == suite.LEGACY_SETTINGS  # a table written before either existed still merges
+    swept = suite.suite_settings(recipe, ["identify.global_polish=6"], seed=1000)
+    assert swept == {**plain, "global_polish": 6, "seed": 1000}
+    from identify_suite_table import _seed_words, describe_settings
+
+    assert "a scan of 6 values along each parameter" in describe_settings(swept)
+    assert "scan" not in describe_settings(plain)
+    assert _seed_words(swept) == "1000 + the pair's index"
+    assert _seed_words(plain) == "the pair's index"
