@@ -391,6 +391,7 @@ def test_end_to_end_on_the_tiny_genesis_scene(tmp_path):
         "identify.velocity_iterations=2",
         "identify.param_iterations=2",
         "identify.global_candidates=2",
+        "identify.global_polish=2",
         "identify.contact_iterations=1",  # the recipe's contact choice, briefly
         "losses.chamfer.max_points=256",
         "evaluate.emd_samples=128",

@@ -124,3 +124,48 @@ def test_the_sweep_enters_the_stage_key_only_when_it_is_on():
 
     assert keys(global_polish=0) == keys()  # runs made before the sweep keep their keys
     assert keys(global_polish=6) != keys()
+
+
+def test_identification_runs_the_sweep_after_the_candidates_and_only_with_them(tmp_path):
+    from types import SimpleNamespace
+
+    from mosiv_framework.pipeline.identify import identify
+    from mosiv_framework.pipeline.rundir import RunDir
+
+    def run(folder, **section):
+        fit, vector = _toy(e=TRUE_E, yield_stress=1e5)
+        values = dict(
+            velocity_iterations=0,
+            param_iterations=2,
+            velocity_lr=0.01,
+            param_lr=0.05,
+            horizon_start=2,
+            horizon_full_at=0.5,
+            checkpoint_every=100,
+            resync_every=0,
+            resync_iterations=0,
+            global_frames=0,
+            intervals=False,
+            seed=0,
+        )
+        _, history = identify(
+            simulator=fit.simulator,
+            vector=vector,
+            particles=fit.particles,
+            world=fit.world,
+            targets=fit.targets,
+            observed_frames=6,
+            objective=fit.objective,
+            section=SimpleNamespace(**{**values, **section}),
+            run_dir=RunDir(tmp_path / folder),
+            config_hash=folder,
+        )
+        return [h["phase"] for h in history], _values(vector)
+
+    phases, found = run("swept", global_candidates=4, global_polish=3)
+    assert phases[:5] == ["global"] * 5  # the start and 4 candidates
+    assert phases[5:11] == [POLISH] * 6  # two parameters, three values each
+    assert set(phases[11:]) == {"params"}
+    assert found["yield_stress"] < YIELD_REACHED  # off the plateau before descent began
+    phases, _ = run("no-stage", global_candidates=0, global_polish=3)
+    assert POLISH not in phases and "global" not in phases

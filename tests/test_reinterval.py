@@ -29,6 +29,7 @@ SETTINGS = [
     "identify.velocity_iterations=2",
     "identify.param_iterations=3",
     "identify.global_candidates=2",
+    "identify.global_polish=2",
     "identify.contact=fixed",
     "losses.chamfer.max_points=100000",  # every point: no subset differs between runs
     "evaluate.emd_samples=64",

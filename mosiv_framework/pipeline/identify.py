@@ -209,7 +209,8 @@ def _global_stage(
     frames = int(getattr(section, "global_frames", 0) or 0)
     frames = phase.last if frames <= 0 else min(frames, phase.last)
     brief = int(getattr(section, "contact_iterations", 0) or 0) if search else 0
-    polish = int(getattr(section, "global_polish", 0) or 0) if search else 0
+    # the sweep belongs to the global stage: it starts from the stage's best candidate
+    polish = int(getattr(section, "global_polish", 0) or 0) if candidates > 0 else 0
 
     def stage(fit_in_mode: Fit) -> None:
         if candidates > 0:
@@ -223,6 +224,7 @@ def _global_stage(
                 history=state.history,
             )
         if polish > 0:
+            log.info("global polish: %d values per parameter", polish)
             coordinate_polish(
                 fit_in_mode, state.vector, points=polish, frames=frames, history=state.history
             )

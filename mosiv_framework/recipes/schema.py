@@ -100,10 +100,10 @@ class IdentifySection:
     parameters and within the law bounds and stiffness ceilings, and start the descent from
     the best of them and the start (0: off; see ``mosiv_framework.pipeline.global_search``);
     global_frames: the last frame those rollouts cover (0: the whole observed window);
-    global_polish: after those candidates, scan each of the same parameters alone over this
-    many values spread over its range, the others held, and keep the best (0: off): a joint
-    design leaves each parameter few values, and a yield stress above every stress reached
-    has no gradient to come back with (``global_search.coordinate_polish``);
+    global_polish: after those candidates (only with them), scan each of the same parameters
+    alone over this many values spread over its range, the others held, and keep the best (0:
+    off): a joint design leaves each parameter few values, and a yield stress above every
+    stress reached has no gradient to come back with (``global_search.coordinate_polish``);
     intervals: after identification, a 95 % interval per identified parameter (two-sided, or
     the one-sided bound the data support, or "unconstrained"), stored in identified.json under
     ``intervals`` (see ``mosiv_framework.pipeline.uncertainty``);
