@@ -169,3 +169,55 @@ def test_identification_runs_the_sweep_after_the_candidates_and_only_with_them(t
     assert found["yield_stress"] < YIELD_REACHED  # off the plateau before descent began
     phases, _ = run("no-stage", global_candidates=0, global_polish=3)
     assert POLISH not in phases and "global" not in phases
+
+
+@pytest.mark.parametrize("contact", ["multi_field", "single_field"])
+def test_the_search_scores_its_candidates_in_one_batch_as_one_by_one(contact):
+    """warp-mpm rolls the candidates out together (Fit.window_losses -> rollout_batch); on
+    the CPU that gives the same losses, bit for bit, and so the same choices as one rollout
+    per candidate (the base class's loop), for two bodies that collide."""
+    import types
+
+    from mosiv_framework.pipeline.global_search import global_search
+    from mosiv_framework.testing.pytest_plugin import require_simulator
+    from mosiv_framework.testing.shapes import block, combine, default_params
+
+    registry = require_simulator("warp-mpm")
+    options = {"grid": 16, "substeps": 20, "device": "cpu", "contact": contact}
+    world = World((0, 0, 0), (1, 1, 1), gravity=(0, 0, -9.8), ground_height=0.0, fps=FPS)
+    particles = combine(
+        [
+            block((0.30, 0.42, 0.30), (0.42, 0.54, 0.42), spacing=0.04, object_id=1),
+            block((0.56, 0.42, 0.30), (0.68, 0.54, 0.42), spacing=0.04, object_id=2),
+        ],
+        {1: "elastic", 2: "plasticine"},
+    )
+    truth = default_params(
+        particles,
+        overrides={1: {"E": 2e4}, 2: {"E": 5e4, "yield_stress": 300.0}},
+        velocities={1: (1.5, 0.0, 0.0), 2: (-1.5, 0.0, 0.0)},
+    )
+    sim = registry.create("simulator", "warp-mpm", options)
+    traj = sim.rollout(particles, truth, world=world, frames=5)
+    targets = {k: traj.object_positions(k).detach() for k in (1, 2)}
+    objective = WeightedSum({"chamfer": get_registry().create("loss", "chamfer", {})})
+
+    def search(simulator):
+        vector = ParameterVector.create(
+            {1: "elastic", 2: "plasticine"},
+            {k: truth.initial_velocity[k].clone() for k in (1, 2)},
+            identify=("E", "yield_stress"),
+            ground_friction=None,
+        )
+        fit = Fit(simulator, particles, world, targets, objective)
+        history: list[dict] = []
+        global_search(fit, vector, candidates=6, frames=5, seed=0, history=history)
+        coordinate_polish(fit, vector, points=3, frames=5, history=history)
+        return [h["global_loss"] for h in history], _values(vector)
+
+    batched = search(sim)
+    one_by_one = registry.create("simulator", "warp-mpm", options)
+    one_by_one.rollout_batch = types.MethodType(Simulator.rollout_batch, one_by_one)
+    assert batched == search(one_by_one)
+    losses = [x for x in batched[0] if x is not None]
+    assert len(losses) >= 10 and len(set(losses)) > 1  # the candidates differ

@@ -21,8 +21,9 @@ scale parameters only, the stage keeps the law defaults there). A candidate's lo
 a guess at its basin: a yield stress above every stress reached fits a short window well and has
 no gradient to come back with. ``coordinate_polish`` (``identify.global_polish``) then scans each
 searched parameter alone from the best candidate, which finds the edge of such a plateau.
-Rollouts run without a tape over frames ``1..frames``; a candidate the simulator cannot follow
-scores ``inf``. Every candidate and its loss are recorded in the history (phase ``global``,
+Rollouts run without a tape over frames ``1..frames``, the candidates together in batches
+(``Fit.window_losses``, i.e. ``Simulator.rollout_batch``); a candidate the simulator cannot
+follow scores ``inf``. Every candidate and its loss are recorded in the history (phase ``global``,
 keyed ``global_loss`` so loss plots of the gradient phases are not mixed with it).
 """
 
@@ -89,25 +90,20 @@ def global_search(
     keys = searched_keys(vector)
     if candidates <= 0 or not keys:
         return {"best": -1, "best_loss": math.nan, "start_loss": math.nan, "losses": []}
-    start = {key: vector.normalized[key].detach().clone() for key in keys}
-    start_loss = _score(fit, vector, frames)
+    start = torch.stack([vector.normalized[key].detach().clone().reshape(()) for key in keys])
     design = sobol_design(candidates, len(keys), seed=seed)
-    best, best_loss, losses = -1, start_loss, []
-    history.append(_record(-1, frames, start_loss, vector))
-    for i, point in enumerate(design):
-        _set(vector, keys, point)
-        loss = _score(fit, vector, frames)
-        losses.append(loss)
-        history.append(_record(i, frames, loss, vector))
-        log.info(
-            "global candidate %d/%d: loss %.4g%s", i + 1, candidates, loss, _short(vector, keys)
-        )
+    # the start and every candidate rolled out together (Fit.window_losses)
+    points = [start, *design]
+    values, params = _members(vector, keys, points)
+    start_loss, *losses = fit.window_losses(params, frames)
+    best, best_loss = -1, start_loss
+    history.append(_record(-1, frames, start_loss, values[0]))
+    for i, loss in enumerate(losses):
+        history.append(_record(i, frames, loss, values[i + 1]))
+        log.info("global candidate %d/%d: loss %.4g", i + 1, candidates, loss)
         if loss < best_loss:
             best, best_loss = i, loss
-    if best < 0:
-        _set(vector, keys, torch.stack([start[k].reshape(()) for k in keys]))
-    else:
-        _set(vector, keys, design[best])
+    _set(vector, keys, points[best + 1])
     log.info(
         "global stage: %s (loss %.4g; start %.4g)%s",
         "kept the start" if best < 0 else f"candidate {best + 1} of {candidates}",
@@ -147,18 +143,23 @@ def coordinate_polish(
     best_loss = start_loss = _score(fit, vector, frames)
     changed = []
     for key in keys:
-        leaf = vector.normalized[key]
-        kept = leaf.detach().clone()
-        for j in range(points):
-            with torch.no_grad():
-                leaf.fill_((j + 0.5) / points)
-            loss = _score(fit, vector, frames)
-            history.append({**_record(j, frames, loss, vector), "phase": POLISH, "parameter": key})
+        here = torch.stack([vector.normalized[k].detach().clone().reshape(()) for k in keys])
+        axis = keys.index(key)
+        tried = []
+        for j in range(points):  # the others held where the sweep has left them
+            point = here.clone()
+            point[axis] = (j + 0.5) / points
+            tried.append(point)
+        values, params = _members(vector, keys, tried)
+        kept = here
+        for j, loss in enumerate(fit.window_losses(params, frames)):
+            history.append(
+                {**_record(j, frames, loss, values[j]), "phase": POLISH, "parameter": key}
+            )
             if loss < best_loss:
-                best_loss, kept = loss, leaf.detach().clone()
+                best_loss, kept = loss, tried[j]
                 changed.append(key)
-        with torch.no_grad():
-            leaf.copy_(kept)
+        _set(vector, keys, kept)
     changed = sorted(set(changed))
     log.info(
         "global polish: loss %.4g -> %.4g, moved %s%s",
@@ -168,6 +169,17 @@ def coordinate_polish(
         _short(vector, keys),
     )
     return {"start_loss": start_loss, "best_loss": best_loss, "changed": changed}
+
+
+def _members(vector: ParameterVector, keys: list[str], points: list[torch.Tensor]):
+    """For each point of the searched leaves: the vector's values (for the history) and its
+    detached SimulationParams (for ``Fit.window_losses``). Leaves the vector at the last."""
+    values, params = [], []
+    for point in points:
+        _set(vector, keys, point)
+        values.append(vector.to_json())
+        params.append(vector.physical().detached())
+    return values, params
 
 
 def _score(fit, vector: ParameterVector, frames: int) -> float:
@@ -186,14 +198,14 @@ def _set(vector: ParameterVector, keys: list[str], point: torch.Tensor) -> None:
             vector.normalized[key].copy_(u.reshape(vector.normalized[key].shape))
 
 
-def _record(index: int, frames: int, loss: float, vector: ParameterVector) -> dict:
-    """A history record of one candidate (index -1: the start)."""
+def _record(index: int, frames: int, loss: float, values: dict) -> dict:
+    """A history record of one candidate (index -1: the start) with its vector's values."""
     return {
         "phase": PHASE,
         "candidate": index,
         "horizon": frames,
         "global_loss": loss if math.isfinite(loss) else None,
-        "values": vector.to_json(),
+        "values": values,
     }
 
 

@@ -18,7 +18,11 @@ import torch
 from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.losses import WeightedSum
 from mosiv_framework.pipeline.params import ParameterVector
-from mosiv_framework.types import GeometryFrames, ParticleSet, Trajectory, World
+from mosiv_framework.types import GeometryFrames, ParticleSet, SimulationParams, Trajectory, World
+
+#: parameter sets ``Fit.window_losses`` rolls out in one ``rollout_batch`` call: each member
+#: carries its own grid, so a bound keeps a search's memory that of 16 rollouts
+BATCH_MEMBERS = 16
 
 
 def horizon(iteration: int, iterations: int, *, start: int, full_at: float, last: int) -> int:
@@ -68,6 +72,34 @@ class Fit:
         """The objective over frames 1..last for the current leaves, without a tape."""
         with torch.no_grad():
             return float(self.objective(*self.rollout_geometry(vector, last)))
+
+    def window_losses(self, params_list: list[SimulationParams], last: int) -> list[float]:
+        """The objective over frames 1..last for each parameter set, without a tape, the sets
+        rolled out together (``Simulator.rollout_batch``, at most ``BATCH_MEMBERS`` at a time:
+        one simulation on backends that batch, e.g. warp-mpm). ``inf`` for a set the simulator
+        could not follow or whose loss is not finite. Equal to ``window_loss`` of each set to
+        float32 round-off (bit for bit on warp-mpm's CPU path)."""
+        frames = list(range(1, last + 1))
+        losses: list[float] = []
+        with torch.no_grad():
+            target = None
+            for start in range(0, len(params_list), BATCH_MEMBERS):
+                chunk = params_list[start : start + BATCH_MEMBERS]
+                results = self.simulator.rollout_batch(
+                    self.particles, chunk, world=self.world, frames=last
+                )
+                for result in results:
+                    if isinstance(result, SimulationDiverged):
+                        losses.append(math.inf)
+                        continue
+                    if target is None:
+                        device = result.positions.device
+                        target = geometry(
+                            {k: t.to(device) for k, t in self.targets.items()}, frames
+                        )
+                    value = float(self.objective(geometry(result, frames), target))
+                    losses.append(value if math.isfinite(value) else math.inf)
+        return losses
 
 
 class BestIterate:
