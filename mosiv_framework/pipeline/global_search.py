@@ -91,11 +91,14 @@ def global_search(
     if candidates <= 0 or not keys:
         return {"best": -1, "best_loss": math.nan, "start_loss": math.nan, "losses": []}
     start = torch.stack([vector.normalized[key].detach().clone().reshape(()) for key in keys])
+    start_values = vector.to_json()
+    start_loss = _score(fit, vector, frames)
     design = sobol_design(candidates, len(keys), seed=seed)
-    # the start and every candidate rolled out together (Fit.window_losses)
+    # the candidates rolled out together (Fit.window_losses), 16 of them in one simulation
     points = [start, *design]
-    values, params = _members(vector, keys, points)
-    start_loss, *losses = fit.window_losses(params, frames)
+    values, params = _members(vector, keys, list(design))
+    values.insert(0, start_values)
+    losses = fit.window_losses(params, frames)
     best, best_loss = -1, start_loss
     history.append(_record(-1, frames, start_loss, values[0]))
     for i, loss in enumerate(losses):
