@@ -1,8 +1,9 @@
 """Engine tests of mosiv-genesis: marked ``genesis_engine`` (and ``slow``), they run when the
 Genesis engine (genesis-world) is installed. Without it they are deselected, never skipped in
 silence: pytest's summary counts them as "deselected" and a line after collection and at the
-end of the run names them and says what to install. Everything that only reads a Genesis
-recording runs on the committed scene in tests/data and needs no engine."""
+end of the run names them and says what to install (with pytest-xdist the workers pass them on
+and the controller prints them at the end: the repository's conftest.py). Everything that only
+reads a Genesis recording runs on the committed scene in tests/data and needs no engine."""
 
 from __future__ import annotations
 
@@ -30,6 +31,8 @@ def pytest_collection_modifyitems(config, items):
         items[:] = [item for item in items if not item.get_closest_marker("genesis_engine")]
         config.hook.pytest_deselected(items=engine)
         config.stash[_DESELECTED] = [item.nodeid for item in engine]
+        if hasattr(config, "workeroutput"):  # a pytest-xdist worker: the controller prints them
+            config.workeroutput["mosiv_notices"] = _notice(config)
 
 
 def _notice(config) -> list[str]:

@@ -1,0 +1,93 @@
+"""The whole suite (core and plugins) on several processes with pytest-xdist.
+
+pyproject's ``addopts`` run ``python -m pytest`` with ``-n auto --dist loadgroup``: one worker
+per CPU core (``-n 0`` runs everything in this process, as ``--pdb`` needs).
+
+- **Units of work.** A test module goes to one worker as a whole, so its module-scoped fixtures
+  (the diagnosis runs, the fuzz recipes' scene, ...) are built once. A test marked
+  ``@pytest.mark.xdist_group("name")`` joins the unit ``name`` instead: modules that share an
+  expensive session-scoped fixture of their conftest name one group and stay on one worker
+  (mosiv-gauss's tiny scene). Units are handed out largest first, counted in tests.
+- **Threads.** Each worker runs torch, OpenMP and Taichi's CPU backend on its share of the
+  cores (one thread with ``-n auto``): the workers already keep every core busy, and two of
+  them with a thread per core each would oversubscribe the cores, which torch's thread pool
+  takes badly. Warp's CPU kernels use one thread anyway. ``OMP_NUM_THREADS`` set by hand wins.
+- **Reports.** xdist's controller collects nothing, so it never hears of the tests the workers
+  deselect (``-m``, ``-k``, a conftest's ``pytest_collection_modifyitems``); the workers pass
+  them on, and the summary counts them as a run in one process does. A conftest's lines for the
+  end of the run (see plugins/mosiv-genesis/tests/conftest.py) travel the same way, in
+  ``config.workeroutput[NOTICES]``: the controller prints them once, after the summary.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+#: key of config.workeroutput: lines a worker's conftest wants printed at the end of the run
+NOTICES = "mosiv_notices"
+_DESELECTED = "mosiv_deselected"
+_RELAYED = pytest.StashKey[list]()
+
+
+def _on_worker(config) -> bool:
+    return hasattr(config, "workerinput")
+
+
+def pytest_configure(config):
+    config.stash[_RELAYED] = []
+    if not _on_worker(config):
+        return
+    # the cores shared out between the workers (one each on CI's two); set before torch, Taichi
+    # or a subprocess starts a thread pool, and torch's own as it may be imported already
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    threads = str(max(1, (cores or 1) // max(1, workers)))
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "TI_CPU_MAX_NUM_THREADS"):
+        os.environ.setdefault(name, threads)
+    import torch
+
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+
+
+# ------------------------------------------------------------------------------ scheduling
+@pytest.hookimpl(tryfirst=True, optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadGroupScheduling
+
+    class ModuleOrGroupScheduling(LoadGroupScheduling):
+        """``--dist loadgroup`` whose ungrouped tests go by module (``--dist loadfile``)."""
+
+        def _split_scope(self, nodeid: str) -> str:
+            group = super()._split_scope(nodeid)
+            return group if group != nodeid else nodeid.split("::", 1)[0]
+
+    return ModuleOrGroupScheduling(config, log)
+
+
+# ------------------------------------------------------------------------------- reports
+def pytest_deselected(items):
+    config = getattr(items[0], "config", None) if items else None  # node ids on the controller
+    if config is not None and _on_worker(config):
+        config.workeroutput.setdefault(_DESELECTED, []).extend(item.nodeid for item in items)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error):
+    """Take the deselections and notices of the first worker to finish (all collect alike)."""
+    output = getattr(node, "workeroutput", None)
+    if not output or "exitstatus" not in output or node.config.stash[_RELAYED]:
+        return
+    node.config.stash[_RELAYED] = [*output.get(NOTICES, []), None]  # None: relayed already
+    if output.get(_DESELECTED):
+        # the terminal reporter only counts what it is given: node ids stand in for the items
+        node.config.hook.pytest_deselected(items=list(output[_DESELECTED]))
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    for line in config.stash.get(_RELAYED, []):
+        if line is not None:
+            terminalreporter.write_line(line, yellow=True)
