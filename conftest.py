@@ -7,7 +7,11 @@ per CPU core (``-n 0`` runs everything in this process, as ``--pdb`` needs).
   (the diagnosis runs, the fuzz recipes' scene, ...) are built once. A test marked
   ``@pytest.mark.xdist_group("name")`` joins the unit ``name`` instead: modules that share an
   expensive session-scoped fixture of their conftest name one group and stay on one worker
-  (mosiv-gauss's tiny scene). Units are handed out largest first, counted in tests.
+  (mosiv-gauss's tiny scene). The groups are handed out first, then the modules, each
+  largest first (counted in tests): so the first workers start on a group, in a fresh process.
+  That matters for Taichi, whose offline cache keys a kernel by the fields made before it in
+  the process: the backend's own tests (mosiv-taichi-mpm) and the parity suite
+  (tests/test_parity.py) are groups, and meet the same history, and so the cache, every run.
 - **Threads.** Each worker runs torch, OpenMP and Taichi's CPU backend on its share of the
   cores (one thread with ``-n auto``): the workers already keep every core busy, and two of
   them with a thread per core each would oversubscribe the cores, which torch's thread pool
@@ -59,11 +63,26 @@ def pytest_xdist_make_scheduler(config, log):
     from xdist.scheduler import LoadGroupScheduling
 
     class ModuleOrGroupScheduling(LoadGroupScheduling):
-        """``--dist loadgroup`` whose ungrouped tests go by module (``--dist loadfile``)."""
+        """``--dist loadgroup`` whose ungrouped tests go by module (``--dist loadfile``), and
+        whose groups are handed out before the modules."""
+
+        def __init__(self, config, log=None) -> None:
+            super().__init__(config, log)
+            self.groups: set[str] = set()
 
         def _split_scope(self, nodeid: str) -> str:
             group = super()._split_scope(nodeid)
-            return group if group != nodeid else nodeid.split("::", 1)[0]
+            if group != nodeid:
+                self.groups.add(group)
+                return group
+            return nodeid.split("::", 1)[0]
+
+        def _assign_work_unit(self, node) -> None:
+            # the workqueue is in order of size: move its largest group to the front
+            group = next((scope for scope in self.workqueue if scope in self.groups), None)
+            if group is not None:
+                self.workqueue.move_to_end(group, last=False)
+            super()._assign_work_unit(node)
 
     return ModuleOrGroupScheduling(config, log)
 
