@@ -4,14 +4,12 @@ pyproject's ``addopts`` run ``python -m pytest`` with ``-n auto --dist loadgroup
 per CPU core (``-n 0`` runs everything in this process, as ``--pdb`` needs).
 
 - **Units of work.** A test module goes to one worker as a whole, so its module-scoped fixtures
-  (the diagnosis runs, the fuzz recipes' scene, ...) are built once. A test marked
-  ``@pytest.mark.xdist_group("name")`` joins the unit ``name`` instead: modules that share an
-  expensive session-scoped fixture of their conftest name one group and stay on one worker
-  (mosiv-gauss's tiny scene). The groups are handed out first, then the modules, each
-  largest first (counted in tests): so the first workers start on a group, in a fresh process.
-  That matters for Taichi, whose offline cache keys a kernel by the fields made before it in
-  the process: the backend's own tests (mosiv-taichi-mpm) and the parity suite
-  (tests/test_parity.py) are groups, and meet the same history, and so the cache, every run.
+  (the diagnosis runs, the fuzz recipes' scene, ...) are built once. GROUPS below join the
+  tests under a path into one unit; so does an ``xdist_group`` mark where pytest-xdist still
+  can (its ``--dist loadgroup`` marks a test's node id, which pytest 9.2 no longer lets it
+  change: pytest-xdist issue 1386). The groups are handed out first (GROUPS in their order),
+  then the modules, largest first (counted in tests): so the first workers each start on a
+  group, in a fresh process.
 - **Threads.** Each worker runs torch, OpenMP and Taichi's CPU backend on its share of the
   cores (one thread with ``-n auto``): the workers already keep every core busy, and two of
   them with a thread per core each would oversubscribe the cores, which torch's thread pool
@@ -33,6 +31,21 @@ import pytest
 NOTICES = "mosiv_notices"
 _DESELECTED = "mosiv_deselected"
 _RELAYED = pytest.StashKey[list]()
+
+#: units of work larger than a module, (start of the node ids, group name), handed out in this
+#: order before everything else: the longest first, so that they run side by side
+GROUPS = (
+    # Taichi's offline cache keys a kernel by the fields made before it in the process: run in
+    # the same order from a fresh process, the backend's tests and the parity suite find their
+    # kernels in the cache every run (spread over the workers, they compiled them again)
+    ("plugins/mosiv-taichi-mpm/tests/", "mosiv-taichi-mpm"),
+    ("tests/test_parity.py::", "parity"),
+    # one module, the longest after those (its three diagnosis fixtures): started early, it
+    # cannot end the run late
+    ("tests/test_diagnose.py::", "diagnose"),
+    # the tiny scene and its fit: session fixtures of mosiv-gauss's conftest, made once
+    ("plugins/mosiv-gauss/tests/test_dynamic_", "mosiv-gauss-tiny-scene"),
+)
 
 
 def _on_worker(config) -> bool:
@@ -63,25 +76,30 @@ def pytest_xdist_make_scheduler(config, log):
     from xdist.scheduler import LoadGroupScheduling
 
     class ModuleOrGroupScheduling(LoadGroupScheduling):
-        """``--dist loadgroup`` whose ungrouped tests go by module (``--dist loadfile``), and
-        whose groups are handed out before the modules."""
+        """``--dist loadgroup`` with GROUPS, whose other tests go by module (``--dist
+        loadfile``), and whose groups are handed out before the modules."""
 
         def __init__(self, config, log=None) -> None:
             super().__init__(config, log)
             self.groups: set[str] = set()
 
         def _split_scope(self, nodeid: str) -> str:
-            group = super()._split_scope(nodeid)
-            if group != nodeid:
-                self.groups.add(group)
-                return group
-            return nodeid.split("::", 1)[0]
+            group = super()._split_scope(nodeid)  # an xdist_group mark's, or the node id
+            if group == nodeid:
+                group = next((name for start, name in GROUPS if nodeid.startswith(start)), None)
+                if group is None:
+                    return nodeid.split("::", 1)[0]
+            self.groups.add(group)
+            return group
 
         def _assign_work_unit(self, node) -> None:
-            # the workqueue is in order of size: move its largest group to the front
-            group = next((scope for scope in self.workqueue if scope in self.groups), None)
-            if group is not None:
-                self.workqueue.move_to_end(group, last=False)
+            # GROUPS in their order, then other groups, then the modules (the workqueue is in
+            # order of size): move the unit to hand out to the front
+            rank = {name: i for i, (_, name) in enumerate(GROUPS)}
+            waiting = [scope for scope in self.workqueue if scope in self.groups]
+            if waiting:
+                first = min(waiting, key=lambda scope: rank.get(scope, len(GROUPS)))
+                self.workqueue.move_to_end(first, last=False)
             super()._assign_work_unit(node)
 
     return ModuleOrGroupScheduling(config, log)

@@ -17,10 +17,6 @@ from mosiv_framework.types import ObjectParams
 
 pytest.importorskip("mosiv_warp_mpm", reason="the parity demonstration wraps warp-mpm")
 
-# a group of its own, which pytest-xdist hands out first (conftest.py): a worker runs it in a
-# fresh process, so Taichi's kernels meet the same fields before them, and the cache, every run
-pytestmark = pytest.mark.xdist_group("parity")
-
 
 class YieldStressSlip(Simulator):
     """warp-mpm with plasticine's yield stress scaled by 3 (the deliberate bug)."""

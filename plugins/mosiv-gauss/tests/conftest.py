@@ -3,13 +3,11 @@
 The scene comes from the registered ``synth`` scene source (plugins never import each other):
 two objects colliding in mid-air, 4 cameras at 48x48, 6 frames, coarse particles. It is made
 once per session and the dynamic reconstructor is fitted to it once, so the end-to-end tests
-share one CPU run of about half a minute. On several processes (pytest-xdist, the repository's
-conftest.py) the tests that use them form one group, run by one worker.
+share one CPU run of about half a minute. On several processes (pytest-xdist) the modules that
+use them are one unit of work, run by one worker (GROUPS in the repository's conftest.py).
 """
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import pytest
 
@@ -48,18 +46,6 @@ TINY_FIT = {
     "seed": 0,
     "progress": False,
 }
-
-
-HERE = Path(__file__).parent
-#: fixtures made once per process: a worker of pytest-xdist runs all the tests that use them
-SHARED = {"tiny_scene", "tiny_fit"}
-
-
-@pytest.hookimpl(tryfirst=True)  # before xdist's hook reads the groups
-def pytest_collection_modifyitems(config, items):
-    for item in items:
-        if HERE in item.path.parents and SHARED & set(getattr(item, "fixturenames", ())):
-            item.add_marker(pytest.mark.xdist_group("mosiv-gauss-tiny-scene"))
 
 
 @pytest.fixture(scope="session")
