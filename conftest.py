@@ -1,7 +1,7 @@
 """The whole suite (core and plugins) on several processes with pytest-xdist.
 
 pyproject's ``addopts`` run ``python -m pytest`` with ``-n auto --dist loadgroup``: one worker
-per CPU core (``-n 0`` runs everything in this process, as ``--pdb`` needs).
+per CPU core (``-n 0`` runs everything in this process, and ``--pdb`` does so by itself).
 
 - **Units of work.** A test module goes to one worker as a whole, so its module-scoped fixtures
   (the diagnosis runs, the fuzz recipes' scene, ...) are built once. GROUPS below join the
@@ -48,6 +48,10 @@ GROUPS = (
 )
 
 
+#: xdist's scheduler methods that ModuleOrGroupScheduling overrides
+_PRIVATE_SCHEDULER_API = ("_split_scope", "_assign_work_unit")
+
+
 def _on_worker(config) -> bool:
     return hasattr(config, "workerinput")
 
@@ -75,6 +79,11 @@ def pytest_xdist_make_scheduler(config, log):
         return None
     from xdist.scheduler import LoadGroupScheduling
 
+    # the hooks below override two private methods of xdist's scheduler: where a release has
+    # changed them, its own --dist loadgroup runs (slower, never wrong)
+    if not all(hasattr(LoadGroupScheduling, name) for name in _PRIVATE_SCHEDULER_API):
+        return None
+
     class ModuleOrGroupScheduling(LoadGroupScheduling):
         """``--dist loadgroup`` with GROUPS, whose other tests go by module (``--dist
         loadfile``), and whose groups are handed out before the modules."""
@@ -95,6 +104,8 @@ def pytest_xdist_make_scheduler(config, log):
         def _assign_work_unit(self, node) -> None:
             # GROUPS in their order, then other groups, then the modules (the workqueue is in
             # order of size): move the unit to hand out to the front
+            if not hasattr(self, "workqueue"):
+                return super()._assign_work_unit(node)
             rank = {name: i for i, (_, name) in enumerate(GROUPS)}
             waiting = [scope for scope in self.workqueue if scope in self.groups]
             if waiting:
