@@ -282,9 +282,26 @@ def main(argv: list[str] | None = None) -> int:
         table = run_serial(args, names)
     print(markdown(table))
     if args.write_results is not None:
-        write_results(args.write_results, table, command=command_line(argv))
+        command = merge_command_text(argv) if args.merge else command_line(argv)
+        write_results(args.write_results, table, command=command)
         print(f"[genesis] wrote the section '{SECTION}' of {args.write_results}")
     return 0
+
+
+def merge_command_text(argv: list[str]) -> str:
+    """A merge's command as the results file gives it: the per-scene ``--part`` runs that made
+    the rows, then the merge (the merge alone would not say how the rows were made)."""
+    part_argv, skip = [], False
+    for arg in argv:
+        if skip:  # the value of --write-results given as a separate argument
+            skip = False
+        elif arg == "--merge":
+            part_argv += ["--only", "SCENE", "--part"]
+        elif arg.startswith("--write-results"):
+            skip = "=" not in arg
+        else:
+            part_argv.append(arg)
+    return f"{command_line(part_argv)}` for each scene, then `{command_line(argv)}"
 
 
 if __name__ == "__main__":

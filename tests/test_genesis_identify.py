@@ -447,3 +447,16 @@ def test_a_row_names_the_law_set_its_variant_used():
     assert label(row) == "single_field + alternatives (auto)"
     row["contact"]["laws"] = "recipe"
     assert label(row) == "single_field (auto)"
+
+
+def test_merge_command_names_the_part_runs_too():
+    """The results file says how the rows were made (the --part runs) and then the merge."""
+    line = _bench().merge_command_text(
+        ["--scenes", "/data/x", "--out", "/tmp/o", "--merge", "--write-results", "R.md"]
+        + ["--set", "simulator.grid=48"]
+    )
+    assert line == (
+        "python benchmarks/genesis_identify.py --scenes SCENES --out OUT --only SCENE --part --set"
+        " simulator.grid=48` for each scene, then `python benchmarks/genesis_identify.py --scenes"
+        " SCENES --out OUT --merge --write-results R.md --set simulator.grid=48"
+    )
