@@ -4,6 +4,8 @@ divergence."""
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 
@@ -21,7 +23,24 @@ def _elastic_pair_params():
     )
 
 
-class _FakeContext:
+class _OneByOneLosses:
+    """``RunContext.rollout_losses`` for fake contexts: the fake's own ``rollout`` and ``loss``
+    per parameter set, in order (inf where the rollout diverges or the loss is not finite)."""
+
+    def rollout_losses(self, params_list, fit_frames):
+        from mosiv_framework.errors import SimulationDiverged
+
+        losses = []
+        for params in params_list:
+            try:
+                value = float(self.loss(self.rollout(params, frames=max(fit_frames)), fit_frames))
+            except SimulationDiverged:
+                value = math.inf
+            losses.append(value if math.isfinite(value) else math.inf)
+        return losses
+
+
+class _FakeContext(_OneByOneLosses):
     """The few RunContext members that candidate building and screening read, for an elastic
     pair on a simulator supporting ``terms`` (subclasses add rollouts and a loss)."""
 

@@ -17,7 +17,12 @@ from mosiv_framework.diagnose.decide import Evidence
 HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
-from diagnose_fakes import _diverged, _elastic_pair_params, _FakeContext  # noqa: E402
+from diagnose_fakes import (  # noqa: E402
+    _diverged,
+    _elastic_pair_params,
+    _FakeContext,
+    _OneByOneLosses,
+)
 
 
 def test_null_refit_starts_from_the_identified_state_too():
@@ -67,7 +72,7 @@ def test_refit_ends_a_start_at_a_non_finite_gradient():
     assert fit.loss == pytest.approx(min(fit.history)) and fit.loss < float((target**2).sum())
 
 
-class _ScalarLoss:
+class _ScalarLoss(_OneByOneLosses):
     """For fake contexts whose ``simulate`` returns the fit loss itself (m^2)."""
 
     def loss(self, traj, frames):

@@ -18,7 +18,7 @@ from mosiv_framework.diagnose.hypothesise import bic_gain
 HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
-from diagnose_fakes import _elastic_pair_params, _FakeContext  # noqa: E402
+from diagnose_fakes import _elastic_pair_params, _FakeContext, _OneByOneLosses  # noqa: E402
 
 # --------------------------------------------------------------------------------------------
 # plasticity candidate
@@ -75,7 +75,7 @@ def test_ladder_screen_picks_the_lowest_rung_and_scores_it():
 
     c = _plasticity_candidate()
 
-    class FakeContext:
+    class FakeContext(_OneByOneLosses):
         identified = _elastic_pair_params()
         object_ids = [1, 2]
 

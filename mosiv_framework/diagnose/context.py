@@ -8,17 +8,19 @@ the scene's ground truth (``gt/``), which only the suite's scoring may use.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from mosiv_framework.errors import ConfigError
+from mosiv_framework.errors import ConfigError, SimulationDiverged
 from mosiv_framework.interfaces import Simulator
 from mosiv_framework.losses import chamfer_m2
 from mosiv_framework.pipeline.contact import simulator_section
 from mosiv_framework.pipeline.params import ParameterVector
+from mosiv_framework.pipeline.phases import BATCH_MEMBERS
 from mosiv_framework.pipeline.rundir import RunDir
 from mosiv_framework.recipes.terms import identified_terms
 from mosiv_framework.registry import get_registry
@@ -87,17 +89,55 @@ class RunContext:
         frames = self.n_frames - 1 if frames is None else frames
         with torch.no_grad():
             traj = self.simulate(params.detached(), frames=frames)
-        if traj.positions.device.type == "cpu":
-            return traj
-        return Trajectory(traj.positions.cpu(), traj.object_ids.cpu(), traj.fps)
+        return _on_cpu(traj)
+
+    def rollout_losses(
+        self, params_list: list[SimulationParams], fit_frames: list[int]
+    ) -> list[float]:
+        """The fit-frame loss (``loss``) of each parameter set's rollout, without a tape.
+
+        The sets are independent probes of the same scene, so they go through
+        ``Simulator.rollout_batch`` together, at most ``BATCH_MEMBERS`` at a time (one
+        simulation on backends that batch, e.g. warp-mpm). Each loss is that of ``rollout``
+        of the set alone followed by ``loss`` (bit for bit on warp-mpm's CPU path): the
+        trajectories are brought to the CPU first, as ``rollout`` does.
+
+        Args:
+            params_list: the parameter sets (members); each member's particles take their
+                families from it, as in ``simulate``.
+            fit_frames: the frames the loss averages over; each rollout runs to the last.
+
+        Returns:
+            One loss (m^2) per set, in order: ``inf`` for a set whose rollout diverged (the
+            others still run) or whose loss is not finite.
+        """
+        losses: list[float] = []
+        frames = max(fit_frames)
+        with torch.no_grad():
+            for start in range(0, len(params_list), BATCH_MEMBERS):
+                chunk = [p.detached() for p in params_list[start : start + BATCH_MEMBERS]]
+                results = self.simulator.rollout_batch(
+                    self._device_particles(), chunk, world=self.world, frames=frames
+                )
+                for result in results:
+                    if isinstance(result, SimulationDiverged):
+                        losses.append(math.inf)
+                        continue
+                    value = float(self.loss(_on_cpu(result), fit_frames))
+                    losses.append(value if math.isfinite(value) else math.inf)
+        return losses
+
+    def _device_particles(self) -> ParticleSet:
+        """The run's particles on ``device`` (moved once, not per rollout)."""
+        key = ("particles", self.device)
+        if key not in self._rollout_cache:
+            self._rollout_cache[key] = self.particles.to(self.device)
+        return self._rollout_cache[key]
 
     def particles_for(self, params: SimulationParams) -> ParticleSet:
         """The run's particles on ``device``, labelled with the families ``params`` simulate
         them as."""
-        key = ("particles", self.device)
-        if key not in self._rollout_cache:  # moved once, not per rollout
-            self._rollout_cache[key] = self.particles.to(self.device)
-        particles = self._rollout_cache[key]
+        particles = self._device_particles()
         families = {k: p.family for k, p in params.objects.items()}
         if families == particles.materials:
             return particles
@@ -178,6 +218,13 @@ class RunContext:
         """The physics terms the run's recipe switched on with ``identify: true``."""
         section = OmegaConf.to_container(self.recipe, resolve=True).get("physics_terms") or {}
         return identified_terms(section)
+
+
+def _on_cpu(traj: Trajectory) -> Trajectory:
+    """``traj``'s positions on the CPU, where the diagnosis reads them with numpy."""
+    if traj.positions.device.type == "cpu":
+        return traj
+    return Trajectory(traj.positions.cpu(), traj.object_ids.cpu(), traj.fps)
 
 
 def load_run(

@@ -282,23 +282,22 @@ def _walk_out(
     top = _walk_end(limit)
     if top is None:
         return best_step, best_loss
-    for i in range(1, FALLBACK_RUNGS):
-        step = top ** (i / (FALLBACK_RUNGS - 1))
-        loss = _loss_at(ctx, c, step * direction, fit_frames=fit_frames)
+    steps = [top ** (i / (FALLBACK_RUNGS - 1)) for i in range(1, FALLBACK_RUNGS)]
+    losses = _losses_at(ctx, c, [step * direction for step in steps], fit_frames=fit_frames)
+    for step, loss in zip(steps, losses):
         if loss < best_loss:
             best_step, best_loss = step, loss
     return best_step, best_loss
 
 
-def _loss_at(ctx: RunContext, c: Candidate, theta: torch.Tensor, *, fit_frames: list[int]) -> float:
-    """Fit-frame loss of the run's identified model with ``c`` on at ``theta`` (inf if the
-    rollout diverges)."""
-    try:
-        with torch.no_grad():
-            traj = ctx.rollout(c.apply(ctx.identified, theta), frames=max(fit_frames))
-            return float(ctx.loss(traj, fit_frames))
-    except SimulationDiverged:
-        return math.inf
+def _losses_at(
+    ctx: RunContext, c: Candidate, thetas: list[torch.Tensor], *, fit_frames: list[int]
+) -> list[float]:
+    """Fit-frame loss of the run's identified model with ``c`` on at each of ``thetas`` (inf
+    where the rollout diverges); the probes are independent, so they are rolled out together
+    (``RunContext.rollout_losses``)."""
+    params_list = [c.apply(ctx.identified, theta) for theta in thetas]
+    return ctx.rollout_losses(params_list, fit_frames)
 
 
 def _screen_ladder(
@@ -313,11 +312,10 @@ def _screen_ladder(
     """Probe ``c`` at each rung of ``rungs`` (default: its ladder); the lowest loss is the
     predicted best."""
     rungs = c.ladder if rungs is None else rungs
-    best_theta, best_loss, losses = c.zero(), base, []
-    for rung in rungs:
-        theta = c.clamp(torch.full((c.dim,), float(rung)))
-        loss = _loss_at(ctx, c, theta, fit_frames=fit_frames)
-        losses.append(loss)
+    thetas = [c.clamp(torch.full((c.dim,), float(rung))) for rung in rungs]
+    losses = _losses_at(ctx, c, thetas, fit_frames=fit_frames)
+    best_theta, best_loss = c.zero(), base
+    for theta, loss in zip(thetas, losses):
         if loss < best_loss:
             best_theta, best_loss = theta, loss
     fraction = max(0.0, (base - best_loss) / base) if base > 0 else 0.0

@@ -86,19 +86,18 @@ def profile_interval(
     candidate = fit.candidate
     n = len(fit_frames) * len(ctx.object_ids)
     base = _without(fit)
-    horizon = max(fit_frames)
+    probes = []
+    for i in range(candidate.dim):
+        for sign in (-1.0, 1.0):
+            theta = fit.theta.clone()
+            theta[i] += sign * float(candidate.step[i])
+            probes.append(candidate.apply(base, candidate.clamp(theta)))
+    # the 2 x dim probes are independent rollouts, so together; a diverged one is inf
+    probe_losses = ctx.rollout_losses(probes, fit_frames)
     lower, upper = [], []
     for i in range(candidate.dim):
         h_step = float(candidate.step[i])
-        losses = []
-        for sign in (-1.0, 1.0):
-            theta = fit.theta.clone()
-            theta[i] += sign * h_step
-            try:
-                traj = ctx.rollout(candidate.apply(base, candidate.clamp(theta)), frames=horizon)
-                losses.append(float(ctx.loss(traj, fit_frames)))
-            except SimulationDiverged:
-                losses.append(math.inf)
+        losses = probe_losses[2 * i : 2 * i + 2]
         curvature = (losses[0] + losses[1] - 2.0 * fit.loss) / h_step**2
         if math.isfinite(curvature) and curvature > 0:
             half = math.sqrt(2.0 * options.confidence_chi2 * fit.loss / (n * curvature))

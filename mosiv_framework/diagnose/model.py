@@ -442,13 +442,11 @@ def converge_null(
     # a null whose prediction diverged is continued from the best candidate state whatever
     # its fit loss: one that predicts every frame replaces it (``replaces``)
     best_loss, best_fit = (math.inf if null.diverged else null.loss), None
-    for fit in fits:
-        if fit.shared is None:
-            continue
-        try:
-            loss = float(ctx.loss(ctx.rollout(fit.shared, frames=max(fit_frames)), fit_frames))
-        except SimulationDiverged:
-            continue
+    # independent rollouts, so together (``RunContext.rollout_losses``); a diverged one is
+    # inf and never the best
+    switched_off = [fit for fit in fits if fit.shared is not None]
+    losses = ctx.rollout_losses([fit.shared for fit in switched_off], fit_frames)
+    for fit, loss in zip(switched_off, losses):
         if loss < best_loss:
             best_loss, best_fit = loss, fit
     if best_fit is None:
