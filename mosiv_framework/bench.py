@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import resource
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import torch
 
@@ -103,6 +103,8 @@ class BatchBenchResult:
     #: the process's resident-memory high-water mark after each side (Linux ru_maxrss)
     max_rss_after_sequential_bytes: int
     max_rss_after_batched_bytes: int
+    #: the simulator options given beside device, grid and substeps
+    options: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -133,12 +135,13 @@ def run_batch_bench(
     substeps: int,
     batch: int,
     frames: int = 2,
+    options: dict | None = None,
 ) -> BatchBenchResult:
     """Throughput of one ``rollout_batch`` of ``batch`` members and of the same members rolled
-    out one by one (forward only, after an untimed warm-up of each)."""
-    simulator = get_registry().create(
-        "simulator", backend, {"device": device, "grid": grid, "substeps": substeps}
-    )
+    out one by one (forward only, after an untimed warm-up of each). ``options``: further
+    simulator options, for both sides (e.g. warp-mpm's grid_window)."""
+    config = {"device": device, "grid": grid, "substeps": substeps, **(options or {})}
+    simulator = get_registry().create("simulator", backend, config)
     torch_device = torch.device("cuda" if device == "cuda" else "cpu")
     world = bench_world()
     parts = bench_particles(particles, grid=grid).to(torch_device)
@@ -184,6 +187,7 @@ def run_batch_bench(
         peak_memory_sequential_bytes=peak_seq,
         max_rss_after_sequential_bytes=rss_seq,
         max_rss_after_batched_bytes=_max_rss_bytes(),
+        options=dict(options or {}),
     )
 
 
@@ -196,10 +200,12 @@ def run_bench(
     substeps: int,
     frames: int = 2,
     backward: bool = True,
+    options: dict | None = None,
 ) -> BenchResult:
-    simulator = get_registry().create(
-        "simulator", backend, {"device": device, "grid": grid, "substeps": substeps}
-    )
+    """Forward and, with ``backward``, forward plus backward throughput of one rollout of the
+    bench cube; ``options``: further simulator options (e.g. warp-mpm's grid_window)."""
+    config = {"device": device, "grid": grid, "substeps": substeps, **(options or {})}
+    simulator = get_registry().create("simulator", backend, config)
     torch_device = torch.device("cuda" if device == "cuda" else "cpu")
     world = bench_world()
     parts = bench_particles(particles, grid=grid).to(torch_device)

@@ -32,8 +32,31 @@ def add_parser(sub) -> None:
         help="also time another simulator (a registered bench peer, e.g. genesis) on the same "
         "particles, law, grid, substeps and frames, forward only, after its untimed warm-up",
     )
+    sim.add_argument(
+        "--sim-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a further simulator option for every rollout timed (repeatable), e.g. "
+        "grid_window=particles for warp-mpm",
+    )
     sim.add_argument("--json", action="store_true")
     sim.set_defaults(handler=run_sim)
+
+
+def sim_options(pairs: list[str]) -> dict:
+    """``--sim-option KEY=VALUE`` pairs as a dict, each value read as YAML (numbers, true)."""
+    import yaml
+
+    from mosiv_framework.errors import ConfigError
+
+    options = {}
+    for pair in pairs:
+        key, eq, value = pair.partition("=")
+        if not eq or not key.strip():
+            raise ConfigError(f"--sim-option {pair!r}: expected KEY=VALUE, e.g. grid_window=whole")
+        options[key.strip()] = yaml.safe_load(value)
+    return options
 
 
 def run_sim(args) -> int:
@@ -62,6 +85,7 @@ def run_sim(args) -> int:
                     substeps=args.substeps,
                     frames=args.frames,
                     backward=not args.no_backward,
+                    options=sim_options(args.sim_option),
                 )
                 ours.append(result.as_dict())
                 if not args.json:
@@ -130,6 +154,7 @@ def run_batch(args) -> int:
                         substeps=args.substeps,
                         batch=batch,
                         frames=args.frames,
+                        options=sim_options(args.sim_option),
                     ).as_dict()
                     results.append(r)
                     if not args.json:
@@ -151,6 +176,7 @@ def _batch_line(r: dict) -> str:
         f"{r['sequential_particle_substeps_per_s']:.3g} p-substeps/s  gain {r['gain']:.2f}x  "
         f"peak {_mem(r['peak_memory_batched_bytes'])} / {_mem(r['peak_memory_sequential_bytes'])}"
         f"  max RSS {_mem(r['max_rss_after_batched_bytes'])}"
+        + "".join(f"  {k}={v}" for k, v in r.get("options", {}).items())
     )
 
 

@@ -227,7 +227,7 @@ class BackwardWorkspace:
         re-simulated frame blew up."""
         self.work[0].copy_from(start)
         run.begin_frame(frame, self.grid)
-        if wp.get_device(run.device).is_cuda:
+        if run.graphed:
             graph = self._graphs.get(run.centres)
             if graph is None:
                 with wp.ScopedCapture(device=run.device, force_module_load=True) as capture:

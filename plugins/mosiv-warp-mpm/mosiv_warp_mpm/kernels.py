@@ -104,6 +104,25 @@ def cell_base(xl: wp.vec3):
     return wp.vec3i(int(xl[0] - 0.5), int(xl[1] - 0.5), int(xl[2] - 0.5))
 
 
+@wp.kernel
+def stencil_base_bounds(
+    x: wp.array(dtype=wp.vec3), origin: wp.vec3, dx: float, bounds: wp.array(dtype=int)
+):
+    """The lowest and highest stencil base (cell_base) per axis over all particles, into
+    bounds[0:3] and bounds[3:6] (preset to +/- a large value): the node box a substep's grid
+    kernels must visit (state.NodeBox.from_bases), found on the device so that a CUDA run
+    reads back 24 bytes per substep instead of every position. A non-finite position (a
+    diverged member, reset by the next G2P) counts for nothing."""
+    p = wp.tid()
+    xp = x[p]
+    if not (wp.isfinite(xp[0]) and wp.isfinite(xp[1]) and wp.isfinite(xp[2])):
+        return
+    base = cell_base((xp - origin) / dx)
+    for a in range(3):
+        wp.atomic_min(bounds, a, base[a])
+        wp.atomic_max(bounds, 3 + a, base[a])
+
+
 @wp.func
 def kelvin_voigt_tau(eta: float, F: wp.mat33, L: wp.mat33):
     # material_damping: tau_visc = eta J (L + L^T), L = C (the Newtonian law's viscous form)

@@ -17,9 +17,18 @@ class WarpMPMOptions(MPMOptions):
     in a fixed order on CUDA (Warp's ``DeterministicMode.RUN_TO_RUN``), so two runs on the same
     GPU give bit-identical rollouts and gradients. Slower (benchmarks/determinism_check.py
     measures by how much); CPU runs are sequential and reproducible either way. A Warp module
-    option: one process runs all its warp-mpm simulators one way or the other."""
+    option: one process runs all its warp-mpm simulators one way or the other.
+
+    grid_window: which grid nodes a substep's grid kernels visit. "auto": the box around the
+    particles on the CPU, where Warp runs a kernel's threads one after another; on CUDA the
+    whole grid, so that a frame's launches are one captured graph, except for batched
+    rollouts on grids of 96 cells or more (simulator.BATCH_WINDOW_GRID); "particles": the
+    box around the particles on CUDA too (found on the device each substep, launches without
+    a graph); "whole": the whole grid everywhere. Results are the same up to float rounding
+    (bit for bit on the CPU); only the time differs (docs/BENCHMARKS.md, Batched rollouts)."""
 
     deterministic: bool = False
+    grid_window: str = "auto"
 
     backend = "warp-mpm"
 
@@ -29,4 +38,12 @@ class WarpMPMOptions(MPMOptions):
             problems = [p for p in problems if not p.startswith("device=")]
         if not isinstance(self.deterministic, bool):
             problems.append(f"deterministic={self.deterministic!r}: must be true or false")
+        if not isinstance(self.grid_window, str) or self.grid_window not in GRID_WINDOWS:
+            problems.append(
+                f"grid_window={self.grid_window!r}: valid values are {list(GRID_WINDOWS)}"
+            )
         return problems
+
+
+#: grid_window's values and the ``windowed`` flag each gives MPMRun (None: by device)
+GRID_WINDOWS = {"auto": None, "particles": True, "whole": False}

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from mosiv_framework.errors import ConfigError, SimulationDiverged
+from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.expression import up_vector
 from mosiv_framework.types import World
 from mosiv_warp_mpm import expression_kernels as XK
@@ -26,6 +26,9 @@ from mosiv_warp_mpm.state import (
     ParticleParams,
     ParticleState,
 )
+
+#: a stencil base beyond any grid: the bounds' start, left as it is when no particle counts
+_NO_BASE = 2**30
 
 
 class MPMRun:
@@ -46,15 +49,23 @@ class MPMRun:
         batch: int = 1,
     ):
         """``windowed``: whether grid kernels visit only the nodes around the particles
-        (``active_box``); default: on the CPU only. ``batch``: members simulated together
-        (batched.py); then ``families`` lists every member's objects, member-major, and
-        ``obj_index`` holds b K + k for a particle of member b (kernels.py)."""
+        (``active_box``); default: on the CPU only. On CUDA a windowed run finds each
+        substep's box on the device and launches without a captured graph (``graphed``).
+        ``batch``: members simulated together (batched.py); then ``families`` lists every
+        member's objects, member-major, and ``obj_index`` holds b K + k for a particle of
+        member b (kernels.py)."""
         self.layout, self.world, self.substeps, self.device = layout, world, substeps, device
-        if windowed is None:
-            windowed = not wp.get_device(device).is_cuda
-        if windowed and wp.get_device(device).is_cuda:
-            raise ConfigError("a windowed grid needs the CPU: CUDA replays one captured graph")
-        self.windowed = windowed
+        is_cuda = wp.get_device(device).is_cuda
+        self.windowed = (not is_cuda) if windowed is None else windowed
+        #: whether a frame's launches are captured once into a CUDA graph and replayed: the
+        #: graph fixes every launch's size, so only a run that sweeps the whole grid has one
+        self.graphed = is_cuda and not self.windowed
+        #: the stencil bases' bounds that a windowed CUDA run's box comes from (kernels)
+        self._bounds = self._bounds_start = None
+        if self.windowed:  # min, then max, per axis: start above and below every base
+            start = [_NO_BASE] * 3 + [-_NO_BASE] * 3
+            self._bounds_start = wp.array(start, dtype=int, device=device)
+            self._bounds = wp.zeros(6, dtype=int, device=device)
         self.whole_box = NodeBox.whole(layout)
         self.object_ids, self.batch = object_ids, batch
         self.dt = 1.0 / (world.fps * substeps)
@@ -159,10 +170,30 @@ class MPMRun:
 
     def active_box(self, state: ParticleState) -> NodeBox:
         """The grid nodes this substep from ``state`` can touch (state.NodeBox): the whole grid
-        on CUDA (one captured graph per frame), the box around the particles on the CPU."""
+        unless ``windowed``, else the box around the particles (read from the positions on the
+        CPU, from ``device_box`` on CUDA)."""
         if not self.windowed:
             return self.whole_box
+        if wp.get_device(self.device).is_cuda:
+            return self.device_box(state)
         return NodeBox.around(state.x.numpy(), self.layout)
+
+    def device_box(self, state: ParticleState) -> NodeBox:
+        """The box around ``state``'s particles from their stencil bases' bounds, reduced on
+        the device (kernels.stencil_base_bounds): 24 bytes cross to the host, not N positions.
+        The same box as NodeBox.around up to float32 rounding at a cell's edge, which the
+        box's margin of one node absorbs."""
+        wp.copy(self._bounds, self._bounds_start)
+        lay = self.layout
+        wp.launch(
+            K.stencil_base_bounds,
+            dim=self.n,
+            inputs=[state.x, wp.vec3(*lay.origin), lay.dx],
+            outputs=[self._bounds],
+            device=self.device,
+        )
+        bounds = self._bounds.numpy()
+        return NodeBox.from_bases(bounds[:3], bounds[3:], lay)
 
     def substep(
         self, src: ParticleState, dst: ParticleState, grid: Grid, s: int, box: NodeBox
@@ -270,10 +301,10 @@ class MPMRun:
         (``check``; batched runs read ``divergences`` per member instead).
 
         On CUDA the frame's launches are captured once (per value of ``centres``) into a graph
-        and replayed, so the substep loop costs no Python per substep.
+        and replayed, so the substep loop costs no Python per substep (unless ``windowed``).
         """
         self.begin_frame(frame, self.grid)
-        if wp.get_device(self.device).is_cuda:
+        if self.graphed:
             graph = self._graphs.get(self.centres)
             if graph is None:
                 with wp.ScopedCapture(device=self.device, force_module_load=True) as capture:

@@ -18,7 +18,7 @@ from mosiv_warp_mpm import expression_kernels as XK
 from mosiv_warp_mpm import kernels as K
 from mosiv_warp_mpm import laws as laws_module
 from mosiv_warp_mpm.laws import LAW_IDS
-from mosiv_warp_mpm.options import WarpMPMOptions
+from mosiv_warp_mpm.options import GRID_WINDOWS, WarpMPMOptions
 from mosiv_warp_mpm.packing import TERMS, check_inputs, initial_velocities, pack_theta
 from mosiv_warp_mpm.run import MPMRun
 from mosiv_warp_mpm.state import (
@@ -78,6 +78,12 @@ def resolve_device(name: str) -> str:
     return "cuda:0" if name == "cuda" else name
 
 
+#: grid_window "auto": batched rollouts on grids this fine (cells along the longest side) or
+#: finer visit only the nodes around their particles, on CUDA too (measured crossover: equal
+#: speed at 64, faster from 96)
+BATCH_WINDOW_GRID = 96
+
+
 class WarpMPMSimulator(Simulator):
     """Differentiable multi-object MLS-MPM on Warp (docs/PHYSICS.md, MLS-MPM scheme)."""
 
@@ -94,8 +100,9 @@ class WarpMPMSimulator(Simulator):
         self.last_memory: dict[str, int] = {}
         self._peak = 0
         #: whether grid kernels visit only the nodes around the particles (MPMRun.active_box);
-        #: None: on the CPU only. Results are the same either way (tests/test_grid_window.py)
-        self.windowed_grid: bool | None = None
+        #: None: on the CPU only (options.grid_window). Results are the same either way
+        #: (tests/test_grid_window.py)
+        self.windowed_grid: bool | None = GRID_WINDOWS[self.options.grid_window]
         # Rollouts of the same layout reuse a run: its buffers and captured CUDA graphs. One
         # for forward-only rollouts (evaluation, generation, benchmarks, line searches), one
         # for differentiable ones (identification's iterations)
@@ -176,12 +183,25 @@ class WarpMPMSimulator(Simulator):
             families=families,
             obj_index=obj_index,
             volumes=volumes,
-            windowed=self.windowed_grid,
+            windowed=self._windowed(batch),
             batch=batch,
         )
         if wp.get_device(self.device).is_cuda:
             run.peak_sampler = self._sample_peak
         return run
+
+    def _windowed(self, batch: int) -> bool | None:
+        """Whether a run of ``batch`` members visits only the grid nodes around its particles
+        (options.grid_window); None leaves it to MPMRun (the CPU only). On CUDA the window
+        costs each substep a read-back and the captured graph: a single rollout ran 2-6x
+        slower with it, while B members on grids of BATCH_WINDOW_GRID cells or more, whose B
+        whole grids outweigh their particles, ran 1.6-4x faster (docs/BENCHMARKS.md,
+        Batched rollouts)."""
+        if self.windowed_grid is not None:
+            return self.windowed_grid
+        if batch > 1 and self.options.grid >= BATCH_WINDOW_GRID:
+            return True
+        return None
 
     def scatter_layout(self, particles: ParticleSet, world: World) -> tuple:
         """The grid layout and the particles in scatter order (GridLayout.scatter_order):

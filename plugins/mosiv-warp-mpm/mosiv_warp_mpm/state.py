@@ -196,8 +196,8 @@ class NodeBox:
     Only nodes in some particle's 3x3x3 stencil hold mass, and only those are read back. On the
     CPU, where Warp runs each kernel thread in turn, sweeping the whole grid cost 75 % of a
     rollout of 278 particles on a 48-cell grid; the box around the particles is a few percent
-    of it (docs/BENCHMARKS.md, Simulator speed, CPU). On CUDA the box is the whole grid, so
-    that one frame stays one captured graph.
+    of it (docs/BENCHMARKS.md, Simulator speed, CPU). On CUDA the box is the whole grid by default,
+    so that one frame stays one captured graph (MPMRun's ``windowed`` says otherwise).
     """
 
     lo: tuple[int, int, int]
@@ -216,9 +216,19 @@ class NodeBox:
             return cls.whole(layout)
         xl = (positions.astype(np.float64) - np.asarray(layout.origin)) / layout.dx
         base = np.floor(xl - 0.5).astype(np.int64)  # kernels.cell_base
+        return cls.from_bases(base.min(axis=0), base.max(axis=0), layout)
+
+    @classmethod
+    def from_bases(cls, low: np.ndarray, high: np.ndarray, layout: GridLayout) -> NodeBox:
+        """The nodes of every stencil whose base (kernels.cell_base) lies between ``low`` and
+        ``high`` per axis, plus one node of margin each side, clipped to the grid; the whole
+        grid if ``low`` exceeds ``high`` (no particle counted)."""
+        low, high = np.asarray(low, dtype=np.int64), np.asarray(high, dtype=np.int64)
+        if (low > high).any():
+            return cls.whole(layout)
         nodes = np.asarray(layout.nodes)
-        lo = np.clip(base.min(axis=0) - 1, 0, nodes - 1)
-        hi = np.clip(base.max(axis=0) + 3, 0, nodes - 1)  # stencil base + 2, plus the margin
+        lo = np.clip(low - 1, 0, nodes - 1)
+        hi = np.clip(high + 3, 0, nodes - 1)  # stencil base + 2, plus the margin
         return cls(tuple(int(v) for v in lo), tuple(int(v) for v in hi - lo + 1))
 
     @property

@@ -210,3 +210,29 @@ def test_bench_sim_batch_reports_both_sides(capsys) -> None:
         assert r["sequential_particle_substeps_per_s"] == pytest.approx(work / r["sequential_s"])
         assert r["gain"] == pytest.approx(r["sequential_s"] / r["batched_s"])
         assert r["max_rss_after_batched_bytes"] >= r["max_rss_after_sequential_bytes"] > 0
+
+
+def test_bench_sim_passes_simulator_options(capsys, monkeypatch) -> None:
+    """--sim-option reaches the simulator of both sides (here the grid window, recorded in the
+    row); a pair without '=' is refused with the flag's expected form."""
+    import json
+
+    from mosiv_warp_mpm.simulator import WarpMPMSimulator
+
+    from mosiv_framework.cli.main import main
+
+    made = []
+    original = WarpMPMSimulator.__init__
+
+    def init(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        made.append(self.options.grid_window)
+
+    monkeypatch.setattr(WarpMPMSimulator, "__init__", init)
+    argv = ["bench", "sim", "--backend", "warp-mpm", "--batch", "2", "--particles", "64"]
+    argv += ["--grid", "8", "--substeps", "2", "--frames", "1", "--json"]
+    assert main([*argv, "--sim-option", "grid_window=whole"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert rows[0]["options"] == {"grid_window": "whole"} and made == ["whole"]
+    assert main([*argv, "--sim-option", "grid_window"]) == 2
+    assert "expected KEY=VALUE" in capsys.readouterr().err
