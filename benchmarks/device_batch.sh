@@ -10,6 +10,8 @@
 #                                                           # codes and GLOBs into $OUT/batch.tgz
 # Quote the GLOBs: they are expanded when the waiting ends, so files the jobs wrote meanwhile
 # are packed too (a glob the calling shell expands misses them).
+# Don't pipe a script that starts jobs into tail or grep: the jobs inherit the pipe, so the call
+# waits for them all and runs into its time limit (they go on, but its output is lost).
 # Give the jobs an output folder outside $OUT: the device empties $OUT before each call, so a
 # job writing there loses what it wrote before the call that is running now.
 jobs_dir=/root/jobs
