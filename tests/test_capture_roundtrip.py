@@ -115,3 +115,28 @@ def test_imported_capture_identifies_like_the_scene(tmp_path):
             assert E_BOUNDS[0] <= obj["E"] <= E_BOUNDS[1], (run, oid, result)
     ratio = result["imported"]["future_cd_mm2"] / result["direct"]["future_cd_mm2"]
     assert ratio < MAX_FUTURE_CD_RATIO, result
+
+
+def test_table_sets_the_import_against_the_run_to_run_spread():
+    """With --spread-seed the table adds the reseeded direct run's differences: the yardstick
+    for the imported run's (compare() gives both)."""
+    bench = load_benchmark()
+
+    def run(e1, e2, cd):
+        objects = {"1": {"E": e1, "E_rel_error": None}, "2": {"E": e2, "E_rel_error": None}}
+        return {"objects": objects, "future_cd_mm2": cd}
+
+    direct, imported, again = run(1e4, 2e4, 100.0), run(1.2e4, 2e4, 150.0), run(1e4, 3e4, 50.0)
+    result = {
+        "direct": direct,
+        "imported": imported,
+        "comparison": bench.compare(direct, imported),
+        "spread": {"reconstructor_seed": 3, "direct": again},
+    }
+    result["spread"]["comparison"] = bench.compare(direct, again)
+    assert result["comparison"]["E_rel_to_direct"] == pytest.approx({"1": 0.2, "2": 0.0})
+    lines = bench.table(result).splitlines()
+    assert lines[-2] == "future CD (mm^2): direct 100, imported 150 (+50.0%)"
+    assert lines[-1] == (
+        "direct again (reconstructor seed 3): E rel. diff 1 0, 2 0.5; future CD 50 (-50.0%)"
+    )
