@@ -63,7 +63,7 @@ class LogStiffnessDrift(Simulator):
     def rollout(self, particles, params, *, world, frames):
         self.calls += 1
         e = params.objects[1].values["E"]
-        if float(e) > 1e6:
+        if float(e.detach()) > 1e6:
             raise SimulationDiverged(object_id=1, frame=1, substep=0, reason="too stiff", advice="")
         t = torch.arange(frames + 1, dtype=torch.float32) / world.fps
         speed = (torch.log10(e) - 4.0) * torch.tensor([1.0, 0.0, 0.0])
