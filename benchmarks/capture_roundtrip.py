@@ -72,16 +72,19 @@ def segmenter_order(scene, frame: int) -> list:
     return sorted(scene.objects, key=lambda o: float(points[o.id][frame, :, 0].mean()))
 
 
-def capture_and_import(scene: Path, out: Path, segmenter: list[str] = ()) -> Path:
+def capture_and_import(
+    scene: Path, out: Path, segmenter: list[str] = (), late: int = LATE[1]
+) -> Path:
     """Write ``scene`` as a rig's capture into out/capture, import it into out/imported with
-    the reference gt attached; returns the imported scene."""
+    the reference gt attached; ``late``: frames the late camera (LATE) misses at the start,
+    which the import drops from every camera. Returns the imported scene."""
     from mosiv_framework.capture.reference import attach_reference
     from mosiv_framework.cli.main import main
     from mosiv_framework.scene import read_scene
 
     original = read_scene(scene)
     capture, imported = out / "capture", out / "imported"
-    cam, late = LATE
+    cam = LATE[0]
     argv = ["data", "capture", str(scene), str(capture), "--units", UNITS, "--up", UP]
     argv += [f"--distortion={LENS}", "--offsets", f"{cam}={late}", "--with-reference"]
     if main(argv) != 0:
@@ -132,6 +135,7 @@ def roundtrip(
     overrides: list[str],
     segmenter: list[str] = (),
     spread_seed: int | None = None,
+    late: int = LATE[1],
 ) -> dict:
     """The whole comparison into ``out`` (direct scene and run, capture, import, imported run).
 
@@ -148,7 +152,7 @@ def roundtrip(
         spread = {"reconstructor_seed": spread_seed, "direct": again}
         spread["comparison"] = compare(direct, again)
     t1 = time.perf_counter()
-    imported_scene = capture_and_import(out / "scene", out, segmenter)
+    imported_scene = capture_and_import(out / "scene", out, segmenter, late)
     t2 = time.perf_counter()
     imported = summary(run_recipe(recipe, imported_scene, out / "run_imported", overrides))
     # the import numbers objects its own way: report them under the original ids
@@ -159,7 +163,7 @@ def roundtrip(
     return {
         "recipe": str(recipe),
         "overrides": overrides,
-        "rig": {"units": UNITS, "up": UP, "distortion": LENS, "late": dict([LATE])},
+        "rig": {"units": UNITS, "up": UP, "distortion": LENS, "late": {LATE[0]: late}},
         "segmenter_options": list(segmenter),
         "direct": direct,
         "imported": imported,
@@ -208,6 +212,12 @@ def main(argv: list[str] | None = None) -> int:
         help="also run the direct scene with this reconstructor seed: the run-to-run spread "
         "that the import's difference is measured against",
     )
+    parser.add_argument(
+        "--late-frames",
+        type=int,
+        default=LATE[1],
+        help=f"frames {LATE[0]} starts late (the import drops them from every camera; 0: none)",
+    )
     parser.add_argument("overrides", nargs="*", help="extra recipe overrides key=value")
     args = parser.parse_args(argv)
     if args.out.exists() and any(args.out.iterdir()):
@@ -216,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     overrides = (QUICK if args.quick else []) + list(args.overrides)
     args.out.mkdir(parents=True, exist_ok=True)
     segmenter = QUICK_SEGMENTER if args.quick else []
-    result = roundtrip(args.out, recipe, overrides, segmenter, args.spread_seed)
+    result = roundtrip(args.out, recipe, overrides, segmenter, args.spread_seed, args.late_frames)
     (args.out / "capture_roundtrip.json").write_text(json.dumps(result, indent=2) + "\n")
     print(table(result))
     return 0
