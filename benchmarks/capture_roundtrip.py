@@ -73,11 +73,17 @@ def segmenter_order(scene, frame: int) -> list:
 
 
 def capture_and_import(
-    scene: Path, out: Path, segmenter: list[str] = (), late: int = LATE[1]
+    scene: Path,
+    out: Path,
+    segmenter: list[str] = (),
+    late: int = LATE[1],
+    lens: str = LENS,
+    crf: int | None = None,
 ) -> Path:
     """Write ``scene`` as a rig's capture into out/capture, import it into out/imported with
     the reference gt attached; ``late``: frames the late camera (LATE) misses at the start,
-    which the import drops from every camera. Returns the imported scene."""
+    which the import drops from every camera; ``lens``: k1,k2 of the rig's lens ("0,0": none);
+    ``crf``: H.264 quality (None: the capture's default). Returns the imported scene."""
     from mosiv_framework.capture.reference import attach_reference
     from mosiv_framework.cli.main import main
     from mosiv_framework.scene import read_scene
@@ -86,7 +92,8 @@ def capture_and_import(
     capture, imported = out / "capture", out / "imported"
     cam = LATE[0]
     argv = ["data", "capture", str(scene), str(capture), "--units", UNITS, "--up", UP]
-    argv += [f"--distortion={LENS}", "--offsets", f"{cam}={late}", "--with-reference"]
+    argv += [f"--distortion={lens}", "--offsets", f"{cam}={late}", "--with-reference"]
+    argv += [] if crf is None else ["--crf", str(crf)]
     if main(argv) != 0:
         raise RuntimeError(f"mosiv {' '.join(argv)} failed")
     materials = ",".join(o.material for o in segmenter_order(original, late))
@@ -136,6 +143,8 @@ def roundtrip(
     segmenter: list[str] = (),
     spread_seed: int | None = None,
     late: int = LATE[1],
+    lens: str = LENS,
+    crf: int | None = None,
 ) -> dict:
     """The whole comparison into ``out`` (direct scene and run, capture, import, imported run).
 
@@ -152,7 +161,7 @@ def roundtrip(
         spread = {"reconstructor_seed": spread_seed, "direct": again}
         spread["comparison"] = compare(direct, again)
     t1 = time.perf_counter()
-    imported_scene = capture_and_import(out / "scene", out, segmenter, late)
+    imported_scene = capture_and_import(out / "scene", out, segmenter, late, lens, crf)
     t2 = time.perf_counter()
     imported = summary(run_recipe(recipe, imported_scene, out / "run_imported", overrides))
     # the import numbers objects its own way: report them under the original ids
@@ -163,7 +172,7 @@ def roundtrip(
     return {
         "recipe": str(recipe),
         "overrides": overrides,
-        "rig": {"units": UNITS, "up": UP, "distortion": LENS, "late": {LATE[0]: late}},
+        "rig": {"units": UNITS, "up": UP, "distortion": lens, "crf": crf, "late": {LATE[0]: late}},
         "segmenter_options": list(segmenter),
         "direct": direct,
         "imported": imported,
@@ -218,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
         default=LATE[1],
         help=f"frames {LATE[0]} starts late (the import drops them from every camera; 0: none)",
     )
+    parser.add_argument("--lens", default=LENS, help=f"k1,k2 of the rig's lens (default {LENS})")
+    parser.add_argument("--crf", type=int, help="H.264 quality of the capture (0: lossless)")
     parser.add_argument("overrides", nargs="*", help="extra recipe overrides key=value")
     args = parser.parse_args(argv)
     if args.out.exists() and any(args.out.iterdir()):
@@ -226,7 +237,16 @@ def main(argv: list[str] | None = None) -> int:
     overrides = (QUICK if args.quick else []) + list(args.overrides)
     args.out.mkdir(parents=True, exist_ok=True)
     segmenter = QUICK_SEGMENTER if args.quick else []
-    result = roundtrip(args.out, recipe, overrides, segmenter, args.spread_seed, args.late_frames)
+    result = roundtrip(
+        args.out,
+        recipe,
+        overrides,
+        segmenter,
+        args.spread_seed,
+        args.late_frames,
+        args.lens,
+        args.crf,
+    )
     (args.out / "capture_roundtrip.json").write_text(json.dumps(result, indent=2) + "\n")
     print(table(result))
     return 0
