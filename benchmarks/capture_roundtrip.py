@@ -79,11 +79,13 @@ def capture_and_import(
     late: int = LATE[1],
     lens: str = LENS,
     crf: int | None = None,
+    pixel_format: str | None = None,
 ) -> Path:
     """Write ``scene`` as a rig's capture into out/capture, import it into out/imported with
     the reference gt attached; ``late``: frames the late camera (LATE) misses at the start,
     which the import drops from every camera; ``lens``: k1,k2 of the rig's lens ("0,0": none);
-    ``crf``: H.264 quality (None: the capture's default). Returns the imported scene."""
+    ``crf``: H.264 quality and ``pixel_format`` its chroma (None: the capture's defaults).
+    Returns the imported scene."""
     from mosiv_framework.capture.reference import attach_reference
     from mosiv_framework.cli.main import main
     from mosiv_framework.scene import read_scene
@@ -94,6 +96,7 @@ def capture_and_import(
     argv = ["data", "capture", str(scene), str(capture), "--units", UNITS, "--up", UP]
     argv += [f"--distortion={lens}", "--offsets", f"{cam}={late}", "--with-reference"]
     argv += [] if crf is None else ["--crf", str(crf)]
+    argv += [] if pixel_format is None else ["--pixel-format", pixel_format]
     if main(argv) != 0:
         raise RuntimeError(f"mosiv {' '.join(argv)} failed")
     materials = ",".join(o.material for o in segmenter_order(original, late))
@@ -145,6 +148,7 @@ def roundtrip(
     late: int = LATE[1],
     lens: str = LENS,
     crf: int | None = None,
+    pixel_format: str | None = None,
 ) -> dict:
     """The whole comparison into ``out`` (direct scene and run, capture, import, imported run).
 
@@ -161,7 +165,9 @@ def roundtrip(
         spread = {"reconstructor_seed": spread_seed, "direct": again}
         spread["comparison"] = compare(direct, again)
     t1 = time.perf_counter()
-    imported_scene = capture_and_import(out / "scene", out, segmenter, late, lens, crf)
+    imported_scene = capture_and_import(
+        out / "scene", out, segmenter, late, lens, crf, pixel_format
+    )
     t2 = time.perf_counter()
     imported = summary(run_recipe(recipe, imported_scene, out / "run_imported", overrides))
     # the import numbers objects its own way: report them under the original ids
@@ -172,7 +178,14 @@ def roundtrip(
     return {
         "recipe": str(recipe),
         "overrides": overrides,
-        "rig": {"units": UNITS, "up": UP, "distortion": lens, "crf": crf, "late": {LATE[0]: late}},
+        "rig": {
+            "units": UNITS,
+            "up": UP,
+            "distortion": lens,
+            "crf": crf,
+            "pixel_format": pixel_format,
+            "late": {LATE[0]: late},
+        },
         "segmenter_options": list(segmenter),
         "direct": direct,
         "imported": imported,
@@ -229,6 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--lens", default=LENS, help=f"k1,k2 of the rig's lens (default {LENS})")
     parser.add_argument("--crf", type=int, help="H.264 quality of the capture (0: lossless)")
+    parser.add_argument("--pixel-format", help="H.264 chroma of the capture: yuv420p or yuv444p")
     parser.add_argument("overrides", nargs="*", help="extra recipe overrides key=value")
     args = parser.parse_args(argv)
     if args.out.exists() and any(args.out.iterdir()):
@@ -246,6 +260,7 @@ def main(argv: list[str] | None = None) -> int:
         args.late_frames,
         args.lens,
         args.crf,
+        args.pixel_format,
     )
     (args.out / "capture_roundtrip.json").write_text(json.dumps(result, indent=2) + "\n")
     print(table(result))

@@ -24,6 +24,7 @@ from mosiv_framework.capture.lens import (
     undistort_points,
 )
 from mosiv_framework.cli.main import main
+from mosiv_framework.errors import ConfigError
 from mosiv_framework.scene import read_scene, write_example_scene
 
 imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
@@ -166,3 +167,23 @@ def test_forward_model_matches_opencv_formula_by_hand():
     yd = y * radial + 0.002 * (r2 + 2 * y * y) + 2 * -0.003 * x * y
     np.testing.assert_allclose(distort_points(np.array([x, y]), lens), [xd, yd], rtol=1e-15)
     np.testing.assert_allclose(undistort_points(np.array([xd, yd]), lens), [x, y], atol=1e-12)
+
+
+def test_yuv444p_keeps_the_colour_that_yuv420p_halves(tmp_path):
+    """A red-green pattern one pixel fine: 4:2:0 averages its colour over 2 x 2 pixels, 4:4:4
+    keeps it, both losslessly quantised (crf 0)."""
+    from mosiv_framework.capture.write import encode_h264, write_capture
+
+    rows, cols = np.indices((16, 16))
+    frame = np.zeros((16, 16, 3), dtype=np.uint8)
+    red = (rows + cols) % 2 == 0
+    frame[red, 0], frame[~red, 1] = 200, 200
+    errors = {}
+    for fmt in ("yuv420p", "yuv444p"):
+        path = tmp_path / f"{fmt}.mp4"
+        encode_h264([frame, frame], path, fps=24.0, crf=0, pixel_format=fmt)
+        _, frames = _decode(path)
+        errors[fmt] = np.abs(frames[0].astype(float) - frame).mean()
+    assert errors["yuv444p"] < 3.0 < 20.0 < errors["yuv420p"], errors
+    with pytest.raises(ConfigError, match="--pixel-format 'yuv422'"):
+        write_capture(tmp_path / "none", tmp_path / "out", pixel_format="yuv422")

@@ -3,7 +3,7 @@
 Layout of the capture folder::
 
     capture.json               fps, units, up axis, distortion, per camera: video, start offset
-    videos/<camera_id>.mp4     H.264 (yuv420p) through the distorting lens, no masks
+    videos/<camera_id>.mp4     H.264 (yuv420p, or yuv444p on request) through the lens, no masks
     sparse/0/cameras.txt       COLMAP text model (OPENCV or RADIAL, with the distortion)
     sparse/0/images.txt        world-to-camera pose per camera, in the rig's units and up axis
     sparse/0/points3D.txt      empty
@@ -45,8 +45,16 @@ def _even(frame: np.ndarray) -> np.ndarray:
     return np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
 
 
-def encode_h264(frames: list[np.ndarray], path: Path, *, fps: float, crf: int) -> tuple[int, int]:
-    """Write uint8 [H, W, 3] frames as an H.264 yuv420p mp4; returns its (width, height)."""
+#: the H.264 pixel formats a capture may use: yuv420p, what cameras and players use, keeps the
+#: colour at half resolution per axis; yuv444p keeps it whole (High 4:4:4 profile)
+PIXEL_FORMATS = ("yuv420p", "yuv444p")
+
+
+def encode_h264(
+    frames: list[np.ndarray], path: Path, *, fps: float, crf: int, pixel_format: str = "yuv420p"
+) -> tuple[int, int]:
+    """Write uint8 [H, W, 3] frames as an H.264 mp4 in ``pixel_format`` (PIXEL_FORMATS);
+    returns its (width, height)."""
     import imageio_ffmpeg
 
     frames = [_even(f) for f in frames]
@@ -57,7 +65,7 @@ def encode_h264(frames: list[np.ndarray], path: Path, *, fps: float, crf: int) -
         fps=fps,
         codec="libx264",
         pix_fmt_in="rgb24",
-        pix_fmt_out="yuv420p",
+        pix_fmt_out=pixel_format,
         quality=None,  # the CRF below sets the quality
         macro_block_size=1,  # never rescale: the intrinsics refer to these pixels
         output_params=["-crf", str(int(crf))],
@@ -89,7 +97,9 @@ def _check_options(scene, crf, offsets, distortion: Distortion, camera_model: st
     return starts
 
 
-def _write_videos(scene, out: Path, starts: dict, distortion: Distortion, crf: int) -> list[dict]:
+def _write_videos(
+    scene, out: Path, starts: dict, distortion: Distortion, crf: int, pixel_format: str
+) -> list[dict]:
     """One H.264 video per camera through the lens; returns capture.json's camera entries."""
     (out / "videos").mkdir(parents=True, exist_ok=True)
     entries = []
@@ -97,7 +107,7 @@ def _write_videos(scene, out: Path, starts: dict, distortion: Distortion, crf: i
         ideal = np.stack([scene.rgb(cam.id, t) for t in range(starts[cam.id], scene.n_frames)])
         frames = list(distort_frames(ideal, cam, distortion))
         video = f"videos/{cam.id}.mp4"
-        size = encode_h264(frames, out / video, fps=scene.fps, crf=crf)
+        size = encode_h264(frames, out / video, fps=scene.fps, crf=crf, pixel_format=pixel_format)
         entries.append(
             {
                 "id": cam.id,
@@ -123,6 +133,7 @@ def write_capture(
     crf: int = DEFAULT_CRF,
     offsets: str | None = None,
     with_reference: bool = False,
+    pixel_format: str = "yuv420p",
 ) -> Path:
     """Write the scene at ``scene_dir`` as a capture into the new or empty folder ``out``:
     ``rig`` its units and up axis (default metres, z up), ``distortion`` the lens (default none).
@@ -131,13 +142,17 @@ def write_capture(
     OutputError when ``out`` is refused."""
     from mosiv_framework.scene import read_scene
 
+    if pixel_format not in PIXEL_FORMATS:
+        raise ConfigError(
+            f"--pixel-format {pixel_format!r}: valid values are {list(PIXEL_FORMATS)}"
+        )
     rig = rig or RigFrame()
     distortion = distortion or Distortion()
     scene = read_scene(scene_dir)
     out = Path(out)
     refuse_non_empty(out, "capture folder")
     starts = _check_options(scene, crf, offsets, distortion, camera_model)
-    entries = _write_videos(scene, out, starts, distortion, crf)
+    entries = _write_videos(scene, out, starts, distortion, crf, pixel_format)
     write_colmap(
         out / "sparse" / "0",
         scene.cameras,
@@ -159,6 +174,7 @@ def write_capture(
             **distortion.as_dict(),
         },
         "crf": int(crf),
+        "pixel_format": pixel_format,
         "cameras": entries,
     }
     if with_reference and scene.has_gt:

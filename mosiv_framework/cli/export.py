@@ -56,6 +56,13 @@ def add_capture_parser(dsub) -> None:
         "--crf", type=int, default=DEFAULT_CRF, help=f"H.264 quality 0..51 (default {DEFAULT_CRF})"
     )
     p.add_argument(
+        "--pixel-format",
+        default="yuv420p",
+        choices=["yuv420p", "yuv444p"],
+        help="H.264 pixel format: yuv420p (default, as cameras record) keeps the colour at half "
+        "resolution, yuv444p whole",
+    )
+    p.add_argument(
         "--offsets",
         help="leading frames to drop per camera, e.g. cam_01=2,cam_02=1 (unsynchronised start)",
     )
@@ -91,6 +98,7 @@ def run_capture(args) -> int:
         crf=args.crf,
         offsets=args.offsets,
         with_reference=args.with_reference,
+        pixel_format=args.pixel_format,
     )
     print(out)
     return 0
