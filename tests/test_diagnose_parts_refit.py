@@ -253,7 +253,9 @@ def test_reidentification_replays_the_runs_schedule_on_the_fit_frames_only(monke
             v = params.initial_velocity[1]
             wind = params.terms.get("wind", {}).get("acceleration", torch.zeros(3))
             e = params.objects[1].values["E"]
-            self.calls.append((list(frames), v.detach().clone(), wind.detach().clone(), float(e)))
+            self.calls.append(
+                (list(frames), v.detach().clone(), wind.detach().clone(), float(e.detach()))
+            )
             flight = ((v - v_true) ** 2).sum() + 0.1 * ((wind - wind_true) ** 2).sum()
             # the material shows only once the bodies touch (frame 4 on)
             contact = (torch.log(e / e_true) ** 2) * float(max(frames) >= 4)
