@@ -261,33 +261,40 @@ def _walk_end(limit: float) -> float | None:
     return top if top > 1.0 else None
 
 
-def _walk_out(
+def _probe_and_walk(
     ctx: RunContext,
     c: Candidate,
     direction: torch.Tensor,
     limit: float,
     *,
     fit_frames: list[int],
-) -> tuple[float, float]:
-    """(step, loss) of the best of FALLBACK_RUNGS - 1 steps along ``direction`` beyond the
-    probe, evenly spaced in log from it to the bound (or FALLBACK_SPAN steps); (nan, inf) if
-    there is no room or every rollout diverges.
+) -> tuple[float, float, float]:
+    """(probe, step, loss): the loss one natural step along ``direction`` (the probe), and
+    the best of FALLBACK_RUNGS - 1 steps beyond it, evenly spaced in log from it to the bound
+    (or FALLBACK_SPAN steps); (nan, inf) for the walk if there is no room or every rollout
+    diverges. The probe and the walk are rolled out together (``_losses_at``); a probe that
+    did not come back finite is rolled out again alone, so that a divergence raises
+    SimulationDiverged with its reason.
 
     The probe's quadratic model sees the loss one natural step from zero only. A bounce lowers
     the loss slowly at small restitution and fast at large: at the generator's other parameters,
     ground_restitution-1's loss falls from 41 mm^2 at e = 0 to 33 at 0.15 and to 0 at its
     concealed 0.9. The model predicted 0.16 there, and refits begun near it ended at
     0.14-0.21; checking a few longer steps starts them near the loss's real minimum."""
-    best_step, best_loss = math.nan, math.inf
     top = _walk_end(limit)
-    if top is None:
-        return best_step, best_loss
-    steps = [top ** (i / (FALLBACK_RUNGS - 1)) for i in range(1, FALLBACK_RUNGS)]
-    losses = _losses_at(ctx, c, [step * direction for step in steps], fit_frames=fit_frames)
+    steps = (
+        [] if top is None else [top ** (i / (FALLBACK_RUNGS - 1)) for i in range(1, FALLBACK_RUNGS)]
+    )
+    thetas = [direction] + [step * direction for step in steps]
+    probe, *losses = _losses_at(ctx, c, thetas, fit_frames=fit_frames)
+    if not math.isfinite(probe):
+        traj = ctx.rollout(c.apply(ctx.identified, direction), frames=max(fit_frames))
+        probe = float(ctx.loss(traj, fit_frames))
+    best_step, best_loss = math.nan, math.inf
     for step, loss in zip(steps, losses):
         if loss < best_loss:
             best_step, best_loss = step, loss
-    return best_step, best_loss
+    return probe, best_step, best_loss
 
 
 def _losses_at(
@@ -456,21 +463,18 @@ def _screen_by_gradient(
         return _screen_flat(ctx, c, base, g, n=n, fit_frames=fit_frames)
     direction = direction / size
     slope = float(g @ direction)
+    limit = _max_step(c, direction)
     try:
-        probe = ctx.loss(
-            ctx.rollout(c.apply(ctx.identified, direction), frames=max(fit_frames)), fit_frames
-        )
+        probe, far, far_loss = _probe_and_walk(ctx, c, direction, limit, fit_frames=fit_frames)
     except SimulationDiverged as exc:
         return Screen(c, True, g.tolist(), c.zero(), 0.0, -math.inf, f"probe diverged: {exc}")
     curvature = 2.0 * (float(probe) - base - slope)
-    limit = _max_step(c, direction)
     if curvature > 0:
         step = min(-slope / curvature, limit)
         predicted = base + slope * step + 0.5 * curvature * step**2
     else:  # concave: the quadratic model has no minimum; the probe is what is known
         step, predicted = 1.0, float(probe)
     note = ""
-    far, far_loss = _walk_out(ctx, c, direction, limit, fit_frames=fit_frames)
     top = _walk_end(limit)
     if far_loss < predicted:
         step, predicted = far, far_loss
