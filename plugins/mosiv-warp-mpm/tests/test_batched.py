@@ -103,7 +103,11 @@ def test_members_equal_their_single_rollouts(make_warp_simulator, count, contact
     with torch.no_grad():
         again = sim.rollout_batch(particles, params_list, world=WORLD, frames=3)
     assert sim._batch_run is run
-    assert all(torch.equal(a.positions, b.positions) for a, b in zip(again, out))
+    for a, b in zip(again, out):
+        if a.positions.is_cuda:  # CUDA's atomics sum P2G in another order every run
+            assert (a.positions - b.positions).abs().max() <= POSITION_TOL
+        else:
+            assert torch.equal(a.positions, b.positions)
 
 
 def test_a_diverging_member_is_reported_and_the_others_go_on(make_warp_simulator) -> None:
@@ -153,7 +157,11 @@ def test_with_gradients_it_is_the_differentiable_loop(make_warp_simulator) -> No
         traj.positions[-1, :, 0].mean().backward()
         grads.append(E.grad)
     assert grads[0] is not None and float(grads[0].abs()) > 0.0
-    assert torch.equal(grads[0], grads[1])
+    if str(sim.device).startswith("cuda"):
+        # the same differentiable loop either way; CUDA's atomics reorder the adjoint's sums
+        assert torch.allclose(grads[0], grads[1], rtol=1e-3, atol=0.0)
+    else:
+        assert torch.equal(grads[0], grads[1])
 
 
 class FakeSimulator(Simulator):
