@@ -126,7 +126,7 @@ def test_a_diverging_member_is_inf_and_the_others_keep_their_one_by_one_losses(m
     """Three parameter sets in chunks of two: the middle one leaves the grid in its first
     substep (60 m/s); the first and the last, one in each chunk, score exactly what their own
     rollout scores."""
-    from mosiv_framework.diagnose import context as context_module
+    from mosiv_framework.pipeline import phases
 
     ctx = _dropped_context()
     windy = default_params(
@@ -134,7 +134,7 @@ def test_a_diverging_member_is_inf_and_the_others_keep_their_one_by_one_losses(m
     )
     fast = default_params(ctx.particles, velocities={1: (60.0, 0.0, 0.0)})
     members = [ctx.identified, fast, windy]
-    monkeypatch.setattr(context_module, "BATCH_MEMBERS", 2)
+    monkeypatch.setattr(phases, "BATCH_MEMBERS", 2)
     sizes = _spy_batches(monkeypatch, ctx.simulator)
     losses = ctx.rollout_losses(members, FIT)
     assert sizes == [2, 1]

@@ -8,19 +8,18 @@ the scene's ground truth (``gt/``), which only the suite's scoring may use.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from mosiv_framework.errors import ConfigError, SimulationDiverged
+from mosiv_framework.errors import ConfigError
 from mosiv_framework.interfaces import Simulator
 from mosiv_framework.losses import chamfer_m2
 from mosiv_framework.pipeline.contact import simulator_section
 from mosiv_framework.pipeline.params import ParameterVector
-from mosiv_framework.pipeline.phases import BATCH_MEMBERS
+from mosiv_framework.pipeline.phases import batched_losses
 from mosiv_framework.pipeline.rundir import RunDir
 from mosiv_framework.recipes.terms import identified_terms
 from mosiv_framework.registry import get_registry
@@ -97,7 +96,7 @@ class RunContext:
         """The fit-frame loss (``loss``) of each parameter set's rollout, without a tape.
 
         The sets are independent probes of the same scene, so they go through
-        ``Simulator.rollout_batch`` together, at most ``BATCH_MEMBERS`` at a time (one
+        ``Simulator.rollout_batch`` together (``pipeline.phases.batched_losses``, 16 a call: one
         simulation on backends that batch, e.g. warp-mpm). Each loss is that of ``rollout``
         of the set alone followed by ``loss`` (bit for bit on warp-mpm's CPU path): the
         trajectories are brought to the CPU first, as ``rollout`` does.
@@ -111,21 +110,14 @@ class RunContext:
             One loss (m^2) per set, in order: ``inf`` for a set whose rollout diverged (the
             others still run) or whose loss is not finite.
         """
-        losses: list[float] = []
-        frames = max(fit_frames)
-        with torch.no_grad():
-            for start in range(0, len(params_list), BATCH_MEMBERS):
-                chunk = [p.detached() for p in params_list[start : start + BATCH_MEMBERS]]
-                results = self.simulator.rollout_batch(
-                    self._device_particles(), chunk, world=self.world, frames=frames
-                )
-                for result in results:
-                    if isinstance(result, SimulationDiverged):
-                        losses.append(math.inf)
-                        continue
-                    value = float(self.loss(_on_cpu(result), fit_frames))
-                    losses.append(value if math.isfinite(value) else math.inf)
-        return losses
+        return batched_losses(
+            self.simulator,
+            self._device_particles(),
+            [p.detached() for p in params_list],
+            world=self.world,
+            frames=max(fit_frames),
+            loss=lambda result: self.loss(_on_cpu(result), fit_frames),
+        )
 
     def _device_particles(self) -> ParticleSet:
         """The run's particles on ``device`` (moved once, not per rollout)."""

@@ -25,6 +25,39 @@ from mosiv_framework.types import GeometryFrames, ParticleSet, SimulationParams,
 BATCH_MEMBERS = 16
 
 
+def batched_losses(
+    simulator,
+    particles: ParticleSet,
+    params_list: list[SimulationParams],
+    *,
+    world: World,
+    frames: int,
+    loss,
+) -> list[float]:
+    """``loss`` of each parameter set's rollout, the sets rolled out together without a tape.
+
+    Args:
+        simulator: a Simulator; its ``rollout_batch`` gets at most ``BATCH_MEMBERS`` sets a
+            call (one simulation on backends that batch, e.g. warp-mpm).
+        particles, world, frames: as for ``rollout_batch``.
+        params_list: the parameter sets (members), independent of each other.
+        loss: the Trajectory -> float to score each member's rollout with.
+
+    Returns:
+        One loss per set, in order: ``inf`` for a set whose rollout diverged (the others still
+        run) or whose loss is not finite.
+    """
+    losses: list[float] = []
+    with torch.no_grad():
+        for start in range(0, len(params_list), BATCH_MEMBERS):
+            chunk = params_list[start : start + BATCH_MEMBERS]
+            results = simulator.rollout_batch(particles, chunk, world=world, frames=frames)
+            for result in results:
+                value = math.inf if isinstance(result, SimulationDiverged) else float(loss(result))
+                losses.append(value if math.isfinite(value) else math.inf)
+    return losses
+
+
 def horizon(iteration: int, iterations: int, *, start: int, full_at: float, last: int) -> int:
     """Frames rolled out at ``iteration``: linear from ``start`` up to frame ``last``."""
     ramp = max(1, math.ceil(full_at * iterations))
@@ -80,26 +113,18 @@ class Fit:
         could not follow or whose loss is not finite. Equal to ``window_loss`` of each set to
         float32 round-off (bit for bit on warp-mpm's CPU path)."""
         frames = list(range(1, last + 1))
-        losses: list[float] = []
-        with torch.no_grad():
-            target = None
-            for start in range(0, len(params_list), BATCH_MEMBERS):
-                chunk = params_list[start : start + BATCH_MEMBERS]
-                results = self.simulator.rollout_batch(
-                    self.particles, chunk, world=self.world, frames=last
-                )
-                for result in results:
-                    if isinstance(result, SimulationDiverged):
-                        losses.append(math.inf)
-                        continue
-                    if target is None:
-                        device = result.positions.device
-                        target = geometry(
-                            {k: t.to(device) for k, t in self.targets.items()}, frames
-                        )
-                    value = float(self.objective(geometry(result, frames), target))
-                    losses.append(value if math.isfinite(value) else math.inf)
-        return losses
+        target = None
+
+        def loss(result: Trajectory) -> float:
+            nonlocal target
+            if target is None:  # on the rollouts' device, made once
+                device = result.positions.device
+                target = geometry({k: t.to(device) for k, t in self.targets.items()}, frames)
+            return float(self.objective(geometry(result, frames), target))
+
+        return batched_losses(
+            self.simulator, self.particles, params_list, world=self.world, frames=last, loss=loss
+        )
 
 
 class BestIterate:
