@@ -1,10 +1,11 @@
 """Fakes shared by the diagnosis tests (tests/test_diagnose_parts_*.py): an elastic/sand pair's
-parameters, a RunContext stand-in for building and screening candidates, and a simulator
-divergence."""
+parameters, a RunContext stand-in for building and screening candidates, a simulator
+divergence, and a real RunContext of one body on warp-mpm's CPU path."""
 
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import torch
 
@@ -66,4 +67,35 @@ def _diverged(frame: int = 18) -> Exception:
 
     return SimulationDiverged(
         object_id=2, frame=frame, substep=1, reason="a particle moved too far", advice="test"
+    )
+
+
+def one_body_context(world, particles, truth, identified, *, n_frames, observed_frames):
+    """A RunContext of ``particles`` on warp-mpm's CPU path (grid 16, 10 substeps) whose
+    targets are ``truth``'s rollout over ``n_frames`` frames and whose identified model is
+    ``identified`` (friction not identified, no physics terms in the recipe)."""
+    from omegaconf import OmegaConf
+
+    from mosiv_framework.diagnose.context import RunContext
+    from mosiv_framework.testing.pytest_plugin import require_simulator
+
+    sim = require_simulator("warp-mpm").create(
+        "simulator", "warp-mpm", {"grid": 16, "substeps": 10, "device": "cpu"}
+    )
+    with torch.no_grad():
+        target = sim.rollout(particles, truth, world=world, frames=n_frames - 1)
+    recipe = {"identify": {"identify_friction": False, "identify_ground_friction": False}}
+    return RunContext(
+        run_dir=None,
+        recipe=OmegaConf.create({**recipe, "physics_terms": {}}),
+        scene=SimpleNamespace(world=world, fps=world.fps),
+        particles=particles,
+        targets={1: target.object_positions(1).detach().cpu()},
+        identified=identified,
+        identified_json={},
+        simulator=sim,
+        simulator_name="warp-mpm",
+        observed_frames=observed_frames,
+        n_frames=n_frames,
+        loss_points=0,
     )

@@ -7,14 +7,19 @@ every probe is rolled out alone, and a member that diverges is inf without touch
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
+import sys
+from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 
-from mosiv_framework.testing.pytest_plugin import require_simulator
 from mosiv_framework.testing.shapes import block, default_params
 from mosiv_framework.types import World
+
+# shared fakes of the diagnosis tests; --import-mode=importlib leaves this folder off sys.path
+HERE = Path(__file__).resolve().parent
+if str(HERE) not in sys.path:
+    sys.path.insert(0, str(HERE))
+from diagnose_fakes import one_body_context  # noqa: E402
 
 FPS = 24.0
 FIT = list(range(1, 8))
@@ -26,31 +31,14 @@ SCREENED = ("wind", "ground_restitution", "plasticity")
 def _dropped_context():
     """A RunContext of one elastic block thrown onto the ground under a concealed sideways wind
     (warp-mpm on the CPU, grid 16, 10 substeps), identified without the wind."""
-    from mosiv_framework.diagnose.context import RunContext
-
-    sim = require_simulator("warp-mpm").create(
-        "simulator", "warp-mpm", {"grid": 16, "substeps": 10, "device": "cpu"}
-    )
     world = World((0, 0, 0), (1, 1, 1), gravity=(0, 0, -9.8), ground_height=0.0, fps=FPS)
     p = block((0.35, 0.45, 0.12), (0.45, 0.55, 0.22), spacing=0.025, object_id=1)
     velocity = {1: (0.5, 0.0, -0.5)}
     truth = default_params(p, velocities=velocity, terms={"wind": {"acceleration": [0, 2, 0]}})
-    with torch.no_grad():
-        target = sim.rollout(p, truth, world=world, frames=max(FIT))
-    recipe = {"identify": {"identify_friction": False, "identify_ground_friction": False}}
-    return RunContext(
-        run_dir=None,
-        recipe=OmegaConf.create({**recipe, "physics_terms": {}}),
-        scene=SimpleNamespace(world=world, fps=FPS),
-        particles=p,
-        targets={1: target.object_positions(1).detach().cpu()},
-        identified=default_params(p, velocities=velocity),
-        identified_json={},
-        simulator=sim,
-        simulator_name="warp-mpm",
-        observed_frames=max(FIT) + 1,
-        n_frames=max(FIT) + 1,
-        loss_points=0,
+    identified = default_params(p, velocities=velocity)
+    n_frames = max(FIT) + 1
+    return one_body_context(
+        world, p, truth, identified, n_frames=n_frames, observed_frames=n_frames
     )
 
 

@@ -11,6 +11,8 @@ warp-mpm run shows a real concealed linear drag refitted at a coarser grid stayi
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -49,6 +51,12 @@ from mosiv_framework.simulation import MPMOptions
 from mosiv_framework.terms import LinearDrag, Wind
 from mosiv_framework.testing.shapes import block, default_params
 from mosiv_framework.types import World
+
+# shared fakes of the diagnosis tests; --import-mode=importlib leaves this folder off sys.path
+HERE = Path(__file__).resolve().parent
+if str(HERE) not in sys.path:
+    sys.path.insert(0, str(HERE))
+from diagnose_fakes import one_body_context  # noqa: E402
 
 FIT = list(range(1, 8))
 HELD = list(range(8, 12))
@@ -340,33 +348,12 @@ DRAG = 1.5
 def _thrown_context():
     """A RunContext of one block thrown without gravity under a concealed linear drag
     (warp-mpm, grid 16, 10 substeps), identified without it and 0.1 m/s off."""
-    from mosiv_framework.diagnose.context import RunContext
-    from mosiv_framework.registry import get_registry
-
-    sim = get_registry().create(
-        "simulator", "warp-mpm", {"grid": 16, "substeps": 10, "device": "cpu"}
-    )
     world = World((0.0, 0.0, 0.0), (1.5, 1.5, 1.5), (0.0, 0.0, 0.0), None, FPS)
     p = block((0.2, 0.7, 0.4), (0.32, 0.82, 0.52), spacing=0.03, object_id=1)
     terms = {"linear_drag": {"coefficient": DRAG}}
     truth = default_params(p, velocities={1: (2.0, 0.0, 1.0)}, terms=terms)
-    with torch.no_grad():
-        target = sim.rollout(p, truth, world=world, frames=11)
-    recipe = {"identify": {"identify_friction": False, "identify_ground_friction": False}}
-    return RunContext(
-        run_dir=None,
-        recipe=OmegaConf.create({**recipe, "physics_terms": {}}),
-        scene=SimpleNamespace(world=world, fps=FPS),
-        particles=p,
-        targets={1: target.object_positions(1).detach().cpu()},
-        identified=default_params(p, velocities={1: (1.9, 0.05, 1.05)}),
-        identified_json={},
-        simulator=sim,
-        simulator_name="warp-mpm",
-        observed_frames=8,
-        n_frames=12,
-        loss_points=0,
-    )
+    identified = default_params(p, velocities={1: (1.9, 0.05, 1.05)})
+    return one_body_context(world, p, truth, identified, n_frames=12, observed_frames=8)
 
 
 def test_a_real_concealed_drag_stays_stable_at_a_coarser_grid():
