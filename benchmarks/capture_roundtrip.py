@@ -30,6 +30,8 @@ import sys
 import time
 from pathlib import Path
 
+from genesis_identify import _portable
+
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_RECIPE = ROOT / "recipes" / "video_paper.yaml"
 QUICK_RECIPE = ROOT / "recipes" / "video_quickstart.yaml"
@@ -176,7 +178,7 @@ def roundtrip(
     imported["objects"] = {str(ids[k]): v for k, v in imported["objects"].items()}
     t3 = time.perf_counter()
     return {
-        "recipe": str(recipe),
+        "recipe": _portable(str(recipe)),  # a results file names no machine's paths
         "overrides": overrides,
         "rig": {
             "units": UNITS,
