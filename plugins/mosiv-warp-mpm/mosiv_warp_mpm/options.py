@@ -7,6 +7,9 @@ from dataclasses import dataclass
 
 from mosiv_framework.simulation import MPMOptions
 
+#: grid_window's values (WarpMPMOptions)
+GRID_WINDOWS = ("auto", "particles", "whole")
+
 
 @dataclass(frozen=True)
 class WarpMPMOptions(MPMOptions):
@@ -43,7 +46,3 @@ class WarpMPMOptions(MPMOptions):
                 f"grid_window={self.grid_window!r}: valid values are {list(GRID_WINDOWS)}"
             )
         return problems
-
-
-#: grid_window's values and the ``windowed`` flag each gives MPMRun (None: by device)
-GRID_WINDOWS = {"auto": None, "particles": True, "whole": False}

@@ -18,7 +18,7 @@ from mosiv_warp_mpm import expression_kernels as XK
 from mosiv_warp_mpm import kernels as K
 from mosiv_warp_mpm import laws as laws_module
 from mosiv_warp_mpm.laws import LAW_IDS
-from mosiv_warp_mpm.options import GRID_WINDOWS, WarpMPMOptions
+from mosiv_warp_mpm.options import WarpMPMOptions
 from mosiv_warp_mpm.packing import TERMS, check_inputs, initial_velocities, pack_theta
 from mosiv_warp_mpm.run import MPMRun
 from mosiv_warp_mpm.state import (
@@ -99,10 +99,6 @@ class WarpMPMSimulator(Simulator):
         #: backward's one-frame workspace; filled by autograd.py
         self.last_memory: dict[str, int] = {}
         self._peak = 0
-        #: whether grid kernels visit only the nodes around the particles (MPMRun.active_box);
-        #: None: on the CPU only (options.grid_window). Results are the same either way
-        #: (tests/test_grid_window.py)
-        self.windowed_grid: bool | None = GRID_WINDOWS[self.options.grid_window]
         # Rollouts of the same layout reuse a run: its buffers and captured CUDA graphs. One
         # for forward-only rollouts (evaluation, generation, benchmarks, line searches), one
         # for differentiable ones (identification's iterations)
@@ -197,8 +193,8 @@ class WarpMPMSimulator(Simulator):
         slower with it, while B members on grids of BATCH_WINDOW_GRID cells or more, whose B
         whole grids outweigh their particles, ran 1.6-4x faster (docs/BENCHMARKS.md,
         Batched rollouts)."""
-        if self.windowed_grid is not None:
-            return self.windowed_grid
+        if self.options.grid_window != "auto":
+            return self.options.grid_window == "particles"
         if batch > 1 and self.options.grid >= BATCH_WINDOW_GRID:
             return True
         return None
