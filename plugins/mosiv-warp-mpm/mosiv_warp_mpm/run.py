@@ -55,7 +55,7 @@ class MPMRun:
         member's objects, member-major, and ``obj_index`` holds b K + k for a particle of
         member b (kernels.py)."""
         self.layout, self.world, self.substeps, self.device = layout, world, substeps, device
-        is_cuda = wp.get_device(device).is_cuda
+        self.is_cuda = is_cuda = wp.get_device(device).is_cuda
         self.windowed = (not is_cuda) if windowed is None else windowed
         #: whether a frame's launches are captured once into a CUDA graph and replayed: the
         #: graph fixes every launch's size, so only a run that sweeps the whole grid has one
@@ -174,7 +174,7 @@ class MPMRun:
         CPU, from ``device_box`` on CUDA)."""
         if not self.windowed:
             return self.whole_box
-        if wp.get_device(self.device).is_cuda:
+        if self.is_cuda:
             return self.device_box(state)
         return NodeBox.around(state.x.numpy(), self.layout)
 
