@@ -1,7 +1,8 @@
 """A scene through a capture rig and back: does the import cost accuracy?
 
 The scene of a from-video recipe is run directly, then written as a rig delivers it
-(``mosiv data capture``: centimetres, y up, a barrel lens, one camera starting late, H.264),
+(``mosiv data capture``: centimetres, y up, a barrel lens, one camera starting late, H.264,
+a clean plate per camera),
 imported back (``mosiv data import``: materials, units/up and the late camera's offset given:
 the objects are thrown and move from the first frame, so there is no motion onset to estimate
 offsets from; the ground as the scene has it, lens undone, masks from the classical segmenter, domain from the
@@ -19,7 +20,17 @@ CPU smoke run (the tiny scene and short schedule of tests/test_capture_roundtrip
 
     python benchmarks/capture_roundtrip.py --quick --out runs/capture_roundtrip
 
-Writes OUT/capture_roundtrip.json and prints a table; OUT must be new or empty.
+In parts, e.g. on a GPU machine whose calls are limited in time (the scene first, then the rest
+at once on different GPUs, then the comparison; a part run again reuses finished runs)::
+
+    python benchmarks/capture_roundtrip.py --out OUT --part direct
+    python benchmarks/capture_roundtrip.py --out OUT --part reseeded --spread-seed 1
+    python benchmarks/capture_roundtrip.py --out OUT --part capture
+    python benchmarks/capture_roundtrip.py --out OUT --part imported
+    python benchmarks/capture_roundtrip.py --out OUT --merge
+
+Writes OUT/capture_roundtrip.json and prints a table; OUT must be new or empty for the whole
+round trip.
 """
 
 from __future__ import annotations
@@ -28,6 +39,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from genesis_identify import _portable
@@ -82,12 +94,15 @@ def capture_and_import(
     lens: str = LENS,
     crf: int | None = None,
     pixel_format: str | None = None,
+    plate: bool = True,
 ) -> Path:
     """Write ``scene`` as a rig's capture into out/capture, import it into out/imported with
     the reference gt attached; ``late``: frames the late camera (LATE) misses at the start,
     which the import drops from every camera; ``lens``: k1,k2 of the rig's lens ("0,0": none);
-    ``crf``: H.264 quality and ``pixel_format`` its chroma (None: the capture's defaults).
-    Returns the imported scene."""
+    ``crf``: H.264 quality and ``pixel_format`` its chroma (None: the capture's defaults);
+    ``plate``: the rig records a clean plate per camera, which the import's segmenter takes as
+    its background (without one it estimates the background as each pixel's median, which is
+    the object wherever an object rests for most of the clip). Returns the imported scene."""
     from mosiv_framework.capture.reference import attach_reference
     from mosiv_framework.cli.main import main
     from mosiv_framework.scene import read_scene
@@ -99,6 +114,7 @@ def capture_and_import(
     argv += [f"--distortion={lens}", "--offsets", f"{cam}={late}", "--with-reference"]
     argv += [] if crf is None else ["--crf", str(crf)]
     argv += [] if pixel_format is None else ["--pixel-format", pixel_format]
+    argv += ["--background-plate"] if plate else []
     if main(argv) != 0:
         raise RuntimeError(f"mosiv {' '.join(argv)} failed")
     materials = ",".join(o.material for o in segmenter_order(original, late))
@@ -118,6 +134,35 @@ def capture_and_import(
         raise RuntimeError(f"mosiv {' '.join(argv)} failed")
     attach_reference(capture, imported)
     return imported
+
+
+def mask_iou(scene_dir: Path, imported_dir: Path, late: int) -> dict:
+    """How well the import's masks (the segmenter's) cover the scene's own: per object
+    (original id), the IoU of each frame pooled over the cameras, its lowest and mean over the
+    frames, and the mask area relative to the scene's (mean over frames)."""
+    from mosiv_framework.scene import read_scene
+
+    original, imported = read_scene(scene_dir), read_scene(imported_dir)
+    gt = json.loads((imported_dir / "gt" / "params.json").read_text())
+    ids = {int(k): int(v) for k, v in gt["reference"]["object_ids"].items()}
+    out = {}
+    for mine, theirs in sorted(ids.items()):
+        ious, areas = [], []
+        for t in range(imported.n_frames):
+            inter = union = area = area_ref = 0
+            for cam in imported.camera_ids:
+                a = imported.mask(cam, t) == mine
+                b = original.mask(cam, t + late) == theirs
+                inter, union = inter + int((a & b).sum()), union + int((a | b).sum())
+                area, area_ref = area + int(a.sum()), area_ref + int(b.sum())
+            ious.append(inter / max(union, 1))
+            areas.append(area / max(area_ref, 1))
+        out[str(theirs)] = {
+            "iou_min": min(ious),
+            "iou_mean": sum(ious) / len(ious),
+            "area_ratio_mean": sum(areas) / len(areas),
+        }
+    return out
 
 
 def summary(metrics: dict) -> dict:
@@ -141,60 +186,141 @@ def compare(direct: dict, imported: dict) -> dict:
     return {"E_rel_to_direct": e_rel, "future_cd_rel_to_direct": cd_rel}
 
 
+#: the parts of a round trip, in order; each one's result lands in OUT/parts/PART.json
+PARTS = ("direct", "reseeded", "capture", "imported")
+
+
+@dataclass(frozen=True)
+class Rig:
+    """How the capture is written: frames the late camera (LATE) misses, the lens (k1,k2;
+    "0,0": none), H.264 quality and chroma (None: the capture's defaults)."""
+
+    late: int = LATE[1]
+    lens: str = LENS
+    crf: int | None = None
+    pixel_format: str | None = None
+    plate: bool = True
+
+    def record(self) -> dict:
+        return {
+            "units": UNITS,
+            "up": UP,
+            "distortion": self.lens,
+            "crf": self.crf,
+            "pixel_format": self.pixel_format,
+            "late": {LATE[0]: self.late},
+            "background_plate": self.plate,
+        }
+
+
+def _finished_run(recipe: Path, scene: Path, run: Path, overrides: list[str]) -> dict:
+    """run_recipe, or the metrics of a run that already finished there: a part that is run
+    again (after a lost GPU machine, say) never repeats finished work."""
+    metrics = run / "metrics.json"
+    if metrics.is_file():
+        return json.loads(metrics.read_text())
+    return run_recipe(recipe, scene, run, overrides)
+
+
+def run_part(
+    part: str,
+    out: Path,
+    recipe: Path,
+    overrides: list[str],
+    segmenter: list[str] = (),
+    spread_seed: int | None = None,
+    rig: Rig = Rig(),
+) -> dict:
+    """One part of the round trip into ``out``; writes and returns out/parts/PART.json.
+
+    "direct" and "reseeded" run the scene (generated by the recipe into out/scene if missing),
+    "capture" writes and imports it (no simulator run), "imported" runs the import. Once the
+    scene exists, "direct", "reseeded" and "capture" + "imported" are independent: they may run
+    at the same time, on different GPUs."""
+    if part not in PARTS:
+        raise ValueError(f"part {part!r}: not one of {', '.join(PARTS)}")
+    scene, imported_scene = out / "scene", out / "imported"
+    if part == "direct":
+        result = summary(_finished_run(recipe, scene, out / "run_direct", overrides))
+    elif part == "reseeded":
+        if spread_seed is None:
+            raise ValueError("part 'reseeded' needs a spread seed (--spread-seed)")
+        reseeded = [*overrides, f"reconstructor.seed={spread_seed}"]
+        again = summary(_finished_run(recipe, scene, out / "run_direct_reseeded", reseeded))
+        result = {"reconstructor_seed": spread_seed, "direct": again}
+    elif part == "capture":
+        if not (imported_scene / "scene.json").is_file():
+            capture_and_import(
+                scene, out, segmenter, rig.late, rig.lens, rig.crf, rig.pixel_format, rig.plate
+            )
+        result = {
+            "rig": rig.record(),
+            "segmenter_options": list(segmenter),
+            "mask_iou": mask_iou(scene, imported_scene, rig.late),
+        }
+    else:
+        if not (imported_scene / "scene.json").is_file():
+            raise FileNotFoundError(f"{imported_scene}: no import yet; run part 'capture' first")
+        result = summary(_finished_run(recipe, imported_scene, out / "run_imported", overrides))
+        # the import numbers objects its own way: report them under the original ids
+        gt = json.loads((imported_scene / "gt" / "params.json").read_text())
+        ids = gt["reference"]["object_ids"]
+        result["objects"] = {str(ids[k]): v for k, v in result["objects"].items()}
+    (out / "parts").mkdir(exist_ok=True)
+    (out / "parts" / f"{part}.json").write_text(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def merge(out: Path, recipe: Path, overrides: list[str]) -> dict:
+    """The comparison from the finished parts in out/parts (FileNotFoundError naming a
+    missing part)."""
+
+    def part(name: str, required: bool = True) -> dict | None:
+        path = out / "parts" / f"{name}.json"
+        if not path.is_file():
+            if required:
+                raise FileNotFoundError(f"{path}: part {name!r} has not finished")
+            return None
+        return json.loads(path.read_text())
+
+    direct, capture, imported = part("direct"), part("capture"), part("imported")
+    spread = part("reseeded", required=False)
+    if spread is not None:
+        spread["comparison"] = compare(direct, spread["direct"])
+    return {
+        "recipe": _portable(str(recipe)),  # a results file names no machine's paths
+        "overrides": overrides,
+        **capture,
+        "direct": direct,
+        "imported": imported,
+        "comparison": compare(direct, imported),
+        "spread": spread,
+    }
+
+
 def roundtrip(
     out: Path,
     recipe: Path,
     overrides: list[str],
     segmenter: list[str] = (),
     spread_seed: int | None = None,
-    late: int = LATE[1],
-    lens: str = LENS,
-    crf: int | None = None,
-    pixel_format: str | None = None,
+    rig: Rig = Rig(),
 ) -> dict:
-    """The whole comparison into ``out`` (direct scene and run, capture, import, imported run).
+    """The whole comparison into ``out``, its parts one after another (direct scene and run,
+    the reseeded run where ``spread_seed`` is given, capture and import, imported run).
 
     ``spread_seed``: also run the direct scene again with this reconstructor seed
     (``run_direct_reseeded``): how far two direct runs differ is the yardstick for how far the
     imported run may differ from the direct one (at small sizes from-video identification
     varies with the seed more than the targets allow)."""
-    t0 = time.perf_counter()
-    direct = summary(run_recipe(recipe, out / "scene", out / "run_direct", overrides))
-    spread = None
-    if spread_seed is not None:
-        reseeded = [*overrides, f"reconstructor.seed={spread_seed}"]
-        again = summary(run_recipe(recipe, out / "scene", out / "run_direct_reseeded", reseeded))
-        spread = {"reconstructor_seed": spread_seed, "direct": again}
-        spread["comparison"] = compare(direct, again)
-    t1 = time.perf_counter()
-    imported_scene = capture_and_import(
-        out / "scene", out, segmenter, late, lens, crf, pixel_format
-    )
-    t2 = time.perf_counter()
-    imported = summary(run_recipe(recipe, imported_scene, out / "run_imported", overrides))
-    # the import numbers objects its own way: report them under the original ids
-    gt = json.loads((imported_scene / "gt" / "params.json").read_text())
-    ids = gt["reference"]["object_ids"]
-    imported["objects"] = {str(ids[k]): v for k, v in imported["objects"].items()}
-    t3 = time.perf_counter()
-    return {
-        "recipe": _portable(str(recipe)),  # a results file names no machine's paths
-        "overrides": overrides,
-        "rig": {
-            "units": UNITS,
-            "up": UP,
-            "distortion": lens,
-            "crf": crf,
-            "pixel_format": pixel_format,
-            "late": {LATE[0]: late},
-        },
-        "segmenter_options": list(segmenter),
-        "direct": direct,
-        "imported": imported,
-        "comparison": compare(direct, imported),
-        "spread": spread,
-        "time_s": {"direct": t1 - t0, "capture_import": t2 - t1, "imported": t3 - t2},
-    }
+    times = {}
+    for part in PARTS:
+        if part == "reseeded" and spread_seed is None:
+            continue
+        t0 = time.perf_counter()
+        run_part(part, out, recipe, overrides, segmenter, spread_seed, rig)
+        times[part] = time.perf_counter() - t0
+    return {**merge(out, recipe, overrides), "time_s": times}
 
 
 def table(result: dict) -> str:
@@ -245,25 +371,38 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lens", default=LENS, help=f"k1,k2 of the rig's lens (default {LENS})")
     parser.add_argument("--crf", type=int, help="H.264 quality of the capture (0: lossless)")
     parser.add_argument("--pixel-format", help="H.264 chroma of the capture: yuv420p or yuv444p")
+    parser.add_argument(
+        "--no-plate",
+        action="store_true",
+        help="the rig records no clean plate: the segmenter estimates the background itself",
+    )
+    parser.add_argument(
+        "--part",
+        choices=PARTS,
+        help="run only this part (OUT may hold others; a finished run is not run again); the "
+        "scene must exist or be generated first, by 'direct'",
+    )
+    parser.add_argument(
+        "--merge", action="store_true", help="compare the finished parts in OUT (no run)"
+    )
     parser.add_argument("overrides", nargs="*", help="extra recipe overrides key=value")
     args = parser.parse_args(argv)
-    if args.out.exists() and any(args.out.iterdir()):
+    whole = args.part is None and not args.merge
+    if whole and args.out.exists() and any(args.out.iterdir()):
         parser.error(f"--out {args.out}: not empty; give a new or empty folder")
     recipe = args.recipe or (QUICK_RECIPE if args.quick else PAPER_RECIPE)
     overrides = (QUICK if args.quick else []) + list(args.overrides)
     args.out.mkdir(parents=True, exist_ok=True)
     segmenter = QUICK_SEGMENTER if args.quick else []
-    result = roundtrip(
-        args.out,
-        recipe,
-        overrides,
-        segmenter,
-        args.spread_seed,
-        args.late_frames,
-        args.lens,
-        args.crf,
-        args.pixel_format,
-    )
+    rig = Rig(args.late_frames, args.lens, args.crf, args.pixel_format, not args.no_plate)
+    if args.part is not None:
+        result = run_part(args.part, args.out, recipe, overrides, segmenter, args.spread_seed, rig)
+        print(json.dumps(result, indent=2))
+        return 0
+    if args.merge:
+        result = merge(args.out, recipe, overrides)
+    else:
+        result = roundtrip(args.out, recipe, overrides, segmenter, args.spread_seed, rig)
     (args.out / "capture_roundtrip.json").write_text(json.dumps(result, indent=2) + "\n")
     print(table(result))
     return 0

@@ -269,13 +269,15 @@ class Frames:
     rgb: camera id -> uint8 [T, H, W, 3], all cameras with the same T; cameras: camera id ->
     ``Camera`` (world-to-camera, metres, z up) for the same ids; n_objects: how many objects the
     scene holds, if known; domain: ((x0, y0, z0), (x1, y1, z1)) box (m) that holds the objects
-    over the whole clip, if known (segmenters that carve a visual hull need it).
+    over the whole clip, if known (segmenters that carve a visual hull need it); backgrounds:
+    camera id -> uint8 [H, W, 3] image of the empty scene (a rig's clean plate), if recorded.
     """
 
     rgb: dict[str, np.ndarray]
     cameras: dict[str, Camera]
     n_objects: int | None = None
     domain: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    backgrounds: dict[str, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         if set(self.rgb) != set(self.cameras):
@@ -290,6 +292,12 @@ class Frames:
             if np.ndim(video) != 4 or np.shape(video)[-1] != 3:
                 raise ValueError(
                     f"camera {cam!r}: rgb must be [T, H, W, 3], got {list(np.shape(video))}"
+                )
+        for cam, plate in (self.backgrounds or {}).items():
+            if cam not in self.rgb or np.shape(plate) != np.shape(self.rgb[cam])[1:]:
+                raise ValueError(
+                    f"background of camera {cam!r}: {list(np.shape(plate))} does not match "
+                    f"its frames ({list(np.shape(self.rgb.get(cam, [])))[1:]})"
                 )
 
     @property

@@ -143,3 +143,33 @@ def test_table_sets_the_import_against_the_run_to_run_spread():
     assert lines[-1] == (
         "direct again (reconstructor seed 3): E rel. diff 1 0, 2 0.5; future CD 50 (-50.0%)"
     )
+
+
+def test_parts_merge_into_the_comparison_and_a_missing_part_is_named(tmp_path):
+    """The round trip in parts (one GPU call each, several at once): merge() assembles the
+    finished parts and names the part that has not finished."""
+    bench = load_benchmark()
+
+    def run(e1, cd):
+        return {"objects": {"1": {"E": e1, "E_rel_error": None}}, "future_cd_mm2": cd}
+
+    parts = tmp_path / "parts"
+    parts.mkdir()
+    (parts / "direct.json").write_text(json.dumps(run(1e4, 100.0)))
+    (parts / "capture.json").write_text(json.dumps({"rig": bench.Rig().record()}))
+    with pytest.raises(FileNotFoundError, match="part 'imported' has not finished"):
+        bench.merge(tmp_path, bench.QUICK_RECIPE, [])
+    (parts / "imported.json").write_text(json.dumps(run(1.5e4, 130.0)))
+    result = bench.merge(tmp_path, bench.QUICK_RECIPE, [])
+    assert result["spread"] is None and result["rig"]["background_plate"] is True
+    assert result["comparison"]["E_rel_to_direct"] == pytest.approx({"1": 0.5})
+    assert result["comparison"]["future_cd_rel_to_direct"] == pytest.approx(0.3)
+    (parts / "reseeded.json").write_text(
+        json.dumps({"reconstructor_seed": 1, "direct": run(2e4, 50.0)})
+    )
+    spread = bench.merge(tmp_path, bench.QUICK_RECIPE, [])["spread"]
+    assert spread["comparison"]["E_rel_to_direct"] == pytest.approx({"1": 1.0})
+    with pytest.raises(ValueError, match="part 'everything'"):
+        bench.run_part("everything", tmp_path, bench.QUICK_RECIPE, [])
+    with pytest.raises(ValueError, match="--spread-seed"):
+        bench.run_part("reseeded", tmp_path, bench.QUICK_RECIPE, [])

@@ -481,3 +481,92 @@ def test_round_trip_with_the_capture_writer(scene, tmp_path):
     assert record["offsets"] == {c: 0 if c == "cam_02" else 3 for c in original.camera_ids}
     ref = np.stack([original.rgb("cam_00", t + 3) for t in range(got.n_frames)])
     assert psnr(np.stack([got.rgb("cam_00", t) for t in range(got.n_frames)]), ref) > 28
+
+
+# --------------------------------------------------------------- clean plates of the empty scene
+SLIDE = 8  # frames the spheres of the settling scene slide before they rest
+
+
+def settling_paths() -> np.ndarray:
+    """[T, 2, 3] centres: two spheres sliding for SLIDE frames, then at rest to the end."""
+    t = np.minimum(np.arange(N_FRAMES), SLIDE)[:, None]
+    a = np.array([-0.2, -0.35, RADIUS]) + t * np.array([0.0, SPEED, 0.0])
+    b = np.array([0.2, 0.33, RADIUS]) + t * np.array([0.0, -SPEED, 0.0])
+    return np.stack([a, b], axis=1)
+
+
+@pytest.fixture(scope="module")
+def settling(tmp_path_factory) -> Path:
+    """The two spheres slide for the first frames, then rest where they stopped for most of the
+    clip: each pixel's median over time shows a resting sphere, not the table."""
+    cameras = example_cameras(n_cameras=4, size=SIZE)
+    paths = torch.as_tensor(settling_paths())
+    radii = torch.tensor([RADIUS, RADIUS], dtype=torch.float64)
+    albedos = torch.tensor([(0.8, 0.15, 0.1), (0.1, 0.25, 0.8)], dtype=torch.float64)
+    rgb, masks = {}, {}
+    for cam in cameras:
+        o, d = cam.rays(dtype=torch.float64)
+        frames = [_render(o, d, paths[t], radii, albedos) for t in range(N_FRAMES)]
+        rgb[cam.id] = np.stack([f[0] for f in frames])
+        masks[cam.id] = np.stack([f[1] for f in frames])
+    return write_scene(
+        tmp_path_factory.mktemp("settling") / "s", name="settle", fps=24.0,
+        objects=[SceneObject(1, "a", "elastic"), SceneObject(2, "b", "sand")],
+        cameras=cameras, rgb=rgb, masks=masks,
+        domain_lower=(-0.5, -0.5, 0.0), domain_upper=(0.5, 0.5, 1.0),
+    )  # fmt: skip
+
+
+def worst_mask_iou(original, got) -> float:
+    """The lowest per-frame IoU of the objects' union over every camera and frame."""
+    worst = 1.0
+    for cam in original.camera_ids:
+        for t in range(got.n_frames):
+            ref, mine = original.mask(cam, t) > 0, got.mask(cam, t) > 0
+            worst = min(worst, (ref & mine).sum() / max((ref | mine).sum(), 1))
+    return float(worst)
+
+
+def test_a_clean_plate_keeps_resting_objects_out_of_the_background(settling, tmp_path):
+    """A rig's clean plate (``mosiv data capture --background-plate``, found in background/ by
+    the import) is the segmenter's background; without it the temporal median paints the
+    resting spheres into the background, and the frames before they arrive show a phantom
+    where they will rest (and lose them while they rest)."""
+    from mosiv_framework.capture import find_inputs
+    from mosiv_framework.capture import write_capture as write_rig_capture
+    from mosiv_framework.capture.write import empty_plate
+
+    rig = write_rig_capture(settling, tmp_path / "rig", rig=RIG, distortion=LENS, with_plates=True)
+    original = read_scene(settling)
+    for cam in original.cameras:
+        plate, never_free = empty_plate(original, cam.id)
+        free = np.stack([original.mask(cam.id, t) == 0 for t in range(N_FRAMES)])
+        assert never_free <= 5  # where a sphere at rest overlaps where it started
+        assert plate.shape == (SIZE, SIZE, 3)
+        # where a sphere rests the plate is the table the first frames show, not the sphere
+        resting = ~free[-1] & free[0]
+        assert resting.sum() > 20
+        np.testing.assert_array_equal(plate[resting], original.rgb(cam.id, 0)[resting])
+    found = find_inputs(rig)
+    assert found["background"] == rig / "background"
+    common = dict(materials="elastic,sand", units="cm", up="y", ground="y=0", offsets="none")
+    with_plate = import_recording(ImportSettings(out=tmp_path / "p", **common, **found))
+    found.pop("background")
+    median = import_recording(ImportSettings(out=tmp_path / "m", **common, **found))
+    assert worst_mask_iou(original, read_scene(with_plate)) > 0.6
+    assert worst_mask_iou(original, read_scene(median)) < 0.3
+
+
+def test_a_plate_of_the_wrong_size_is_named(settling, tmp_path):
+    import imageio.v3 as iio
+
+    from mosiv_framework.capture import find_inputs
+    from mosiv_framework.capture import write_capture as write_rig_capture
+
+    rig = write_rig_capture(settling, tmp_path / "rig", rig=RIG, with_plates=True)
+    iio.imwrite(rig / "background" / "cam_02.png", np.zeros((SIZE, SIZE + 4, 3), np.uint8))
+    s = ImportSettings(out=tmp_path / "s", materials="elastic,sand", units="cm", up="y",
+                       ground="y=0", offsets="none", **find_inputs(rig))  # fmt: skip
+    expect_error(s, CaptureError, "cam_02.png", f"{SIZE + 4}x{SIZE}", f"{SIZE}x{SIZE}")
+    (rig / "background" / "cam_02.png").unlink()
+    expect_error(s, CaptureError, "cam_02", "background")

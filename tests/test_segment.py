@@ -26,6 +26,37 @@ def test_otsu_splits_two_modes_between_them():
     assert 10.0 < cut < 50.0
 
 
+def two_contrasts() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(video, background, truth): a noisy static background (sigma 2 per channel) with a dim
+    square (RGB distance about 50) and a bright one (about 200), each a few hundred pixels."""
+    rng = np.random.default_rng(2)
+    background = np.full((64, 64, 3), 120.0, dtype=np.float32)
+    video = background[None] + rng.normal(0.0, 2.0, size=(4, 64, 64, 3))
+    truth = np.zeros((4, 64, 64), dtype=bool)
+    video[:, 8:24, 8:24] += 29.0  # distance 29 * sqrt(3) = 50
+    video[:, 36:52, 36:52] += 115.0  # 199
+    truth[:, 8:24, 8:24] = truth[:, 36:52, 36:52] = True
+    return np.clip(np.rint(video), 0, 255).astype(np.uint8), background, truth
+
+
+def test_noise_threshold_keeps_a_dim_object_that_otsu_cuts_off():
+    """Otsu's cut, made for two classes, falls between the dim and the bright object; the cut
+    just above the background's noise keeps both."""
+    video, background, truth = two_contrasts()
+    distance = fgmod.colour_distance(video, background)
+    assert 50.0 < fgmod.otsu_threshold(distance) < 199.0
+    assert 6.0 < fgmod.noise_threshold(distance) < 30.0
+    for auto, expected in (("noise", truth), ("otsu", truth & (np.arange(64) >= 32)[:, None])):
+        mask, _ = fgmod.foreground(
+            video, background, threshold=None, min_threshold=10.0, open_px=1, close_px=1,
+            auto=auto,
+        )  # fmt: skip
+        np.testing.assert_array_equal(mask, expected)
+    with pytest.raises(ValueError, match="auto threshold 'mean'"):
+        fgmod.foreground(video, background, threshold=None, min_threshold=10.0, open_px=0,
+                         close_px=0, auto="mean")  # fmt: skip
+
+
 def test_median_background_and_foreground_of_a_moving_square():
     rng = np.random.default_rng(1)
     background = rng.integers(0, 80, size=(24, 24, 3)).astype(np.uint8)
@@ -141,6 +172,11 @@ def test_classical_option_and_input_errors(two_spheres, tmp_path):
     registry = get_registry()
     with pytest.raises(ConfigError, match="voxels must be >= 2"):
         registry.create("segmenter", "classical", {"voxels": 1})
+    with pytest.raises(ConfigError, match="auto_threshold 'mean': valid values"):
+        registry.create("segmenter", "classical", {"auto_threshold": "mean"})
+    with pytest.raises(ValueError, match="background of camera 'cam_00'"):
+        plates = {"cam_00": np.zeros((3, 3, 3), np.uint8)}
+        Frames(frames.rgb, frames.cameras, 2, frames.domain, backgrounds=plates)
     with pytest.raises(ConfigError, match="domain"):
         no_domain = Frames(frames.rgb, frames.cameras, 2, None)
         registry.create("segmenter", "classical").segment(no_domain)

@@ -52,6 +52,7 @@ class ImportSettings:
     n_frames: int | None = None
     segmenter: str = "classical"
     segmenter_options: dict[str, Any] = field(default_factory=dict)
+    background: Path | None = None
     name: str | None = None
     margin: float = 0.1
     hull_voxels: int = 64
@@ -61,7 +62,9 @@ class ImportSettings:
 def find_inputs(recording: str | Path) -> dict[str, Path]:
     """Frames folder and camera file of a recording folder: frames in ``videos/``,
     ``images/`` or the folder itself; cameras in ``sparse/0``, ``sparse``, ``colmap`` or
-    ``transforms.json``. Keys: ``frames_dir`` and one of ``colmap`` / ``transforms``."""
+    ``transforms.json``; clean plates (one image of the empty scene per camera) in
+    ``background/``. Keys: ``frames_dir``, one of ``colmap`` / ``transforms``, and
+    ``background`` where the recording has plates."""
     root = Path(recording)
     if not root.is_dir():
         raise CaptureError(f"recording folder {str(root)!r} does not exist or is not a folder")
@@ -78,7 +81,37 @@ def find_inputs(recording: str | Path) -> dict[str, Path]:
     else:
         if (root / "transforms.json").is_file():
             found["transforms"] = root / "transforms.json"
+    if (root / "background").is_dir():
+        found["background"] = root / "background"
     return found
+
+
+def load_plates(folder: Path | None, cams) -> dict[str, np.ndarray] | None:
+    """Each camera's clean plate (``<camera id>.png`` or ``.jpg`` in ``folder``, the empty scene
+    through the same lens) undistorted like its frames; None without a folder."""
+    if folder is None:
+        return None
+    import imageio.v3 as iio
+
+    if not Path(folder).is_dir():
+        raise CaptureError(f"--background {folder}: not a folder")
+    plates = {}
+    for cid, cam in sorted(cams.items()):
+        paths = [Path(folder) / f"{cid}{suffix}" for suffix in (".png", ".jpg", ".jpeg")]
+        path = next((p for p in paths if p.is_file()), None)
+        if path is None:
+            raise CaptureError(
+                f"--background {folder}: no {cid}.png or {cid}.jpg for camera {cid!r}"
+            )
+        plate = np.asarray(iio.imread(path))[..., :3]
+        k = cam.intrinsics
+        if plate.shape[:2] != (k.height, k.width):
+            raise CaptureError(
+                f"{path}: {plate.shape[1]}x{plate.shape[0]} pixels, but {cam.origin} gives "
+                f"camera {cid!r} {k.width}x{k.height}"
+            )
+        plates[cid] = undistort_frames(plate[None], k, cam.distortion)[0]
+    return plates
 
 
 def load_cameras(s: ImportSettings, known: set[str]) -> dict[str, SourceCamera]:
@@ -136,14 +169,18 @@ def read_objects(s: ImportSettings):
     return mat.read_objects_yaml(s.objects_yaml)
 
 
-def segment(s: ImportSettings, videos, cameras, n_objects: int, box) -> dict[str, np.ndarray]:
-    """Masks of the registered segmenter ``s.segmenter``, checked against the objects."""
+def segment(
+    s: ImportSettings, videos, cameras, n_objects: int, box, plates=None
+) -> dict[str, np.ndarray]:
+    """Masks of the registered segmenter ``s.segmenter``, checked against the objects;
+    ``plates``: the recording's clean plates (load_plates), if any."""
     from mosiv_framework.registry import get_registry
     from mosiv_framework.types import Frames
 
     seg = get_registry().create("segmenter", s.segmenter, s.segmenter_options)
     domain = (tuple(map(float, box[0])), tuple(map(float, box[1])))
-    masks = seg.segment(Frames(rgb=videos, cameras=cameras, n_objects=n_objects, domain=domain))
+    frames = Frames(videos, cameras, n_objects=n_objects, domain=domain, backgrounds=plates)
+    masks = seg.segment(frames)
     found = max(int(m.max()) for m in masks.values())
     if found != n_objects:
         raise CaptureError(
@@ -176,10 +213,10 @@ def _axis_up(ground: tuple[int, float], up: np.ndarray) -> np.ndarray:
     return axis if float(axis @ up) > np.cos(np.radians(10.0)) else up
 
 
-def _locate(s, videos, cameras, n_objects, box, ground):
+def _locate(s, videos, cameras, n_objects, box, ground, plates=None):
     """One segmenter pass over ``box``: (masks, lower, upper, ground) where the ground is
     fitted under the hull when ``ground`` is None."""
-    masks = segment(s, videos, cameras, n_objects, box)
+    masks = segment(s, videos, cameras, n_objects, box, plates)
     points, step = dom.voxel_grid(box[0], box[1], s.hull_voxels)
     hull = dom.visual_hull(masks, cameras, points)
     if ground is None:
@@ -189,7 +226,7 @@ def _locate(s, videos, cameras, n_objects, box, ground):
     return masks, lo, hi, ground, step
 
 
-def _hull_frame(s, videos, cameras, origins, n_objects, ground):
+def _hull_frame(s, videos, cameras, origins, n_objects, ground, plates=None):
     """Masks, domain (lower, upper) and ground height (m, None = no ground), all before the
     ground offset. Two segmenter passes: the first over the region the cameras look at locates
     the objects; the second over the box around their hull (finer voxels) gives the masks,
@@ -199,10 +236,10 @@ def _hull_frame(s, videos, cameras, origins, n_objects, ground):
     box = [centre - half, centre + half]
     if isinstance(ground, float):
         box[0][2] = max(box[0][2], ground)
-    _, lo, hi, fitted, step = _locate(s, videos, cameras, n_objects, box, ground)
+    _, lo, hi, fitted, step = _locate(s, videos, cameras, n_objects, box, ground, plates)
     if ground is None:  # leave room below a fitted ground for the finer hull to go lower
         lo[2] = fitted - 2 * step
-    masks, lo, hi, ground, _ = _locate(s, videos, cameras, n_objects, (lo, hi), ground)
+    masks, lo, hi, ground, _ = _locate(s, videos, cameras, n_objects, (lo, hi), ground, plates)
     ground = None if ground == "none" else float(ground)
     logger.info("ground: %s", "none" if ground is None else f"z = {ground:.4f} m")
     return masks, lo, hi, ground
@@ -224,10 +261,11 @@ def import_recording(s: ImportSettings) -> Path:
     videos = {
         c: undistort_frames(v, cams[c].intrinsics, cams[c].distortion) for c, v in videos.items()
     }
+    plates = load_plates(s.background, cams)
     align, up, ground = _alignment(s, cams)
     origins = {cid: cam.origin for cid, cam in cams.items()}
     cameras = {cid: align.camera(cam) for cid, cam in sorted(cams.items())}
-    masks, lo, hi, ground = _hull_frame(s, videos, cameras, origins, len(objects), ground)
+    masks, lo, hi, ground = _hull_frame(s, videos, cameras, origins, len(objects), ground, plates)
     shift = 0.0 if ground is None else ground  # the ground goes to z = 0
     align.offset = np.array([0.0, 0.0, -shift])
     lo, hi = lo + align.offset, hi + align.offset

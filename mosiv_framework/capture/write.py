@@ -9,6 +9,8 @@ Layout of the capture folder::
     sparse/0/points3D.txt      empty
     sparse/0/rigs.txt          one trivial rig per camera (COLMAP 3.12 and later)
     sparse/0/frames.txt        one frame per camera, with its pose
+    background/<camera_id>.png only with ``with_plates``: the empty scene through the lens, the
+                               clean plate a rig records before the take
     reference_gt/              only with ``with_reference``: the scene's gt/ for benchmarking
 
 What a rig does not know stays out: instance masks, object count and materials, the ground
@@ -123,6 +125,34 @@ def _write_videos(
     return entries
 
 
+def empty_plate(scene, camera_id: str) -> tuple[np.ndarray, int]:
+    """The scene without its objects as ``camera_id`` sees it, uint8 [H, W, 3], and how many
+    pixels no frame shows uncovered: each pixel's median over the frames whose instance mask
+    leaves it free (over all frames where none does)."""
+    rgb = np.stack([scene.rgb(camera_id, t) for t in range(scene.n_frames)]).astype(np.float32)
+    free = np.stack([scene.mask(camera_id, t) == 0 for t in range(scene.n_frames)])
+    masked = np.where(free[..., None], rgb, np.nan)
+    never_free = ~free.any(axis=0)
+    masked[:, never_free] = rgb[:, never_free]
+    plate = np.nanmedian(masked, axis=0)
+    return np.clip(np.rint(plate), 0, 255).astype(np.uint8), int(never_free.sum())
+
+
+def _write_plates(scene, out: Path, distortion: Distortion) -> dict[str, int]:
+    """background/<camera>.png per camera through the lens; returns the pixels per camera that
+    no frame showed free of objects (their plate is the median of every frame)."""
+    import imageio.v3 as iio
+
+    (out / "background").mkdir(parents=True, exist_ok=True)
+    never_free = {}
+    for cam in scene.cameras:
+        plate, never_free[cam.id] = empty_plate(scene, cam.id)
+        iio.imwrite(
+            out / "background" / f"{cam.id}.png", distort_frames(plate[None], cam, distortion)[0]
+        )
+    return never_free
+
+
 def write_capture(
     scene_dir: str | Path,
     out: str | Path,
@@ -134,9 +164,11 @@ def write_capture(
     offsets: str | None = None,
     with_reference: bool = False,
     pixel_format: str = "yuv420p",
+    with_plates: bool = False,
 ) -> Path:
     """Write the scene at ``scene_dir`` as a capture into the new or empty folder ``out``:
-    ``rig`` its units and up axis (default metres, z up), ``distortion`` the lens (default none).
+    ``rig`` its units and up axis (default metres, z up), ``distortion`` the lens (default none),
+    ``with_plates``: a clean plate per camera in background/ (``empty_plate``).
 
     Returns ``out``. Raises SceneFormatError for an invalid scene, ConfigError for bad options,
     OutputError when ``out`` is refused."""
@@ -177,6 +209,9 @@ def write_capture(
         "pixel_format": pixel_format,
         "cameras": entries,
     }
+    if with_plates:
+        never_free = _write_plates(scene, out, distortion)
+        meta["background"] = {"path": "background", "pixels_never_free": never_free}
     if with_reference and scene.has_gt:
         shutil.copytree(scene.root / "gt", out / "reference_gt")
         # the ground truth stays in the scene's own frame: an importer maps it, not the rig

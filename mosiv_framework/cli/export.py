@@ -71,6 +71,12 @@ def add_capture_parser(dsub) -> None:
         action="store_true",
         help="copy the scene's gt/ to OUT/reference_gt/ for benchmarking an importer",
     )
+    p.add_argument(
+        "--background-plate",
+        action="store_true",
+        help="write OUT/background/<camera>.png, the empty scene through the lens, as a rig "
+        "records a clean plate before the take (made from the frames outside the scene's masks)",
+    )
     p.set_defaults(handler=run_capture)
 
 
@@ -99,6 +105,7 @@ def run_capture(args) -> int:
         offsets=args.offsets,
         with_reference=args.with_reference,
         pixel_format=args.pixel_format,
+        with_plates=args.background_plate,
     )
     print(out)
     return 0

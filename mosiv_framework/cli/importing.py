@@ -38,6 +38,12 @@ def add_parser(sub) -> None:
         "estimated from motion onset)",
     )
     src.add_argument("--frames", type=int, help="keep the first N frames after the offsets")
+    src.add_argument(
+        "--background",
+        help="clean plates: one image of the empty scene per camera, <camera id>.png or .jpg, "
+        "through the same lens (default: the recording's background/ folder, if any; else the "
+        "segmenter estimates the background)",
+    )
     world = p.add_argument_group("world frame")
     world.add_argument("--units", help="length unit of the cameras: m, cm, mm, in, ... or m/unit")
     world.add_argument("--up", help="up axis of the cameras' world: x, y, z, -y, or a,b,c")
@@ -98,6 +104,7 @@ def settings_from_args(args):
         n_frames=args.frames,
         segmenter=args.segmenter,
         segmenter_options=options,
+        background=Path(args.background) if args.background else found.get("background"),
         name=args.name,
         margin=args.margin,
         hull_voxels=args.hull_voxels,

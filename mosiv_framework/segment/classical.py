@@ -4,8 +4,9 @@ that ties the cameras together, and identities tracked through the hull's 3D com
 No learned model: it suits static cameras, a static background that differs in colour from
 the objects, and objects inside a known domain box. The steps (each in its own module):
 
-1. ``foreground``: per camera, a background image (temporal median, or given), the RGB distance
-   to it, a threshold (Otsu's or set), morphological cleanup.
+1. ``foreground``: per camera, a background image (the recording's clean plate, a given folder,
+   or the temporal median), the RGB distance
+   to it, a threshold (just above the background's noise, Otsu's, or set), morphological cleanup.
 2. ``hull``: voxels of the domain whose centres project into the foreground of the cameras
    that see them; 3D connected components.
 3. ``track``: ids 1..K in order of world x at the first frame; matched over frames by centroid
@@ -31,8 +32,10 @@ from mosiv_framework.types import Frames
 @dataclass
 class ClassicalOptions:
     """threshold: RGB distance (8-bit units, 0..441) above which a pixel differs from the
-    background; None picks it per camera with Otsu's method; min_threshold: lower bound on the
-    Otsu threshold, so sensor noise alone is never called foreground;
+    background; None picks it per camera by auto_threshold: "noise" (just above the
+    background's own spread, ``foreground.noise_threshold``: objects of any contrast) or
+    "otsu" (Otsu's two-class cut); min_threshold: lower bound on the automatic threshold, so
+    sensor noise alone is never called foreground;
     background_frames: frame indices that show the empty scene, the background is their
     per-pixel median (None: the median over all frames, right where each pixel shows the
     background in more than half of the clip);
@@ -47,6 +50,7 @@ class ClassicalOptions:
     limit)."""
 
     threshold: float | None = None
+    auto_threshold: str = "noise"
     min_threshold: float = 10.0
     background_frames: list[int] | None = None
     background_dir: str | None = None
@@ -60,7 +64,12 @@ class ClassicalOptions:
     def __post_init__(self) -> None:
         problems = []
         if self.threshold is not None and not self.threshold > 0:
-            problems.append(f"threshold must be > 0 (or None for Otsu), got {self.threshold}")
+            problems.append(f"threshold must be > 0 (or None: automatic), got {self.threshold}")
+        if self.auto_threshold not in fgmod.AUTO_THRESHOLDS:
+            problems.append(
+                f"auto_threshold {self.auto_threshold!r}: valid values are "
+                f"{list(fgmod.AUTO_THRESHOLDS)}"
+            )
         if not self.min_threshold >= 0:
             problems.append(f"min_threshold must be >= 0, got {self.min_threshold}")
         for name in ("open_px", "close_px", "view_tolerance", "min_voxels"):
@@ -102,8 +111,14 @@ class ClassicalSegmenter(Segmenter):
         self.options = ClassicalOptions(**options)
 
     def backgrounds(self, frames: Frames) -> dict[str, np.ndarray]:
-        """Background image of every camera, float32 [H, W, 3]."""
+        """Background image of every camera, float32 [H, W, 3]: background_dir, else the
+        clean plates the frames come with, else a temporal median."""
         opts = self.options
+        if opts.background_dir is None and frames.backgrounds:
+            missing = sorted(set(frames.rgb) - set(frames.backgrounds))
+            if missing:
+                raise ConfigError(f"no background image for camera(s) {', '.join(missing)}")
+            return {cam: plate.astype(np.float32) for cam, plate in frames.backgrounds.items()}
         if opts.background_dir is not None:
             folder = Path(opts.background_dir)
             if not folder.is_dir():
@@ -135,6 +150,7 @@ class ClassicalSegmenter(Segmenter):
                 min_threshold=opts.min_threshold,
                 open_px=opts.open_px,
                 close_px=opts.close_px,
+                auto=opts.auto_threshold,
             )
         return out
 

@@ -55,6 +55,27 @@ def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
     return float(0.5 * (edges[best[0] + 1] + edges[best[-1] + 1]))
 
 
+#: how many robust standard deviations of the background's own distances a pixel must lie
+#: above them to count as foreground (``noise_threshold``); Gaussian noise passes 6 sigma in
+#: about one pixel in 10^9
+NOISE_SIGMAS = 6.0
+#: the automatic thresholds ``foreground`` can pick
+AUTO_THRESHOLDS = ("noise", "otsu")
+
+
+def noise_threshold(values: np.ndarray, sigmas: float = NOISE_SIGMAS) -> float:
+    """A cut just above the background's noise: median + ``sigmas`` x 1.4826 x MAD of
+    ``values``. Right wherever most values come from the background, however many objects of
+    whatever contrasts make up the rest (Otsu's cut, made for two classes, falls between a dim
+    object and a bright one when both are in view)."""
+    values = np.asarray(values, dtype=np.float64).ravel()
+    if not values.size:
+        return 0.0
+    centre = float(np.median(values))
+    spread = 1.4826 * float(np.median(np.abs(values - centre)))
+    return centre + sigmas * spread
+
+
 def _disk(radius: int) -> np.ndarray:
     """A 2D disk structuring element of ``radius`` pixels, as a [1, 2r+1, 2r+1] stack that acts
     on each frame of a [T, H, W] video separately. Offsets with x^2 + y^2 <= r (r + 1) count,
@@ -90,18 +111,23 @@ def foreground(
     min_threshold: float,
     open_px: int,
     close_px: int,
+    auto: str = "noise",
 ) -> tuple[np.ndarray, float]:
     """Foreground of one camera, bool [T, H, W], and the distance threshold used.
 
     Args:
         video: uint8 [T, H, W, 3]; background: float [H, W, 3].
-        threshold: RGB distance above which a pixel is foreground; None picks it with Otsu's
-            method on this camera's distances, raised to at least ``min_threshold`` so that
-            sensor noise alone (no object in view) is not split in two.
+        threshold: RGB distance above which a pixel is foreground; None picks it from this
+            camera's distances by ``auto`` ("noise": ``noise_threshold``; "otsu":
+            ``otsu_threshold``), raised to at least ``min_threshold`` so that sensor noise
+            alone (no object in view) is never foreground.
         open_px, close_px: radii of the cleanup (see ``clean_mask``).
     """
     distance = colour_distance(video, background)
     if threshold is None:
-        threshold = max(otsu_threshold(distance), min_threshold)
+        if auto not in AUTO_THRESHOLDS:
+            raise ValueError(f"auto threshold {auto!r}: valid values are {list(AUTO_THRESHOLDS)}")
+        pick = noise_threshold if auto == "noise" else otsu_threshold
+        threshold = max(pick(distance), min_threshold)
     mask = distance > threshold
     return clean_mask(mask, open_px=open_px, close_px=close_px), float(threshold)
