@@ -553,7 +553,8 @@ def test_a_clean_plate_keeps_resting_objects_out_of_the_background(settling, tmp
     with_plate = import_recording(ImportSettings(out=tmp_path / "p", **common, **found))
     found.pop("background")
     median = import_recording(ImportSettings(out=tmp_path / "m", **common, **found))
-    assert worst_mask_iou(original, read_scene(with_plate)) > 0.6
+    # MEASURED 0.85 with the rim of mixed pixels trimmed (edge_fraction 0.5)
+    assert worst_mask_iou(original, read_scene(with_plate)) > 0.8
     assert worst_mask_iou(original, read_scene(median)) < 0.3
 
 

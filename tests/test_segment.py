@@ -57,6 +57,31 @@ def test_noise_threshold_keeps_a_dim_object_that_otsu_cuts_off():
                          close_px=0, auto="mean")  # fmt: skip
 
 
+def test_rim_pixels_count_where_the_object_covers_at_least_half():
+    """A square whose edges cover 0.2, 0.5 and 0.8 of the rim pixels (colours mixed linearly,
+    as a camera integrates them): trimming keeps the rim pixels covered at least half, as a
+    mask is drawn, while the bare threshold keeps them all; a textured interior is not cut."""
+    background = np.full((32, 32, 3), 100.0, dtype=np.float32)
+    colour = np.array([100.0, 100.0, 220.0], dtype=np.float32)  # distance 120
+    video = np.repeat(background[None], 1, axis=0).copy()
+    video[0, 10:20, 10:20] = colour
+    video[0, 12:14, 12:18] = (100.0, 100.0, 160.0)  # a darker patch inside: distance 60
+    for column, cover in ((9, 0.2), (20, 0.8)):
+        video[0, 10:20, column] = (1 - cover) * background[0, 0] + cover * colour
+    video[0, 9, 10:20] = 0.5 * background[0, 0] + 0.5 * colour
+    video = np.rint(video).astype(np.uint8)
+    kwargs = dict(threshold=None, min_threshold=10.0, open_px=0, close_px=0)
+    loose, _ = fgmod.foreground(video, background, **kwargs)
+    trimmed, _ = fgmod.foreground(video, background, edge_fraction=0.5, **kwargs)
+    square = np.zeros((1, 32, 32), dtype=bool)
+    square[0, 10:20, 10:20] = True
+    assert loose[0, 10:20, 9].all() and loose[0, 9, 10:20].all()
+    expected = square.copy()
+    expected[0, 10:20, 20] = True  # covered 0.8
+    expected[0, 9, 10:20] = True  # covered 0.5
+    np.testing.assert_array_equal(trimmed, expected)
+
+
 def test_median_background_and_foreground_of_a_moving_square():
     rng = np.random.default_rng(1)
     background = rng.integers(0, 80, size=(24, 24, 3)).astype(np.uint8)

@@ -35,7 +35,9 @@ class ClassicalOptions:
     background; None picks it per camera by auto_threshold: "noise" (just above the
     background's own spread, ``foreground.noise_threshold``: objects of any contrast) or
     "otsu" (Otsu's two-class cut); min_threshold: lower bound on the automatic threshold, so
-    sensor noise alone is never called foreground;
+    sensor noise alone is never called foreground; edge_fraction: a pixel at an object's rim
+    counts when it reaches this fraction of the object's nearby distance (0.5: covered at
+    least half, as masks are drawn; 0: every pixel above the threshold);
     background_frames: frame indices that show the empty scene, the background is their
     per-pixel median (None: the median over all frames, right where each pixel shows the
     background in more than half of the clip);
@@ -52,6 +54,7 @@ class ClassicalOptions:
     threshold: float | None = None
     auto_threshold: str = "noise"
     min_threshold: float = 10.0
+    edge_fraction: float = 0.5
     background_frames: list[int] | None = None
     background_dir: str | None = None
     open_px: int = 1
@@ -70,6 +73,8 @@ class ClassicalOptions:
                 f"auto_threshold {self.auto_threshold!r}: valid values are "
                 f"{list(fgmod.AUTO_THRESHOLDS)}"
             )
+        if not 0.0 <= self.edge_fraction < 1.0:
+            problems.append(f"edge_fraction must lie in [0, 1), got {self.edge_fraction}")
         if not self.min_threshold >= 0:
             problems.append(f"min_threshold must be >= 0, got {self.min_threshold}")
         for name in ("open_px", "close_px", "view_tolerance", "min_voxels"):
@@ -151,6 +156,7 @@ class ClassicalSegmenter(Segmenter):
                 open_px=opts.open_px,
                 close_px=opts.close_px,
                 auto=opts.auto_threshold,
+                edge_fraction=opts.edge_fraction,
             )
         return out
 
