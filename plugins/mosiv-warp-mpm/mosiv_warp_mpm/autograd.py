@@ -138,8 +138,10 @@ class BackwardWorkspace:
         self._parameter_sums: torch.Tensor | None = None
         self._coefficient_sums: torch.Tensor | None = None
         self._obj: torch.Tensor | None = None
-        #: the captured adjoint, per value of MPMRun.centres (the launches differ)
-        self._graphs: dict[bool, wp.Graph] = {}
+        #: the captured adjoint, per value of MPMRun.centres and gather_parameters (the
+        #: launches differ: a graph captured with the copies would replay them after the
+        #: switch to the tables, and leave the tables' gradients at zero)
+        self._graphs: dict[tuple[bool, bool], wp.Graph] = {}
 
     def nbytes(self) -> int:
         grid = sum(a.capacity * 2 for a in self.grid.arrays())
@@ -228,11 +230,12 @@ class BackwardWorkspace:
         self.work[0].copy_from(start)
         run.begin_frame(frame, self.grid)
         if run.graphed:
-            graph = self._graphs.get(run.centres)
+            key = (run.centres, self.gather_parameters)
+            graph = self._graphs.get(key)
             if graph is None:
                 with wp.ScopedCapture(device=run.device, force_module_load=True) as capture:
                     self._launches(run)
-                graph = self._graphs[run.centres] = capture.graph
+                graph = self._graphs[key] = capture.graph
             wp.capture_launch(graph)
         else:
             self._launches(run)
