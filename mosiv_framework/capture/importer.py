@@ -190,6 +190,36 @@ def segment(
     return masks
 
 
+def check_objects_seen(masks: dict[str, np.ndarray], n_objects: int, plates) -> None:
+    """Every object in some camera's mask at every frame, else a CaptureError naming the
+    object and its frames. An object that vanishes mid-clip is what a wrong background gives:
+    a median background that holds an object resting for most of the clip (the frames before
+    it arrives then show a phantom there), or a threshold that cuts off a dim object."""
+    n = len(next(iter(masks.values())))
+    missing = {}
+    for k in range(1, n_objects + 1):
+        frames = [t for t in range(n) if not any(bool((m[t] == k).any()) for m in masks.values())]
+        if frames:
+            missing[k] = frames
+    if not missing:
+        return
+    where = "; ".join(
+        f"object {k} in frame(s) {', '.join(map(str, f[:8]))}{' ...' if len(f) > 8 else ''}"
+        for k, f in missing.items()
+    )
+    hint = (
+        "check the plates in --background (they must show the empty scene)"
+        if plates
+        else "record a clean plate of the empty scene per camera (--background DIR, or "
+        "background/ in the recording), or give --segmenter-option "
+        "background_frames=[...] naming frames without objects"
+    )
+    raise CaptureError(
+        f"the segmenter lost objects: {where} (no camera shows them); {hint}, or set "
+        "--segmenter-option threshold=T for objects close to the background's colour"
+    )
+
+
 def _alignment(s: ImportSettings, cams: dict[str, SourceCamera]):
     """(Alignment without the ground offset, up direction, ground: height (m) before the
     offset, "none", or None to fit it)."""
@@ -240,6 +270,7 @@ def _hull_frame(s, videos, cameras, origins, n_objects, ground, plates=None):
     if ground is None:  # leave room below a fitted ground for the finer hull to go lower
         lo[2] = fitted - 2 * step
     masks, lo, hi, ground, _ = _locate(s, videos, cameras, n_objects, (lo, hi), ground, plates)
+    check_objects_seen(masks, n_objects, plates)
     ground = None if ground == "none" else float(ground)
     logger.info("ground: %s", "none" if ground is None else f"z = {ground:.4f} m")
     return masks, lo, hi, ground
