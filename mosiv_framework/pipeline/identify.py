@@ -173,15 +173,18 @@ def identify(
     start_phase, start_iter, carried = state.resume()
     if contact is not None:
         restore_choice(contact, fit, state.history, vector)
+    holdout = int(getattr(section, "holdout_frames", 0) or 0)
     for index, phase in enumerate(phases):
         runs = phase.iterations > 0 and bool(phase.leaves(vector))
         if index < start_phase or not (runs or isinstance(phase, ParameterPhase)):
             continue
         resumed = carried if index == start_phase else None
+        global_result = None
         if isinstance(phase, ParameterPhase) and resumed is None and not state.global_done:
             if runs or contact is not None:
                 _global_stage(section, fit, state, phase, search=runs, contact=contact)
                 state.save_checkpoint(index, 0, None)
+            global_result = BestIterate.snapshot(vector)
         if not runs:
             continue
         run = _PhaseRun(phase, index, fit, state, section.checkpoint_every, resumed)
@@ -190,10 +193,13 @@ def identify(
             run.polish()
         # end of phase (also when its last iteration diverged): keep the best iterate
         run.best.apply(vector)
+        if isinstance(phase, ParameterPhase) and holdout:
+            candidates = {"descent": run.best, "global": global_result}
+            _choose_on_holdout(fit, vector, candidates, observed_frames - 1, state.history)
         state.save_checkpoint(index + 1, 0, None)
     if getattr(section, "intervals", False) and _parameters_fitted(phases, vector):
         method = getattr(section, "interval_method", "laplace")
-        _interval_stage(fit, vector, phases[-1].last, state.history, method)
+        _interval_stage(fit, vector, observed_frames - 1, state.history, method)
     return vector, state.history
 
 
@@ -244,6 +250,50 @@ def _global_stage(
             contact, fit, state.vector, frames=phase.last, search=stage, history=state.history
         )
     state.global_done = True
+
+
+def _choose_on_holdout(
+    fit: Fit, vector: ParameterVector, candidates: dict, last: int, history: list
+) -> None:
+    """Apply whichever of ``candidates`` (name -> BestIterate; None: not available, as after a
+    resumed run) fits frames ``1..last`` best, the held-out frames of ``identify.
+    holdout_frames`` included; a ``holdout`` record in ``history`` gives each one's loss.
+
+    Each candidate was fitted without the held-out frames, so what tells them apart there is
+    how they extrapolate: on data the model cannot match exactly (another engine's, a
+    recording) the descent's closer fit of the fitted frames can be the worse prediction."""
+    losses = {}
+    for name, candidate in candidates.items():
+        if candidate is None or candidate.leaves is None:
+            continue
+        candidate.apply(vector)
+        try:
+            loss = fit.window_loss(vector, last)
+        except SimulationDiverged:
+            continue
+        if math.isfinite(loss):
+            losses[name] = loss
+    if not losses:  # nothing could be scored: keep the descent's result
+        candidates["descent"].apply(vector)
+        history.append({"phase": "holdout", "losses": {}, "chosen": "descent"})
+        return
+    chosen = min(losses, key=losses.get)
+    candidates[chosen].apply(vector)
+    log.info(
+        "identification: %s kept on the whole window 1..%d (%s)",
+        chosen,
+        last,
+        ", ".join(f"{n} {v:.4g}" for n, v in losses.items()),
+    )
+    history.append(
+        {
+            "phase": "holdout",
+            "frames": last,
+            "losses": losses,
+            "chosen": chosen,
+            "values": vector.to_json(),
+        }
+    )
 
 
 def _parameters_fitted(phases: list[Phase], vector: ParameterVector) -> bool:

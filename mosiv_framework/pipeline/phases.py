@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-from mosiv_framework.errors import SimulationDiverged
+from mosiv_framework.errors import ConfigError, SimulationDiverged
 from mosiv_framework.losses import WeightedSum
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.types import GeometryFrames, ParticleSet, SimulationParams, Trajectory, World
@@ -237,11 +237,20 @@ def build_phases(section, *, observed_frames: int, velocity_frames: int | None) 
 
     The velocity phase fits frames 1..velocity_frames - 1 (default: every observed frame); after
     a free-flight velocity phase those frames carry no material information, so the parameter
-    phase's curriculum starts at the first frame after them."""
+    phase's curriculum starts at the first frame after them. ``identify.holdout_frames`` ends
+    the parameter phase that many frames before the last observed one (ConfigError when no
+    frame after its start would be left)."""
     last = observed_frames - 1
     v_last = last if velocity_frames is None else max(1, min(last, velocity_frames - 1))
     start = section.horizon_start
     param_start = max(start, v_last + 1) if velocity_frames is not None else start
+    holdout = int(getattr(section, "holdout_frames", 0) or 0)
+    if holdout and last - holdout < param_start:
+        raise ConfigError(
+            f"identify.holdout_frames={holdout}: the parameter phase would fit frames "
+            f"{param_start}..{last - holdout} of the {observed_frames} observed; hold out at "
+            f"most {max(0, last - param_start)}"
+        )
     return [
         VelocityPhase("velocity", section.velocity_iterations, section.velocity_lr, start, v_last),
         ParameterPhase(
@@ -249,7 +258,7 @@ def build_phases(section, *, observed_frames: int, velocity_frames: int | None) 
             section.param_iterations,
             section.param_lr,
             param_start,
-            last,
+            last - holdout,
             resync_every=int(getattr(section, "resync_every", 0) or 0),
             resync_iterations=getattr(section, "resync_iterations", 0),
             resync_lr=section.velocity_lr,

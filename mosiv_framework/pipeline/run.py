@@ -155,9 +155,11 @@ def stage_keys(plain: dict) -> dict[str, str]:
 def _identify_key(section: dict) -> dict:
     """What of the identify section its stage key covers: with ``law_choice: fixed`` the law
     alternatives are never tried, so neither they nor the choice enter the key, and a
-    ``global_polish`` of 0 is left out too (runs made before those existed keep their keys)."""
-    if not section.get("global_polish", 0):
-        section = {k: v for k, v in section.items() if k != "global_polish"}
+    ``global_polish`` or ``holdout_frames`` of 0 is left out too (runs made before those
+    existed keep their keys)."""
+    for key in ("global_polish", "holdout_frames"):
+        if not section.get(key, 0):
+            section = {k: v for k, v in section.items() if k != key}
     if section.get("law_choice", "fixed") != "fixed":
         return section
     return {k: v for k, v in section.items() if k not in ("law_choice", "law_alternatives")}

@@ -104,6 +104,12 @@ class IdentifySection:
     alone over this many values spread over its range, the others held, and keep the best (0:
     off): a joint design leaves each parameter few values, and a yield stress above every
     stress reached has no gradient to come back with (``global_search.coordinate_polish``);
+    holdout_frames: the last this many observed frames are held out of the parameter phase
+    (its global stage, sweep and descent fit the frames before them); the phase then keeps
+    whichever of the global stage's result and the descent's best fits the whole observed
+    window best, the held-out frames telling which extrapolates (0: off). For data a model
+    cannot match exactly, where a closer fit of the observed frames can predict the future
+    worse (``pipeline.identify._choose_on_holdout``);
     intervals: after identification, a 95 % interval per identified parameter (two-sided, or
     the one-sided bound the data support, or "unconstrained"), stored in identified.json under
     ``intervals`` (see ``mosiv_framework.pipeline.uncertainty``);
@@ -178,6 +184,7 @@ class IdentifySection:
     global_candidates: int = 0
     global_frames: int = 0
     global_polish: int = 0
+    holdout_frames: int = 0
     intervals: bool = True
     interval_method: str = "laplace"
     contact: str = "fixed"
@@ -266,6 +273,7 @@ IDENTIFY_RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "global_candidates": (0, None, "candidates of the global stage (0 = off)"),
     "global_frames": (0, None, "last frame of the global stage's rollouts (0 = all observed)"),
     "global_polish": (0, None, "values per parameter of the global stage's coordinate scan"),
+    "holdout_frames": (0, None, "observed frames held out of the parameter phase (0 = off)"),
     "contact_iterations": (0, None, "parameter steps of each contact mode's brief fit"),
     "contact_margin": (0.0, 1.0, "the fraction by which the other contact mode must fit better"),
 }
