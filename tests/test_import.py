@@ -44,10 +44,11 @@ def sphere_paths() -> np.ndarray:
     return np.stack([a, b], axis=1)
 
 
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
+def render_spheres(folder: Path, name: str, centres: np.ndarray) -> Path:
+    """The two spheres (red elastic, blue sand) along ``centres`` [T, 2, 3] seen by four
+    cameras, written as a scene into ``folder``."""
     cameras = example_cameras(n_cameras=4, size=SIZE)
-    paths = torch.as_tensor(sphere_paths())
+    paths = torch.as_tensor(centres)
     radii = torch.tensor([RADIUS, RADIUS], dtype=torch.float64)
     albedos = torch.tensor([(0.8, 0.15, 0.1), (0.1, 0.25, 0.8)], dtype=torch.float64)
     rgb, masks = {}, {}
@@ -57,8 +58,8 @@ def scene(tmp_path_factory) -> Path:
         rgb[cam.id] = np.stack([f[0] for f in frames])
         masks[cam.id] = np.stack([f[1] for f in frames])
     return write_scene(
-        tmp_path_factory.mktemp("scene") / "s",
-        name="slide",
+        folder,
+        name=name,
         fps=24.0,
         objects=[SceneObject(1, "a", "elastic"), SceneObject(2, "b", "sand")],
         cameras=cameras,
@@ -67,6 +68,11 @@ def scene(tmp_path_factory) -> Path:
         domain_lower=(-0.5, -0.5, 0.0),
         domain_upper=(0.5, 0.5, 1.0),
     )
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    return render_spheres(tmp_path_factory.mktemp("scene") / "s", "slide", sphere_paths())
 
 
 def intrinsics(cam) -> Intrinsics:
@@ -499,22 +505,7 @@ def settling_paths() -> np.ndarray:
 def settling(tmp_path_factory) -> Path:
     """The two spheres slide for the first frames, then rest where they stopped for most of the
     clip: each pixel's median over time shows a resting sphere, not the table."""
-    cameras = example_cameras(n_cameras=4, size=SIZE)
-    paths = torch.as_tensor(settling_paths())
-    radii = torch.tensor([RADIUS, RADIUS], dtype=torch.float64)
-    albedos = torch.tensor([(0.8, 0.15, 0.1), (0.1, 0.25, 0.8)], dtype=torch.float64)
-    rgb, masks = {}, {}
-    for cam in cameras:
-        o, d = cam.rays(dtype=torch.float64)
-        frames = [_render(o, d, paths[t], radii, albedos) for t in range(N_FRAMES)]
-        rgb[cam.id] = np.stack([f[0] for f in frames])
-        masks[cam.id] = np.stack([f[1] for f in frames])
-    return write_scene(
-        tmp_path_factory.mktemp("settling") / "s", name="settle", fps=24.0,
-        objects=[SceneObject(1, "a", "elastic"), SceneObject(2, "b", "sand")],
-        cameras=cameras, rgb=rgb, masks=masks,
-        domain_lower=(-0.5, -0.5, 0.0), domain_upper=(0.5, 0.5, 1.0),
-    )  # fmt: skip
+    return render_spheres(tmp_path_factory.mktemp("settling") / "s", "settle", settling_paths())
 
 
 def worst_mask_iou(original, got) -> float:

@@ -93,12 +93,13 @@ def load_plates(folder: Path | None, cams) -> dict[str, np.ndarray] | None:
         return None
     import imageio.v3 as iio
 
+    from mosiv_framework.segment.classical import background_image
+
     if not Path(folder).is_dir():
         raise CaptureError(f"--background {folder}: not a folder")
     plates = {}
     for cid, cam in sorted(cams.items()):
-        paths = [Path(folder) / f"{cid}{suffix}" for suffix in (".png", ".jpg", ".jpeg")]
-        path = next((p for p in paths if p.is_file()), None)
+        path = background_image(folder, cid)
         if path is None:
             raise CaptureError(
                 f"--background {folder}: no {cid}.png or {cid}.jpg for camera {cid!r}"

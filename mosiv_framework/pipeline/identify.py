@@ -184,7 +184,8 @@ def identify(
             if runs or contact is not None:
                 _global_stage(section, fit, state, phase, search=runs, contact=contact)
                 state.save_checkpoint(index, 0, None)
-            global_result = BestIterate.snapshot(vector)
+            if holdout:  # the global stage's result competes with the descent's at the end
+                global_result = BestIterate.snapshot(vector)
         if not runs:
             continue
         run = _PhaseRun(phase, index, fit, state, section.checkpoint_every, resumed)

@@ -90,19 +90,29 @@ class ClassicalOptions:
             raise ValueError("; ".join(problems))
 
 
+def background_image(folder: Path, camera_id: str) -> Path | None:
+    """The background image of ``camera_id`` in ``folder`` (``<camera id>.png``, ``.jpg`` or
+    ``.jpeg``), or None. The one naming rule of this segmenter's ``background_dir`` and of a
+    recording's clean plates (``mosiv data import --background``)."""
+    for suffix in (".png", ".jpg", ".jpeg"):
+        path = Path(folder) / f"{camera_id}{suffix}"
+        if path.is_file():
+            return path
+    return None
+
+
 def _read_background(folder: Path, camera_id: str, shape: tuple[int, ...]) -> np.ndarray:
     import imageio.v3 as iio  # lazy: image I/O only when a background folder is given
 
-    for suffix in (".png", ".jpg", ".jpeg"):
-        path = folder / f"{camera_id}{suffix}"
-        if path.is_file():
-            image = np.asarray(iio.imread(path))[..., :3]
-            if image.shape != shape:
-                raise ConfigError(
-                    f"background_dir: {path} is {list(image.shape)}, the camera's frames are "
-                    f"{list(shape)}"
-                )
-            return image.astype(np.float32)
+    path = background_image(folder, camera_id)
+    if path is not None:
+        image = np.asarray(iio.imread(path))[..., :3]
+        if image.shape != shape:
+            raise ConfigError(
+                f"background_dir: {path} is {list(image.shape)}, the camera's frames are "
+                f"{list(shape)}"
+            )
+        return image.astype(np.float32)
     raise ConfigError(
         f"background_dir: {folder} has no image for camera {camera_id!r} "
         f"(expected {camera_id}.png or {camera_id}.jpg)"
