@@ -1,5 +1,8 @@
 #!/usr/bin/env bash
 # Long GPU work spread over several device calls (each call is limited to 10 minutes).
+# For more jobs than the GPUs serve well at once, or jobs that import modules lazily, start them
+# with benchmarks/device_queue.py instead (slots per GPU, a snapshot of the checkout per job);
+# `wait` below serves both.
 # Jobs started here run in their own process session (setsid), so they outlive the call that
 # started them for as long as the machine stays warm: make the next call within its idle window.
 #
@@ -14,7 +17,7 @@
 # waits for them all and runs into its time limit (they go on, but its output is lost).
 # Give the jobs an output folder outside $OUT: the device empties $OUT before each call, so a
 # job writing there loses what it wrote before the call that is running now.
-jobs_dir=/root/jobs
+jobs_dir=${DEVICE_JOBS_DIR:-/root/jobs}
 mkdir -p "$jobs_dir"
 verb=$1
 shift
@@ -36,13 +39,20 @@ wait)
     for log in "$jobs_dir"/*.log; do
       [ -e "${log%.log}.rc" ] || running=$((running + 1))
     done
+    # jobs that benchmarks/device_queue.py holds back until a slot is free
+    for mark in "$jobs_dir"/*.queued; do
+      [ -e "$mark" ] && running=$((running + 1))
+    done
     ((running == 0)) && break
     sleep 10
   done
   for log in "$jobs_dir"/*.log; do
     name=$(basename "${log%.log}")
     rc=$(cat "${log%.log}.rc" 2>/dev/null || echo running)
-    echo "== $name: $rc; $(tail -c 300 "$log" | tr '\n' ' ' | tail -c 200)"
+    echo "== $name: $rc; $(tail -c 300 "$log" | tr '\r\n' '  ' | tail -c 200)"
+  done
+  for mark in "$jobs_dir"/*.queued; do
+    [ -e "$mark" ] && echo "== $(basename "${mark%.queued}"): queued"
   done
   nvidia-smi --query-gpu=name,utilization.gpu,memory.used --format=csv,noheader
   files=()

@@ -1,0 +1,218 @@
+"""A list of GPU jobs on the device machine: a few at a time per GPU, each in its own copy of
+the checkout, detached from the device call that starts them.
+
+Why not just start them all (benchmarks/device_batch.sh start): two ways of losing a lease.
+
+- Every device call copies the working tree into the repository root again. A job that imports
+  a module lazily (a plugin's simulator, say) while a later call's copy is going on can find the
+  file missing and die. Here a job runs in a snapshot of the checkout taken when it starts.
+- Fourteen processes on two GPUs, each torch process spreading its CPU work over every core,
+  slowed every one of them about tenfold, so none finished within the lease. Here at most
+  ``--slots`` jobs run on each GPU at once and each gets its share of the CPU cores as threads.
+
+Usage (repository root, after ``source benchmarks/gpu_setup.sh``)::
+
+    python3 benchmarks/device_queue.py start JOBFILE --slots 3
+    bash benchmarks/device_batch.sh wait SECONDS 'GLOB' ...   # later calls: wait, pack results
+
+JOBFILE holds one job per line, ``NAME COMMAND...`` (COMMAND in shell syntax, run by bash in
+the job's snapshot); blank lines and lines starting with # are skipped. Each job logs to
+``JOBS/NAME.log`` and leaves its exit code in ``JOBS/NAME.rc`` (JOBS: ``--jobs-dir``, default
+/root/jobs, the folder device_batch.sh reads); a job not yet started has ``JOBS/NAME.queued``.
+Jobs start in file order on the GPU with the fewest running jobs. Give jobs output folders
+outside the checkout (e.g. /root/w/...): the snapshot is deleted when the job ends.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+#: hidden folders at the top of the checkout that a snapshot keeps (the others hold staged
+#: wheels, data parts and caches, which jobs do not import from the checkout)
+SNAPSHOT_KEEP_HIDDEN = {".tideps", ".ci"}
+#: what a snapshot leaves out anywhere: run folders and caches
+SNAPSHOT_IGNORE_ANYWHERE = {"runs", "__pycache__", ".pytest_cache", ".ruff_cache", ".git"}
+
+
+def snapshot_ignore(folder: str, names: list[str]) -> set[str]:
+    """shutil.copytree's ignore: what of ``names`` in ``folder`` a snapshot leaves out."""
+    left_out = {n for n in names if n in SNAPSHOT_IGNORE_ANYWHERE or n.endswith(".egg-info")}
+    if Path(folder).resolve() == ROOT:
+        left_out |= {n for n in names if n.startswith(".") and n not in SNAPSHOT_KEEP_HIDDEN}
+    return left_out
+
+
+#: how often the queue looks for finished jobs
+POLL_SECONDS = 2.0
+
+
+@dataclass
+class Job:
+    """One line of the job file."""
+
+    name: str
+    command: str
+
+
+def read_jobs(path: Path) -> list[Job]:
+    """The jobs of ``path`` in file order.
+
+    Raises:
+        ValueError: a line without a command, a name that is not a plain file name, or a name
+            used twice (each names the job's log and exit-code files).
+    """
+    jobs: list[Job] = []
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        name, _, command = line.partition(" ")
+        if not command.strip():
+            raise ValueError(f"{path}:{number}: '{name}' has no command (want: NAME COMMAND...)")
+        if "/" in name or name.startswith("."):
+            raise ValueError(f"{path}:{number}: job name '{name}' must be a plain file name")
+        if any(job.name == name for job in jobs):
+            raise ValueError(f"{path}:{number}: job name '{name}' is used twice")
+        jobs.append(Job(name, command.strip()))
+    return jobs
+
+
+def count_gpus() -> int:
+    """GPUs this process may use: CUDA_VISIBLE_DEVICES where set, else nvidia-smi's list."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        return len([d for d in visible.split(",") if d.strip()])
+    try:
+        listing = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, check=True)
+    except (OSError, subprocess.CalledProcessError):
+        return 0
+    return sum(1 for line in listing.stdout.splitlines() if line.startswith("GPU "))
+
+
+def gpu_ids(n_gpus: int) -> list[str]:
+    """The device ids to hand out, as CUDA_VISIBLE_DEVICES names them."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        return [d.strip() for d in visible.split(",") if d.strip()][:n_gpus]
+    return [str(i) for i in range(n_gpus)]
+
+
+def job_environment(tree: Path, gpu: str, threads: int) -> dict[str, str]:
+    """The job's environment: its GPU, its CPU threads, and import paths into its snapshot."""
+    env = dict(os.environ)
+    env["CUDA_VISIBLE_DEVICES"] = gpu
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        env[var] = str(threads)
+    paths = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
+    # gpu_setup.sh puts the checkout and its plugins on PYTHONPATH: point them at the snapshot
+    # (PYTHONPATH comes before the installed packages, so the snapshot's modules are imported)
+    moved = [str(snapshot_path(Path(p), tree)) for p in paths]
+    env["PYTHONPATH"] = os.pathsep.join([str(tree), *[p for p in moved if p != str(tree)]])
+    return env
+
+
+def snapshot_path(path: Path, tree: Path) -> Path:
+    """``path`` inside the snapshot ``tree`` where it lies in the checkout and the snapshot has
+    it (the staged packages, say, are left out of snapshots and stay where they are)."""
+    try:
+        inside = tree / path.resolve().relative_to(ROOT)
+    except ValueError:
+        return path
+    return inside if inside.exists() else path
+
+
+def launch(job: Job, jobs_dir: Path, gpu: str, threads: int) -> subprocess.Popen:
+    """Snapshot the checkout and start ``job`` in it on ``gpu``."""
+    tree = jobs_dir / f"{job.name}.tree"
+    shutil.rmtree(tree, ignore_errors=True)
+    shutil.copytree(ROOT, tree, ignore=snapshot_ignore, symlinks=True)
+    log = open(jobs_dir / f"{job.name}.log", "w")  # noqa: SIM115 (the child holds it open)
+    (jobs_dir / f"{job.name}.queued").unlink(missing_ok=True)
+    print(f"{time.strftime('%H:%M:%S')} start {job.name} on GPU {gpu}", flush=True)
+    return subprocess.Popen(
+        ["bash", "-c", job.command],
+        cwd=tree,
+        env=job_environment(tree, gpu, threads),
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+    )
+
+
+def run_queue(jobs: list[Job], jobs_dir: Path, n_gpus: int, slots: int, threads: int) -> int:
+    """Run every job, at most ``slots`` at once per GPU; returns how many failed."""
+    gpus = gpu_ids(max(n_gpus, 1))
+    waiting = list(jobs)
+    running: dict[str, tuple[str, subprocess.Popen]] = {}
+    on_gpu = {gpu: 0 for gpu in gpus}
+    failed = 0
+    while waiting or running:
+        for name, (gpu, process) in list(running.items()):
+            code = process.poll()
+            if code is None:
+                continue
+            (jobs_dir / f"{name}.rc").write_text(f"{code}\n")
+            on_gpu[gpu] -= 1
+            shutil.rmtree(jobs_dir / f"{name}.tree", ignore_errors=True)
+            failed += code != 0
+            print(f"{time.strftime('%H:%M:%S')} end {name}: exit {code}", flush=True)
+            del running[name]
+        while waiting:
+            gpu = min(gpus, key=lambda g: on_gpu[g])
+            if on_gpu[gpu] >= slots:
+                break
+            job = waiting.pop(0)
+            on_gpu[gpu] += 1
+            running[job.name] = (gpu, launch(job, jobs_dir, gpu, threads))
+        time.sleep(POLL_SECONDS)
+    return failed
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "verb", choices=["start", "run"], help="start: detach and run; run: run here"
+    )
+    parser.add_argument("jobfile", type=Path)
+    parser.add_argument("--slots", type=int, default=3, help="jobs at once per GPU (default 3)")
+    parser.add_argument("--gpus", type=int, default=None, help="GPUs to use (default: all seen)")
+    parser.add_argument("--threads", type=int, default=None, help="CPU threads per job")
+    parser.add_argument("--jobs-dir", type=Path, default=Path("/root/jobs"))
+    args = parser.parse_args(argv)
+    if args.slots < 1:
+        parser.error(f"--slots {args.slots}: want at least 1 job per GPU")
+    jobs = read_jobs(args.jobfile)
+    n_gpus = args.gpus if args.gpus is not None else count_gpus()
+    threads = args.threads or max(1, (os.cpu_count() or 1) // (max(n_gpus, 1) * args.slots))
+    args.jobs_dir.mkdir(parents=True, exist_ok=True)
+    clash = [j.name for j in jobs if (args.jobs_dir / f"{j.name}.log").exists()]
+    if clash:
+        parser.error(f"{args.jobs_dir} already has logs of {', '.join(clash)}: rename those jobs")
+    for job in jobs:
+        (args.jobs_dir / f"{job.name}.queued").write_text(job.command + "\n")
+    if args.verb == "run":
+        return min(run_queue(jobs, args.jobs_dir, n_gpus, args.slots, threads), 1)
+    rest = [str(args.jobfile), "--slots", str(args.slots), "--gpus", str(n_gpus)]
+    rest += ["--threads", str(threads), "--jobs-dir", str(args.jobs_dir)]
+    log = open(args.jobs_dir / "queue.out", "a")  # noqa: SIM115 (the detached queue holds it)
+    subprocess.Popen(
+        [sys.executable, __file__, "run", *rest],
+        start_new_session=True,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+    )
+    print(f"queued {len(jobs)} jobs: {n_gpus} GPU(s) x {args.slots} slots, {threads} threads each")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

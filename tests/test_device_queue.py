@@ -1,0 +1,101 @@
+"""benchmarks/device_queue.py: at most --slots jobs per GPU, each on its own GPU id and thread
+share, each in a snapshot of the checkout that later changes to the checkout do not reach."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+QUEUE = ROOT / "benchmarks" / "device_queue.py"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import device_queue  # noqa: E402
+
+
+def _job(name: str, out: Path) -> str:
+    # records its GPU, threads, working folder and start/end times, and that a module of the
+    # checkout imports from its snapshot
+    return (
+        f'{name} python3 -c "import os, time, mosiv_framework as m; '
+        f"t0 = time.time(); time.sleep(1.5); "
+        f"open('{out}/{name}.txt', 'w').write(' '.join([os.environ['CUDA_VISIBLE_DEVICES'], "
+        f"os.environ['OMP_NUM_THREADS'], os.getcwd(), m.__file__, str(t0), str(time.time())]))\""
+    )
+
+
+def test_queue_runs_each_job_in_a_snapshot_within_its_slots(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    jobs_dir = tmp_path / "jobs"
+    jobfile = tmp_path / "jobs.txt"
+    lines = ["# three jobs, two GPUs, one slot each", "", *(_job(f"j{i}", out) for i in range(3))]
+    jobfile.write_text("\n".join(lines) + "\n")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("CUDA_VISIBLE_DEVICES", None)
+    args = [sys.executable, str(QUEUE), "run", str(jobfile), "--gpus", "2", "--slots", "1"]
+    args += ["--threads", "3", "--jobs-dir", str(jobs_dir)]
+    subprocess.run(args, env=env, check=True, timeout=120)
+
+    rows = {}
+    for i in range(3):
+        gpu, threads, cwd, module, t0, t1 = (out / f"j{i}.txt").read_text().split(" ")
+        rows[i] = (gpu, float(t0), float(t1))
+        assert threads == "3"
+        assert cwd == str(jobs_dir / f"j{i}.tree")
+        assert module.startswith(cwd + os.sep), "the job imported the checkout, not its snapshot"
+        assert (jobs_dir / f"j{i}.rc").read_text().strip() == "0"
+        assert not (jobs_dir / f"j{i}.queued").exists()
+        assert not (jobs_dir / f"j{i}.tree").exists(), "snapshot left behind"
+    assert {rows[0][0], rows[1][0]} == {"0", "1"}
+    # one slot per GPU: the third job starts only after one of the first two has ended
+    assert rows[2][1] >= min(rows[0][2], rows[1][2]) - 0.05
+    # and never two jobs on one GPU at once
+    for a in range(3):
+        for b in range(a + 1, 3):
+            if rows[a][0] == rows[b][0]:
+                assert rows[a][2] <= rows[b][1] + 0.05 or rows[b][2] <= rows[a][1] + 0.05
+
+
+def test_failed_job_leaves_its_exit_code_and_the_queue_goes_on(tmp_path):
+    jobfile = tmp_path / "jobs.txt"
+    jobfile.write_text("bad exit 3\ngood true\n")
+    jobs_dir = tmp_path / "jobs"
+    code = device_queue.main(
+        ["run", str(jobfile), "--gpus", "1", "--slots", "1", "--jobs-dir", str(jobs_dir)]
+    )
+    assert code == 1
+    assert (jobs_dir / "bad.rc").read_text().strip() == "3"
+    assert (jobs_dir / "good.rc").read_text().strip() == "0"
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("alone\n", "'alone' has no command"),
+        ("a/b true\n", "must be a plain file name"),
+        ("x true\nx false\n", "'x' is used twice"),
+    ],
+)
+def test_bad_job_file_is_named_with_its_line(tmp_path, text, message):
+    jobfile = tmp_path / "jobs.txt"
+    jobfile.write_text(text)
+    with pytest.raises(ValueError, match=message) as error:
+        device_queue.read_jobs(jobfile)
+    assert str(jobfile) in str(error.value)
+
+
+def test_a_job_whose_log_exists_is_refused(tmp_path, capsys):
+    jobfile = tmp_path / "jobs.txt"
+    jobfile.write_text("again true\n")
+    jobs_dir = tmp_path / "jobs"
+    jobs_dir.mkdir()
+    (jobs_dir / "again.log").write_text("an earlier run\n")
+    with pytest.raises(SystemExit):
+        device_queue.main(["run", str(jobfile), "--gpus", "1", "--jobs-dir", str(jobs_dir)])
+    assert "again" in capsys.readouterr().err
+    assert (jobs_dir / "again.log").read_text() == "an earlier run\n"
