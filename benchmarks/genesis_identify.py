@@ -32,6 +32,10 @@ rows (and with ``--write-results`` the section):
     python benchmarks/genesis_identify.py --scenes runs/genesis --out runs/gid --only E-S --part
     python benchmarks/genesis_identify.py --scenes runs/genesis --out runs/gid --merge \
         --write-results docs/RESULTS.md
+
+On the GPU machine, ``--job-file JOBS`` writes those ``--part`` runs as jobs for
+benchmarks/device_queue.py, which runs a few at a time per GPU (each in a snapshot of the
+checkout); ``--merge`` as above once they have ended.
 """
 
 from __future__ import annotations
@@ -265,11 +269,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--merge", action="store_true", help="the table from the --part rows in OUT/parts"
     )
+    parser.add_argument(
+        "--job-file",
+        type=Path,
+        default=None,
+        help="write the --part run of each scene as a job of benchmarks/device_queue.py, run none",
+    )
     args = parser.parse_args(argv)
-    if args.part and args.merge:
-        parser.error("--part runs one scene and --merge tabulates the parts: give one of them")
+    if sum([args.part, args.merge, args.job_file is not None]) > 1:
+        parser.error(
+            "--part runs one scene, --merge tabulates the parts, --job-file lists the "
+            "parts: give one of them"
+        )
     scale = scale_options(args)
     names = find_scenes(args.scenes, args.only)
+    if args.job_file is not None:
+        write_job_file(args, names)
+        return 0
     (args.out / "parts").mkdir(parents=True, exist_ok=True)
     if args.part:
         run_part(args, names[0])
@@ -286,6 +302,33 @@ def main(argv: list[str] | None = None) -> int:
         write_results(args.write_results, table, command=command)
         print(f"[genesis] wrote the section '{SECTION}' of {args.write_results}")
     return 0
+
+
+def write_job_file(args: argparse.Namespace, names: list[str]) -> None:
+    """One line per scene, ``gid_SCENE`` and its ``--part`` command, for
+    benchmarks/device_queue.py. Paths are absolute: each job runs in its own snapshot of the
+    checkout, and the rows must land in the one OUT (a recipe of the checkout stays relative,
+    so that a job reads its snapshot's copy)."""
+    script = Path(__file__).resolve()
+    root = script.parents[1]
+    recipe = args.recipe.resolve()
+    if recipe.is_relative_to(root):
+        recipe = recipe.relative_to(root)
+    common = [
+        f"--scenes {shlex.quote(str(args.scenes.resolve()))}",
+        f"--out {shlex.quote(str(args.out.resolve()))}",
+        f"--recipe {shlex.quote(str(recipe))}",
+        *(f"--set {shlex.quote(item)}" for item in args.set),
+    ]
+    lines = [
+        f"gid_{name} python3 {script.relative_to(root)} --only {name} --part " + " ".join(common)
+        for name in names
+    ]
+    args.job_file.write_text("\n".join(lines) + "\n")
+    print(
+        f"[genesis] {len(lines)} jobs in {args.job_file}: python3 benchmarks/device_queue.py "
+        f"start {args.job_file} --slots 3"
+    )
 
 
 def merge_command_text(argv: list[str]) -> str:

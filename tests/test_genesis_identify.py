@@ -460,3 +460,35 @@ def test_merge_command_names_the_part_runs_too():
         " simulator.grid=48` for each scene, then `python benchmarks/genesis_identify.py --scenes"
         " SCENES --out OUT --merge --write-results R.md --set simulator.grid=48"
     )
+
+
+def test_job_file_lists_one_part_run_per_scene_for_the_device_queue(tmp_path):
+    """--job-file: one device_queue.py job per scene (in suite order), each the scene's --part
+    run with the given overrides, absolute data paths (jobs run in snapshots of the checkout)
+    and the recipe relative to the checkout; nothing runs and OUT is not made."""
+    bench = _bench()
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import device_queue
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    scenes, out, jobs = tmp_path / "scenes", tmp_path / "out", tmp_path / "jobs.txt"
+    scenes.mkdir()
+    for name in ("P-P", "E-E"):
+        (scenes / name).symlink_to(TINY, target_is_directory=True)
+    (scenes / "suite.json").write_text(json.dumps({"scenes": {"P-P": {}, "E-E": {}}}))
+    argv = ["--scenes", str(scenes), "--out", str(out), "--set", "identify.holdout_frames=3"]
+    assert bench.main([*argv, "--job-file", str(jobs)]) == 0
+    assert not out.exists()
+    listed = device_queue.read_jobs(jobs)
+    assert [job.name for job in listed] == ["gid_P-P", "gid_E-E"]
+    for job, name in zip(listed, ("P-P", "E-E")):
+        words = job.command.split()
+        assert words[:2] == ["python3", "benchmarks/genesis_identify.py"]
+        assert words[words.index("--only") + 1] == name and "--part" in words
+        assert words[words.index("--out") + 1] == str(out.resolve())
+        assert words[words.index("--scenes") + 1] == str(scenes.resolve())
+        assert words[words.index("--recipe") + 1] == "recipes/genesis_oracle.yaml"
+        assert words[words.index("--set") + 1] == "identify.holdout_frames=3"
+    with pytest.raises(SystemExit):
+        bench.main([*argv, "--job-file", str(jobs), "--merge"])
