@@ -19,8 +19,9 @@ JOBFILE holds one job per line, ``NAME COMMAND...`` (COMMAND in shell syntax, ru
 the job's snapshot); blank lines and lines starting with # are skipped. Each job logs to
 ``JOBS/NAME.log`` and leaves its exit code in ``JOBS/NAME.rc`` (JOBS: ``--jobs-dir``, default
 /root/jobs, the folder device_batch.sh reads); a job not yet started has ``JOBS/NAME.queued``.
-Jobs start in file order on the GPU with the fewest running jobs. Give jobs output folders
-outside the checkout (e.g. /root/w/...): the snapshot is deleted when the job ends.
+Jobs start in file order on the GPU with the fewest running jobs. The checkout is copied once
+when the queue starts (``JOBS/checkout-STAMP``) and each job runs in its own copy of that,
+deleted when the job ends: give jobs output folders outside the checkout (e.g. /root/w/...).
 """
 
 from __future__ import annotations
@@ -129,11 +130,19 @@ def snapshot_path(path: Path, tree: Path) -> Path:
     return inside if inside.exists() else path
 
 
-def launch(job: Job, jobs_dir: Path, gpu: str, threads: int) -> subprocess.Popen:
-    """Snapshot the checkout and start ``job`` in it on ``gpu``."""
+def take_snapshot(jobs_dir: Path) -> Path:
+    """A copy of the checkout as it is now, which every job of this queue starts from (a job
+    started later must not copy a checkout that a device call is replacing meanwhile)."""
+    source = jobs_dir / f"checkout-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    shutil.copytree(ROOT, source, ignore=snapshot_ignore, symlinks=True)
+    return source
+
+
+def launch(job: Job, source: Path, jobs_dir: Path, gpu: str, threads: int) -> subprocess.Popen:
+    """Copy the queue's snapshot ``source`` for ``job`` and start the job in it on ``gpu``."""
     tree = jobs_dir / f"{job.name}.tree"
     shutil.rmtree(tree, ignore_errors=True)
-    shutil.copytree(ROOT, tree, ignore=snapshot_ignore, symlinks=True)
+    shutil.copytree(source, tree, symlinks=True)
     log = open(jobs_dir / f"{job.name}.log", "w")  # noqa: SIM115 (the child holds it open)
     (jobs_dir / f"{job.name}.queued").unlink(missing_ok=True)
     print(f"{time.strftime('%H:%M:%S')} start {job.name} on GPU {gpu}", flush=True)
@@ -147,8 +156,11 @@ def launch(job: Job, jobs_dir: Path, gpu: str, threads: int) -> subprocess.Popen
     )
 
 
-def run_queue(jobs: list[Job], jobs_dir: Path, n_gpus: int, slots: int, threads: int) -> int:
-    """Run every job, at most ``slots`` at once per GPU; returns how many failed."""
+def run_queue(
+    jobs: list[Job], source: Path, jobs_dir: Path, n_gpus: int, slots: int, threads: int
+) -> int:
+    """Run every job in a copy of ``source``, at most ``slots`` at once per GPU; returns how
+    many failed."""
     gpus = gpu_ids(max(n_gpus, 1))
     waiting = list(jobs)
     running: dict[str, tuple[str, subprocess.Popen]] = {}
@@ -171,7 +183,7 @@ def run_queue(jobs: list[Job], jobs_dir: Path, n_gpus: int, slots: int, threads:
                 break
             job = waiting.pop(0)
             on_gpu[gpu] += 1
-            running[job.name] = (gpu, launch(job, jobs_dir, gpu, threads))
+            running[job.name] = (gpu, launch(job, source, jobs_dir, gpu, threads))
         time.sleep(POLL_SECONDS)
     return failed
 
@@ -186,6 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--gpus", type=int, default=None, help="GPUs to use (default: all seen)")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads per job")
     parser.add_argument("--jobs-dir", type=Path, default=Path("/root/jobs"))
+    parser.add_argument(
+        "--source", type=Path, default=None, help="the snapshot to start jobs from (default: now)"
+    )
     args = parser.parse_args(argv)
     if args.slots < 1:
         parser.error(f"--slots {args.slots}: want at least 1 job per GPU")
@@ -198,10 +213,15 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"{args.jobs_dir} already has logs of {', '.join(clash)}: rename those jobs")
     for job in jobs:
         (args.jobs_dir / f"{job.name}.queued").write_text(job.command + "\n")
+    source = args.source or take_snapshot(args.jobs_dir)
     if args.verb == "run":
-        return min(run_queue(jobs, args.jobs_dir, n_gpus, args.slots, threads), 1)
-    rest = [str(args.jobfile), "--slots", str(args.slots), "--gpus", str(n_gpus)]
-    rest += ["--threads", str(threads), "--jobs-dir", str(args.jobs_dir)]
+        return min(run_queue(jobs, source, args.jobs_dir, n_gpus, args.slots, threads), 1)
+    # the detached queue reads its own copy of the job file, taken while this call holds the
+    # checkout still
+    jobfile = source.with_suffix(".jobs")
+    shutil.copyfile(args.jobfile, jobfile)
+    rest = [str(jobfile), "--slots", str(args.slots), "--gpus", str(n_gpus)]
+    rest += ["--threads", str(threads), "--jobs-dir", str(args.jobs_dir), "--source", str(source)]
     log = open(args.jobs_dir / "queue.out", "a")  # noqa: SIM115 (the detached queue holds it)
     subprocess.Popen(
         [sys.executable, __file__, "run", *rest],

@@ -99,3 +99,30 @@ def test_a_job_whose_log_exists_is_refused(tmp_path, capsys):
         device_queue.main(["run", str(jobfile), "--gpus", "1", "--jobs-dir", str(jobs_dir)])
     assert "again" in capsys.readouterr().err
     assert (jobs_dir / "again.log").read_text() == "an earlier run\n"
+
+
+def test_start_returns_at_once_and_the_detached_queue_runs_the_jobs(tmp_path):
+    """``start`` snapshots the checkout and its job file, marks every job queued and returns;
+    the queue it leaves behind runs them and records their exit codes."""
+    import time
+
+    jobfile = tmp_path / "jobs.txt"
+    jobfile.write_text("first sleep 1\nsecond exit 4\n")
+    jobs_dir = tmp_path / "jobs"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    args = [sys.executable, str(QUEUE), "start", str(jobfile), "--gpus", "1", "--slots", "1"]
+    started = subprocess.run(
+        [*args, "--jobs-dir", str(jobs_dir)], env=env, capture_output=True, text=True, timeout=60
+    )
+    assert started.returncode == 0, started.stderr
+    assert "queued 2 jobs" in started.stdout
+    assert not (jobs_dir / "second.rc").exists()
+    jobfile.unlink()  # the queue reads its own copy
+    deadline = time.time() + 60
+    while not (jobs_dir / "second.rc").exists() and time.time() < deadline:
+        time.sleep(0.5)
+    assert (jobs_dir / "first.rc").read_text().strip() == "0"
+    assert (jobs_dir / "second.rc").read_text().strip() == "4"
+    assert not list(jobs_dir.glob("*.queued"))
+    snapshots = list(jobs_dir.glob("checkout-*"))
+    assert any(s.is_dir() and (s / "benchmarks" / "device_queue.py").is_file() for s in snapshots)
