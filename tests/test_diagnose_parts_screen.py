@@ -289,3 +289,63 @@ def test_the_screen_walks_out_along_the_descent_direction_when_the_loss_keeps_fa
         assert theta >= 0.3, name  # the rungs: 0.0316, 0.1, 0.316, 1.0
         assert result.drop_fraction == pytest.approx(1.0 - float(loss_of(result.theta[0]))), name
         assert "walked" in result.note, name
+
+
+def test_the_regression_estimate_is_scored_in_the_batch_of_the_probe_and_walk():
+    """The model at the regression estimate rolls out with the candidate's probe and walk in
+    one batch, and its drop is the one ``regression_drop`` gives alone."""
+    from types import SimpleNamespace
+
+    from mosiv_framework.diagnose.candidates import build_candidates
+    from mosiv_framework.diagnose.hypothesise import (
+        FALLBACK_RUNGS,
+        _velocity_only_loss,
+        regression_drop,
+        regression_estimate,
+        screen,
+    )
+
+    wind_true = torch.tensor([0.0, 2.5, 0.0])
+
+    class FakeContext(_FakeContext):
+        batches: list[int] = []
+
+        def simulate(self, params, *, frames):
+            return params
+
+        rollout = simulate
+
+        def loss(self, params, frames):
+            wind = params.terms.get("wind", {}).get("acceleration", torch.zeros(3))
+            v = params.initial_velocity[1]
+            return 0.1 + ((wind - wind_true) ** 2).sum() + ((v - 0.2) ** 2).sum()
+
+        def rollout_losses(self, params_list, fit_frames):
+            self.batches.append(len(params_list))
+            return super().rollout_losses(params_list, fit_frames)
+
+    ctx = FakeContext(frozenset({"wind"}))
+    wind = next(c for c in build_candidates(ctx)[0] if c.name == "wind")
+    time_s = np.arange(10)[:, None] / ctx.fps
+    centroid = 0.5 * wind_true.numpy() * time_s**2 + np.array([0.1, 0.0, 0.0]) * time_s
+    residuals = {1: SimpleNamespace(centroid=centroid, sim_velocity=np.zeros((10, 3)))}
+    regimes = {1: ["free_flight"] * 10}
+    fit = list(range(1, 10))
+    (result,) = screen(
+        ctx,
+        [wind],
+        flagged_regimes=["free_flight"],
+        fit_frames=fit,
+        residuals=residuals,
+        regimes=regimes,
+    )
+    # one batch: the probe, its walk out to the bound and the regression model (the gradient
+    # at zero and the velocity-only reference are rolled out before it)
+    assert ctx.batches[-1] == 1 + (FALLBACK_RUNGS - 1) + 1
+    regression = regression_estimate(ctx, wind, residuals, regimes, fit)
+    base = float(ctx.loss(ctx.identified, fit))
+    reference = _velocity_only_loss(ctx, base, residuals, regimes, fit)
+    alone = regression_drop(ctx, wind, regression, reference=reference, fit_frames=fit)
+    assert alone > 0.5
+    assert f"regression drop {alone:.3g}" in result.note
+    assert result.drop_fraction >= alone

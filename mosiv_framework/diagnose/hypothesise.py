@@ -38,6 +38,7 @@ import torch
 from mosiv_framework.diagnose.candidates import Candidate
 from mosiv_framework.diagnose.context import RunContext
 from mosiv_framework.errors import SimulationDiverged
+from mosiv_framework.types import SimulationParams
 
 
 @dataclass
@@ -210,6 +211,25 @@ def shifted_velocities(params, velocity_change: dict | None):
     return replace(params, initial_velocity=moved)
 
 
+def regression_params(
+    ctx: RunContext,
+    candidate: Candidate,
+    regression: tuple[torch.Tensor, dict[int, torch.Tensor]],
+) -> SimulationParams:
+    """The identified model with ``candidate`` at its regression estimate: coefficients and
+    initial-velocity change together."""
+    theta, velocity_change = regression
+    return candidate.apply(shifted_velocities(ctx.identified, velocity_change), theta)
+
+
+def drop_below(loss: float, reference: float) -> float:
+    """Fraction of ``reference`` that ``loss`` removes; 0 for a loss not lower, not finite
+    (a diverged rollout) or a reference that is not positive."""
+    if not math.isfinite(loss) or reference <= 0:
+        return 0.0
+    return max(0.0, (reference - loss) / reference)
+
+
 def regression_drop(
     ctx: RunContext,
     candidate: Candidate,
@@ -219,21 +239,19 @@ def regression_drop(
     fit_frames: list[int],
 ) -> float:
     """Fraction of ``reference`` that the model with ``candidate`` at its regression estimate
-    (coefficients and initial-velocity change together) removes from the loss on
-    ``fit_frames``; 0 if it does not lower it or the rollout diverges.
+    (``regression_params``) removes from the loss on ``fit_frames``; 0 if it does not lower it
+    or the rollout diverges. The screening rolls this model out in the batch of its probe and
+    walk (``_screen_by_gradient``); this is the same number alone.
 
     ``reference`` should be the lower of the identified model's loss and the null model's at
     the null regression's velocity change, so the velocity change alone earns no credit."""
-    theta, velocity_change = regression
-    params = candidate.apply(shifted_velocities(ctx.identified, velocity_change), theta)
+    params = regression_params(ctx, candidate, regression)
     try:
         with torch.no_grad():
             loss = float(ctx.loss(ctx.rollout(params, frames=max(fit_frames)), fit_frames))
     except SimulationDiverged:
         return 0.0
-    if not math.isfinite(loss) or reference <= 0:
-        return 0.0
-    return max(0.0, (reference - loss) / reference)
+    return drop_below(loss, reference)
 
 
 def _max_step(candidate: Candidate, direction: torch.Tensor) -> float:
@@ -268,13 +286,14 @@ def _probe_and_walk(
     limit: float,
     *,
     fit_frames: list[int],
-) -> tuple[float, float, float]:
-    """(probe, step, loss): the loss one natural step along ``direction`` (the probe), and
-    the best of FALLBACK_RUNGS - 1 steps beyond it, evenly spaced in log from it to the bound
-    (or FALLBACK_SPAN steps); (nan, inf) for the walk if there is no room or every rollout
-    diverges. The probe and the walk are rolled out together (``_losses_at``); a probe that
-    did not come back finite is rolled out again alone, so that a divergence raises
-    SimulationDiverged with its reason.
+    also: tuple[SimulationParams, ...] = (),
+) -> tuple[float, float, float, list[float]]:
+    """(probe, step, loss, also_losses): the loss one natural step along ``direction`` (the
+    probe), and the best of FALLBACK_RUNGS - 1 steps beyond it, evenly spaced in log from it to
+    the bound (or FALLBACK_SPAN steps); (nan, inf) for the walk if there is no room or every
+    rollout diverges; and the loss of each model of ``also`` (inf where it diverges). All are
+    rolled out together (``RunContext.rollout_losses``); a probe that did not come back finite
+    is rolled out again alone, so that a divergence raises SimulationDiverged with its reason.
 
     The probe's quadratic model sees the loss one natural step from zero only. A bounce lowers
     the loss slowly at small restitution and fast at large: at the generator's other parameters,
@@ -286,7 +305,13 @@ def _probe_and_walk(
         [] if top is None else [top ** (i / (FALLBACK_RUNGS - 1)) for i in range(1, FALLBACK_RUNGS)]
     )
     thetas = [direction] + [step * direction for step in steps]
-    probe, *losses = _losses_at(ctx, c, thetas, fit_frames=fit_frames)
+    params_list = [c.apply(ctx.identified, theta) for theta in thetas] + list(also)
+    all_losses = ctx.rollout_losses(params_list, fit_frames)
+    probe, losses, also_losses = (
+        all_losses[0],
+        all_losses[1 : len(thetas)],
+        all_losses[len(thetas) :],
+    )
     if not math.isfinite(probe):
         traj = ctx.rollout(c.apply(ctx.identified, direction), frames=max(fit_frames))
         probe = float(ctx.loss(traj, fit_frames))
@@ -294,7 +319,7 @@ def _probe_and_walk(
     for step, loss in zip(steps, losses):
         if loss < best_loss:
             best_step, best_loss = step, loss
-    return probe, best_step, best_loss
+    return probe, best_step, best_loss, also_losses
 
 
 def _losses_at(
@@ -464,8 +489,15 @@ def _screen_by_gradient(
     direction = direction / size
     slope = float(g @ direction)
     limit = _max_step(c, direction)
+    regression, gain = None, None
+    if residuals is not None and regimes is not None:
+        regression = regression_estimate(ctx, c, residuals, regimes, fit_frames)
+        gain = regression_gain(ctx, c, residuals, regimes, fit_frames)
+    also = () if regression is None else (regression_params(ctx, c, regression),)
     try:
-        probe, far, far_loss = _probe_and_walk(ctx, c, direction, limit, fit_frames=fit_frames)
+        probe, far, far_loss, also_losses = _probe_and_walk(
+            ctx, c, direction, limit, fit_frames=fit_frames, also=also
+        )
     except SimulationDiverged as exc:
         return Screen(c, True, g.tolist(), c.zero(), 0.0, -math.inf, f"probe diverged: {exc}")
     curvature = 2.0 * (float(probe) - base - slope)
@@ -480,14 +512,8 @@ def _screen_by_gradient(
         step, predicted = far, far_loss
         note = f"walked {far:.3g} steps along the descent direction; "
     fraction = max(0.0, (base - predicted) / base) if base > 0 else 0.0
-    regression, gain = None, None
-    if residuals is not None and regimes is not None:
-        regression = regression_estimate(ctx, c, residuals, regimes, fit_frames)
-        gain = regression_gain(ctx, c, residuals, regimes, fit_frames)
     if regression is not None:
-        by_regression = regression_drop(
-            ctx, c, regression, reference=reference, fit_frames=fit_frames
-        )
+        by_regression = drop_below(also_losses[0], reference)
         note += f"probe drop {fraction:.3g}, regression drop {by_regression:.3g}"
         fraction = max(fraction, by_regression)
     return Screen(
