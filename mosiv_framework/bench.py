@@ -105,19 +105,25 @@ class BatchBenchResult:
     max_rss_after_batched_bytes: int
     #: the simulator options given beside device, grid and substeps
     options: dict = field(default_factory=dict)
+    #: True: both sides timed forward plus backward (every member's parameters differentiable)
+    gradients: bool = False
 
     def as_dict(self) -> dict:
         return asdict(self)
 
 
-def batch_params(device: torch.device, batch: int) -> list[SimulationParams]:
-    """B forward-only members: the bench parameters with E spread log-evenly over a decade
-    around the default, as a global search over stiffness would try."""
+def batch_params(
+    device: torch.device, batch: int, *, requires_grad: bool = False
+) -> list[SimulationParams]:
+    """B members: the bench parameters with E spread log-evenly over a decade around the
+    default, as a global search over stiffness would try."""
     members = []
     for b in range(batch):
-        params = bench_params(device, requires_grad=False)
+        params = bench_params(device, requires_grad=requires_grad)
         scale = 10.0 ** ((b / max(1, batch - 1)) - 0.5)
-        params.objects[1].values["E"] = params.objects[1].values["E"] * scale
+        # a leaf of its own: every timed call back-propagates into it again
+        scaled = (params.objects[1].values["E"] * scale).detach()
+        params.objects[1].values["E"] = scaled.requires_grad_(requires_grad)
         members.append(params)
     return members
 
@@ -136,39 +142,48 @@ def run_batch_bench(
     batch: int,
     frames: int = 2,
     options: dict | None = None,
+    gradients: bool = False,
 ) -> BatchBenchResult:
     """Throughput of one ``rollout_batch`` of ``batch`` members and of the same members rolled
-    out one by one (forward only, after an untimed warm-up of each). ``options``: further
+    out one by one (after an untimed warm-up of each): forward only, or with ``gradients``
+    forward plus backward (the batch's members' losses summed and back-propagated once, each
+    single rollout's on its own, as one iteration of B fits would). ``options``: further
     simulator options, for both sides (e.g. warp-mpm's grid_window)."""
     config = {"device": device, "grid": grid, "substeps": substeps, **(options or {})}
     simulator = get_registry().create("simulator", backend, config)
     torch_device = torch.device("cuda" if device == "cuda" else "cpu")
     world = bench_world()
     parts = bench_particles(particles, grid=grid).to(torch_device)
-    members = batch_params(torch_device, batch)
+    members = batch_params(torch_device, batch, requires_grad=gradients)
     work = len(parts) * substeps * frames * batch
 
+    def finish(out: list) -> None:
+        bad = [r for r in out if not isinstance(r, Trajectory)]
+        if bad:
+            raise RuntimeError(f"{backend}: a benchmark member diverged: {bad[0]}")
+        if gradients:
+            sum(t.positions[-1].sum() for t in out).backward()
+
     def timed(call) -> tuple[float, int | None]:
-        with torch.no_grad():
+        with torch.set_grad_enabled(gradients):
             call(1)  # warm-up: compilation, buffers and graph capture are not timed
             simulator.reset_peak_memory()
             if torch_device.type == "cuda":
                 torch.cuda.synchronize()
             t0 = time.perf_counter()
-            out = call(frames)
+            call(frames)
             if torch_device.type == "cuda":
                 torch.cuda.synchronize()
-        bad = [r for r in out if not isinstance(r, Trajectory)]
-        if bad:
-            raise RuntimeError(f"{backend}: a benchmark member diverged: {bad[0]}")
         return time.perf_counter() - t0, simulator.peak_memory_bytes()
 
-    sequential_s, peak_seq = timed(
-        lambda n: [simulator.rollout(parts, p, world=world, frames=n) for p in members]
-    )
+    def one_by_one(n: int) -> None:
+        for p in members:
+            finish([simulator.rollout(parts, p, world=world, frames=n)])
+
+    sequential_s, peak_seq = timed(one_by_one)
     rss_seq = _max_rss_bytes()
     batched_s, peak_batch = timed(
-        lambda n: simulator.rollout_batch(parts, members, world=world, frames=n)
+        lambda n: finish(simulator.rollout_batch(parts, members, world=world, frames=n))
     )
     return BatchBenchResult(
         backend=backend,
@@ -188,6 +203,7 @@ def run_batch_bench(
         max_rss_after_sequential_bytes=rss_seq,
         max_rss_after_batched_bytes=_max_rss_bytes(),
         options=dict(options or {}),
+        gradients=gradients,
     )
 
 

@@ -24,7 +24,13 @@ def add_parser(sub) -> None:
         type=int,
         nargs="+",
         metavar="B",
-        help="measure rollout_batch of B members against B single rollouts (forward only)",
+        help="measure rollout_batch of B members against B single rollouts (forward only, "
+        "unless --gradients)",
+    )
+    sim.add_argument(
+        "--gradients",
+        action="store_true",
+        help="with --batch: time forward plus backward on both sides",
     )
     sim.add_argument(
         "--peer",
@@ -68,6 +74,13 @@ def run_sim(args) -> int:
 
             raise ConfigError("--peer times single rollouts; it does not combine with --batch")
         return run_batch(args)
+    if args.gradients:
+        from mosiv_framework.errors import ConfigError
+
+        raise ConfigError(
+            "--gradients goes with --batch B; without --batch the bench times forward plus "
+            "backward already (unless --no-backward)"
+        )
     if args.peer:  # an unknown or uninstalled peer fails before minutes of MOSIV timing
         from mosiv_framework.bench_peer import resolve_peer
 
@@ -155,6 +168,7 @@ def run_batch(args) -> int:
                         batch=batch,
                         frames=args.frames,
                         options=sim_options(args.sim_option),
+                        gradients=args.gradients,
                     ).as_dict()
                     results.append(r)
                     if not args.json:
@@ -176,6 +190,7 @@ def _batch_line(r: dict) -> str:
         f"{r['sequential_particle_substeps_per_s']:.3g} p-substeps/s  gain {r['gain']:.2f}x  "
         f"peak {_mem(r['peak_memory_batched_bytes'])} / {_mem(r['peak_memory_sequential_bytes'])}"
         f"  max RSS {_mem(r['max_rss_after_batched_bytes'])}"
+        + ("  forward+backward" if r.get("gradients") else "")
         + "".join(f"  {k}={v}" for k, v in r.get("options", {}).items())
     )
 

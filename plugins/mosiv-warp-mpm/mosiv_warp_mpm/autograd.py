@@ -41,13 +41,15 @@ from mosiv_warp_mpm.state import Grid, NodeBox, NodeCoefficients, ParticleParams
 
 
 class WarpRollout(torch.autograd.Function):
-    """(x0 [N,3], v0 [N,3], theta [P]) -> (positions [T+1,N,3], velocities [T+1,N,3])."""
+    """(x0 [N,3], v0 [N,3], theta [P]) -> (positions [T+1,N,3], velocities [T+1,N,3]); for a
+    run of B members (batched.py) x0 and v0 hold the B members' particles one after the other
+    and theta is [B, P], one row per member."""
 
     @staticmethod
     def forward(ctx, run, simulator, frames: int, x0, v0, theta):
         pos, vel = run.forward(x0, v0, theta, frames, keep=True)
         ctx.run, ctx.simulator, ctx.frames = run, simulator, frames
-        ctx.theta_device = theta.device
+        ctx.theta_device, ctx.theta_shape = theta.device, theta.shape
         simulator.last_memory = {"checkpoint_bytes": run.checkpoint_bytes()}
         ctx.mark_non_differentiable(vel)
         return pos, vel
@@ -77,7 +79,7 @@ class WarpRollout(torch.autograd.Function):
         run._sample_memory()
         grad_x0 = wp.to_torch(ws.carry.x.grad).clone()
         grad_v0 = wp.to_torch(ws.carry.v.grad).clone()
-        grad_theta = run.tables.grad_theta().to(ctx.theta_device)
+        grad_theta = run.tables.grad_theta().to(ctx.theta_device).view(ctx.theta_shape)
         return None, None, None, grad_x0, grad_v0, grad_theta
 
 

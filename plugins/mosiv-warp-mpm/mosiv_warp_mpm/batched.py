@@ -12,8 +12,12 @@ A member that diverges keeps being simulated (the kernels reset its non-finite p
 kernels.g2p, so its state stays on its own grid) but its result is the SimulationDiverged of its
 first flagged frame; the rollout stops early when every member has diverged.
 
-Forward only: when autograd is on and a parameter requires gradients, the call falls back to
-the base class's loop over the differentiable ``rollout``.
+Under autograd, with a parameter or the positions requiring gradients, the batch runs through
+the same torch.autograd.Function as a single rollout (autograd.WarpRollout): its backward
+replays all members' frames at once, the per-object and per-member parameter sums already keep
+the members apart. If a member diverges there, the call rolls the members out one by one
+instead, so that each diverged member gets its own SimulationDiverged and the others their
+trajectories, as in the forward-only batch.
 """
 
 from __future__ import annotations
@@ -58,27 +62,71 @@ def rollout_batch(
     if not params_list:
         return []
     if _needs_grad(particles, params_list):
-        return Simulator.rollout_batch(sim, particles, params_list, world=world, frames=frames)
+        return _differentiable_batch(sim, particles, params_list, world=world, frames=frames)
+    layout, ids, x0s, obj_index, volumes, inverse = sim.scatter_layout(particles, world)
+    run = _batch_run(sim, params_list, layout, world, ids, obj_index, volumes, grad=False)
+    with torch.no_grad():
+        v0, theta = _member_inputs(params_list, ids, obj_index, world, x0s.device)
+        pos, vel, errors = forward_batch(run, x0s.repeat(len(params_list), 1), v0, theta, frames)
+    return _split_members(pos, vel, errors, particles, inverse, world)
+
+
+def _differentiable_batch(
+    sim: WarpMPMSimulator,
+    particles: ParticleSet,
+    params_list: Sequence[SimulationParams],
+    *,
+    world: World,
+    frames: int,
+) -> list[Trajectory | SimulationDiverged]:
+    """The batch as one differentiable simulation (autograd.WarpRollout on a run of B
+    members); the members one by one where one of them diverges."""
+    from mosiv_warp_mpm.autograd import WarpRollout  # autograd imports run, as this does
 
     layout, ids, x0s, obj_index, volumes, inverse = sim.scatter_layout(particles, world)
-    dev, batch, n, k = x0s.device, len(params_list), x0s.shape[0], len(ids)
+    run = _batch_run(sim, params_list, layout, world, ids, obj_index, volumes, grad=True)
+    v0, theta = _member_inputs(params_list, ids, obj_index, world, x0s.device)
+    try:
+        pos, vel = WarpRollout.apply(run, sim, frames, x0s.repeat(len(params_list), 1), v0, theta)
+    except SimulationDiverged:
+        # which members diverged, where and why, is what the one-by-one loop reports
+        return Simulator.rollout_batch(sim, particles, params_list, world=world, frames=frames)
+    return _split_members(pos, vel, [None] * len(params_list), particles, inverse, world)
+
+
+def _batch_run(sim, params_list, layout, world, ids, obj_index, volumes, *, grad: bool) -> MPMRun:
+    """The simulator's batched run for these members, made anew where the layout, families or
+    batch size changed (or, for ``grad``, where the run still awaits a backward pass)."""
+    batch, k = len(params_list), len(ids)
     families = [params.objects[i].family for params in params_list for i in ids]
     member_obj = torch.cat([obj_index + b * k for b in range(batch)])
     member_vol = volumes.repeat(batch)
+    n = obj_index.shape[0]
     key = (layout, world, sim.options.substeps, tuple(ids), tuple(families), n, batch)
-    run = sim._batch_run
-    if run is None or sim._batch_key != key:
+    run = sim._grad_batch_run if grad else sim._batch_run
+    stale = sim._grad_batch_key != key if grad else sim._batch_key != key
+    if run is None or stale or (grad and run.awaiting_backward):
         run = sim._new_run(layout, world, ids, families, member_obj, member_vol, batch=batch)
-        sim._batch_run, sim._batch_key = run, key
+        if grad:
+            sim._grad_batch_run, sim._grad_batch_key = run, key
+        else:
+            sim._batch_run, sim._batch_key = run, key
     else:
         run.refresh(member_obj, member_vol)
+    return run
 
-    with torch.no_grad():
-        v0 = torch.cat([initial_velocities(p, ids, obj_index) for p in params_list])
-        theta = torch.stack([pack_theta(p, ids, world.gravity, dev) for p in params_list])
-        pos, vel, errors = forward_batch(run, x0s.repeat(batch, 1), v0, theta, frames)
 
-    out_dev = particles.positions.device
+def _member_inputs(params_list, ids, obj_index, world, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Initial velocities [B N, 3] (member-major, scatter order) and packed parameters [B, P]."""
+    v0 = torch.cat([initial_velocities(p, ids, obj_index) for p in params_list])
+    theta = torch.stack([pack_theta(p, ids, world.gravity, device) for p in params_list])
+    return v0, theta
+
+
+def _split_members(pos, vel, errors, particles: ParticleSet, inverse, world: World) -> list:
+    """Per member its Trajectory (in the caller's particle order, on its device), or its
+    SimulationDiverged."""
+    n, out_dev = inverse.shape[0], particles.positions.device
     results: list[Trajectory | SimulationDiverged] = []
     for b, err in enumerate(errors):
         if err is not None:
@@ -90,7 +138,7 @@ def rollout_batch(
                 positions=pos[:, rows][:, inverse].to(out_dev),
                 object_ids=particles.object_ids,
                 fps=world.fps,
-                velocities=vel[:, rows][:, inverse].to(out_dev),
+                velocities=vel[:, rows][:, inverse].detach().to(out_dev),
             )
         )
     return results

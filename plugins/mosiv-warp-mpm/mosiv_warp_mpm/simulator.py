@@ -106,9 +106,11 @@ class WarpMPMSimulator(Simulator):
         self._forward_key: tuple | None = None
         self._grad_run: MPMRun | None = None
         self._grad_key: tuple | None = None
-        # and one for batched forward rollouts (batched.py)
+        # and one each for batched forward and batched differentiable rollouts (batched.py)
         self._batch_run: MPMRun | None = None
         self._batch_key: tuple | None = None
+        self._grad_batch_run: MPMRun | None = None
+        self._grad_batch_key: tuple | None = None
 
     @property
     def torch_device(self) -> torch.device:
@@ -225,8 +227,7 @@ class WarpMPMSimulator(Simulator):
         world: World,
         frames: int,
     ) -> list[Trajectory | SimulationDiverged]:
-        """All members in one simulation (batched.py); under autograd with parameters that
-        require gradients, the differentiable per-member loop of the base class."""
+        """All members in one simulation (batched.py), differentiable under autograd."""
         from mosiv_warp_mpm.batched import rollout_batch
 
         return rollout_batch(self, particles, params_list, world=world, frames=frames)

@@ -145,25 +145,79 @@ def test_no_members_and_bad_inputs(make_warp_simulator) -> None:
         sim.rollout_batch(particles, [members(particles)[0], broken], world=WORLD, frames=2)
 
 
-def test_with_gradients_it_is_the_differentiable_loop(make_warp_simulator) -> None:
+#: relative difference allowed between a member's gradient and its single rollout's: on the
+#: CPU the adjoints' float32 atomics run in the same order in both, on a GPU in another order
+GRAD_RTOL_CPU = 1e-5
+GRAD_RTOL_CUDA = 1e-3
+
+
+def _leaves(params: SimulationParams) -> dict[str, torch.Tensor]:
+    """The member's differentiable inputs: object 1's E (and yield stress where plastic),
+    object 2's density, the ground friction and object 1's initial velocity."""
+    one, two = params.objects[1].values, params.objects[2].values
+    leaves = {"E": one["E"], "rho": two["rho"], "v0": params.initial_velocity[1]}
+    if "yield_stress" in one:
+        leaves["yield_stress"] = one["yield_stress"]
+    leaves["ground_friction"] = params.ground_friction
+    return {name: t.requires_grad_(True) for name, t in leaves.items()}
+
+
+def _loss(traj: Trajectory, b: int) -> torch.Tensor:
+    """A different readout per member, so a gradient sent to the wrong member would show."""
+    return traj.positions[-1, :, b % 3].mean() + 0.3 * traj.positions[1:, :, 2].square().mean()
+
+
+def test_gradients_of_the_batch_equal_each_members_own(make_warp_simulator) -> None:
+    """Under autograd the batch is one simulation (no per-member loop), and each member's
+    parameter gradients are those of its single differentiable rollout."""
     sim = make_warp_simulator(grid=16, substeps=10)
     particles = two_blocks()
-    grads = []
-    for batched in (True, False):
-        params = members(particles)[0]
-        E = params.objects[1].values["E"].requires_grad_(True)
-        if batched:
-            (traj,) = sim.rollout_batch(particles, [params], world=WORLD, frames=2)
-        else:
-            traj = sim.rollout(particles, params, world=WORLD, frames=2)
-        traj.positions[-1, :, 0].mean().backward()
-        grads.append(E.grad)
-    assert grads[0] is not None and float(grads[0].abs()) > 0.0
-    if str(sim.device).startswith("cuda"):
-        # the same differentiable loop either way; CUDA's atomics reorder the adjoint's sums
-        assert torch.allclose(grads[0], grads[1], rtol=1e-3, atol=0.0)
-    else:
-        assert torch.equal(grads[0], grads[1])
+    params_list = members(particles)[:2]
+    batch_leaves = [_leaves(p) for p in params_list]
+    calls = []
+    original = sim.rollout
+    sim.rollout = lambda *a, **k: calls.append(1) or original(*a, **k)
+    out = sim.rollout_batch(particles, params_list, world=WORLD, frames=2)
+    sim.rollout = original
+    assert not calls, "the batch fell back to one rollout per member"
+    sum(_loss(traj, b) for b, traj in enumerate(out)).backward()
+    rtol = GRAD_RTOL_CUDA if wp.get_device(sim.device).is_cuda else GRAD_RTOL_CPU
+    for b, params in enumerate(members(particles)[:2]):
+        leaves = _leaves(params)
+        alone = sim.rollout(member_particles(particles, params), params, world=WORLD, frames=2)
+        _loss(alone, b).backward()
+        for name, leaf in leaves.items():
+            batched = batch_leaves[b][name].grad
+            assert batched is not None and float(leaf.grad.abs().max()) > 0.0, (b, name)
+            assert torch.allclose(batched, leaf.grad, rtol=rtol, atol=1e-9), (b, name)
+
+
+def test_gradients_stay_with_their_member(make_warp_simulator) -> None:
+    """A loss on one member only leaves every other member's gradients at zero."""
+    sim = make_warp_simulator(grid=16, substeps=10)
+    particles = two_blocks()
+    params_list = members(particles)[:2]
+    leaves = [_leaves(p) for p in params_list]
+    out = sim.rollout_batch(particles, params_list, world=WORLD, frames=2)
+    _loss(out[0], 0).backward()
+    assert float(leaves[0]["E"].grad.abs()) > 0.0
+    for name, leaf in leaves[1].items():
+        assert leaf.grad is None or float(leaf.grad.abs().max()) == 0.0, name
+
+
+def test_a_diverging_member_under_autograd_is_reported_and_the_others_differentiate(
+    make_warp_simulator,
+) -> None:
+    sim = make_warp_simulator(grid=16, substeps=10)
+    particles = two_blocks()
+    good = members(particles)[0]
+    E = good.objects[1].values["E"].requires_grad_(True)
+    bad = member(particles, {1: "elastic", 2: "elastic"}, {2: {"E": 1e9}}, (1.5, 0.0, 0.0))
+    out = sim.rollout_batch(particles, [good, bad], world=WORLD, frames=3)
+    assert isinstance(out[1], SimulationDiverged)
+    assert isinstance(out[0], Trajectory)
+    out[0].positions[-1, :, 0].mean().backward()
+    assert float(E.grad.abs()) > 0.0
 
 
 class FakeSimulator(Simulator):
@@ -246,3 +300,19 @@ def test_bench_sim_passes_simulator_options(capsys, monkeypatch) -> None:
     assert rows[0]["options"] == {"grid_window": "whole"} and made == ["whole"]
     assert main([*argv, "--sim-option", "grid_window"]) == 2
     assert "expected KEY=VALUE" in capsys.readouterr().err
+
+
+def test_bench_sim_batch_with_gradients_times_forward_plus_backward(capsys) -> None:
+    import json
+
+    from mosiv_framework.cli.main import main
+
+    argv = ["bench", "sim", "--backend", "warp-mpm", "--batch", "2", "--particles", "64"]
+    argv += ["--grid", "8", "--substeps", "2", "--frames", "1", "--gradients", "--json"]
+    assert main(argv) == 0
+    (row,) = json.loads(capsys.readouterr().out)
+    assert row["gradients"] is True and row["batch"] == 2
+    work = row["particles"] * row["substeps"] * row["frames"] * row["batch"]
+    assert row["batched_particle_substeps_per_s"] == pytest.approx(work / row["batched_s"])
+    assert main(["bench", "sim", "--gradients"]) == 2
+    assert "--gradients goes with --batch" in capsys.readouterr().err
