@@ -25,8 +25,21 @@ def _elastic_pair_params():
 
 
 class _OneByOneLosses:
-    """``RunContext.rollout_losses`` for fake contexts: the fake's own ``rollout`` and ``loss``
-    per parameter set, in order (inf where the rollout diverges or the loss is not finite)."""
+    """``RunContext.rollout_losses`` and ``simulate_batch`` for fake contexts: the fake's own
+    ``rollout`` and ``loss`` per parameter set, in order (inf where the rollout diverges or the
+    loss is not finite), and its own ``simulate`` per set (the SimulationDiverged where it
+    raises one)."""
+
+    def simulate_batch(self, params_list, *, frames):
+        from mosiv_framework.errors import SimulationDiverged
+
+        results = []
+        for params in params_list:
+            try:
+                results.append(self.simulate(params, frames=frames))
+            except SimulationDiverged as exc:
+                results.append(exc)
+        return results
 
     def rollout_losses(self, params_list, fit_frames):
         from mosiv_framework.errors import SimulationDiverged

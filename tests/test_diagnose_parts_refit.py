@@ -155,11 +155,14 @@ def test_a_regression_start_holds_its_coefficient_while_the_shared_parameters_se
 
     ctx.seen = []
     fit = refit(ctx, wind, fit_frames=[1], starts=[(start, dv), (0.5 * start, dv)], options=options)
-    first, second = ctx.seen[:8], ctx.seen[8:12]  # 4 settle + 3 joint + 1 scoring, then 3 + 1
+    # the starts descend together, one rollout each per step while both go: the first has
+    # 4 settle + 3 joint + 1 scoring steps, the second 3 + 1
+    first, second = ctx.seen[0:8:2] + ctx.seen[8:12], ctx.seen[1:8:2]
     assert all(torch.equal(w, start) for w in first[:5])  # the settle steps and the first joint
     assert not torch.equal(first[5], start)
     # ... and one rollout of the best fit
     assert len(ctx.seen) == 8 + 4 + 1 and not torch.equal(second[1], second[0])
+    assert torch.equal(second[0], 0.5 * start)
     assert len(fit.starts) == 2
 
     ctx.seen = []
@@ -297,7 +300,7 @@ def test_reidentification_replays_the_runs_schedule_on_the_fit_frames_only(monke
     assert fit.loss < 0.01
 
 
-def test_a_model_keeps_the_better_of_its_refit_and_its_fresh_identification(monkeypatch):
+def test_a_model_keeps_the_better_of_its_refit_and_its_fresh_identification():
     """``_better``: the fresh identification replaces the refit only where it fits the fit
     frames better (keeping both fits' starts for the interval), and a fresh identification
     whose every rollout diverged leaves the refit as it was."""
@@ -308,34 +311,16 @@ def test_a_model_keeps_the_better_of_its_refit_and_its_fresh_identification(monk
     params = _elastic_pair_params()
     refitted = Fit("wind", None, params, torch.zeros(3), 2.0, 4, starts=[([0, 0, 0], 2.0)])
 
-    def fresh_with(loss):
-        def fake(ctx, candidate, *, fit_frames, start, options):
-            return Fit(
-                "wind",
-                None,
-                params,
-                torch.ones(3),
-                loss,
-                4,
-                starts=[([1, 1, 1], loss)],
-                reidentified=True,
-            )
+    def fresh(loss):
+        starts = [([1, 1, 1], loss)]
+        return Fit("wind", None, params, torch.ones(3), loss, 4, starts=starts, reidentified=True)
 
-        return fake
-
-    monkeypatch.setattr(diagnosis, "reidentify", fresh_with(1.0))
-    kept = diagnosis._better(refitted, None, None, None, [1, 2], None)
+    kept = diagnosis._better(refitted, fresh(1.0))
     assert kept.reidentified and kept.loss == 1.0
     assert kept.starts == [([0, 0, 0], 2.0), ([1, 1, 1], 1.0)]
-
-    monkeypatch.setattr(diagnosis, "reidentify", fresh_with(3.0))
-    assert diagnosis._better(refitted, None, None, None, [1, 2], None) is refitted
-
-    def diverges(*args, **kwargs):
-        raise SimulationDiverged(object_id=1, frame=2, substep=3, reason="test", advice="")
-
-    monkeypatch.setattr(diagnosis, "reidentify", diverges)
-    assert diagnosis._better(refitted, None, None, None, [1, 2], None) is refitted
+    assert diagnosis._better(refitted, fresh(3.0)) is refitted
+    diverged = SimulationDiverged(object_id=1, frame=2, substep=3, reason="test", advice="")
+    assert diagnosis._better(refitted, diverged) is refitted
 
 
 def test_the_far_start_is_added_only_when_asked_and_only_without_a_regression():

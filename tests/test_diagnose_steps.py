@@ -83,3 +83,31 @@ def test_saved_steps_are_reused_only_as_an_unbroken_prefix(tmp_path, caplog) -> 
     other.clear()
     assert not run.path(FOLDER).exists()
     assert json.loads(run.path("identified.json").read_text())  # the run itself is untouched
+
+
+def test_steps_computed_together_resume_their_saved_prefix(tmp_path) -> None:
+    """``get_many``: the saved steps of an unbroken prefix are read, the rest computed by one
+    call and each saved, so a later diagnosis resumes every one of them."""
+    run = _run(tmp_path)
+    calls = []
+
+    def compute(names):
+        calls.append(list(names))
+        return [{"value of": n} for n in names]
+
+    names = ["refit-null", "refit-wind", "refit-linear_drag"]
+    first = DiagnosisSteps(run, "k1")
+    assert first.get_many(names, compute) == [{"value of": n} for n in names]
+    assert calls == [names]
+
+    again = DiagnosisSteps(run, "k1")
+    assert again.get_many(names, compute) == [{"value of": n} for n in names]
+    assert again.resumed == names and calls == [names]
+
+    # the middle step is lost: it and the steps after it are computed again, together
+    (run.path(FOLDER) / "refit-wind.pt").unlink()
+    partly = DiagnosisSteps(run, "k1")
+    assert partly.get_many(names, compute)[0] == {"value of": "refit-null"}
+    assert partly.resumed == ["refit-null"] and calls[-1] == names[1:]
+    # and a step after them is not read from its old file either
+    assert partly.get("interval", lambda: "computed") == "computed"

@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from mosiv_framework.errors import ConfigError
+from mosiv_framework.errors import ConfigError, SimulationDiverged
 from mosiv_framework.interfaces import Simulator
 from mosiv_framework.losses import chamfer_m2
 from mosiv_framework.pipeline.contact import simulator_section
@@ -81,6 +81,17 @@ class RunContext:
         family (an elastic body that yields becomes plasticine)."""
         return self.simulator.rollout(
             self.particles_for(params), params, world=self.world, frames=frames
+        )
+
+    def simulate_batch(
+        self, params_list: list[SimulationParams], *, frames: int
+    ) -> list[Trajectory | SimulationDiverged]:
+        """Differentiable rollouts of independent parameter sets together
+        (``Simulator.rollout_batch``: one simulation on backends that batch, e.g. warp-mpm),
+        each as ``simulate`` would give it alone; a set whose rollout diverged gets its
+        SimulationDiverged (object, frame, substep) and the others go on."""
+        return self.simulator.rollout_batch(
+            self._device_particles(), params_list, world=self.world, frames=frames
         )
 
     def rollout(self, params: SimulationParams, *, frames: int | None = None) -> Trajectory:

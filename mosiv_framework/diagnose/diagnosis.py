@@ -55,13 +55,15 @@ from mosiv_framework.diagnose.kinematics import run_samples
 from mosiv_framework.diagnose.locate import locate
 from mosiv_framework.diagnose.model import (
     RefitOptions,
+    RefitRequest,
     converge_candidates,
     converge_null,
     refit,
+    refit_together,
     replaces,
 )
 from mosiv_framework.diagnose.physical import consistency, nuisance_errors
-from mosiv_framework.diagnose.reidentify import ReidentifyOptions, reidentify
+from mosiv_framework.diagnose.reidentify import ReidentifyOptions, reidentify_together
 from mosiv_framework.diagnose.report import write_report
 from mosiv_framework.diagnose.steps import DiagnosisSteps, diagnosis_key
 from mosiv_framework.errors import ConfigError, SimulationDiverged
@@ -140,12 +142,11 @@ def split_frames(
     return fit, sorted(held) + future
 
 
-def _better(fit, ctx, candidate, start, fit_frames, schedule):
-    """``fit`` or the model re-identified afresh, whichever fits the fit frames better (or
-    predicts all frames where the other diverged: ``model.replaces``)."""
-    try:
-        fresh = reidentify(ctx, candidate, fit_frames=fit_frames, start=start, options=schedule)
-    except SimulationDiverged:
+def _better(fit, fresh):
+    """``fit`` or the model re-identified afresh (``fresh``; a SimulationDiverged where that
+    failed), whichever fits the fit frames better (or predicts all frames where the other
+    diverged: ``model.replaces``)."""
+    if isinstance(fresh, SimulationDiverged):
         return fit
     if replaces(fresh, fit):
         fresh.starts = fit.starts + fresh.starts
@@ -257,35 +258,22 @@ def _screen_candidates(plan: _Plan, location, candidates: list) -> list:
 
 def _refit_models(plan: _Plan, location, kept: list) -> tuple:
     """(null, fits): the null model and each kept candidate refitted from the run's identified
-    state, each a saved step."""
+    state, all their starts descending together (``refit_together``), each a saved step."""
     ctx, options = plan.ctx, plan.refit_options
     plan.say(f"refitting the null model and {[s.candidate.name for s in kept]}")
     null_start = regression_estimate(
         ctx, None, location.residuals, location.regimes, plan.fit_frames
     )
-    null = plan.steps.get(
-        "refit-null",
-        lambda: refit(
-            ctx,
-            None,
-            fit_frames=plan.fit_frames,
-            starts=null_starts(null_start),
-            options=options,
+    requests = {"refit-null": RefitRequest(None, null_starts(null_start))}
+    for s in kept:
+        starts = refit_starts(s, plan.budget.starts, far_start=plan.budget.far_start)
+        requests[f"refit-{s.candidate.name}"] = RefitRequest(s.candidate, starts)
+    null, *fits = plan.steps.get_many(
+        list(requests),
+        lambda names: refit_together(
+            ctx, [requests[n] for n in names], fit_frames=plan.fit_frames, options=options
         ),
     )
-    fits = [
-        plan.steps.get(
-            f"refit-{s.candidate.name}",
-            lambda s=s: refit(
-                ctx,
-                s.candidate,
-                fit_frames=plan.fit_frames,
-                starts=refit_starts(s, plan.budget.starts, far_start=plan.budget.far_start),
-                options=options,
-            ),
-        )
-        for s in kept
-    ]
     return null, fits
 
 
@@ -295,18 +283,19 @@ def _identify_afresh(plan: _Plan, null, fits: list, kept: list) -> tuple:
     ctx, fit_frames = plan.ctx, plan.fit_frames
     plan.say("identifying the null model and each candidate afresh on the fit frames")
     schedule = ReidentifyOptions.from_recipe(ctx.recipe.identify)
-    null = plan.steps.get(
-        "fresh-null", lambda: _better(null, ctx, None, None, fit_frames, schedule)
-    )
-    fits = [
-        plan.steps.get(
-            f"fresh-{s.candidate.name}",
-            lambda fit=fit, s=s: _better(
-                fit, ctx, s.candidate, refit_starts(s, 1)[0][0], fit_frames, schedule
-            ),
+    # name -> (the refitted model, the candidate, its coefficients' start)
+    models = {"fresh-null": (null, None, None)}
+    for fit, s in zip(fits, kept):
+        models[f"fresh-{s.candidate.name}"] = (fit, s.candidate, refit_starts(s, 1)[0][0])
+
+    def afresh(names: list[str]) -> list:
+        wanted = [models[n] for n in names]
+        fresh = reidentify_together(
+            ctx, [(c, start) for _, c, start in wanted], fit_frames=fit_frames, options=schedule
         )
-        for fit, s in zip(fits, kept)
-    ]
+        return [_better(fit, new) for (fit, _, _), new in zip(wanted, fresh)]
+
+    null, *fits = plan.steps.get_many(list(models), afresh)
     fresh = [f.name for f in [null, *fits] if f.reidentified]
     plan.say(f"identified afresh, better than refitted: {fresh or 'none'}")
     return null, fits
@@ -445,7 +434,13 @@ def _test_formula(plan: _Plan, location, rule: DecideOptions, found: dict, disco
         fit = plan.steps.get(
             "fresh-expression",
             lambda: _better(
-                fit, ctx, candidate, candidate.base["start"], plan.fit_frames, schedule
+                fit,
+                reidentify_together(
+                    ctx,
+                    [(candidate, candidate.base["start"])],
+                    fit_frames=plan.fit_frames,
+                    options=schedule,
+                )[0],
             ),
         )
     null, fits = plan.steps.get(

@@ -18,8 +18,15 @@ import torch
 
 from mosiv_framework.diagnose.candidates import Candidate
 from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.diagnose.descent import (  # noqa: F401 (reidentify imports these from here)
+    Descent,
+    assemble,
+    descend_together,
+    restore,
+    snapshot,
+    start_descent,
+)
 from mosiv_framework.errors import SimulationDiverged
-from mosiv_framework.pipeline.identify import gradients_finite
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.types import SimulationParams, Trajectory
 
@@ -120,6 +127,17 @@ def count_free(vector: ParameterVector) -> int:
     return sum(v.numel() for v in leaves)  # a vector term parameter counts as 3
 
 
+@dataclass(frozen=True)
+class RefitRequest:
+    """One refit of ``refit_together``: ``candidate`` (None: the null model) from ``starts``
+    (coefficient vector, initial-velocity change per object or None; default: zero and none),
+    the free parameters starting at ``base`` (default: the run's identified values)."""
+
+    candidate: Candidate | None
+    starts: list[tuple[torch.Tensor, dict | None]] | None = None
+    base: SimulationParams | None = None
+
+
 def refit(
     ctx: RunContext,
     candidate: Candidate | None,
@@ -139,38 +157,106 @@ def refit(
     best start whose prediction over all frames succeeds (``predict``); a start whose rollouts
     all diverge is skipped, and where every start's does, the model is kept with that
     divergence as evidence (``diverged_refit``). The free parameters start at ``base``
-    (default: the run's identified values).
+    (default: the run's identified values). The starts descend together
+    (``descent.descend_together``).
     """
-    if not starts:
-        starts = [(torch.zeros(0) if candidate is None else candidate.zero(), None)]
-    ends: list[Fit] = []  # each start's best point
-    failures: list[SimulationDiverged] = []  # why each other start got nowhere
-    settled = False
+    request = RefitRequest(candidate, starts, base)
+    return refit_together(ctx, [request], fit_frames=fit_frames, options=options)[0]
+
+
+def refit_together(
+    ctx: RunContext,
+    requests: list[RefitRequest],
+    *,
+    fit_frames: list[int],
+    options: RefitOptions = RefitOptions(),
+) -> list[Fit]:
+    """``refit`` of each request, every start of every request descending in the same batched
+    rollouts (``descent.descend_together``); one Fit per request, in order."""
+    plans = []
+    for request in requests:
+        starts = request.starts or [
+            (torch.zeros(0) if request.candidate is None else request.candidate.zero(), None)
+        ]
+        plans.append((request, starts, _start_descents(ctx, request, starts, options)))
+    descend_together(ctx, [d for *_, descents in plans for d in descents], fit_frames=fit_frames)
+    return [_best_of(ctx, request, starts, descents) for request, starts, descents in plans]
+
+
+def _start_descents(
+    ctx: RunContext, request: RefitRequest, starts: list, options: RefitOptions
+) -> list[Descent]:
+    """A descent per start of ``request``; the first start that brings its own velocity change
+    (the flight-path regression's) settles the shared parameters first."""
+    descents, settled = [], False
     for start, velocity_change in starts:
-        # the regression start (it brings a velocity change) first settles the shared parameters
         settle = 0
-        if candidate is not None and velocity_change is not None and not settled:
+        if request.candidate is not None and velocity_change is not None and not settled:
             settle, settled = options.settle, True
-        try:
-            end = _fit_start(
-                ctx,
+        vector = _start_vector(ctx, request.base, velocity_change)
+        candidate = request.candidate
+        if candidate is not None:
+            theta_start = candidate.clamp(start.detach().float())
+            scale = torch.maximum(theta_start.abs(), candidate.step)
+            u = (theta_start / scale).clone().requires_grad_(True)
+        else:
+            scale, u = torch.ones(0), torch.zeros(0, requires_grad=True)
+        rates = (options.velocity_lr, options.param_lr, options.coefficient_lr)
+        descents.append(
+            start_descent(
                 candidate,
-                start,
-                velocity_change,
-                fit_frames=fit_frames,
-                base=base,
+                vector,
+                u,
+                scale,
                 settle=settle,
-                options=options,
+                iterations=options.iterations,
+                polish=options.polish,
+                learning_rates=rates,
             )
-        except SimulationDiverged as exc:
-            failures.append(exc)
+        )
+    return descents
+
+
+def _best_of(ctx: RunContext, request: RefitRequest, starts: list, descents: list) -> Fit:
+    """The request's Fit from its starts' descents: the best that predicts (``predict``), or
+    ``diverged_refit`` where no start got through the fit frames."""
+    ends, failures = [], []
+    for d in descents:
+        if d.best is None:  # not even its first rollout succeeded
+            failures.append(
+                d.failure
+                or SimulationDiverged(
+                    object_id=-1,
+                    frame=-1,
+                    substep=-1,
+                    reason="the loss at the start is not finite",
+                    advice="lower the refit learning rates or raise the simulator's substeps",
+                )
+            )
             continue
-        ends.append(end)
+        ends.append(_fit_of(d))
     if not ends:
-        return diverged_refit(ctx, candidate, starts[0], failures[0], base=base)
+        return diverged_refit(ctx, request.candidate, starts[0], failures[0], base=request.base)
     best = predict(ctx, sorted(ends, key=lambda f: f.loss))  # stable: the first start on ties
     best.starts = [(end.theta.tolist(), end.loss) for end in ends]
     return best
+
+
+def _fit_of(d: Descent) -> Fit:
+    """A descent's best point as a Fit."""
+    restore(d.vector, d.u, d.best)
+    candidate = d.candidate
+    theta = (d.u * d.scale).detach() if candidate is not None else torch.zeros(0)
+    return Fit(
+        "null" if candidate is None else candidate.name,
+        candidate,
+        assemble(d.vector, candidate, d.u, d.scale).detached(),
+        theta,
+        d.best_loss,
+        count_free(d.vector) + (candidate.dim if candidate is not None else 0),
+        history=d.history,
+        shared=d.vector.physical().detached(),
+    )
 
 
 def diverged_refit(
@@ -238,134 +324,6 @@ def _start_vector(
     return vector
 
 
-def _fit_start(
-    ctx: RunContext,
-    candidate: Candidate | None,
-    start: torch.Tensor,
-    velocity_change: dict | None,
-    *,
-    fit_frames: list[int],
-    base: SimulationParams | None,
-    settle: int,
-    options: RefitOptions,
-) -> Fit:
-    """One start of ``refit``: its descent (``_descend``) and the best point it reached, as a
-    fit. Raises SimulationDiverged (the simulator's, where it gave one) if not even its first
-    rollout succeeded."""
-    vector = _start_vector(ctx, base, velocity_change)
-    if candidate is not None:
-        theta_start = candidate.clamp(start.detach().float())
-        scale = torch.maximum(theta_start.abs(), candidate.step)
-        u = (theta_start / scale).clone().requires_grad_(True)
-    else:
-        scale = torch.ones(0)
-        u = torch.zeros(0, requires_grad=True)
-    loss, best, history, failure = _descend(
-        ctx, candidate, vector, u, scale, fit_frames=fit_frames, settle=settle, options=options
-    )
-    if best is None:
-        raise failure or SimulationDiverged(
-            object_id=-1,
-            frame=-1,
-            substep=-1,
-            reason="the loss at the start is not finite",
-            advice="lower the refit learning rates or raise the simulator's substeps",
-        )
-    restore(vector, u, best)
-    theta = (u * scale).detach() if candidate is not None else torch.zeros(0)
-    return Fit(
-        "null" if candidate is None else candidate.name,
-        candidate,
-        assemble(vector, candidate, u, scale).detached(),
-        theta,
-        loss,
-        count_free(vector) + (candidate.dim if candidate is not None else 0),
-        history=history,
-        shared=vector.physical().detached(),
-    )
-
-
-def _optimizer(vector: ParameterVector, candidate, u, options: RefitOptions):
-    """Adam over the velocities, the normalised parameters and (with a candidate) ``u``, each
-    group at its own learning rate."""
-    groups = [
-        {"params": list(vector.velocity.values()), "lr": options.velocity_lr},
-        {"params": list(vector.normalized.values()), "lr": options.param_lr},
-    ]
-    if candidate is not None:
-        groups.append({"params": [u], "lr": options.coefficient_lr})
-    return torch.optim.Adam([g for g in groups if g["params"]])
-
-
-def _descend(
-    ctx: RunContext,
-    candidate: Candidate | None,
-    vector: ParameterVector,
-    u: torch.Tensor,
-    scale: torch.Tensor,
-    *,
-    fit_frames: list[int],
-    settle: int,
-    options: RefitOptions,
-) -> tuple[float, dict | None, list[float], SimulationDiverged | None]:
-    """Adam from the leaves' current values: ``settle`` steps with the coefficient held, the
-    ``iterations``, then ``polish`` backtracking steps (``RefitOptions``). Returns the lowest
-    loss, the ``snapshot`` where it was reached (None if no rollout succeeded), the loss of
-    every step and the divergence that ended the descent (None if none did)."""
-    horizon = max(fit_frames)
-    optimizer = _optimizer(vector, candidate, u, options)
-    leaves = [p for g in optimizer.param_groups for p in g["params"]]
-    best_start, best_grads = (math.inf, None), None
-    history, failure = [], None
-    main = settle + options.iterations
-    for step in range(main + options.polish + 1):  # the last pass only scores
-        optimizer.zero_grad()
-        params = assemble(vector, candidate, u, scale)
-        try:
-            traj = ctx.simulate(params, frames=horizon)
-        except SimulationDiverged as exc:
-            if step < main or not options.polish or best_grads is None:
-                failure = exc
-                break
-            traj = None  # a polishing step too long for the simulator: take it back
-        if traj is not None:
-            loss = ctx.loss(traj, fit_frames)
-            value = float(loss.detach())
-            history.append(value)
-            improved = value < best_start[0]
-            if improved:
-                best_start = (value, snapshot(vector, u))
-            loss.backward()
-            if step < settle:
-                u.grad = None  # Adam skips a leaf without a gradient: the coefficient holds
-            if not gradients_finite(leaves):
-                break  # a NaN step would poison every later one: the start ends at its best
-            if improved:
-                best_grads = [None if p.grad is None else p.grad.clone() for p in leaves]
-        if options.polish and step >= main and (traj is None or not improved):
-            _back_to_best(optimizer, vector, u, best_start[1], leaves, best_grads)
-        optimizer.step()
-        with torch.no_grad():
-            for leaf in vector.normalized.values():
-                leaf.clamp_(0.0, 1.0)
-            if candidate is not None:
-                u.copy_(candidate.clamp(u * scale) / scale)
-    return best_start[0], best_start[1], history, failure
-
-
-def _back_to_best(optimizer, vector, u, best: dict, leaves: list, best_grads: list) -> None:
-    """Polishing after a step that did not lower the loss: back to the best point, and half the
-    step from there. Adam starts afresh, so that step is the gradient's sign per coordinate,
-    which lowers the loss once it is short enough (the moments of steps that overshot need
-    not)."""
-    restore(vector, u, best)
-    for leaf, grad in zip(leaves, best_grads):
-        leaf.grad = None if grad is None else grad.clone()
-    optimizer.state.clear()
-    for group in optimizer.param_groups:
-        group["lr"] *= 0.5
-
-
 def predict(ctx: RunContext, ranked: list[Fit]) -> Fit:
     """The first of ``ranked`` (best fit first) whose rollout over all frames succeeds, with
     that rollout as its ``trajectory``; if every one diverges, the first, with ``diverged``
@@ -399,31 +357,6 @@ def replaces(new: Fit, old: Fit) -> bool:
     if (new.diverged is None) != (old.diverged is None):
         return new.diverged is None
     return new.loss < old.loss
-
-
-def assemble(vector, candidate, u, scale) -> SimulationParams:
-    """The parameters ``vector`` stands for with ``candidate`` on at theta = u * scale."""
-    params = vector.physical()
-    return params if candidate is None else candidate.apply(params, u * scale)
-
-
-def snapshot(vector: ParameterVector, u: torch.Tensor) -> dict:
-    """A copy of the leaves (velocities, normalised parameters, scaled coefficients)."""
-    return {
-        "velocity": {k: v.detach().clone() for k, v in vector.velocity.items()},
-        "normalized": {k: v.detach().clone() for k, v in vector.normalized.items()},
-        "u": u.detach().clone(),
-    }
-
-
-def restore(vector: ParameterVector, u: torch.Tensor, snap: dict) -> None:
-    """Put a ``snapshot`` back into the leaves."""
-    with torch.no_grad():
-        for k, v in snap["velocity"].items():
-            vector.velocity[k].copy_(v)
-        for k, v in snap["normalized"].items():
-            vector.normalized[k].copy_(v)
-        u.copy_(snap["u"])
 
 
 def converge_null(
@@ -483,21 +416,23 @@ def converge_candidates(
     source = min([null, *fits], key=lambda f: (f.diverged is not None, f.loss))
     if source.shared is None:
         return fits
+
+    def continued(fit: Fit) -> bool:
+        settled = fit.loss <= source.loss and fit.diverged is None
+        return not (fit.candidate is None or fit is source or settled)
+
+    behind = [fit for fit in fits if continued(fit)]
+    # the continued refits are independent: they descend together
+    requests = [
+        RefitRequest(fit.candidate, [(fit.theta, {})], source.shared)  # {}: settle first
+        for fit in behind
+    ]
+    warms = refit_together(ctx, requests, fit_frames=fit_frames, options=options)
+    warm_of = {id(fit): warm for fit, warm in zip(behind, warms)}
     converged = []
     for fit in fits:
-        settled = fit.loss <= source.loss and fit.diverged is None
-        if fit.candidate is None or fit is source or settled:
-            converged.append(fit)
-            continue
-        warm = refit(
-            ctx,
-            fit.candidate,
-            fit_frames=fit_frames,
-            starts=[(fit.theta, {})],  # an empty velocity change: settle first
-            base=source.shared,
-            options=options,
-        )
-        if replaces(warm, fit):  # not where it diverged again (``diverged_refit``)
+        warm = warm_of.get(id(fit))
+        if warm is not None and replaces(warm, fit):  # not where it diverged again
             warm.started_from = source.name
             warm.starts = fit.starts + warm.starts
             converged.append(warm)

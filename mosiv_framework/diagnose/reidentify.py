@@ -26,13 +26,14 @@ schedule on the same frames. Each phase keeps its best iterate over its whole wi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from omegaconf import OmegaConf
 
 from mosiv_framework.diagnose.candidates import Candidate
 from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.diagnose.descent import rollouts as _rollouts
 from mosiv_framework.diagnose.model import Fit, assemble, count_free, restore, snapshot
 from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.pipeline import start_vector
@@ -98,45 +99,87 @@ def reidentify(
     """Identify the model afresh with ``candidate`` on (None: the null), its coefficients
     starting at ``start`` (default zero); fits ``fit_frames`` only. Raises SimulationDiverged
     if no rollout of the parameter phase succeeds."""
-    vector, free = fresh_vector(ctx)
-    if candidate is not None:
-        theta0 = candidate.clamp((candidate.zero() if start is None else start).float())
-        scale = torch.maximum(theta0.abs(), candidate.step)
-        u = (theta0 / scale).clone().requires_grad_(True)
-    else:
-        scale, u = torch.ones(0), torch.zeros(0, requires_grad=True)
-    coefficient = [u] if candidate is not None else []
-    in_flight = candidate is not None and "free_flight" in candidate.regimes
+    (result,) = reidentify_together(
+        ctx, [(candidate, start)], fit_frames=fit_frames, options=options
+    )
+    if isinstance(result, SimulationDiverged):
+        raise result
+    return result
+
+
+@dataclass
+class _Model:
+    """One model's re-identification: its leaves and the loss of every step."""
+
+    candidate: Candidate | None
+    vector: ParameterVector
+    u: torch.Tensor
+    scale: torch.Tensor
+    history: list[float] = field(default_factory=list)
+    best_loss: float = math.inf
+
+
+def reidentify_together(
+    ctx: RunContext,
+    models: list[tuple[Candidate | None, torch.Tensor | None]],
+    *,
+    fit_frames: list[int],
+    options: ReidentifyOptions = ReidentifyOptions(),
+) -> list[Fit | SimulationDiverged]:
+    """``reidentify`` of each (candidate, start) of ``models``, all in lockstep: the schedule
+    (phases, iterations, horizons) is the run's for every model, so each step rolls every model
+    still going out together (``RunContext.simulate_batch``) and back-propagates once. One
+    result per model, in order: its Fit, or the SimulationDiverged where no rollout of its
+    parameter phase succeeded."""
+    vector_and_free = [fresh_vector(ctx) for _ in models]
+    states = []
+    for (candidate, start), (vector, _) in zip(models, vector_and_free):
+        if candidate is not None:
+            theta0 = candidate.clamp((candidate.zero() if start is None else start).float())
+            scale = torch.maximum(theta0.abs(), candidate.step)
+            u = (theta0 / scale).clone().requires_grad_(True)
+        else:
+            scale, u = torch.ones(0), torch.zeros(0, requires_grad=True)
+        states.append(_Model(candidate, vector, u, scale))
+    free = vector_and_free[0][1] if vector_and_free else 0
     last = max(fit_frames)
     flight_last = min(free - 1, last)  # frame ``free`` is the first with a contact
-    history: list[float] = []
     phases = [
-        (
-            options.velocity_iterations,
-            [(list(vector.velocity.values()), options.velocity_lr)]
-            + ([(coefficient, options.coefficient_lr)] if in_flight else []),
-            options.horizon_start,
-            flight_last,
-        ),
-        (
-            options.param_iterations,
-            [(list(vector.normalized.values()), options.param_lr)]
-            + ([(coefficient, options.coefficient_lr)] if coefficient else []),
-            max(options.horizon_start, flight_last + 1),
-            last,
-        ),
+        (options.velocity_iterations, options.horizon_start, flight_last, True),
+        (options.param_iterations, max(options.horizon_start, flight_last + 1), last, False),
     ]
-    best_loss = math.inf
-    for iterations, groups, first, window_end in phases:
+    for iterations, first, window_end, flight in phases:
         window = [f for f in fit_frames if f <= window_end]
-        groups = [(leaves, lr) for leaves, lr in groups if leaves]
-        if iterations == 0 or not window or not groups:
+        if iterations == 0 or not window:
             continue
-        best_loss = _phase(
-            ctx, vector, candidate, u, scale, groups, iterations, first, window, options, history
-        )
-    if not math.isfinite(best_loss):
-        raise SimulationDiverged(
+        taking_part = [(m, _groups(m, options, flight=flight)) for m in states]
+        taking_part = [(m, groups) for m, groups in taking_part if groups]
+        if taking_part:
+            _phase_together(ctx, taking_part, iterations, first, window, options)
+    return [_result(ctx, m, fit_frames) for m in states]
+
+
+def _groups(m: _Model, options: ReidentifyOptions, *, flight: bool) -> list:
+    """(leaves, learning rate) of the model's phase: the flight phase moves the velocities and
+    a coefficient acting in free flight, the parameter phase the materials and any coefficient;
+    groups without leaves left out."""
+    coefficient = [m.u] if m.candidate is not None else []
+    if flight:
+        in_flight = m.candidate is not None and "free_flight" in m.candidate.regimes
+        groups = [(list(m.vector.velocity.values()), options.velocity_lr)]
+        groups += [(coefficient, options.coefficient_lr)] if in_flight else []
+    else:
+        groups = [(list(m.vector.normalized.values()), options.param_lr)]
+        groups += [(coefficient, options.coefficient_lr)] if coefficient else []
+    return [(leaves, lr) for leaves, lr in groups if leaves]
+
+
+def _result(ctx: RunContext, m: _Model, fit_frames: list[int]) -> Fit | SimulationDiverged:
+    """The model at its best iterate as a Fit (scored over the fit frames, with its prediction
+    over all frames), or why there is none."""
+    candidate = m.candidate
+    if not math.isfinite(m.best_loss):
+        return SimulationDiverged(
             object_id=-1,
             frame=-1,
             substep=-1,
@@ -146,39 +189,58 @@ def reidentify(
             ),
             advice="lower identify.param_lr or raise the simulator's substeps",
         )
-    params = assemble(vector, candidate, u, scale).detached()
+    params = assemble(m.vector, candidate, m.u, m.scale).detached()
     with torch.no_grad():
-        loss = float(ctx.loss(ctx.simulate(params, frames=last), fit_frames))
-    theta = (u * scale).detach() if candidate is not None else torch.zeros(0)
+        loss = float(ctx.loss(ctx.simulate(params, frames=max(fit_frames)), fit_frames))
+    theta = (m.u * m.scale).detach() if candidate is not None else torch.zeros(0)
     fit = Fit(
         "null" if candidate is None else candidate.name,
         candidate,
         params,
         theta,
         loss,
-        count_free(vector) + (candidate.dim if candidate is not None else 0),
+        count_free(m.vector) + (candidate.dim if candidate is not None else 0),
         starts=[(theta.tolist(), loss)],
-        history=history,
-        shared=vector.physical().detached(),
+        history=m.history,
+        shared=m.vector.physical().detached(),
         reidentified=True,
     )
     fit.trajectory = ctx.rollout(fit.params)
     return fit
 
 
-def _phase(ctx, vector, candidate, u, scale, groups, iterations, first, window, options, history):
-    """One phase of Adam with a growing horizon over ``window`` (fit frames); leaves the
-    vector at the phase's best iterate over the whole window and returns that loss."""
+@dataclass
+class _PhaseRun:
+    """One model's Adam in one phase: optimizer, cosine schedule, backoff state, best iterate."""
+
+    model: _Model
+    optimizer: torch.optim.Adam
+    schedule: torch.optim.lr_scheduler.LambdaLR
+    leaves: list[torch.Tensor]
+    previous: dict
+    best_loss: float = math.inf
+    best_snap: dict | None = None
+    unit: float | None = None
+    backoffs: int = 0
+    done: bool = False
+
+
+def _phase_run(m: _Model, groups: list, iterations: int) -> _PhaseRun:
     optimizer = torch.optim.Adam([{"params": leaves, "lr": lr} for leaves, lr in groups])
     # cosine decay to a tenth of the rate, as the run's identification does
     schedule = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda i: 0.1 + 0.45 * (1 + math.cos(math.pi * i / iterations))
     )
     leaves = [leaf for group in optimizer.param_groups for leaf in group["params"]]
+    return _PhaseRun(m, optimizer, schedule, leaves, snapshot(m.vector, m.u))
+
+
+def _phase_together(ctx, taking_part, iterations, first, window, options) -> None:
+    """One phase of Adam with a growing horizon over ``window`` (fit frames) for every model
+    of ``taking_part`` ((model, groups)), their rollouts together each step; leaves each model
+    at its best iterate over the whole window, its loss in ``best_loss``."""
+    runs = [_phase_run(m, groups, iterations) for m, groups in taking_part]
     end = max(window)
-    best_loss, best_snap = math.inf, None
-    previous = snapshot(vector, u)
-    unit, backoffs = None, 0
     for it in range(iterations + 1):  # the last pass only scores the last step
         h = (
             end
@@ -187,44 +249,74 @@ def _phase(ctx, vector, candidate, u, scale, groups, iterations, first, window, 
         )
         frames = [f for f in window if f <= h] or [min(window)]
         h = max(h, max(frames))
-        optimizer.zero_grad()
-        try:
-            traj = ctx.simulate(assemble(vector, candidate, u, scale), frames=h)
-            loss = ctx.loss(traj, frames)
-            value = float(loss.detach())
-            if not math.isfinite(value):
-                raise FloatingPointError
-            if unit is None:  # scale-free steps, whatever the loss's magnitude
-                unit = 1.0 / max(value, 1e-30)
-            (loss * unit).backward()
-            if not gradients_finite(leaves):
-                raise FloatingPointError
-        except (SimulationDiverged, FloatingPointError):
-            backoffs += 1
-            if backoffs > MAX_BACKOFFS:
-                break
-            restore(vector, u, previous)
-            for group in optimizer.param_groups:
-                group["lr"] *= 0.5
-            schedule.base_lrs = [lr * 0.5 for lr in schedule.base_lrs]
-            continue
-        backoffs = 0
-        history.append(value)
-        if h == end and value < best_loss:
-            best_loss, best_snap = value, snapshot(vector, u)
-        if it == iterations:
+        active = [r for r in runs if not r.done]
+        if not active:
             break
-        previous = snapshot(vector, u)
-        for leaf in leaves:  # a leaf this horizon does not reach yet holds still
-            if leaf.grad is not None and not bool(leaf.grad.any()):
-                leaf.grad = None
-        optimizer.step()
-        schedule.step()
-        with torch.no_grad():
-            for leaf in vector.normalized.values():
-                leaf.clamp_(0.0, 1.0)
-            if candidate is not None:
-                u.copy_(candidate.clamp(u * scale) / scale)
-    if best_snap is not None:
-        restore(vector, u, best_snap)
-    return best_loss
+        for r in active:
+            r.optimizer.zero_grad()
+        params = [
+            assemble(r.model.vector, r.model.candidate, r.model.u, r.model.scale) for r in active
+        ]
+        losses = [
+            _step_loss(ctx, r, result, frames)
+            for r, result in zip(active, _rollouts(ctx, params, h))
+        ]
+        scaled = [loss * r.unit for r, loss in zip(active, losses) if loss is not None]
+        if scaled:
+            torch.stack(scaled).sum().backward()  # each model's leaves: its own gradient
+        for r, loss in zip(active, losses):
+            _step(r, loss, last=it == iterations, at_end=h == end)
+    for r in runs:
+        if r.best_snap is not None:
+            restore(r.model.vector, r.model.u, r.best_snap)
+        r.model.best_loss = r.best_loss
+
+
+def _step_loss(ctx, r: _PhaseRun, result, frames: list[int]) -> torch.Tensor | None:
+    """The model's loss this step (None where its rollout diverged or the loss is not
+    finite); the first finite loss sets its scale-free unit."""
+    if isinstance(result, SimulationDiverged):
+        return None
+    loss = ctx.loss(result, frames)
+    value = float(loss.detach())
+    if not math.isfinite(value):
+        return None
+    if r.unit is None:  # scale-free steps, whatever the loss's magnitude
+        r.unit = 1.0 / max(value, 1e-30)
+    return loss
+
+
+def _step(r: _PhaseRun, loss: torch.Tensor | None, *, last: bool, at_end: bool) -> None:
+    """After the step's backward: back off (step sizes halved, back to the previous iterate)
+    on a diverged rollout or non-finite gradients, ending after MAX_BACKOFFS in a row; else
+    record the loss, keep the best iterate over the whole window, and take Adam's step."""
+    m = r.model
+    if loss is None or not gradients_finite(r.leaves):
+        r.backoffs += 1
+        if r.backoffs > MAX_BACKOFFS:
+            r.done = True
+            return
+        restore(m.vector, m.u, r.previous)
+        for group in r.optimizer.param_groups:
+            group["lr"] *= 0.5
+        r.schedule.base_lrs = [lr * 0.5 for lr in r.schedule.base_lrs]
+        return
+    r.backoffs = 0
+    value = float(loss.detach())
+    m.history.append(value)
+    if at_end and value < r.best_loss:
+        r.best_loss, r.best_snap = value, snapshot(m.vector, m.u)
+    if last:
+        r.done = True
+        return
+    r.previous = snapshot(m.vector, m.u)
+    for leaf in r.leaves:  # a leaf this horizon does not reach yet holds still
+        if leaf.grad is not None and not bool(leaf.grad.any()):
+            leaf.grad = None
+    r.optimizer.step()
+    r.schedule.step()
+    with torch.no_grad():
+        for leaf in m.vector.normalized.values():
+            leaf.clamp_(0.0, 1.0)
+        if m.candidate is not None:
+            m.u.copy_(m.candidate.clamp(m.u * m.scale) / m.scale)

@@ -70,6 +70,10 @@ def _plain(section) -> Any:
     return section
 
 
+#: what ``DiagnosisSteps._saved`` returns for a step that must be computed
+_MISSING = object()
+
+
 class DiagnosisSteps:
     """Get-or-compute of a diagnosis's named steps (``get``), saved atomically.
 
@@ -88,20 +92,42 @@ class DiagnosisSteps:
     def get(self, step: str, compute: Callable[[], T]) -> T:
         """The saved result of ``step`` if the steps before it were all saved too and it was
         saved under this diagnosis's key, else ``compute()``, saved before it is returned."""
+        return self.get_many([step], lambda missing: [compute()])[0]
+
+    def get_many(self, steps: list[str], compute: Callable[[list[str]], list[T]]) -> list[T]:
+        """``get`` of consecutive steps whose results are computed together: the saved ones
+        are read (an unbroken prefix, as for ``get``), the others computed by one call
+        ``compute(names)`` (one result per name, in order) and each saved."""
+        values = []
+        for step in steps:
+            saved = self._saved(step)
+            if saved is _MISSING:
+                break
+            values.append(saved)
+        rest = steps[len(values) :]
+        if rest:
+            self._computing = True
+            computed = compute(rest)
+            for step, value in zip(rest, computed, strict=True):
+                self.run_dir.save_torch(f"{FOLDER}/{step}.pt", {"key": self.key, "value": value})
+            values += computed
+        return values
+
+    def _saved(self, step: str) -> Any:
+        """The saved result of ``step`` under this key, or _MISSING (also once a step has been
+        computed: no later saved step is used)."""
         path = self.run_dir.path(f"{FOLDER}/{step}.pt")
-        if not self._computing and path.is_file():
-            try:  # on the CPU: a step saved beside a GPU serves a CPU-only machine as well
-                saved = torch.load(path, map_location="cpu", weights_only=False)
-            except Exception as exc:  # e.g. a file of another code version: compute it again
-                log.warning("could not read the saved step %s (%s); computing it again", step, exc)
-            else:
-                if isinstance(saved, dict) and saved.get("key") == self.key:
-                    self.resumed.append(step)
-                    return saved["value"]
-        self._computing = True
-        value = compute()
-        self.run_dir.save_torch(f"{FOLDER}/{step}.pt", {"key": self.key, "value": value})
-        return value
+        if self._computing or not path.is_file():
+            return _MISSING
+        try:  # on the CPU: a step saved beside a GPU serves a CPU-only machine as well
+            saved = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as exc:  # e.g. a file of another code version: compute it again
+            log.warning("could not read the saved step %s (%s); computing it again", step, exc)
+            return _MISSING
+        if isinstance(saved, dict) and saved.get("key") == self.key:
+            self.resumed.append(step)
+            return saved["value"]
+        return _MISSING
 
     def clear(self) -> None:
         """Remove every saved step (the diagnosis is complete)."""
