@@ -121,3 +121,22 @@ def test_models_identified_afresh_together_equal_each_alone(monkeypatch):
         assert fit.reidentified and alone.reidentified
         assert fit.history == alone.history and len(fit.history) == 3 + 1 + 4 + 1
         assert fit.loss == alone.loss and torch.equal(fit.theta, alone.theta)
+
+
+def test_one_after_another_gives_the_same_refits_without_a_batch(monkeypatch):
+    """``diagnose.together: false`` (RefitOptions.together): every start descends alone, with
+    the results of the lockstep descents; the recipe key reaches the budget."""
+    from omegaconf import OmegaConf
+
+    from mosiv_framework.diagnose.budget import resolve_budget
+    from mosiv_framework.diagnose.model import RefitOptions, refit_together
+
+    options = RefitOptions(iterations=2, settle=1)
+    ctx = _windy_context()
+    together = refit_together(ctx, _requests(ctx), fit_frames=FIT, options=options)
+    monkeypatch.setattr(ctx.simulator, "rollout_batch", None)  # any batched call fails now
+    one_by_one = RefitOptions(iterations=2, settle=1, together=False)
+    apart = refit_together(ctx, _requests(ctx), fit_frames=FIT, options=one_by_one)
+    assert _summary(apart) == _summary(together)
+    assert resolve_budget("full").together
+    assert not resolve_budget("full", OmegaConf.create({"together": False})).together

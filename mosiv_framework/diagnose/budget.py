@@ -19,10 +19,11 @@ class Budget:
     the better of that and its refit is kept), the backtracking steps that end every
     refit (``RefitOptions.polish``), the refit's initial-velocity step (m/s per step) and
     whether contact and material candidates get a start at the far end of the screening's
-    walk (``diagnosis.refit_starts``), and whether a named effect must be stable across grid
-    resolution (``grid_stability``). A recipe's ``diagnose`` section may set max_candidates,
-    bootstrap, starts, iterations, polish, far_start, grid_check and (as
-    ``refit_velocity_lr``) velocity_lr."""
+    walk (``diagnosis.refit_starts``), whether a named effect must be stable across grid
+    resolution (``grid_stability``), and whether the models' descents run in lockstep
+    (``together``, ``diagnose.descent``). A recipe's ``diagnose`` section may set
+    max_candidates, bootstrap, starts, iterations, polish, far_start, grid_check, together and
+    (as ``refit_velocity_lr``) velocity_lr."""
 
     max_candidates: int
     iterations: int
@@ -35,6 +36,7 @@ class Budget:
     velocity_lr: float = RefitOptions.velocity_lr
     far_start: bool = False
     grid_check: bool = False
+    together: bool = True
 
 
 BUDGETS = {
@@ -73,6 +75,7 @@ def resolve_budget(budget: str | Budget, section=None) -> Budget:
         "refit_velocity_lr": ("velocity_lr", float),
         "far_start": ("far_start", bool),
         "grid_check": ("grid_check", bool),
+        "together": ("together", bool),
     }
     return replace(
         budget,

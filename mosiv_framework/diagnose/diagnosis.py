@@ -193,6 +193,7 @@ class _Plan:
             settle=self.budget.settle,
             polish=self.budget.polish,
             velocity_lr=self.budget.velocity_lr,
+            together=self.budget.together,
         )
 
     def say(self, message: str, *, level: int = logging.INFO) -> None:
@@ -291,7 +292,11 @@ def _identify_afresh(plan: _Plan, null, fits: list, kept: list) -> tuple:
     def afresh(names: list[str]) -> list:
         wanted = [models[n] for n in names]
         fresh = reidentify_together(
-            ctx, [(c, start) for _, c, start in wanted], fit_frames=fit_frames, options=schedule
+            ctx,
+            [(c, start) for _, c, start in wanted],
+            fit_frames=fit_frames,
+            options=schedule,
+            together=plan.budget.together,
         )
         return [_better(fit, new) for (fit, _, _), new in zip(wanted, fresh)]
 

@@ -63,6 +63,9 @@ class RefitOptions:
     coefficient_lr: float = 0.15
     settle: int = 0
     polish: int = 0
+    #: every start of the refits asked for at once descends in lockstep (``descent``); False:
+    #: one after another (the same results on warp-mpm's CPU path; for timing the batch)
+    together: bool = True
 
     def __post_init__(self) -> None:
         if self.iterations < 1:
@@ -179,7 +182,9 @@ def refit_together(
             (torch.zeros(0) if request.candidate is None else request.candidate.zero(), None)
         ]
         plans.append((request, starts, _start_descents(ctx, request, starts, options)))
-    descend_together(ctx, [d for *_, descents in plans for d in descents], fit_frames=fit_frames)
+    every = [d for *_, descents in plans for d in descents]
+    for batch in [every] if options.together else [[d] for d in every]:
+        descend_together(ctx, batch, fit_frames=fit_frames)
     return [_best_of(ctx, request, starts, descents) for request, starts, descents in plans]
 
 

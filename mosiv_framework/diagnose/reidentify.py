@@ -125,12 +125,18 @@ def reidentify_together(
     *,
     fit_frames: list[int],
     options: ReidentifyOptions = ReidentifyOptions(),
+    together: bool = True,
 ) -> list[Fit | SimulationDiverged]:
     """``reidentify`` of each (candidate, start) of ``models``, all in lockstep: the schedule
     (phases, iterations, horizons) is the run's for every model, so each step rolls every model
-    still going out together (``RunContext.simulate_batch``) and back-propagates once. One
-    result per model, in order: its Fit, or the SimulationDiverged where no rollout of its
-    parameter phase succeeded."""
+    still going out together (``RunContext.simulate_batch``) and back-propagates once
+    (``together`` False: one model after another). One result per model, in order: its Fit, or
+    the SimulationDiverged where no rollout of its parameter phase succeeded."""
+    if not together:
+        return [
+            reidentify_together(ctx, [model], fit_frames=fit_frames, options=options)[0]
+            for model in models
+        ]
     vector_and_free = [fresh_vector(ctx) for _ in models]
     states = []
     for (candidate, start), (vector, _) in zip(models, vector_and_free):

@@ -378,6 +378,10 @@ class DiagnoseSection:
     grid_check: bool | None = None
     grid_factor: float | None = None
     grid_tolerance: float | None = None
+    #: the refits' and fresh identifications' descents in lockstep, one batched rollout per
+    #: step (``diagnose.descent``); false: one after another, the same results (bit for bit
+    #: on warp-mpm's CPU path), for timing what the batch saves. Default on
+    together: bool | None = None
 
     @staticmethod
     def value_problems(values: dict[str, Any]) -> list[str]:
