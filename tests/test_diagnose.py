@@ -337,3 +337,31 @@ def test_a_diagnosis_cut_off_resumes_after_its_saved_steps(wind, tmp_path, monke
     for got, expected in zip(resumed["evidence"], wind[1]["evidence"]):
         assert got["name"] == expected["name"]
         assert got["heldout_drop"] == pytest.approx(expected["heldout_drop"], rel=1e-6)
+
+
+def test_the_lockstep_benchmark_diagnoses_two_copies_the_same_way(wind, tmp_path):
+    """benchmarks/diagnose_together.py on the wind run: a copy with the descents in lockstep
+    and one with them one after another, each diagnosed in its own process; on the CPU both
+    name the wind with the same coefficients, and the run itself is left as it was."""
+    import importlib.util
+
+    run, _ = wind
+    before = sorted(p.name for p in run.iterdir())
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "diagnose_together.py"
+    spec = importlib.util.spec_from_file_location("diagnose_together", script)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "out"
+    assert bench.main([str(run), "--out", str(out), "--budget", "small"]) == 0
+    result = json.loads((out / "diagnose_together.json").read_text())
+    apart, together = result["sides"]["apart"], result["sides"]["together"]
+    assert result["same_verdict"] and together["accepted"] == "wind"
+    assert apart["coefficients"] == together["coefficients"]
+    assert together["time_s"] > 0 and together["peak_rss_bytes"] > 0
+    for side, flag in (("apart", False), ("together", True)):
+        assert (
+            yaml.safe_load((out / side / "recipe.yaml").read_text())["diagnose"]["together"] is flag
+        )
+    assert sorted(p.name for p in run.iterdir()) == before
+    with pytest.raises(SystemExit):
+        bench.main([str(run), "--out", str(out)])  # not empty
