@@ -175,6 +175,34 @@ def test_import_recovers_cameras_frames_offsets(scene, imported):
     assert (imported / "preview" / "contact_sheet.png").is_file()
 
 
+def test_cameras_that_started_late_can_be_left_out_to_keep_every_frame(scene, tmp_path):
+    """``late_cameras="drop"`` (``--late-cameras drop``): the camera that started late is
+    left out, the others keep every frame (frame t is the scene's frame t); under the default
+    trim every camera drops to the common frames; "drop" that would leave one camera, or an
+    unknown policy, is refused with the cameras named."""
+    import json
+
+    from mosiv_framework.capture.offsets import cameras_left_out
+
+    capture = write_capture(scene, tmp_path / "c", late={"cam_01": 2})
+    out = import_recording(settings(capture, tmp_path / "s", late_cameras="drop"))
+    original, got = read_scene(scene), read_scene(out)
+    assert validate_scene(out) == []
+    record = json.loads((out / "import.json").read_text())
+    assert record["late_cameras_left_out"] == ["cam_01"]
+    assert got.camera_ids == [c for c in original.camera_ids if c != "cam_01"]
+    assert got.n_frames == N_FRAMES
+    for cam in got.camera_ids:
+        ref = np.stack([original.rgb(cam, t) for t in range(N_FRAMES)])
+        mine = np.stack([got.rgb(cam, t) for t in range(N_FRAMES)])
+        assert psnr(mine, ref) > 28, cam
+    assert cameras_left_out({"a": 2, "b": 0, "c": 2}, "trim") == []
+    with pytest.raises(CaptureError, match=r"would leave 1 camera \(a\).*b, c started later"):
+        cameras_left_out({"a": 2, "b": 0, "c": 1}, "drop")
+    with pytest.raises(CaptureError, match="valid values are trim, drop"):
+        cameras_left_out({"a": 0}, "keep")
+
+
 def test_masks_match_rendered_masks(scene, imported):
     original, got = read_scene(scene), read_scene(imported)
     shift = N_FRAMES - got.n_frames

@@ -44,6 +44,8 @@ class ImportSettings:
     materials: str | None = None
     objects_yaml: Path | None = None
     offsets: str | None = None
+    #: cameras that started late: "trim" the others' leading frames, or "drop" those cameras
+    late_cameras: str = "trim"
     units: str | None = None
     up: str | None = None
     ground: str | None = None
@@ -148,8 +150,9 @@ def load_frames(s: ImportSettings, sources, cams) -> tuple[dict[str, np.ndarray]
     return videos, video.common_fps(rates, s.fps, s.frames_dir)
 
 
-def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bool]:
-    """(videos cut to a common time base, offsets, whether they were estimated)."""
+def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bool, list]:
+    """(videos cut to a common time base, offsets, whether they were estimated, the cameras
+    left out because they started late: ``--late-cameras drop``)."""
     if s.offsets is not None and yaml_offsets is not None:
         raise CaptureError(f"offsets given twice (--offsets and {s.objects_yaml}); give one")
     given, where = (s.offsets, "--offsets") if s.offsets is not None else (yaml_offsets, "")
@@ -159,7 +162,12 @@ def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bo
     if estimated:
         offsets = off.estimate_offsets(videos, k=s.onset_k)
         logger.info("estimated time offsets (frames dropped): %s", offsets)
-    return off.apply_offsets(videos, offsets, s.n_frames), offsets, estimated
+    left_out = off.cameras_left_out(offsets, s.late_cameras)
+    if left_out:
+        logger.info("cameras that started late, left out: %s", ", ".join(left_out))
+        videos = {c: v for c, v in videos.items() if c not in left_out}
+        offsets = {c: 0 for c in videos}  # the cameras kept all started first
+    return off.apply_offsets(videos, offsets, s.n_frames), offsets, estimated, left_out
 
 
 def read_objects(s: ImportSettings):
@@ -289,7 +297,8 @@ def import_recording(s: ImportSettings) -> Path:
     sources = video.find_sources(s.frames_dir)
     cams = load_cameras(s, set(sources))
     videos, fps = load_frames(s, sources, cams)
-    videos, offsets, estimated = synchronise(s, videos, yaml_offsets)
+    videos, offsets, estimated, left_out = synchronise(s, videos, yaml_offsets)
+    cams = {c: cam for c, cam in cams.items() if c in videos}
     videos = {
         c: undistort_frames(v, cams[c].intrinsics, cams[c].distortion) for c, v in videos.items()
     }
@@ -310,6 +319,7 @@ def import_recording(s: ImportSettings) -> Path:
         "settings": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(s).items()},
         "offsets": offsets,
         "offsets_estimated": estimated,
+        "late_cameras_left_out": left_out,
         "up_in_recording": up.tolist(),
         "alignment": align.as_dict(),
         "ground_fitted": s.ground is None,

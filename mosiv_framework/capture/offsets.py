@@ -87,6 +87,33 @@ def estimate_offsets(videos: Mapping[str, np.ndarray], **kw) -> dict[str, int]:
     return {cam: o - first for cam, o in onsets.items()}
 
 
+#: what the import does with cameras that started after the first ones (``--late-cameras``)
+LATE_CAMERA_POLICIES = ("trim", "drop")
+
+
+def cameras_left_out(offsets: Mapping[str, int], policy: str) -> list[str]:
+    """The cameras the import leaves out under ``policy``: "trim" none (every camera that
+    started earlier drops the leading frames the late ones lack, so all cameras keep the
+    common frames), "drop" the cameras that started late (offset below the largest), so that
+    the others keep every frame. CaptureError for an unknown policy, or where "drop" would
+    leave fewer than two cameras."""
+    if policy not in LATE_CAMERA_POLICIES:
+        valid = ", ".join(LATE_CAMERA_POLICIES)
+        raise CaptureError(f"--late-cameras {policy!r}: valid values are {valid}")
+    if policy == "trim" or not offsets:
+        return []
+    first = max(offsets.values())
+    late = sorted(c for c, o in offsets.items() if o < first)
+    kept = sorted(c for c in offsets if c not in late)
+    if late and len(kept) < 2:
+        raise CaptureError(
+            f"--late-cameras drop would leave {len(kept)} camera ({', '.join(kept)}): "
+            f"{', '.join(late)} started later (offsets {dict(offsets)}); use --late-cameras "
+            "trim to keep every camera over the common frames"
+        )
+    return late
+
+
 def apply_offsets(
     videos: Mapping[str, np.ndarray], offsets: Mapping[str, int], n_frames: int | None
 ) -> dict[str, np.ndarray]:

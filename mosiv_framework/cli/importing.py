@@ -37,6 +37,13 @@ def add_parser(sub) -> None:
         help="leading frames each camera drops, CAM:N,... ('none': synchronised; default: "
         "estimated from motion onset)",
     )
+    src.add_argument(
+        "--late-cameras",
+        choices=("trim", "drop"),
+        default="trim",
+        help="cameras that started late: trim the other cameras' leading frames to the common "
+        "ones (default), or drop those cameras and keep every frame of the others",
+    )
     src.add_argument("--frames", type=int, help="keep the first N frames after the offsets")
     src.add_argument(
         "--background",
@@ -96,6 +103,7 @@ def settings_from_args(args):
         materials=args.materials,
         objects_yaml=Path(args.objects) if args.objects else None,
         offsets=args.offsets,
+        late_cameras=args.late_cameras,
         units=args.units,
         up=args.up,
         ground=args.ground,
