@@ -166,11 +166,12 @@ def _loss(traj: Trajectory, b: int) -> torch.Tensor:
     return traj.positions[-1, :, b % 3].mean() + 0.3 * traj.positions[1:, :, 2].square().mean()
 
 
-def test_gradients_of_the_batch_equal_each_members_own(make_warp_simulator) -> None:
+@pytest.mark.parametrize("window", ["whole", "particles"])
+def test_gradients_of_the_batch_equal_each_members_own(make_warp_simulator, window) -> None:
     """Under autograd the batch is one simulation (no per-member loop), and each member's
     parameter gradients are those of its single differentiable rollout (bit for bit on the
-    CPU)."""
-    sim = make_warp_simulator(grid=16, substeps=10)
+    CPU), whether the grid kernels visit every node or only the box around the particles."""
+    sim = make_warp_simulator(grid=16, substeps=10, grid_window=window)
     particles = two_blocks()
     params_list = members(particles)[:2]
     batch_leaves = [_leaves(p) for p in params_list]
