@@ -183,6 +183,7 @@ def test_cameras_that_started_late_can_be_left_out_to_keep_every_frame(scene, tm
     import json
 
     from mosiv_framework.capture.offsets import cameras_left_out
+    from mosiv_framework.capture.reference import reference_shift
 
     capture = write_capture(scene, tmp_path / "c", late={"cam_01": 2})
     out = import_recording(settings(capture, tmp_path / "s", late_cameras="drop"))
@@ -196,6 +197,15 @@ def test_cameras_that_started_late_can_be_left_out_to_keep_every_frame(scene, tm
         ref = np.stack([original.rgb(cam, t) for t in range(N_FRAMES)])
         mine = np.stack([got.rgb(cam, t) for t in range(N_FRAMES)])
         assert psnr(mine, ref) > 28, cam
+    # the reference ground truth of such an import starts at the kept cameras' first frame
+    capture_record = {
+        "cameras": [{"id": "cam_00", "start_frame": 0}, {"id": "cam_01", "start_frame": 2}]
+    }
+    assert reference_shift(capture_record, record) == 0
+    trimmed = {"offsets": {"cam_00": 2, "cam_01": 0}}
+    assert reference_shift(capture_record, trimmed) == 2
+    with pytest.raises(CaptureError, match="do not undo the capture's late starts"):
+        reference_shift(capture_record, {"offsets": {"cam_00": 0, "cam_01": 0}})
     assert cameras_left_out({"a": 2, "b": 0, "c": 2}, "trim") == []
     with pytest.raises(CaptureError, match=r"would leave 1 camera \(a\).*b, c started later"):
         cameras_left_out({"a": 2, "b": 0, "c": 1}, "drop")

@@ -37,9 +37,13 @@ def reference_transform(capture: dict, record: dict) -> tuple[np.ndarray, np.nda
 
 def reference_shift(capture: dict, record: dict) -> int:
     """The original frame that the imported scene's frame 0 shows: each camera's late start
-    plus the frames the import dropped from it, which must agree over the cameras."""
+    plus the frames the import dropped from it, which must agree over the cameras the import
+    kept (``--late-cameras drop`` leaves the late ones out)."""
+    left_out = set(record.get("late_cameras_left_out") or [])
     starts = {
-        c["id"]: int(c["start_frame"]) + int(record["offsets"][c["id"]]) for c in capture["cameras"]
+        c["id"]: int(c["start_frame"]) + int(record["offsets"][c["id"]])
+        for c in capture["cameras"]
+        if c["id"] not in left_out
     }
     if len(set(starts.values())) != 1:
         raise CaptureError(
