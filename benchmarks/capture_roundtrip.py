@@ -95,51 +95,85 @@ def capture_and_import(
     crf: int | None = None,
     pixel_format: str | None = None,
     plate: bool = True,
+    late_cameras: str = "trim",
 ) -> Path:
     """Write ``scene`` as a rig's capture into out/capture, import it into out/imported with
-    the reference gt attached; ``late``: frames the late camera (LATE) misses at the start,
-    which the import drops from every camera; ``lens``: k1,k2 of the rig's lens ("0,0": none);
-    ``crf``: H.264 quality and ``pixel_format`` its chroma (None: the capture's defaults);
-    ``plate``: the rig records a clean plate per camera, which the import's segmenter takes as
-    its background (without one it estimates the background as each pixel's median, which is
-    the object wherever an object rests for most of the clip). Returns the imported scene."""
+    the reference gt attached; ``late``: frames the late camera (LATE) misses at the start;
+    ``late_cameras``: the import's ``--late-cameras`` (trim: every camera drops those frames;
+    drop: the late camera is left out and the others keep every frame); ``lens``: k1,k2 of the
+    rig's lens ("0,0": none); ``crf``: H.264 quality and ``pixel_format`` its chroma (None: the
+    capture's defaults); ``plate``: the rig records a clean plate per camera, which the
+    import's segmenter takes as its background (without one it estimates the background as
+    each pixel's median, which is the object wherever an object rests for most of the clip).
+    Returns the imported scene."""
     from mosiv_framework.capture.reference import attach_reference
     from mosiv_framework.cli.main import main
     from mosiv_framework.scene import read_scene
 
     original = read_scene(scene)
     capture, imported = out / "capture", out / "imported"
-    cam = LATE[0]
     argv = ["data", "capture", str(scene), str(capture), "--units", UNITS, "--up", UP]
-    argv += [f"--distortion={lens}", "--offsets", f"{cam}={late}", "--with-reference"]
+    argv += [f"--distortion={lens}", "--offsets", f"{LATE[0]}={late}", "--with-reference"]
     argv += [] if crf is None else ["--crf", str(crf)]
     argv += [] if pixel_format is None else ["--pixel-format", pixel_format]
     argv += ["--background-plate"] if plate else []
     if main(argv) != 0:
         raise RuntimeError(f"mosiv {' '.join(argv)} failed")
-    materials = ",".join(o.material for o in segmenter_order(original, late))
-    argv = ["data", "import", str(imported), "--recording", str(capture), "--units", UNITS]
-    argv += ["--up", UP, "--materials", materials, "--offsets", f"{cam}:{-late}"]
-    # the ground as the scene has it (a rig measures its floor): none, or the plane y = height
-    height = original.ground_height
-    argv += ["--ground", "none" if height is None else f"y={height * 100.0}"]
-    # the observed window ends at the original's last observed frame
-    argv += ["--observed", str(original.observed_frames - late)]
-    argv += [f"--segmenter-option={option}" for option in segmenter]
-    # the visual hull is tight around the objects (0.41 m for the quick scene): a margin of
-    # 0.7 of its size brings the domain near the synthetic scene's 0.8 m, so the simulator
-    # grid, and the stiffness cap it implies, match the direct run's
-    argv += ["--margin", str(MARGIN)]
+    shift = frame_shift(late, late_cameras)
+    argv = import_argv(
+        capture,
+        imported,
+        materials=",".join(o.material for o in segmenter_order(original, shift)),
+        ground_height=original.ground_height,
+        observed=original.observed_frames - shift,
+        late=late,
+        late_cameras=late_cameras,
+        segmenter=segmenter,
+    )
     if main(argv) != 0:
         raise RuntimeError(f"mosiv {' '.join(argv)} failed")
     attach_reference(capture, imported)
     return imported
 
 
-def mask_iou(scene_dir: Path, imported_dir: Path, late: int) -> dict:
+def frame_shift(late: int, late_cameras: str) -> int:
+    """The scene's frame that the import's frame 0 shows: the late camera's missing frames
+    when every camera drops them (trim), 0 when that camera is left out (drop)."""
+    return late if late_cameras == "trim" else 0
+
+
+def import_argv(
+    capture: Path,
+    imported: Path,
+    *,
+    materials: str,
+    ground_height: float | None,
+    observed: int,
+    late: int,
+    late_cameras: str,
+    segmenter: list[str],
+) -> list[str]:
+    """The ``mosiv data import`` command line of the round trip."""
+    argv = ["data", "import", str(imported), "--recording", str(capture), "--units", UNITS]
+    argv += ["--up", UP, "--materials", materials, "--offsets", f"{LATE[0]}:{-late}"]
+    argv += ["--late-cameras", late_cameras]
+    # the ground as the scene has it (a rig measures its floor): none, or the plane y = height
+    argv += ["--ground", "none" if ground_height is None else f"y={ground_height * 100.0}"]
+    # the observed window ends at the original's last observed frame
+    argv += ["--observed", str(observed)]
+    argv += [f"--segmenter-option={option}" for option in segmenter]
+    # the visual hull is tight around the objects (0.41 m for the quick scene): a margin of
+    # 0.7 of its size brings the domain near the synthetic scene's 0.8 m, so the simulator
+    # grid, and the stiffness cap it implies, match the direct run's
+    argv += ["--margin", str(MARGIN)]
+    return argv
+
+
+def mask_iou(scene_dir: Path, imported_dir: Path, shift: int) -> dict:
     """How well the import's masks (the segmenter's) cover the scene's own: per object
-    (original id), the IoU of each frame pooled over the cameras, its lowest and mean over the
-    frames, and the mask area relative to the scene's (mean over frames)."""
+    (original id), the IoU of each frame pooled over the cameras the import kept, its lowest
+    and mean over the frames, and the mask area relative to the scene's (mean over frames);
+    ``shift``: the scene's frame the import's frame 0 shows (``frame_shift``)."""
     from mosiv_framework.scene import read_scene
 
     original, imported = read_scene(scene_dir), read_scene(imported_dir)
@@ -152,7 +186,7 @@ def mask_iou(scene_dir: Path, imported_dir: Path, late: int) -> dict:
             inter = union = area = area_ref = 0
             for cam in imported.camera_ids:
                 a = imported.mask(cam, t) == mine
-                b = original.mask(cam, t + late) == theirs
+                b = original.mask(cam, t + shift) == theirs
                 inter, union = inter + int((a & b).sum()), union + int((a | b).sum())
                 area, area_ref = area + int(a.sum()), area_ref + int(b.sum())
             ious.append(inter / max(union, 1))
@@ -200,6 +234,7 @@ class Rig:
     crf: int | None = None
     pixel_format: str | None = None
     plate: bool = True
+    late_cameras: str = "trim"
 
     def record(self) -> dict:
         return {
@@ -210,6 +245,7 @@ class Rig:
             "pixel_format": self.pixel_format,
             "late": {LATE[0]: self.late},
             "background_plate": self.plate,
+            "late_cameras": self.late_cameras,
         }
 
 
@@ -251,12 +287,20 @@ def run_part(
     elif part == "capture":
         if not (imported_scene / "scene.json").is_file():
             capture_and_import(
-                scene, out, segmenter, rig.late, rig.lens, rig.crf, rig.pixel_format, rig.plate
+                scene,
+                out,
+                segmenter,
+                rig.late,
+                rig.lens,
+                rig.crf,
+                rig.pixel_format,
+                rig.plate,
+                rig.late_cameras,
             )
         result = {
             "rig": rig.record(),
             "segmenter_options": list(segmenter),
-            "mask_iou": mask_iou(scene, imported_scene, rig.late),
+            "mask_iou": mask_iou(scene, imported_scene, frame_shift(rig.late, rig.late_cameras)),
         }
     else:
         if not (imported_scene / "scene.json").is_file():
@@ -372,6 +416,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--crf", type=int, help="H.264 quality of the capture (0: lossless)")
     parser.add_argument("--pixel-format", help="H.264 chroma of the capture: yuv420p or yuv444p")
     parser.add_argument(
+        "--late-cameras",
+        choices=("trim", "drop"),
+        default="trim",
+        help="the import's --late-cameras: every camera drops the late camera's missing frames "
+        "(trim, default), or the late camera is left out (drop)",
+    )
+    parser.add_argument(
         "--no-plate",
         action="store_true",
         help="the rig records no clean plate: the segmenter estimates the background itself",
@@ -394,7 +445,14 @@ def main(argv: list[str] | None = None) -> int:
     overrides = (QUICK if args.quick else []) + list(args.overrides)
     args.out.mkdir(parents=True, exist_ok=True)
     segmenter = QUICK_SEGMENTER if args.quick else []
-    rig = Rig(args.late_frames, args.lens, args.crf, args.pixel_format, not args.no_plate)
+    rig = Rig(
+        args.late_frames,
+        args.lens,
+        args.crf,
+        args.pixel_format,
+        not args.no_plate,
+        args.late_cameras,
+    )
     if args.part is not None:
         result = run_part(args.part, args.out, recipe, overrides, segmenter, args.spread_seed, rig)
         print(json.dumps(result, indent=2))

@@ -171,3 +171,20 @@ def test_parts_merge_into_the_comparison_and_a_missing_part_is_named(tmp_path):
         bench.run_part("everything", tmp_path, bench.QUICK_RECIPE, [])
     with pytest.raises(ValueError, match="--spread-seed"):
         bench.run_part("reseeded", tmp_path, bench.QUICK_RECIPE, [])
+
+
+def test_the_import_leaves_the_late_camera_out_or_trims_every_camera():
+    """--late-cameras: under trim the import's frame 0 is the scene's frame ``late`` and the
+    observed window one shorter by as much; under drop the late camera is left out and the
+    frames are the scene's own."""
+    bench = load_benchmark()
+    assert bench.frame_shift(2, "trim") == 2 and bench.frame_shift(2, "drop") == 0
+    common = dict(materials="elastic,sand", ground_height=0.0, late=2, segmenter=[])
+    for policy, observed in (("trim", 13), ("drop", 15)):
+        argv = bench.import_argv(
+            Path("cap"), Path("imp"), observed=observed, late_cameras=policy, **common
+        )
+        assert argv[argv.index("--late-cameras") + 1] == policy
+        assert argv[argv.index("--observed") + 1] == str(observed)
+        assert argv[argv.index("--offsets") + 1] == f"{bench.LATE[0]}:-2"
+    assert bench.Rig(late_cameras="drop").record()["late_cameras"] == "drop"
