@@ -158,11 +158,7 @@ def _advance(d: Descent, loss: torch.Tensor | None) -> None:
     if d.polish and d.step >= d.main_steps and (loss is None or not d.improved):
         _back_to_best(d)
     d.optimizer.step()
-    with torch.no_grad():
-        for leaf in d.vector.normalized.values():
-            leaf.clamp_(0.0, 1.0)
-        if d.candidate is not None:
-            d.u.copy_(d.candidate.clamp(d.u * d.scale) / d.scale)
+    keep_in_bounds(d.vector, d.candidate, d.u, d.scale)
     d.step += 1
     d.done = d.step > d.main_steps + d.polish  # the last pass only scores
 
@@ -178,6 +174,16 @@ def _back_to_best(d: Descent) -> None:
     d.optimizer.state.clear()
     for group in d.optimizer.param_groups:
         group["lr"] *= 0.5
+
+
+def keep_in_bounds(vector: ParameterVector, candidate, u: torch.Tensor, scale) -> None:
+    """After an optimizer step: the normalised parameters back into [0, 1] and the
+    coefficients (theta = u * scale) into the candidate's bounds."""
+    with torch.no_grad():
+        for leaf in vector.normalized.values():
+            leaf.clamp_(0.0, 1.0)
+        if candidate is not None:
+            u.copy_(candidate.clamp(u * scale) / scale)
 
 
 def assemble(vector, candidate, u, scale) -> SimulationParams:

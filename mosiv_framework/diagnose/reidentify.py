@@ -33,6 +33,7 @@ from omegaconf import OmegaConf
 
 from mosiv_framework.diagnose.candidates import Candidate
 from mosiv_framework.diagnose.context import RunContext
+from mosiv_framework.diagnose.descent import keep_in_bounds
 from mosiv_framework.diagnose.descent import rollouts as _rollouts
 from mosiv_framework.diagnose.model import Fit, assemble, count_free, restore, snapshot
 from mosiv_framework.errors import SimulationDiverged
@@ -321,8 +322,4 @@ def _step(r: _PhaseRun, loss: torch.Tensor | None, *, last: bool, at_end: bool) 
             leaf.grad = None
     r.optimizer.step()
     r.schedule.step()
-    with torch.no_grad():
-        for leaf in m.vector.normalized.values():
-            leaf.clamp_(0.0, 1.0)
-        if m.candidate is not None:
-            m.u.copy_(m.candidate.clamp(m.u * m.scale) / m.scale)
+    keep_in_bounds(m.vector, m.candidate, m.u, m.scale)
