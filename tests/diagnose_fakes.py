@@ -112,3 +112,33 @@ def one_body_context(world, particles, truth, identified, *, n_frames, observed_
         n_frames=n_frames,
         loss_points=0,
     )
+
+
+def windy_block_context(n_frames: int):
+    """A RunContext of one elastic block thrown onto the ground under a concealed sideways wind
+    (warp-mpm on the CPU, grid 16, 10 substeps, every frame observed), identified without the
+    wind."""
+    from mosiv_framework.testing.shapes import block, default_params
+    from mosiv_framework.types import World
+
+    world = World((0, 0, 0), (1, 1, 1), gravity=(0, 0, -9.8), ground_height=0.0, fps=24.0)
+    p = block((0.35, 0.45, 0.12), (0.45, 0.55, 0.22), spacing=0.025, object_id=1)
+    velocity = {1: (0.5, 0.0, -0.5)}
+    truth = default_params(p, velocities=velocity, terms={"wind": {"acceleration": [0, 2, 0]}})
+    identified = default_params(p, velocities=velocity)
+    return one_body_context(
+        world, p, truth, identified, n_frames=n_frames, observed_frames=n_frames
+    )
+
+
+def spy_batches(monkeypatch, sim) -> list[int]:
+    """Record the member count of every ``rollout_batch`` call ``sim`` gets."""
+    sizes: list[int] = []
+    batched = sim.rollout_batch
+
+    def spy(particles, params_list, **kwargs):
+        sizes.append(len(params_list))
+        return batched(particles, params_list, **kwargs)
+
+    monkeypatch.setattr(sim, "rollout_batch", spy)
+    return sizes

@@ -12,16 +12,14 @@ from pathlib import Path
 
 import torch
 
-from mosiv_framework.testing.shapes import block, default_params
-from mosiv_framework.types import World
+from mosiv_framework.testing.shapes import default_params
 
 # shared fakes of the diagnosis tests; --import-mode=importlib leaves this folder off sys.path
 HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
-from diagnose_fakes import one_body_context  # noqa: E402
+from diagnose_fakes import spy_batches, windy_block_context  # noqa: E402
 
-FPS = 24.0
 FIT = list(range(1, 8))
 #: the screened candidates: by gradient with a walk out (wind), by a flat gradient's probes
 #: (ground_restitution, where the loss may be flat at 0) and by a ladder (plasticity)
@@ -29,30 +27,8 @@ SCREENED = ("wind", "ground_restitution", "plasticity")
 
 
 def _dropped_context():
-    """A RunContext of one elastic block thrown onto the ground under a concealed sideways wind
-    (warp-mpm on the CPU, grid 16, 10 substeps), identified without the wind."""
-    world = World((0, 0, 0), (1, 1, 1), gravity=(0, 0, -9.8), ground_height=0.0, fps=FPS)
-    p = block((0.35, 0.45, 0.12), (0.45, 0.55, 0.22), spacing=0.025, object_id=1)
-    velocity = {1: (0.5, 0.0, -0.5)}
-    truth = default_params(p, velocities=velocity, terms={"wind": {"acceleration": [0, 2, 0]}})
-    identified = default_params(p, velocities=velocity)
-    n_frames = max(FIT) + 1
-    return one_body_context(
-        world, p, truth, identified, n_frames=n_frames, observed_frames=n_frames
-    )
-
-
-def _spy_batches(monkeypatch, sim) -> list[int]:
-    """Record the member count of every ``rollout_batch`` call ``sim`` gets."""
-    sizes: list[int] = []
-    batched = sim.rollout_batch
-
-    def spy(particles, params_list, **kwargs):
-        sizes.append(len(params_list))
-        return batched(particles, params_list, **kwargs)
-
-    monkeypatch.setattr(sim, "rollout_batch", spy)
-    return sizes
+    """The one-block windy scene of ``windy_block_context`` over the fit frames."""
+    return windy_block_context(max(FIT) + 1)
 
 
 def _one_by_one(monkeypatch, ctx) -> None:
@@ -93,7 +69,7 @@ def test_the_batched_screen_equals_the_screen_of_one_rollout_at_a_time(monkeypat
     assert sorted(c.name for c in candidates) == sorted(SCREENED)
     regimes = ["free_flight", "ground_contact", "rest", "object_contact"]
 
-    sizes = _spy_batches(monkeypatch, ctx.simulator)
+    sizes = spy_batches(monkeypatch, ctx.simulator)
     batched = screen(ctx, candidates, flagged_regimes=regimes, fit_frames=FIT)
     assert max(sizes) > 1, sizes  # the probes did go through rollout_batch together
     monkeypatch.undo()
@@ -123,7 +99,7 @@ def test_a_diverging_member_is_inf_and_the_others_keep_their_one_by_one_losses(m
     fast = default_params(ctx.particles, velocities={1: (60.0, 0.0, 0.0)})
     members = [ctx.identified, fast, windy]
     monkeypatch.setattr(phases, "BATCH_MEMBERS", 2)
-    sizes = _spy_batches(monkeypatch, ctx.simulator)
+    sizes = spy_batches(monkeypatch, ctx.simulator)
     losses = ctx.rollout_losses(members, FIT)
     assert sizes == [2, 1]
     expected = [float(ctx.loss(ctx.rollout(p, frames=max(FIT)), FIT)) for p in (members[0], windy)]

@@ -10,29 +10,18 @@ from pathlib import Path
 
 import torch
 
-from mosiv_framework.testing.shapes import block, default_params
-from mosiv_framework.types import World
-
 # shared fakes of the diagnosis tests; --import-mode=importlib leaves this folder off sys.path
 HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
-from diagnose_fakes import one_body_context  # noqa: E402
+from diagnose_fakes import spy_batches, windy_block_context  # noqa: E402
 
-FPS = 24.0
 FIT = [1, 2, 3, 4]
 
 
 def _windy_context():
-    """One elastic block thrown under a concealed sideways wind, identified without it
-    (warp-mpm on the CPU, grid 16, 10 substeps)."""
-    world = World((0, 0, 0), (1, 1, 1), gravity=(0, 0, -9.8), ground_height=0.0, fps=FPS)
-    p = block((0.35, 0.45, 0.12), (0.45, 0.55, 0.22), spacing=0.025, object_id=1)
-    velocity = {1: (0.5, 0.0, -0.5)}
-    truth = default_params(p, velocities=velocity, terms={"wind": {"acceleration": [0, 2, 0]}})
-    identified = default_params(p, velocities=velocity)
-    n = max(FIT) + 1
-    return one_body_context(world, p, truth, identified, n_frames=n, observed_frames=n)
+    """The one-block windy scene of ``windy_block_context`` over the fit frames."""
+    return windy_block_context(max(FIT) + 1)
 
 
 def _requests(ctx):
@@ -58,14 +47,7 @@ def test_refits_descending_together_equal_each_start_alone(monkeypatch):
 
     options = RefitOptions(iterations=3, settle=2, polish=2)
     ctx = _windy_context()
-    batches: list[int] = []
-    batched = ctx.simulator.rollout_batch
-
-    def spy(particles, params_list, **kwargs):
-        batches.append(len(params_list))
-        return batched(particles, params_list, **kwargs)
-
-    monkeypatch.setattr(ctx.simulator, "rollout_batch", spy)
+    batches = spy_batches(monkeypatch, ctx.simulator)
     together = refit_together(ctx, _requests(ctx), fit_frames=FIT, options=options)
     # four starts: all four in a batch while they all go, then fewer as they end
     assert batches[0] == 4 and batches == sorted(batches, reverse=True) and len(batches) > 3
@@ -104,14 +86,7 @@ def test_models_identified_afresh_together_equal_each_alone(monkeypatch):
         (candidates["linear_drag"], None),
     ]
     options = module.ReidentifyOptions(velocity_iterations=3, param_iterations=4)
-    batches: list[int] = []
-    batched = ctx.simulator.rollout_batch
-
-    def spy(particles, params_list, **kwargs):
-        batches.append(len(params_list))
-        return batched(particles, params_list, **kwargs)
-
-    monkeypatch.setattr(ctx.simulator, "rollout_batch", spy)
+    batches = spy_batches(monkeypatch, ctx.simulator)
     together = module.reidentify_together(ctx, models, fit_frames=FIT, options=options)
     assert batches and set(batches) == {3}  # every step of both phases, all three at once
 
