@@ -7,7 +7,7 @@
 # started them for as long as the machine stays warm: make the next call within its idle window.
 #
 #   source benchmarks/gpu_setup.sh
-#   bash benchmarks/device_batch.sh start NAME COMMAND...   # background; log /root/jobs/NAME.log
+#   bash benchmarks/device_batch.sh start NAME COMMAND...   # background; log ~/jobs/NAME.log
 #   bash benchmarks/device_batch.sh wait SECONDS ['GLOB'...]  # until every job ends or SECONDS
 #                                                           # pass; then pack the logs, exit
 #                                                           # codes and GLOBs into $OUT/batch.tgz
@@ -17,7 +17,7 @@
 # waits for them all and runs into its time limit (they go on, but its output is lost).
 # Give the jobs an output folder outside $OUT: the device empties $OUT before each call, so a
 # job writing there loses what it wrote before the call that is running now.
-jobs_dir=${DEVICE_JOBS_DIR:-/root/jobs}
+jobs_dir=${DEVICE_JOBS_DIR:-$HOME/jobs}
 mkdir -p "$jobs_dir"
 verb=$1
 shift

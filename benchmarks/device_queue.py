@@ -18,10 +18,11 @@ Usage (repository root, after ``source benchmarks/gpu_setup.sh``)::
 JOBFILE holds one job per line, ``NAME COMMAND...`` (COMMAND in shell syntax, run by bash in
 the job's snapshot); blank lines and lines starting with # are skipped. Each job logs to
 ``JOBS/NAME.log`` and leaves its exit code in ``JOBS/NAME.rc`` (JOBS: ``--jobs-dir``, default
-/root/jobs, the folder device_batch.sh reads); a job not yet started has ``JOBS/NAME.queued``.
+``jobs`` in the home folder, the folder device_batch.sh reads); a job not yet started has
+``JOBS/NAME.queued``.
 Jobs start in file order on the GPU with the fewest running jobs. The checkout is copied once
 when the queue starts (``JOBS/checkout-STAMP``) and each job runs in its own copy of that,
-deleted when the job ends: give jobs output folders outside the checkout (e.g. /root/w/...).
+deleted when the job ends: give jobs output folders outside the checkout.
 """
 
 from __future__ import annotations
@@ -197,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--slots", type=int, default=3, help="jobs at once per GPU (default 3)")
     parser.add_argument("--gpus", type=int, default=None, help="GPUs to use (default: all seen)")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads per job")
-    parser.add_argument("--jobs-dir", type=Path, default=Path("/root/jobs"))
+    parser.add_argument("--jobs-dir", type=Path, default=Path.home() / "jobs")
     parser.add_argument(
         "--source", type=Path, default=None, help="the snapshot to start jobs from (default: now)"
     )
