@@ -115,3 +115,22 @@ def test_a_section_keeps_its_hand_written_reading_when_regenerated(tmp_path, com
     assert "40 / 5 |" in text  # the numbers are the new ones
     assert text.count(marker) == 1 and "**Reading.** kept words." in text
     assert text.index("kept words") < text.index("## From video")
+
+
+def test_the_committed_held_out_tail_table_is_the_one_its_data_makes(compare_module):
+    """docs/RESULTS.md's held-out-tail table and tallies come from the rows kept under
+    benchmarks/data, not from hand edits: regenerating them from those rows gives the same text."""
+    root = SCRIPT.parents[1]
+    data = root / "benchmarks" / "data" / "genesis_identify_holdout"
+    runs = (
+        compare_module.read_rows(data / "all_frames"),
+        compare_module.read_rows(data / "last_3_held_out"),
+    )
+    assert len(runs[0]) == len(runs[1]) == 13
+    records = compare_module.compare(*runs)
+    labels = ("all observed frames", "last 3 held out")
+    results = (root / "docs" / "RESULTS.md").read_text()
+    section = results[results.index("## Held-out tail on Genesis scenes") :]
+    section = section[: section.index(compare_module.KEEP_MARKER)]
+    assert compare_module.markdown(records, labels) in section
+    assert " ".join(compare_module.tallies(records, labels).split()) in " ".join(section.split())
