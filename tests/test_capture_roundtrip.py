@@ -188,3 +188,19 @@ def test_the_import_leaves_the_late_camera_out_or_trims_every_camera():
         assert argv[argv.index("--observed") + 1] == str(observed)
         assert argv[argv.index("--offsets") + 1] == f"{bench.LATE[0]}:-2"
     assert bench.Rig(late_cameras="drop").record()["late_cameras"] == "drop"
+
+
+def test_the_paper_size_import_table_is_the_one_its_data_holds():
+    """docs/RESULTS.md's trim/drop rows (rig and back, paper size) carry the future Chamfer,
+    its ratio to the direct run and the E of each object as kept under benchmarks/data."""
+    root = Path(__file__).resolve().parents[1]
+    data = root / "benchmarks" / "data" / "capture_roundtrip_paper"
+    results = (root / "docs" / "RESULTS.md").read_text()
+    for name in ("trim", "drop"):
+        record = json.loads((data / f"roundtrip_{name}.json").read_text())
+        imported, direct = record["imported"], record["direct"]
+        ratio = imported["future_cd_mm2"] / direct["future_cd_mm2"]
+        row = next(line for line in results.splitlines() if line.startswith(f"| {name}:"))
+        assert f"| {imported['future_cd_mm2']:.0f} ({ratio:.1f}x) |" in row
+        for obj in imported["objects"].values():
+            assert f"{obj['E']:,.0f} Pa ({100 * obj['E_rel_error']:.0f}" in row

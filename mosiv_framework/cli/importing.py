@@ -42,7 +42,8 @@ def add_parser(sub) -> None:
         choices=("trim", "drop"),
         default="trim",
         help="cameras that started late: trim the other cameras' leading frames to the common "
-        "ones (default), or drop those cameras and keep every frame of the others",
+        "ones (default), or drop those cameras and keep every frame of the others (better "
+        "when few of many cameras are late: the first frames hold the starting state)",
     )
     src.add_argument("--frames", type=int, help="keep the first N frames after the offsets")
     src.add_argument(
