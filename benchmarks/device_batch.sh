@@ -59,7 +59,9 @@ wait)
   for pattern in "$@"; do
     while IFS= read -r match; do files+=("$match"); done < <(compgen -G "$pattern")
   done
-  tar czf "$OUT/batch.tgz" "$jobs_dir" "${files[@]}" 2>/dev/null
+  # the logs and exit codes, not the queue's checkout snapshots (too big to come back)
+  tar czf "$OUT/batch.tgz" --exclude='checkout-*' --exclude='*.tree' "$jobs_dir" "${files[@]}" \
+    2>/dev/null
   ls -la "$OUT"
   ;;
 *)

@@ -12,7 +12,7 @@ Why not just start them all (benchmarks/device_batch.sh start): two ways of losi
 
 Usage (repository root, after ``source benchmarks/gpu_setup.sh``)::
 
-    python3 benchmarks/device_queue.py start JOBFILE --slots 3
+    python3 benchmarks/device_queue.py start JOBFILE --slots 3 --code-version COMMIT
     bash benchmarks/device_batch.sh wait SECONDS 'GLOB' ...   # later calls: wait, pack results
 
 JOBFILE holds one job per line, ``NAME COMMAND...`` (COMMAND in shell syntax, run by bash in
@@ -107,9 +107,30 @@ def gpu_ids(n_gpus: int) -> list[str]:
     return [str(i) for i in range(n_gpus)]
 
 
-def job_environment(tree: Path, gpu: str, threads: int) -> dict[str, str]:
-    """The job's environment: its GPU, its CPU threads, and import paths into its snapshot."""
+def checkout_version() -> str | None:
+    """The code version the jobs' result rows should name (``MOSIV_CODE_VERSION``, which
+    ``identify_suite.code_version`` reads): that variable where set, else the checkout's short
+    commit hash, else None (a device machine's copy of the tree has no git history: pass
+    ``--code-version`` there)."""
+    if os.environ.get("MOSIV_CODE_VERSION"):
+        return os.environ["MOSIV_CODE_VERSION"]
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+        )
+    except OSError:
+        return None
+    return (head.stdout.strip() or None) if head.returncode == 0 else None
+
+
+def job_environment(
+    tree: Path, gpu: str, threads: int, code_version: str | None = None
+) -> dict[str, str]:
+    """The job's environment: its GPU, its CPU threads, import paths into its snapshot and the
+    code version its rows name (``code_version``, where known)."""
     env = dict(os.environ)
+    if code_version:
+        env["MOSIV_CODE_VERSION"] = code_version
     env["CUDA_VISIBLE_DEVICES"] = gpu
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         env[var] = str(threads)
@@ -139,7 +160,9 @@ def take_snapshot(jobs_dir: Path) -> Path:
     return source
 
 
-def launch(job: Job, source: Path, jobs_dir: Path, gpu: str, threads: int) -> subprocess.Popen:
+def launch(
+    job: Job, source: Path, jobs_dir: Path, gpu: str, threads: int, code_version: str | None
+) -> subprocess.Popen:
     """Copy the queue's snapshot ``source`` for ``job`` and start the job in it on ``gpu``."""
     tree = jobs_dir / f"{job.name}.tree"
     shutil.rmtree(tree, ignore_errors=True)
@@ -150,7 +173,7 @@ def launch(job: Job, source: Path, jobs_dir: Path, gpu: str, threads: int) -> su
     return subprocess.Popen(
         ["bash", "-c", job.command],
         cwd=tree,
-        env=job_environment(tree, gpu, threads),
+        env=job_environment(tree, gpu, threads, code_version),
         stdout=log,
         stderr=subprocess.STDOUT,
         stdin=subprocess.DEVNULL,
@@ -158,10 +181,16 @@ def launch(job: Job, source: Path, jobs_dir: Path, gpu: str, threads: int) -> su
 
 
 def run_queue(
-    jobs: list[Job], source: Path, jobs_dir: Path, n_gpus: int, slots: int, threads: int
+    jobs: list[Job],
+    source: Path,
+    jobs_dir: Path,
+    n_gpus: int,
+    slots: int,
+    threads: int,
+    code_version: str | None = None,
 ) -> int:
-    """Run every job in a copy of ``source``, at most ``slots`` at once per GPU; returns how
-    many failed."""
+    """Run every job in a copy of ``source``, at most ``slots`` at once per GPU, each with
+    ``MOSIV_CODE_VERSION=code_version`` where given; returns how many failed."""
     gpus = gpu_ids(max(n_gpus, 1))
     waiting = list(jobs)
     running: dict[str, tuple[str, subprocess.Popen]] = {}
@@ -184,7 +213,8 @@ def run_queue(
                 break
             job = waiting.pop(0)
             on_gpu[gpu] += 1
-            running[job.name] = (gpu, launch(job, source, jobs_dir, gpu, threads))
+            process = launch(job, source, jobs_dir, gpu, threads, code_version)
+            running[job.name] = (gpu, process)
         time.sleep(POLL_SECONDS)
     return failed
 
@@ -202,7 +232,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--source", type=Path, default=None, help="the snapshot to start jobs from (default: now)"
     )
+    parser.add_argument(
+        "--code-version",
+        default=None,
+        help="the code version the jobs' rows name (default: $MOSIV_CODE_VERSION, else the "
+        "checkout's commit; a device machine's copy has no git history: pass "
+        "$(git rev-parse --short HEAD) from the machine that sent it)",
+    )
     args = parser.parse_args(argv)
+    code_version = args.code_version or checkout_version()
     if args.slots < 1:
         parser.error(f"--slots {args.slots}: want at least 1 job per GPU")
     jobs = read_jobs(args.jobfile)
@@ -216,13 +254,15 @@ def main(argv: list[str] | None = None) -> int:
         (args.jobs_dir / f"{job.name}.queued").write_text(job.command + "\n")
     source = args.source or take_snapshot(args.jobs_dir)
     if args.verb == "run":
-        return min(run_queue(jobs, source, args.jobs_dir, n_gpus, args.slots, threads), 1)
+        failed = run_queue(jobs, source, args.jobs_dir, n_gpus, args.slots, threads, code_version)
+        return min(failed, 1)
     # the detached queue reads its own copy of the job file, taken while this call holds the
     # checkout still
     jobfile = source.with_suffix(".jobs")
     shutil.copyfile(args.jobfile, jobfile)
     rest = [str(jobfile), "--slots", str(args.slots), "--gpus", str(n_gpus)]
     rest += ["--threads", str(threads), "--jobs-dir", str(args.jobs_dir), "--source", str(source)]
+    rest += ["--code-version", code_version] if code_version else []
     log = open(args.jobs_dir / "queue.out", "a")  # noqa: SIM115 (the detached queue holds it)
     subprocess.Popen(
         [sys.executable, __file__, "run", *rest],
@@ -232,6 +272,11 @@ def main(argv: list[str] | None = None) -> int:
         stdin=subprocess.DEVNULL,
     )
     print(f"queued {len(jobs)} jobs: {n_gpus} GPU(s) x {args.slots} slots, {threads} threads each")
+    if not code_version:
+        print(
+            "warning: no code version known (no git history here): rows will name 'unknown'; "
+            "pass --code-version"
+        )
     return 0
 
 

@@ -126,3 +126,48 @@ def test_start_returns_at_once_and_the_detached_queue_runs_the_jobs(tmp_path):
     assert not list(jobs_dir.glob("*.queued"))
     snapshots = list(jobs_dir.glob("checkout-*"))
     assert any(s.is_dir() and (s / "benchmarks" / "device_queue.py").is_file() for s in snapshots)
+
+
+def test_jobs_name_the_code_version_given_to_start(tmp_path):
+    """A device machine's copy of the tree has no git history: the version given to ``start``
+    reaches every job (``MOSIV_CODE_VERSION``, which result rows read), through the detached
+    queue too; without one, the checkout's own commit is used where git knows it."""
+    import time
+
+    jobfile = tmp_path / "jobs.txt"
+    jobfile.write_text(f"v bash -c 'echo $MOSIV_CODE_VERSION > {tmp_path}/v.txt'\n")
+    jobs_dir = tmp_path / "jobs"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("MOSIV_CODE_VERSION", None)
+    args = [sys.executable, str(QUEUE), "start", str(jobfile), "--gpus", "1"]
+    args += ["--jobs-dir", str(jobs_dir), "--code-version", "abc1234"]
+    subprocess.run(args, env=env, check=True, capture_output=True, timeout=60)
+    deadline = time.time() + 60
+    while not (jobs_dir / "v.rc").exists() and time.time() < deadline:
+        time.sleep(0.5)
+    assert (tmp_path / "v.txt").read_text().strip() == "abc1234"
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True)
+    if head.returncode == 0:  # a checkout with its history (CI's is one)
+        os.environ.pop("MOSIV_CODE_VERSION", None)
+        assert device_queue.checkout_version() == head.stdout.decode().strip()
+
+
+def test_wait_packs_logs_but_not_the_checkout_snapshots(tmp_path):
+    jobs_dir = tmp_path / "jobs"
+    (jobs_dir / "checkout-20260101-000000-1" / "big").mkdir(parents=True)
+    (jobs_dir / "checkout-20260101-000000-1" / "big" / "file.py").write_text("x = 1\n")
+    (jobs_dir / "a.tree").mkdir()
+    (jobs_dir / "a.tree" / "file.py").write_text("x = 1\n")
+    (jobs_dir / "a.log").write_text("done\n")
+    (jobs_dir / "a.rc").write_text("0\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    env = dict(os.environ, DEVICE_JOBS_DIR=str(jobs_dir), OUT=str(out))
+    script = ROOT / "benchmarks" / "device_batch.sh"
+    subprocess.run(["bash", str(script), "wait", "5"], env=env, check=True, capture_output=True)
+    names = subprocess.run(
+        ["tar", "tzf", str(out / "batch.tgz")], capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert any(n.endswith("jobs/a.log") for n in names)
+    assert any(n.endswith("jobs/a.rc") for n in names)
+    assert not [n for n in names if "checkout-" in n or ".tree" in n]
