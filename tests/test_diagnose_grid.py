@@ -199,6 +199,11 @@ def test_a_coefficient_that_depends_on_the_grid_makes_a_discrepancy_with_the_rea
     assert summary == {"checked": {"wind": False}, "unstable": ["wind"], "reason": GRID_REASON}
     text = "\n".join(grid_lines(as_json))
     assert f"`wind` is not named: {GRID_REASON}" in text and "| acceleration.x |" in text
+    # the tests at both grids, for the reader who asks why the second grid disagreed
+    first, second = as_json[0], as_json[0]["grid"]
+    row = next(line for line in text.splitlines() if line.startswith("| wind | ") and "%" in line)
+    assert f"{first['heldout_drop']:.1%} / {second['heldout_drop']:.1%}" in row
+    assert f"{first['delta_bic']:.3g} / {second['delta_bic']:.3g}" in row
 
 
 def test_losing_the_held_out_test_at_the_second_grid_fails_the_check():

@@ -457,7 +457,7 @@ def grid_lines(evidence: list[dict]) -> list[str]:
                 f"| {e['name']} | {where} | {c['name']} | {c['first']:.4g} | {c['second']:.4g} "
                 f"| {c['difference']:.3g} | {allowed} | {'yes' if c['agrees'] else 'no'} |"
             )
-    lines.append("")
+    lines += ["", *_test_lines(checked), ""]
     for e in checked:
         g = e["grid"]
         if g["stable"]:
@@ -465,3 +465,22 @@ def grid_lines(evidence: list[dict]) -> list[str]:
         else:
             lines.append(f"- `{e['name']}` is not named: {GRID_REASON} ({'; '.join(g['failed'])}).")
     return lines + [""]
+
+
+def _test_lines(checked: list[dict]) -> list[str]:
+    """The held-out drop and delta BIC of each checked candidate at both grids: why an effect
+    that wins at the run's grid can still fail at the second one."""
+
+    def number(value, form: str) -> str:
+        return "-" if value is None else format(value, form)
+
+    lines = [
+        "| candidate | held-out drop, first / second grid | delta BIC, first / second grid |",
+        "|---|---|---|",
+    ]
+    for e in checked:
+        g = e["grid"]
+        drops = f"{number(e.get('heldout_drop'), '.1%')} / {number(g.get('heldout_drop'), '.1%')}"
+        bics = f"{number(e.get('delta_bic'), '.3g')} / {number(g.get('delta_bic'), '.3g')}"
+        lines.append(f"| {e['name']} | {drops} | {bics} |")
+    return lines
