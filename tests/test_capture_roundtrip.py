@@ -204,3 +204,20 @@ def test_the_paper_size_import_table_is_the_one_its_data_holds():
         assert f"| {imported['future_cd_mm2']:.0f} ({ratio:.1f}x) |" in row
         for obj in imported["objects"].values():
             assert f"{obj['E']:,.0f} Pa ({100 * obj['E_rel_error']:.0f}" in row
+
+
+def test_the_tiny_trim_against_drop_figures_are_the_ones_kept():
+    """docs/RESULTS.md's tiny trim-against-drop sentence carries the future Chamfer of each
+    seed's two imports as kept under benchmarks/data/capture_roundtrip_quick."""
+    root = Path(__file__).resolve().parents[1]
+    data = root / "benchmarks" / "data" / "capture_roundtrip_quick"
+    text = " ".join((root / "docs" / "RESULTS.md").read_text().split())
+    for seed in (7, 8, 9):
+        trim = json.loads((data / f"seed_{seed}_current_segmenter.json").read_text())
+        drop = json.loads((data / f"seed_{seed}_drop.json").read_text())
+        assert drop["late_cameras"] == "drop"
+        pair = (
+            f"{trim['imported']['future_cd_mm2']:,.0f} against "
+            f"{drop['imported']['future_cd_mm2']:,.0f}"
+        )
+        assert pair in text, pair
