@@ -89,6 +89,33 @@ def test_a_prepared_suite_runs_the_pipeline_and_diagnoses_nothing(tmp_path, monk
     assert not list(tmp_path.glob("*/score.json")) and not (tmp_path / "suite.json").exists()
 
 
+def test_a_scenes_only_suite_generates_the_scenes_and_runs_nothing_else(tmp_path, monkeypatch):
+    """``scenes_only``: each entry's scene is generated (the real scene source, with its
+    concealed effect written to gt/effects.json), no pipeline or diagnosis starts; a second
+    call keeps the scenes as they are, and a later full run of the folder starts from them."""
+    from mosiv_framework.diagnose import suite
+    from mosiv_framework.errors import ConfigError
+
+    def nothing_runs(*args, **kwargs):
+        raise AssertionError("scenes_only must not run the pipeline or diagnose")
+
+    monkeypatch.setattr(suite, "run_pipeline", nothing_runs)
+    monkeypatch.setattr(suite, "diagnose_run", nothing_runs)
+    entry = next(e for e in suite.suite_entries(small=True) if e.conceal)
+    summary = suite.run_suite(tmp_path, small=True, only=[entry.name], scenes_only=True)
+    assert summary == {"generated": [entry.name]}
+    scene = suite.read_scene(tmp_path / entry.name / "scene")
+    kinds = [effect["kind"] for effect in scene.gt_effects()]
+    assert kinds == [entry.conceal.split(":")[0]]
+    assert sorted(p.name for p in (tmp_path / entry.name).iterdir()) == ["scene"]
+    assert json.loads((tmp_path / suite.SUITE_MARKER).read_text())["source"] == "synth"
+    stamp = (tmp_path / entry.name / "scene" / "scene.json").stat().st_mtime_ns
+    suite.run_suite(tmp_path, small=True, only=[entry.name], scenes_only=True)
+    assert (tmp_path / entry.name / "scene" / "scene.json").stat().st_mtime_ns == stamp
+    with pytest.raises(ConfigError, match="give one of them"):
+        suite.run_suite(tmp_path, small=True, prepare_only=True, scenes_only=True)
+
+
 def test_concealed_plasticity_and_object_friction_specs():
     from mosiv_framework.conceal import YIELD_STRESS_RANGE, parse_conceal
     from mosiv_framework.laws import get_law

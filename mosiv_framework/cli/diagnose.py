@@ -53,6 +53,13 @@ def _add_suite_parser(sub) -> None:
         "diagnose them; a later run with the same OUT path diagnoses them from those stages",
     )
     suite.add_argument(
+        "--scenes-only",
+        action="store_true",
+        help="generate the entries' scenes and nothing else (where the scene source's engine "
+        "is installed, e.g. genesis-world); the folder, copied to a GPU machine, is run and "
+        "diagnosed there",
+    )
+    suite.add_argument(
         "--set",
         dest="overrides",
         action="append",
@@ -123,6 +130,8 @@ def diagnose_suite(args) -> int:
     from mosiv_framework.cli.stages import check_writable_folder
     from mosiv_framework.scale.flags import scale_options
 
+    if args.prepare_only and args.scenes_only:
+        raise ConfigError("--prepare-only and --scenes-only: give one of them")
     check_writable_folder(args.out, "OUT")
     resume_from(args, args.out, "its finished entries and stages", "suite folder")
 
@@ -137,8 +146,11 @@ def diagnose_suite(args) -> int:
         prepare_only=args.prepare_only,
         source=args.source,
         split=args.split,
+        scenes_only=args.scenes_only,
     )
-    if args.prepare_only:
+    if args.scenes_only:
+        print(f"scenes generated: {', '.join(summary['generated']) or 'none'}")
+    elif args.prepare_only:
         print(f"prepared for diagnosis: {', '.join(summary['prepared']) or 'none'}")
         if summary.get("retried"):
             print(f"run again after their worker died: {', '.join(summary['retried'])}")

@@ -28,6 +28,7 @@ from mosiv_framework.diagnose.formats import FIELD, SCORE_FORMAT, SUITE_FORMAT, 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.expression import NAME as EXPRESSION
 from mosiv_framework.pipeline import run_pipeline
+from mosiv_framework.pipeline.run import generate_scene
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.scale import Task, run_tasks
 from mosiv_framework.scene import read_scene
@@ -225,13 +226,19 @@ def entry_overrides(entry: Entry, run_dir: Path) -> list[str]:
 
 
 def run_entry(
-    entry: Entry, out: Path, recipe_path: Path, budget: str, prepare_only: bool = False
+    entry: Entry,
+    out: Path,
+    recipe_path: Path,
+    budget: str,
+    prepare_only: bool = False,
+    scenes_only: bool = False,
 ) -> Score | None:
     """Generate, run, diagnose and score one entry into ``out/entry.name``.
 
     The score is written atomically to ``score.json`` last, so a suite stopped part-way resumes
     from the entries without one (the pipeline itself resumes its finished stages).
-    ``prepare_only``: stop after the pipeline (None is returned), see ``run_suite``. Also the
+    ``prepare_only``: stop after the pipeline (None is returned); ``scenes_only``: generate
+    the scene and nothing else (None), see ``run_suite``. Also the
     body of a Ray task (``run_suite`` with ``jobs`` > 1 or a cluster), whose output goes to
     the entry's ``suite.log``.
     """
@@ -240,6 +247,10 @@ def run_entry(
     if done.exists():
         return load_score(done)
     log.info("entry %s: %s on %s", entry.name, entry.conceal or "control", entry.materials)
+    if scenes_only:  # an existing scene is kept: generate_scene never writes over one
+        recipe = load_recipe(recipe_path, entry_overrides(entry, run_dir))
+        generate_scene(recipe.scene)
+        return None
     run_pipeline(load_recipe(recipe_path, entry_overrides(entry, run_dir)), run_dir=run_dir)
     if prepare_only:
         return None
@@ -291,6 +302,7 @@ def run_suite(
     prepare_only: bool = False,
     source: str = "synth",
     split: str | None = None,
+    scenes_only: bool = False,
 ) -> dict:
     """Generate, run, diagnose and score every entry into ``out``; returns the summary
     (``summarise``, with ``missing``), also written to suite.json, suite.md and suite.png.
@@ -311,7 +323,14 @@ def run_suite(
     stages are about a third of an entry's time, and a suite prepared on one machine is
     diagnosed on another from its finished stages, provided ``out`` is the same path there (the
     scene's path is part of every stage's key).
+
+    ``scenes_only`` generates the entries' scenes and nothing else, and returns
+    ``{"generated": [names]}``. Why: a scene source may need an engine that the GPU machine
+    lacks (the Genesis suite needs genesis-world); the scenes are made where it is installed,
+    and the folder, copied anywhere, is then run and diagnosed there.
     """
+    if prepare_only and scenes_only:
+        raise ConfigError("prepare_only and scenes_only: give one of them")
     out = Path(out)
     if entries is None:
         entries = suite_selection(small, source, split)
@@ -331,7 +350,7 @@ def run_suite(
         Task(
             e.name,
             run_entry,
-            (e, out, recipe_path, budget, prepare_only),
+            (e, out, recipe_path, budget, prepare_only, scenes_only),
             out / e.name / "suite.log",
         )
         for e in entries
@@ -339,9 +358,10 @@ def run_suite(
     outcomes = run_tasks(tasks, ray_address=ray_address, jobs=jobs, gpus_per_task=gpus_per_task)
     results = {name: o.result for name, o in outcomes.items() if o.ok}
     retried = [name for name, o in outcomes.items() if o.retried]
-    if prepare_only:  # None: prepared, not diagnosed
-        prepared = sorted(name for name, score in results.items() if score is None)
-        return {"prepared": prepared, **({"retried": retried} if retried else {})}
+    if prepare_only or scenes_only:  # None: prepared or generated, not diagnosed
+        done = sorted(name for name, score in results.items() if score is None)
+        key = "prepared" if prepare_only else "generated"
+        return {key: done, **({"retried": retried} if retried else {})}
     scores = {n: s for n, s in results.items() if s is not None}
     return _write_summary(out, entries, scores, retried, {"source": source, "split": split})
 
