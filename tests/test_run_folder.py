@@ -356,3 +356,30 @@ def test_a_folder_holding_only_a_runs_recipe_is_a_run_folder(tmp_path, registry,
     with pytest.raises(OutputError, match="'recipe.yaml'"):
         run_pipeline(recipe, run_dir=mine)  # a recipe of the user's, not a run's
     assert hashes(mine) == before
+
+
+def test_a_scene_generation_that_dies_part_way_leaves_no_half_scene(tmp_path, monkeypatch):
+    """The scene is written beside its folder and moved in once complete: a source that dies
+    after writing some files leaves scene.path missing (not a half scene that the next run
+    would refuse as the user's files), and the next generation replaces the leftover."""
+    from mosiv_framework.pipeline.run import generate_scene
+    from mosiv_framework.scene import read_scene
+
+    scene = tmp_path / "scene"
+    section = OmegaConf.create(raw_recipe(scene, tmp_path / "run")["scene"])
+    real_write = write_example_scene
+
+    def dies_part_way(path, **kwargs):
+        Path(path).mkdir(parents=True)
+        (Path(path) / "rgb").mkdir()
+        raise RuntimeError("engine crashed")
+
+    monkeypatch.setattr("mosiv_framework.scene.example.write_example_scene", dies_part_way)
+    with pytest.raises(RuntimeError, match="engine crashed"):
+        generate_scene(section)
+    assert not scene.exists()
+    monkeypatch.setattr("mosiv_framework.scene.example.write_example_scene", real_write)
+    assert generate_scene(section)
+    assert read_scene(scene).n_frames == 8
+    assert [p.name for p in tmp_path.iterdir()] == ["scene"]
+    assert not generate_scene(section)  # a scene is there now: kept

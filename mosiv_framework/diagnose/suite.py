@@ -250,6 +250,7 @@ def run_entry(
     if scenes_only:  # an existing scene is kept: generate_scene never writes over one
         recipe = load_recipe(recipe_path, entry_overrides(entry, run_dir))
         generate_scene(recipe.scene)
+        read_scene(run_dir / "scene")  # a folder left there is a scene, or its problems named
         return None
     run_pipeline(load_recipe(recipe_path, entry_overrides(entry, run_dir)), run_dir=run_dir)
     if prepare_only:

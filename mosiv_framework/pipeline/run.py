@@ -13,6 +13,7 @@ stages whose fingerprint and digest match and recomputes the rest.
 from __future__ import annotations
 
 import logging
+import shutil
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -74,7 +75,16 @@ def generate_scene(scene_section) -> bool:
     if generate == "if-missing" and scene_section.source is not None:
         name, options = component(scene_section.source)
         log.info("generating scene with %r into %s", name, path)
-        get_registry().create("scene_source", name, options).generate(path)
+        # written beside the scene and moved into place once complete: a generation that
+        # dies part-way (a crashed engine, a lost machine) leaves no half scene that a later
+        # run would take for the user's files
+        partial = path.with_name(f".{path.name}.partial")
+        if partial.exists():
+            shutil.rmtree(partial)  # left by an interrupted generation of this scene
+        get_registry().create("scene_source", name, options).generate(partial)
+        if path.exists():
+            path.rmdir()  # an empty folder (checked above)
+        partial.rename(path)
         return True
     what = "holds no scene.json" if path.exists() else "does not exist"
     if scene_section.source is not None:
