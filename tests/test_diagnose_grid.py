@@ -430,3 +430,79 @@ def test_a_replay_keeps_the_recorded_outcome_of_the_grid_check():
     assert replayed["verdict"] == "discrepancy" and replayed["accepted"] is None
     assert replayed["evidence"][0]["passes_heldout"] and not replayed["evidence"][0]["passes_grid"]
     assert replayed["evidence"][0]["grid"]["reason"] == GRID_REASON
+
+
+class _HeldOutOnlyModels(_StubModels):
+    """At the second grid the effect barely changes the fit frames (a coarser grid's own
+    error dominates them) but cuts the held-out error by three quarters."""
+
+    def errors(self, ctx, fit):
+        null = super().errors(ctx, Fit("null", None, None, torch.zeros(0), 0.0, 6))
+        null = null + 1e-6 * np.arange(null.shape[1])  # errors grow away from frame 0
+        if fit.name == "null":
+            return null
+        table = null.copy()
+        table[:, FIT] *= 0.98
+        table[:, HELD] *= 0.25
+        return table
+
+
+def test_the_information_criterion_at_the_second_grid_is_a_switch_of_the_rule():
+    """``DecideOptions.grid_bic``: on (the default) an effect that wins only on the held-out
+    frames at the second grid fails the check; off, held-out test and agreeing coefficients
+    make it stable."""
+    ctx = _stub_context()
+    models = _HeldOutOnlyModels({("wind", 18): [2.5, 0.0, 0.0]})
+    out, _ = _check(_found(ctx), models, ctx)
+    record = out["evidence"][0].grid
+    assert record["passes_heldout"] and not record["passes_bic"]
+    assert record["failed"] == ["information criterion at the second grid"]
+    plan = _plan(ctx)
+    off = check_grid(
+        plan,
+        SimpleNamespace(regimes=None),
+        DecideOptions(bootstrap=100, grid_bic=False),
+        _found(ctx),
+        GridOptions(check=True),
+        models.hooks(),
+    )
+    assert off["evidence"][0].grid["stable"] and off["accepted"].name == "wind"
+
+
+def test_a_replay_decides_the_grid_check_again_from_the_second_grids_tables():
+    """The check's record keeps the second grid's error tables, so ``--replay`` with another
+    ``grid_bic`` re-decides it without refitting; a record without them keeps its outcome."""
+    from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT
+    from mosiv_framework.diagnose.replay import replay_diagnosis
+    from mosiv_framework.diagnose.report import MM2, saved_table
+
+    ctx = _stub_context()
+    models = _HeldOutOnlyModels({("wind", 18): [2.5, 0.0, 0.0]})
+    out, _ = _check(_found(ctx), models, ctx)
+    null = models.errors(ctx, Fit("null", None, None, torch.zeros(0), 0.0, 6))
+    rule = DecideOptions(bootstrap=100)
+    saved = {
+        "format": DIAGNOSIS_FORMAT,
+        "verdict": verdict(True, out["evidence"]),
+        "where": {"significant": True},
+        "frames": {"fit": FIT, "heldout": HELD},
+        "rule": dict(rule.__dict__),
+        "null_parameters": 6,
+        "evidence": [e.to_json() for e in out["evidence"]],
+        "frame_errors_mm2": {
+            "null": saved_table(null * MM2),
+            "wind": saved_table(0.25 * null * MM2),
+        },
+        "accepted": None,
+    }
+    assert saved["verdict"] == "discrepancy"
+    grid = saved["evidence"][0]["grid"]
+    assert set(grid["frame_errors_mm2"]) == {"null", "wind"}
+    assert replay_diagnosis(saved)["verdict"] == "discrepancy"  # the rule it ran with
+    replayed = replay_diagnosis(saved, DecideOptions(bootstrap=100, grid_bic=False))
+    assert replayed["verdict"] == "missing physics"
+    assert replayed["accepted"]["name"] == "wind"
+    assert replayed["evidence"][0]["grid"]["delta_bic"] == pytest.approx(grid["delta_bic"])
+    del grid["frame_errors_mm2"]  # a record from before the tables were kept
+    kept = replay_diagnosis(saved, DecideOptions(bootstrap=100, grid_bic=False))
+    assert kept["verdict"] == "discrepancy"

@@ -74,8 +74,8 @@ def _add_suite_parser(sub) -> None:
         "--replay",
         action="store_true",
         help="run nothing: re-decide the finished entries in OUT from their saved error tables "
-        "under the rule given by --z, --min-drop, --bic-margin, --block, --require-nonzero and "
-        "--min-effect, and print the table",
+        "under the rule given by --z, --min-drop, --bic-margin, --block, --require-nonzero, "
+        "--min-effect and --grid-bic, and print the table",
     )
     suite.add_argument("--z", type=float, help="held-out drop over its bootstrap spread (2)")
     suite.add_argument(
@@ -94,6 +94,13 @@ def _add_suite_parser(sub) -> None:
         type=float,
         help="resolution floors a term's own effect on the fit frames must reach "
         "(0: off, the default)",
+    )
+    suite.add_argument(
+        "--grid-bic",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the grid-stability check also requires the information criterion at the second "
+        "grid (on); decided again from the second grid's saved tables where recorded",
     )
     suite.add_argument(
         "--plot",
@@ -171,6 +178,7 @@ def _replay(args) -> int:
         "block": args.block,
         "require_nonzero": args.require_nonzero,
         "min_effect": args.min_effect,
+        "grid_bic": args.grid_bic,
     }
     options = DecideOptions(**{k: v for k, v in given.items() if v is not None})
     from mosiv_framework.cli.stages import require_folder

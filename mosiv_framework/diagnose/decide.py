@@ -84,6 +84,9 @@ class DecideOptions:
     nuisance_min_drop: float = 0.2
     #: chi-square level of the test that a body force's coefficient agrees across objects
     consistency_level: float = 0.95
+    #: whether the grid-stability check (``grid_stability``) also requires the information
+    #: criterion at the second grid, or only the held-out test and the coefficients' agreement
+    grid_bic: bool = True
 
 
 def frame_errors(ctx: RunContext, fit_or_traj) -> np.ndarray:

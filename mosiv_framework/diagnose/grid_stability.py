@@ -200,16 +200,20 @@ def grid_verdict(
     coefficients: list[dict],
     exponent: dict | None,
     diverged: str | None = None,
+    *,
+    require_bic: bool = True,
 ) -> dict:
     """The check's outcome from its parts: the effect's evidence against the null at the
     second grid (``weighed``), the ``coefficient_agreement``, the ``exponent_agreement``
-    and where the refit there diverged. {"stable", "failed": the tests failed, "reason"}."""
+    and where the refit there diverged; ``require_bic``: whether the information criterion
+    at the second grid counts (``DecideOptions.grid_bic``). {"stable", "failed": the tests
+    failed, "reason"}."""
     failed = []
     if diverged is not None:
         failed.append(f"at the second grid: {diverged}")
     if weighed is not None and not weighed.passes_heldout:
         failed.append("held-out test at the second grid")
-    if weighed is not None and not weighed.passes_bic:
+    if require_bic and weighed is not None and not weighed.passes_bic:
         failed.append("information criterion at the second grid")
     differ = [c["name"] for c in coefficients if not c["agrees"]]
     if differ:
@@ -321,6 +325,8 @@ def check_candidate(
         options.tolerance,
     )
     exponent = _exponents(plan, location, found, grid, name, options.tolerance)
+    from mosiv_framework.diagnose.report import saved_table  # report imports this module
+
     return {
         **record,
         "theta": [fit.theta.tolist(), theta2],
@@ -334,7 +340,49 @@ def check_candidate(
         "diverged": fit2.diverged,
         "coefficients": coefficients,
         "drag_exponent": exponent,
-        **grid_verdict(weighed, coefficients, exponent),
+        # what a replay re-decides the check from (``regrade_grid_check``), in mm^2
+        "frame_errors_mm2": {k: saved_table(v) for k, v in errors.items()},
+        "null_parameters": grid.null.n_params,
+        "new_coefficients": fit2.n_params - grid.null.n_params,
+        "fit_loss_m2": finite_or_none(fit2.loss),
+        **grid_verdict(weighed, coefficients, exponent, require_bic=rule.grid_bic),
+    }
+
+
+def regrade_grid_check(
+    record: dict, fit_frames: list[int], heldout_frames: list[int], rule: DecideOptions
+) -> dict:
+    """A saved check's record (``check_candidate``) decided again under ``rule`` from its
+    second grid's saved error tables, without refitting (``replay``); a record saved without
+    them, or whose refit diverged, keeps its outcome."""
+    tables = record.get("frame_errors_mm2")
+    if not tables or record.get("diverged") is not None:
+        return record
+    name = record["name"]
+    from mosiv_framework.diagnose.report import loaded_table  # report imports this module
+
+    weighed = weigh(
+        {k: loaded_table(v) for k, v in tables.items()},  # mm^2: the tests are scale-free
+        null_parameters=record["null_parameters"],
+        candidates=[(name, record["new_coefficients"], record["fit_loss_m2"])],
+        fit_frames=fit_frames,
+        heldout_frames=heldout_frames,
+        options=rule,
+    )[0]
+    verdict = grid_verdict(
+        weighed,
+        record.get("coefficients", []),
+        record.get("drag_exponent"),
+        require_bic=rule.grid_bic,
+    )
+    return {
+        **record,
+        "heldout_drop": finite_or_none(weighed.heldout_drop),
+        "heldout_spread": finite_or_none(weighed.heldout_spread),
+        "delta_bic": finite_or_none(weighed.delta_bic),
+        "passes_heldout": weighed.passes_heldout,
+        "passes_bic": weighed.passes_bic,
+        **verdict,
     }
 
 

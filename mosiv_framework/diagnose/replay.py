@@ -35,6 +35,7 @@ from mosiv_framework.diagnose.decide import (
     weigh,
 )
 from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT, FIELD, file_format
+from mosiv_framework.diagnose.grid_stability import regrade_grid_check
 from mosiv_framework.diagnose.report import MM2, loaded_table
 
 #: the diagnosis.json formats ``replay_diagnosis`` reads (besides the unversioned layout)
@@ -143,8 +144,14 @@ def _redecide(diagnosis: dict, tables: dict, options: DecideOptions) -> list[Evi
         e.reidentified = bool(saved[e.name].get("reidentified", False))
         e.value = saved[e.name].get("value")
         e.diverged = saved[e.name].get("diverged")
-        # the check at a second grid refitted models, which a replay cannot: its outcome stays
+        # the check at a second grid refitted models, which a replay cannot: its tests are
+        # decided again from the second grid's saved tables where recorded, else its outcome
+        # stays (``grid_stability.regrade_grid_check``)
         e.grid, e.passes_grid = saved[e.name].get("grid"), saved[e.name].get("passes_grid", True)
+        if e.grid:
+            frames = diagnosis["frames"]
+            e.grid = regrade_grid_check(e.grid, frames["fit"], frames["heldout"], options)
+            e.passes_grid = bool(e.grid["stable"])
     return rank_evidence(ranked, min_drop=options.min_drop)
 
 
