@@ -155,10 +155,11 @@ def test_the_format_field_decides_how_a_diagnosis_is_read():
     assert all(v == () for v in saved_special_cases(versioned).values())
 
     complete = json.loads(_kept_diagnosis("gravity-1", "gravity").read_text())
-    # a file written before the physical-evidence tests lacks only their thresholds; without a
-    # nuisance table or consistency records those tests leave its decision as it was
-    physical = {"nuisance_degree", "nuisance_min_drop", "consistency_level"}
-    assert set(complete["rule"]) | physical == set(DecideOptions().__dict__)
+    # a file written before the physical-evidence tests and the grid check's switch lacks only
+    # their thresholds; without a nuisance table, consistency or grid records those tests leave
+    # its decision as it was
+    later = {"nuisance_degree", "nuisance_min_drop", "consistency_level", "grid_bic"}
+    assert set(complete["rule"]) | later == set(DecideOptions().__dict__)
     assert all("special_case_of" in e for e in complete["evidence"])
     as_unversioned = replay_diagnosis(complete)
     as_versioned = replay_diagnosis({**complete, "format": DIAGNOSIS_FORMAT})
