@@ -402,22 +402,21 @@ def test_a_real_concealed_drag_stays_stable_at_a_coarser_grid():
     )
 
 
-def test_a_replay_keeps_the_recorded_outcome_of_the_grid_check():
+def _diagnosis_file(models) -> dict:
+    """diagnosis.json of the stubbed check with ``models`` at the second grid: the wind
+    accepted at the first grid (a quarter of the null's error on every frame there)."""
     from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT
-    from mosiv_framework.diagnose.replay import replay_diagnosis
     from mosiv_framework.diagnose.report import MM2, saved_table
 
     ctx = _stub_context()
-    models = _StubModels({("wind", 18): [2.1, 0.0, 0.0]})
     out, _ = _check(_found(ctx), models, ctx)
     null = models.errors(ctx, Fit("null", None, None, torch.zeros(0), 0.0, 6))
-    rule = DecideOptions(bootstrap=100)
-    saved = {
+    return {
         "format": DIAGNOSIS_FORMAT,
         "verdict": verdict(True, out["evidence"]),
         "where": {"significant": True},
         "frames": {"fit": FIT, "heldout": HELD},
-        "rule": dict(rule.__dict__),
+        "rule": dict(DecideOptions(bootstrap=100).__dict__),
         "null_parameters": 6,
         "evidence": [e.to_json() for e in out["evidence"]],
         "frame_errors_mm2": {
@@ -426,6 +425,12 @@ def test_a_replay_keeps_the_recorded_outcome_of_the_grid_check():
         },
         "accepted": None,
     }
+
+
+def test_a_replay_keeps_the_recorded_outcome_of_the_grid_check():
+    from mosiv_framework.diagnose.replay import replay_diagnosis
+
+    saved = _diagnosis_file(_StubModels({("wind", 18): [2.1, 0.0, 0.0]}))
     replayed = replay_diagnosis(saved)
     assert replayed["verdict"] == "discrepancy" and replayed["accepted"] is None
     assert replayed["evidence"][0]["passes_heldout"] and not replayed["evidence"][0]["passes_grid"]
@@ -472,29 +477,9 @@ def test_the_information_criterion_at_the_second_grid_is_a_switch_of_the_rule():
 def test_a_replay_decides_the_grid_check_again_from_the_second_grids_tables():
     """The check's record keeps the second grid's error tables, so ``--replay`` with another
     ``grid_bic`` re-decides it without refitting; a record without them keeps its outcome."""
-    from mosiv_framework.diagnose.formats import DIAGNOSIS_FORMAT
     from mosiv_framework.diagnose.replay import replay_diagnosis
-    from mosiv_framework.diagnose.report import MM2, saved_table
 
-    ctx = _stub_context()
-    models = _HeldOutOnlyModels({("wind", 18): [2.5, 0.0, 0.0]})
-    out, _ = _check(_found(ctx), models, ctx)
-    null = models.errors(ctx, Fit("null", None, None, torch.zeros(0), 0.0, 6))
-    rule = DecideOptions(bootstrap=100)
-    saved = {
-        "format": DIAGNOSIS_FORMAT,
-        "verdict": verdict(True, out["evidence"]),
-        "where": {"significant": True},
-        "frames": {"fit": FIT, "heldout": HELD},
-        "rule": dict(rule.__dict__),
-        "null_parameters": 6,
-        "evidence": [e.to_json() for e in out["evidence"]],
-        "frame_errors_mm2": {
-            "null": saved_table(null * MM2),
-            "wind": saved_table(0.25 * null * MM2),
-        },
-        "accepted": None,
-    }
+    saved = _diagnosis_file(_HeldOutOnlyModels({("wind", 18): [2.5, 0.0, 0.0]}))
     assert saved["verdict"] == "discrepancy"
     grid = saved["evidence"][0]["grid"]
     assert set(grid["frame_errors_mm2"]) == {"null", "wind"}
