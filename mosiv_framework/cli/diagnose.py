@@ -46,13 +46,14 @@ def _add_suite_parser(sub) -> None:
     suite.add_argument("--recipe", help="recipe the scenes run with (default: the suite's own)")
     suite.add_argument("--budget", choices=("small", "full"), help="diagnosis budget")
     suite.add_argument("--only", help="comma-separated entry names to run (default: all)")
-    suite.add_argument(
+    stop_early = suite.add_mutually_exclusive_group()
+    stop_early.add_argument(
         "--prepare-only",
         action="store_true",
         help="generate and run the entries (synthesis, identification, evaluation) but do not "
         "diagnose them; a later run with the same OUT path diagnoses them from those stages",
     )
-    suite.add_argument(
+    stop_early.add_argument(
         "--scenes-only",
         action="store_true",
         help="generate the entries' scenes and nothing else (where the scene source's engine "
@@ -137,8 +138,6 @@ def diagnose_suite(args) -> int:
     from mosiv_framework.cli.stages import check_writable_folder
     from mosiv_framework.scale.flags import scale_options
 
-    if args.prepare_only and args.scenes_only:
-        raise ConfigError("--prepare-only and --scenes-only: give one of them")
     check_writable_folder(args.out, "OUT")
     resume_from(args, args.out, "its finished entries and stages", "suite folder")
 

@@ -247,12 +247,12 @@ def run_entry(
     if done.exists():
         return load_score(done)
     log.info("entry %s: %s on %s", entry.name, entry.conceal or "control", entry.materials)
+    recipe = load_recipe(recipe_path, entry_overrides(entry, run_dir))
     if scenes_only:  # an existing scene is kept: generate_scene never writes over one
-        recipe = load_recipe(recipe_path, entry_overrides(entry, run_dir))
         generate_scene(recipe.scene)
         read_scene(run_dir / "scene")  # a folder left there is a scene, or its problems named
         return None
-    run_pipeline(load_recipe(recipe_path, entry_overrides(entry, run_dir)), run_dir=run_dir)
+    run_pipeline(recipe, run_dir=run_dir)
     if prepare_only:
         return None
     diagnosis = diagnose_run(run_dir, budget=budget)
