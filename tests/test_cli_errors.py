@@ -262,6 +262,26 @@ def test_an_unexpected_error_is_one_line_pointing_to_verbose(capsys, tmp_path, m
 
 
 # ------------------------------------------------------------------------------- Ctrl-C
+def test_ctrl_c_inside_a_lazy_import_still_reads_as_an_interruption(capsys, tmp_path, monkeypatch):
+    """Python 3.11 wraps an exception raised while a class is being set up in a RuntimeError:
+    a Ctrl-C that lands in a lazy import (torch's at the first optimiser step) arrives so."""
+    import mosiv_framework.pipeline as pipeline
+
+    class Field:
+        def __set_name__(self, owner, name):
+            raise KeyboardInterrupt
+
+    def lazy_import(recipe, *, run_dir, force):
+        type("EqualityConstraint", (), {"_parents": Field()})
+
+    monkeypatch.setattr(pipeline, "run_pipeline", lazy_import)
+    recipe = write_recipe(tmp_path, tmp_path / "scene", tmp_path / "run")
+    assert main(["run", str(recipe)]) == errors.EXIT_INTERRUPTED
+    err = capsys.readouterr().err
+    assert "internal error" not in err
+    assert err.strip().splitlines()[-1].startswith("mosiv run: interrupted; rerun the same command")
+
+
 def _default_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 

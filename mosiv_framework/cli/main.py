@@ -142,7 +142,23 @@ def main(argv: list[str] | None = None) -> int:
             return _internal(args, argv, exc)
         return _fail(args, os_error_message(exc), EXIT_OUTPUT)
     except Exception as exc:  # noqa: BLE001 -- the last line of defence: no bare traceback
+        if _raised_by_ctrl_c(exc):
+            print(interrupted_message(args), file=sys.stderr)
+            return EXIT_INTERRUPTED
         return _internal(args, argv, exc)
+
+
+def _raised_by_ctrl_c(exc: BaseException) -> bool:
+    """Whether a KeyboardInterrupt lies in the chain of ``exc``: Python 3.11 wraps an exception
+    raised while a class body is being set up (a lazy import a Ctrl-C lands in, e.g. torch's at
+    the first optimiser step) in a RuntimeError, which must still read as an interruption."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def resume_from(
