@@ -240,3 +240,51 @@ def test_read_scene_names_files_that_change_while_read(example, tmp_path, monkey
     with pytest.raises(SceneFormatError, match="changed while being read") as err:
         read_scene(root)
     assert str(root / "cameras.json") in str(err.value)
+
+
+# ------------------------------------------------------------- cameras that missed frames
+def test_a_late_camera_is_read_with_its_recorded_frames(example, tmp_path):
+    from mosiv_framework.testing.views import with_recorded_frames
+
+    late = read_scene(with_recorded_frames(example, tmp_path / "late", {"cam_01": (2, 3)}))
+    assert late.recorded_frames("cam_01") == range(2, 4)
+    assert late.records("cam_00", 0) and not late.records("cam_01", 1)
+    assert [c.id for c in late.cameras_at(1)] == [c for c in late.camera_ids if c != "cam_01"]
+    views = late.view_mask(frames=[0, 2], cameras=["cam_00", "cam_01"])
+    assert views.tolist() == [[True, False], [True, True]]
+    with pytest.raises(SceneFormatError, match="camera 'cam_01' recorded frames 2..3 only"):
+        late.rgb("cam_01", 0)
+    with pytest.raises(SceneFormatError, match="not frame 1"):
+        late.load_mask_ids(frames=[1])
+    rgb = late.load_rgb_tensor(frames=[1, 2], missing="zeros")
+    ids = late.load_mask_ids(frames=[1, 2], missing="zeros")
+    col = late.camera_ids.index("cam_01")
+    assert rgb[0, col].abs().sum() == 0 and ids[0, col].abs().sum() == 0
+    full = read_scene(example)
+    assert torch.equal(rgb[1], full.load_rgb_tensor(frames=[2])[0])
+    assert torch.equal(ids[:, 0], full.load_mask_ids(frames=[1, 2])[:, 0])
+
+
+def test_the_writer_writes_a_camera_that_started_late(example, tmp_path):
+    src = read_scene(example)
+    writer = SceneWriter(
+        tmp_path / "late",
+        name="late",
+        fps=src.fps,
+        n_frames=src.n_frames,
+        observed_frames=src.observed_frames,
+        objects=src.objects,
+        cameras=src.cameras,
+        domain_lower=src.domain_lower,
+        domain_upper=src.domain_upper,
+        camera_frames={"cam_02": (1, src.n_frames - 1)},
+    )
+    with pytest.raises(IndexError, match="frame 0 of camera 'cam_02' outside 1.."):
+        writer.write_frame("cam_02", 0, rgb=src.rgb("cam_02", 0), mask=src.mask("cam_02", 0))
+    for cam in src.camera_ids:
+        for t in src.recorded_frames(cam):
+            if (cam, t) != ("cam_02", 0):
+                writer.write_frame(cam, t, rgb=src.rgb(cam, t), mask=src.mask(cam, t))
+    back = read_scene(writer.finish())
+    assert back.camera_frames == {"cam_02": (1, src.n_frames - 1)}
+    assert not back.records("cam_02", 0) and back.records("cam_02", 1)

@@ -332,6 +332,26 @@ CASES = [
     ),
     C("camera-id-path", set_camera(1, "id", "../c"), "cameras.json: cameras[1] (../c).id: must be"),
     C("camera-id-duplicate", set_camera(1, "id", "cam_00"), "cameras.json: cameras[1] (cam_00).id"),
+    C(
+        "camera-frames-not-a-pair",
+        set_camera(1, "frames", [2]),
+        "cameras.json: cameras[1] (cam_01).frames: must be [first, last]",
+    ),
+    C(
+        "camera-frames-past-the-end",
+        set_camera(1, "frames", [2, 10]),
+        "cameras.json: cameras[1] (cam_01).frames: must satisfy 0 <= first <= last <= 9",
+    ),
+    C(
+        "camera-frames-extra-frame",
+        set_camera(1, "frames", [2, 9]),
+        "rgb/cam_01/0001.png: extra frame (cameras.json: camera 'cam_01' recorded frames 0002..",
+    ),
+    C(
+        "camera-frames-no-camera",
+        lambda root: (set_camera(0, "frames", [0, 4])(root), set_camera(1, "frames", [6, 9])(root)),
+        "cameras.json: no camera records frame(s) 5",
+    ),
     # ---- frames
     C("frame-missing", remove(R0), R0 + ": missing frame (n_frames = 10"),
     C("frame-is-folder", replace_with_folder(R0), R0 + ": is a folder; expected a PNG file"),

@@ -41,6 +41,7 @@ def check_cameras(root: Path, report: Report, meta: Meta) -> None:
             f.bad(f"cameras[{i}]", f"must be a JSON object, got {shown(cam)}")
             continue
         _check_camera(report, meta, i, cam)
+    check_every_frame_recorded(report, meta)
 
 
 def _check_camera(report: Report, meta: Meta, i: int, cam: dict) -> None:
@@ -78,3 +79,47 @@ def _check_camera(report: Report, meta: Meta, i: int, cam: dict) -> None:
     if cid is not None:
         size_ok = width is not None and height is not None
         meta.cameras[cid] = (width, height) if size_ok else None
+        span = _recorded_frames(cf, cam.get("frames", ABSENT), meta.n_frames)
+        if span is not None:
+            meta.camera_frames[cid] = span
+
+
+def _recorded_frames(cf: Fields, span: object, n_frames: int | None) -> tuple[int, int] | None:
+    """The optional ``frames`` field: [first, last] frames the camera recorded (a camera that
+    started late or stopped early); None when absent (every frame) or invalid (reported)."""
+    if span is ABSENT:
+        return None
+    if not (
+        isinstance(span, list)
+        and len(span) == 2
+        and all(isinstance(x, int) and not isinstance(x, bool) for x in span)
+    ):
+        cf.bad("frames", f"must be [first, last], two frame numbers, got {shown(span)}")
+        return None
+    first, last = span
+    limit = "" if n_frames is None else f" <= {n_frames - 1} (n_frames = {n_frames})"
+    if not 0 <= first <= last or (n_frames is not None and last >= n_frames):
+        cf.bad("frames", f"must satisfy 0 <= first <= last{limit}, got {span}")
+        return None
+    return first, last
+
+
+def check_every_frame_recorded(report: Report, meta: Meta) -> None:
+    """Every frame of the scene is recorded by at least one camera."""
+    if meta.n_frames is None or not meta.camera_frames or not meta.cameras:
+        return
+    full = [c for c in meta.cameras if c not in meta.camera_frames]
+    if full:
+        return
+    unseen = [
+        t
+        for t in range(meta.n_frames)
+        if not any(a <= t <= b for a, b in meta.camera_frames.values())
+    ]
+    if unseen:
+        report.add(
+            "cameras.json",
+            f"no camera records frame(s) {', '.join(map(str, unseen[:8]))}"
+            f"{' ...' if len(unseen) > 8 else ''}: every frame needs at least one camera "
+            "(see the cameras' frames fields)",
+        )

@@ -46,6 +46,8 @@ class Meta:
     names: dict[int, str] = field(default_factory=dict)
     # camera id -> (width, height), or None where the size fields are invalid
     cameras: dict[str, tuple[int, int] | None] = field(default_factory=dict)
+    # camera id -> (first, last) frames it recorded, for cameras that did not record every frame
+    camera_frames: dict[str, tuple[int, int]] = field(default_factory=dict)
 
 
 class Report:

@@ -53,13 +53,21 @@ def check_frames(root: Path, report: Report, meta: Meta) -> list[tuple[str, str,
                     rel, f"folder for camera {entry.name!r}, which cameras.json does not declare"
                 )
         for cid in meta.cameras:
-            present += _check_camera_frames(root, report, kind, cid, meta.n_frames)
+            span = meta.camera_frames.get(cid)
+            present += _check_camera_frames(root, report, kind, cid, meta.n_frames, span)
     return present
 
 
 def _check_camera_frames(
-    root: Path, report: Report, kind: str, cid: str, n_frames: int | None
+    root: Path,
+    report: Report,
+    kind: str,
+    cid: str,
+    n_frames: int | None,
+    span: tuple[int, int] | None = None,
 ) -> list[tuple[str, str, str]]:
+    """Problems of one camera's frame folder; ``span``: the (first, last) frames the camera
+    recorded where cameras.json gives them (None: every frame of the scene)."""
     folder = f"{kind}/{cid}"
     folder_kind = path_kind(root / folder)
     if folder_kind != "folder":
@@ -86,21 +94,26 @@ def _check_camera_frames(
             report.add(f"{folder}/{name}", "unexpected file (frames are named 0000.png, ...)")
     if n_frames is None:  # scene.json is broken; only what is there can be checked
         return [(kind, cid, f"{folder}/{frame_name(i)}") for i in sorted(readable)]
-    span = f"n_frames = {n_frames}, so frames run 0000..{n_frames - 1:04d}"
-    inside = sorted(i for i in frames if i < n_frames)
-    for i in sorted(i for i in frames if i >= n_frames):
-        report.add(f"{folder}/{frame_name(i)}", f"extra frame ({span})")
+    first, last = (0, n_frames - 1) if span is None else span
+    if span is None:
+        rule = f"n_frames = {n_frames}, so frames run 0000..{n_frames - 1:04d}"
+    else:
+        rule = f"cameras.json: camera {cid!r} recorded frames {first:04d}..{last:04d}"
+    inside = sorted(i for i in frames if first <= i <= last)
+    for i in sorted(i for i in frames if not first <= i <= last):
+        report.add(f"{folder}/{frame_name(i)}", f"extra frame ({rule})")
     # gaps between present frames, found without enumerating all n_frames names; a run of
     # several missing frames is one problem on the folder so a wrong n_frames stays readable
-    previous = -1
-    for i in [*inside, n_frames]:
-        first, last = previous + 1, i - 1
-        if first == last:
-            report.add(f"{folder}/{frame_name(first)}", f"missing frame ({span})")
-        elif first < last:
+    previous = first - 1
+    for i in [*inside, last + 1]:
+        gap_first, gap_last = previous + 1, i - 1
+        if gap_first == gap_last:
+            report.add(f"{folder}/{frame_name(gap_first)}", f"missing frame ({rule})")
+        elif gap_first < gap_last:
             report.add(
                 folder,
-                f"missing frames {first:04d}..{last:04d} ({last - first + 1} files; {span})",
+                f"missing frames {gap_first:04d}..{gap_last:04d} "
+                f"({gap_last - gap_first + 1} files; {rule})",
             )
         previous = i
     return [(kind, cid, f"{folder}/{frame_name(i)}") for i in inside if i in readable]

@@ -49,7 +49,9 @@ class Scene:
     """A scene folder: its declarations (scene.json, cameras.json) and lazy image access.
 
     Distances in metres, ``gravity`` in m/s^2, ``fps`` in frames per second. ``ground_height``
-    is None when the scene has no ground plane.
+    is None when the scene has no ground plane. ``camera_frames`` maps the id of a camera that
+    did not record every frame (one that started late or stopped early) to the (first, last)
+    frames it did record; ``records`` and ``view_mask`` say which views exist.
     """
 
     root: Path
@@ -64,6 +66,7 @@ class Scene:
     objects: list[SceneObject]
     cameras: list[Camera]
     up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    camera_frames: dict[str, tuple[int, int]] = field(default_factory=dict)
     _camera_index: dict[str, Camera] = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -107,11 +110,47 @@ class Scene:
                 f"scene {self.name!r} has no camera {camera_id!r}; cameras: {self.camera_ids}"
             ) from None
 
+    # ------------------------------------------------------------------------------- views
+    @property
+    def every_view_recorded(self) -> bool:
+        """Whether every camera recorded every frame (no camera has a ``frames`` range)."""
+        return not self.camera_frames
+
+    def recorded_frames(self, camera_id: str) -> range:
+        """The frames camera ``camera_id`` recorded."""
+        self.camera(camera_id)  # raises a KeyError naming the valid cameras
+        first, last = self.camera_frames.get(camera_id, (0, self.n_frames - 1))
+        return range(first, last + 1)
+
+    def records(self, camera_id: str, frame: int) -> bool:
+        """Whether camera ``camera_id`` has an image (and a mask) at ``frame``."""
+        return frame in self.recorded_frames(camera_id)
+
+    def cameras_at(self, frame: int) -> list[Camera]:
+        """The cameras that recorded ``frame``, in cameras.json order."""
+        return [c for c in self.cameras if self.records(c.id, frame)]
+
+    def view_mask(
+        self, *, frames: Iterable[int] | None = None, cameras: Sequence[str] | None = None
+    ) -> torch.Tensor:
+        """bool [F, C]: which (frame, camera) views exist; defaults as ``load_rgb_tensor``."""
+        frames = list(range(self.n_frames)) if frames is None else list(frames)
+        cameras = self.camera_ids if cameras is None else list(cameras)
+        return torch.tensor([[self.records(c, t) for c in cameras] for t in frames], dtype=bool)
+
     # ------------------------------------------------------------------------------ images
     def _frame_path(self, kind: str, camera_id: str, frame: int) -> Path:
         self.camera(camera_id)  # raises a KeyError naming the valid cameras
         if not 0 <= frame < self.n_frames:
             raise IndexError(f"frame {frame} outside 0..{self.n_frames - 1} of scene {self.name!r}")
+        if not self.records(camera_id, frame):
+            span = self.recorded_frames(camera_id)
+            raise SceneFormatError(
+                f"scene {self.name!r}: camera {camera_id!r} recorded frames "
+                f"{span.start}..{span.stop - 1} only (cameras.json), not frame {frame}; "
+                "this step needs every camera at every frame, or must skip the missing views "
+                "(Scene.records, Scene.view_mask)"
+            )
         return self.root / kind / camera_id / frame_name(frame)
 
     def rgb_path(self, camera_id: str, frame: int) -> Path:
@@ -145,16 +184,26 @@ class Scene:
         """One frame's instance mask, uint8 [H, W]: 0 background, k object id."""
         return self._read_png(self.mask_path(camera_id, frame), camera_id, 1)
 
-    def _stack(self, read, frames, cameras) -> np.ndarray:
+    def _stack(self, read, frames, cameras, missing: str, channels: int) -> np.ndarray:
         frames = list(range(self.n_frames)) if frames is None else list(frames)
         cameras = self.camera_ids if cameras is None else list(cameras)
+        if missing not in ("error", "zeros"):
+            raise ValueError(f"missing={missing!r}: valid values are 'error' and 'zeros'")
         sizes = {(self.camera(c).width, self.camera(c).height) for c in cameras}
         if len(sizes) > 1:
             raise SceneFormatError(
                 f"cameras {cameras} have different resolutions {sorted(sizes)}; "
                 "load them separately (cameras=[one id])"
             )
-        return np.stack([np.stack([read(c, f) for c in cameras]) for f in frames])
+
+        def view(c: str, f: int) -> np.ndarray:
+            if missing == "zeros" and not self.records(c, f):
+                cam = self.camera(c)
+                shape = (cam.height, cam.width) + ((channels,) if channels > 1 else ())
+                return np.zeros(shape, dtype=np.uint8)
+            return read(c, f)
+
+        return np.stack([np.stack([view(c, f) for c in cameras]) for f in frames])
 
     def load_rgb_tensor(
         self,
@@ -162,12 +211,15 @@ class Scene:
         frames: Iterable[int] | None = None,
         cameras: Sequence[str] | None = None,
         device: torch.device | str = "cpu",
+        missing: str = "error",
     ) -> torch.Tensor:
         """Colour frames as float32 [F, C, H, W, 3] in [0, 1] (sRGB values, not linearised).
 
-        Defaults to every frame and every camera, in cameras.json order.
+        Defaults to every frame and every camera, in cameras.json order. A view the camera did
+        not record raises SceneFormatError (``missing="error"``) or is black
+        (``missing="zeros"``: the caller then weighs views by ``view_mask``).
         """
-        arr = self._stack(self.rgb, frames, cameras)
+        arr = self._stack(self.rgb, frames, cameras, missing, 3)
         return torch.from_numpy(arr).to(device=device, dtype=torch.float32) / 255.0
 
     def load_masks(
@@ -176,9 +228,11 @@ class Scene:
         frames: Iterable[int] | None = None,
         cameras: Sequence[str] | None = None,
         device: torch.device | str = "cpu",
+        missing: str = "error",
     ) -> torch.Tensor:
-        """Per-object masks as float32 [F, C, K, H, W] in {0, 1}; channel k-1 is object k."""
-        ids_t = self.load_mask_ids(frames=frames, cameras=cameras, device=device)
+        """Per-object masks as float32 [F, C, K, H, W] in {0, 1}; channel k-1 is object k.
+        ``missing`` as ``load_rgb_tensor`` (a view not recorded is all background)."""
+        ids_t = self.load_mask_ids(frames=frames, cameras=cameras, device=device, missing=missing)
         object_ids = torch.arange(1, len(self.objects) + 1, device=device)
         return (ids_t[:, :, None] == object_ids[:, None, None]).to(torch.float32)
 
@@ -188,9 +242,11 @@ class Scene:
         frames: Iterable[int] | None = None,
         cameras: Sequence[str] | None = None,
         device: torch.device | str = "cpu",
+        missing: str = "error",
     ) -> torch.Tensor:
-        """Instance ids as int64 [F, C, H, W] (0 background, k object id)."""
-        ids = self._stack(self.mask, frames, cameras)
+        """Instance ids as int64 [F, C, H, W] (0 background, k object id); ``missing`` as
+        ``load_rgb_tensor`` (a view not recorded is all background)."""
+        ids = self._stack(self.mask, frames, cameras, missing, 1)
         return torch.from_numpy(ids.astype(np.int64)).to(device)
 
     # ------------------------------------------------------------- ground truth (evaluation)
@@ -293,6 +349,11 @@ def _build_scene(root: Path) -> Scene:
         ],
         cameras=[Camera.from_dict(c) for c in cams["cameras"]],
         up=tuple(float(x) for x in scene.get("up", (0.0, 0.0, 1.0))),
+        camera_frames={
+            str(c["id"]): (int(c["frames"][0]), int(c["frames"][1]))
+            for c in cams["cameras"]
+            if "frames" in c
+        },
     )
 
 
@@ -335,7 +396,8 @@ def encode_png(image: np.ndarray) -> bytes:
 class SceneWriter:
     """Writes one scene folder piece by piece (frames as they are rendered), atomically.
 
-    Usage: create it with the declarations, call ``write_frame`` for every camera and frame,
+    Usage: create it with the declarations (``camera_frames``: the (first, last) frames of a
+    camera that did not record every frame), call ``write_frame`` for every recorded view,
     optionally ``write_gt``, then ``finish()``, which writes scene.json only if every frame is
     there. Materials must be valid families and ids 1..K (checked by ``finish`` via the layout
     check, which raises SceneFormatError naming each problem).
@@ -355,10 +417,16 @@ class SceneWriter:
         domain_upper: Sequence[float],
         gravity: Sequence[float] = (0.0, 0.0, -9.8),
         ground_height: float | None = 0.0,
+        camera_frames: Mapping[str, tuple[int, int]] | None = None,
     ) -> None:
         self.root = Path(out_dir)
         self.n_frames = n_frames
         self.cameras = {c.id: c for c in cameras}
+        #: camera id -> (first, last) frames of a camera that did not record every frame
+        self.camera_frames = {c: (int(a), int(b)) for c, (a, b) in (camera_frames or {}).items()}
+        unknown = sorted(set(self.camera_frames) - set(self.cameras))
+        if unknown:
+            raise KeyError(f"camera_frames names unknown camera(s) {unknown}")
         self._scene_json = {
             "format": FORMAT,
             "name": name,
@@ -379,16 +447,23 @@ class SceneWriter:
         self.root.mkdir(parents=True, exist_ok=True)
         atomic_write_json(
             self.root / "cameras.json",
-            {"convention": "opencv", "cameras": [c.to_dict() for c in cameras]},
+            {"convention": "opencv", "cameras": [self._camera_entry(c) for c in cameras]},
         )
+
+    def _camera_entry(self, camera: Camera) -> dict:
+        entry = camera.to_dict()
+        if camera.id in self.camera_frames:
+            entry["frames"] = list(self.camera_frames[camera.id])
+        return entry
 
     def write_frame(self, camera_id: str, frame: int, *, rgb: np.ndarray, mask: np.ndarray) -> None:
         """Write rgb uint8 [H, W, 3] and mask uint8 [H, W] of one camera at one frame."""
         cam = self.cameras.get(camera_id)
         if cam is None:
             raise KeyError(f"unknown camera {camera_id!r}; cameras: {list(self.cameras)}")
-        if not 0 <= frame < self.n_frames:
-            raise IndexError(f"frame {frame} outside 0..{self.n_frames - 1}")
+        first, last = self.camera_frames.get(camera_id, (0, self.n_frames - 1))
+        if not first <= frame <= last:
+            raise IndexError(f"frame {frame} of camera {camera_id!r} outside {first}..{last}")
         for what, img, shape in (
             ("rgb", rgb, (cam.height, cam.width, 3)),
             ("mask", mask, (cam.height, cam.width)),
