@@ -354,7 +354,8 @@ def tile_origin(row: int, col: int, *, height: int, width: int) -> tuple[int, in
 
 
 def contact_sheet(scene, *, masks: bool, step: int = 1):
-    """uint8 [H', W', 3] image: one row per camera, one column per shown frame, labelled."""
+    """uint8 [H', W', 3] image: one row per camera, one column per shown frame, labelled; a
+    frame a camera did not record stays a blank (white) tile."""
     import numpy as np
     from PIL import Image, ImageDraw
 
@@ -365,6 +366,8 @@ def contact_sheet(scene, *, masks: bool, step: int = 1):
     sheet = np.full((y_end, x_end, 3), 255, dtype=np.uint8)
     for r, cam in enumerate(scene.cameras):
         for c, t in enumerate(frames):
+            if not scene.records(cam.id, t):
+                continue
             img = scene.rgb(cam.id, t)
             if masks:
                 img = overlay_masks(img, scene.mask(cam.id, t))
@@ -397,7 +400,7 @@ def write_previews(scene_dir: Path, out: Path, *, masks: bool, step: int = 1) ->
     iio.imwrite(written[0], contact_sheet(scene, masks=masks, step=step))
     for cam in scene.cameras:
         frames = []
-        for t in range(scene.n_frames):
+        for t in scene.recorded_frames(cam.id):
             img = scene.rgb(cam.id, t)
             frames.append(overlay_masks(img, scene.mask(cam.id, t)) if masks else img)
         path = out / f"{cam.id}.gif"

@@ -182,7 +182,9 @@ def silhouette_residuals(
     The same rasterisation applied to the target points gives each view's floor (what the
     point-to-mask comparison scores even for a perfect model). None if the scene has no masks.
     """
-    cams = ctx.scene.camera_ids[:max_views]
+    window = range(frames)  # views of cameras that recorded the whole window
+    cams = [c for c in ctx.scene.camera_ids if all(ctx.scene.records(c, t) for t in window)]
+    cams = cams[:max_views]
     try:
         masks = ctx.scene.load_mask_ids(frames=range(frames), cameras=cams).numpy()
     except Exception:  # masks are optional for a diagnosis: point residuals suffice

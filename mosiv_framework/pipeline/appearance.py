@@ -31,7 +31,7 @@ def can_render(particles: ParticleSet) -> bool:
 
 def rollout_images(traj: Trajectory, particles: ParticleSet, scene) -> tuple[list, list, list]:
     """(predicted, recorded, regions): per frame of ``traj``, the images of every scene camera
-    as one batch [C, 3, H, W] in [0, 1] (sRGB; the layout of ``metrics.image_metrics``),
+    that recorded the frame as one batch [C, 3, H, W] in [0, 1] (sRGB; the layout of ``metrics.image_metrics``),
     predicted ones composited over the reconstruction's background (black where it has none
     for a camera), and the object region [C, H, W] bool: pixels inside the recorded instance
     mask or the rendered silhouette (alpha >= 1/2), where the objects' own PSNR is taken."""
@@ -48,7 +48,7 @@ def rollout_images(traj: Trajectory, particles: ParticleSet, scene) -> tuple[lis
         for t in range(n):
             gaussians = appearance.binding.gaussian_frames(positions[t])
             views, targets, masks = [], [], []
-            for cam in scene.cameras:
+            for cam in scene.cameras_at(t):
                 bg = backgrounds.get(cam.id)
                 bg = torch.zeros(cam.height, cam.width, 3) if bg is None else bg.float().cpu()
                 out = renderer.render(gaussians, cam, frame=0, n_objects=n_objects, background=bg)

@@ -119,7 +119,8 @@ class SilhouetteObjective:
 
     Recorded masks (``scene.load_masks``) are the target silhouettes; simulated ones are splats
     of the simulated particles (``splat_alpha``) through the same cameras, at ``size`` pixels.
-    Masks are loaded once per frame and kept on the device of the rollouts.
+    Masks are loaded once per frame and kept on the device of the rollouts. A view the scene
+    did not record (a camera that started late) is empty on both sides, so it adds nothing.
     """
 
     def __init__(self, objective: WeightedSum, *, scene, particles: ParticleSet, size: int = 48):
@@ -130,11 +131,12 @@ class SilhouetteObjective:
         self.size = size
         self.radius = {k: particle_radius(particles, k) for k in particles.object_list}
         self._masks: dict[int, torch.Tensor] = {}
+        self._views = None if scene.every_view_recorded else scene.view_mask()  # [T, C]
 
     def _target(self, frames: list[int], objects: list[int], device) -> dict[int, torch.Tensor]:
         for f in frames:
             if f not in self._masks:  # [C, K, size, size], kept on the rollouts' device
-                alpha = mask_alpha(self.scene.load_masks(frames=[f])[0], self.size)
+                alpha = mask_alpha(self.scene.load_masks(frames=[f], missing="zeros")[0], self.size)
                 self._masks[f] = alpha.to(device)
             elif self._masks[f].device != torch.device(device):
                 self._masks[f] = self._masks[f].to(device)
@@ -153,7 +155,11 @@ class SilhouetteObjective:
         return out
 
     def evaluate(self, predicted: GeometryFrames, target: GeometryFrames):
-        predicted = GeometryFrames(predicted.frames, predicted.points, self.render(predicted))
+        drawn = self.render(predicted)
+        if self._views is not None:
+            recorded = self._views[list(predicted.frames)]  # [F, C]
+            drawn = {k: a * recorded[:, :, None, None].to(a.device) for k, a in drawn.items()}
+        predicted = GeometryFrames(predicted.frames, predicted.points, drawn)
         device = next(iter(predicted.silhouettes.values())).device
         masks = self._target(target.frames, target.object_list, device)
         target = GeometryFrames(target.frames, target.points, masks)

@@ -108,10 +108,12 @@ def training_metrics(
     background: Tensor,
     *,
     tile_size: int = 16,
+    views: Tensor | None = None,
 ) -> dict:
     """JSON-ready scores of a fit on its own training views.
 
-    rgb [T, C, H, W, 3] and mask_ids [T, C, H, W] of the scene; background [C, H, W, 3].
+    rgb [T, C, H, W, 3] and mask_ids [T, C, H, W] of the scene; background [C, H, W, 3];
+    views [T, C] bool, the recorded views the scores cover (None: all).
     Keys: psnr_mean, psnr_min (dB, over images), iou (object id as str -> IoU per frame, None
     where undefined), iou_min (lowest defined IoU over objects and frames), area_ratio (object
     id as str -> drawn / recorded silhouette area per frame, ``drawn_area_ratio``).
@@ -122,8 +124,13 @@ def training_metrics(
         gaussians, cameras, n_objects=n_objects, background=background, tile_size=tile_size
     )
     p = image_psnr(rendered.cpu(), rgb.cpu())
-    iou = mask_iou(alpha.cpu(), mask_ids.cpu())
-    area = drawn_area_ratio(alpha.cpu(), mask_ids.cpu())
+    alpha = alpha.cpu()
+    if views is not None:  # a view not recorded counts neither as drawn nor as recorded
+        recorded = views.cpu()
+        p = p[recorded]
+        alpha = alpha * recorded[:, :, None, None, None]
+    iou = mask_iou(alpha, mask_ids.cpu())
+    area = drawn_area_ratio(alpha, mask_ids.cpu())
     defined = iou[~torch.isnan(iou)]
     return {
         "psnr_mean": float(p.mean()),

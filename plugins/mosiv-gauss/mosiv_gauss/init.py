@@ -90,16 +90,21 @@ def dilate_ids(mask_ids: Tensor) -> Tensor:
     return torch.where(mask_ids > 0, mask_ids, grown.squeeze(1).long())
 
 
-def carve_labels(lookup: Tensor, mask_ids: Tensor, *, n_objects: int) -> Tensor:
+def carve_labels(
+    lookup: Tensor, mask_ids: Tensor, *, n_objects: int, views: Tensor | None = None
+) -> Tensor:
     """Object label of every voxel at one frame (0 = empty), by occlusion-aware carving.
 
     lookup [C, V] from :func:`pixel_lookup`; mask_ids [C, H, W] instance ids of the frame. The
     masks are dilated by one pixel first: a mask labels pixel centres, while the object part a
     voxel stands for may cover only a pixel's edge, so the hull errs on the side of too large
-    (training removes the excess) rather than cutting the object's rim off.
+    (training removes the excess) rather than cutting the object's rim off. ``views`` [C] bool:
+    the cameras that recorded the frame (None: all); the others neither carve nor vote.
     """
-    n_cams = lookup.shape[0]
-    flat = dilate_ids(mask_ids).reshape(n_cams, -1)
+    if views is not None:
+        lookup = torch.where(views[:, None], lookup, torch.full_like(lookup, -1))
+    n_cams = lookup.shape[0] if views is None else int(views.sum())
+    flat = dilate_ids(mask_ids).reshape(lookup.shape[0], -1)
     seen = lookup >= 0
     labels = torch.gather(flat, 1, lookup.clamp(min=0))
     labels = torch.where(seen, labels, torch.full_like(labels, -1))  # -1: not seen
@@ -170,17 +175,24 @@ def hull_init(
     resolution: int,
     max_gaussians: int,
     generator: torch.Generator | None = None,
+    views: Tensor | None = None,
 ) -> HullInit:
     """Seed Gaussians in frame 0's per-object visual hulls and track every frame's hulls.
 
     mask_ids [T, C, H, W] instance ids; rgb0 [C, H, W, 3] frame-0 images in [0, 1]; lower/upper
     the domain box (m). At most ``max_gaussians`` seeds, split evenly between the objects.
-    Raises ValueError naming the object whose frame-0 hull is empty.
+    ``views`` [T, C] bool: the recorded views (None: all); a frame's hull is carved by the
+    cameras that recorded it. Raises ValueError naming the object whose frame-0 hull is empty.
     """
     device = mask_ids.device
     grid = voxel_grid(lower, upper, resolution=resolution, device=device)
     lookup = pixel_lookup(grid.centres, cameras)
-    labels = [carve_labels(lookup, mask_ids[t], n_objects=n_objects) for t in range(len(mask_ids))]
+    labels = [
+        carve_labels(
+            lookup, mask_ids[t], n_objects=n_objects, views=None if views is None else views[t]
+        )
+        for t in range(len(mask_ids))
+    ]
     tracks, valid = hull_tracks(labels, grid.centres, n_objects=n_objects)
 
     per_object = max(1, max_gaussians // n_objects)
@@ -199,7 +211,10 @@ def hull_init(
         chosen.append(inside)
         ids.append(torch.full((len(inside),), k, dtype=torch.long, device=device))
     voxels, ids_t = torch.cat(chosen), torch.cat(ids)
-    colors = seed_colors(ids_t, lookup[:, voxels], mask_ids[0], rgb0)
+    seen0 = lookup[:, voxels]
+    if views is not None:  # a camera that missed frame 0 gives no colour
+        seen0 = torch.where(views[0][:, None], seen0, torch.full_like(seen0, -1))
+    colors = seed_colors(ids_t, seen0, mask_ids[0], rgb0)
     hulls = []
     for frame_labels in labels:
         per_object = []

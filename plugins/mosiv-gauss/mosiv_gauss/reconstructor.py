@@ -63,8 +63,10 @@ def prepare_training(
     n_objects = len(scene.objects)
     if scene.object_ids != list(range(1, n_objects + 1)):
         raise ValueError(f"scene object ids must be 1..K, got {scene.object_ids}")
-    rgb = scene.load_rgb_tensor(device=device)  # [T, C, H, W, 3]
-    mask_ids = scene.load_mask_ids(device=device)  # [T, C, H, W]
+    # a view a camera did not record is black and empty here, and ``views`` leaves it out
+    rgb = scene.load_rgb_tensor(device=device, missing="zeros")  # [T, C, H, W, 3]
+    mask_ids = scene.load_mask_ids(device=device, missing="zeros")  # [T, C, H, W]
+    views = None if scene.every_view_recorded else scene.view_mask().to(device)
     ids = torch.arange(1, n_objects + 1, device=device)
     masks = (mask_ids.unsqueeze(2) == ids[:, None, None]).float()  # [T, C, K, H, W]
     seeds = hull_init(
@@ -77,16 +79,18 @@ def prepare_training(
         resolution=opts.hull_resolution,
         max_gaussians=opts.max_init_gaussians,
         generator=generator,
+        views=views,
     )
     data = TrainingData(
         rgb=rgb,
         masks=masks,
         cameras=list(scene.cameras),
-        background=estimate_background(rgb, mask_ids),
+        background=estimate_background(rgb, mask_ids, views),
         voxel_size=seeds.voxel_size,
         tracks=seeds.tracks,
         track_valid=seeds.track_valid,
         hulls=seeds.hulls,
+        views=views,
     )
     return data, seeds, mask_ids
 
@@ -155,6 +159,7 @@ class GaussDynamicReconstructor(Reconstructor):
                 mask_ids,
                 history.background,
                 tile_size=opts.tile_size,
+                views=data.views,
             )
         extras = {
             "reconstructor": "gauss-dynamic",

@@ -58,7 +58,8 @@ class TrainingData:
     tracks [T, K, 3] (m) visual-hull centroids and track_valid [T, K] where the hull is
     non-empty (``init.HullInit``), for the track anchor (None: no anchor); hulls[t][k] [N, 3]
     (m) voxel centres of object k+1's hull at frame t (``init.HullInit.hulls``), for the hull
-    term (None: no hull term).
+    term (None: no hull term); views [T, C] bool: the (frame, camera) views the scene
+    recorded (None: all; the others' images are black and never sampled).
     """
 
     rgb: Tensor
@@ -69,6 +70,7 @@ class TrainingData:
     tracks: Tensor | None = None
     track_valid: Tensor | None = None
     hulls: list[list[Tensor]] | None = None
+    views: Tensor | None = None
 
     @property
     def n_frames(self) -> int:
@@ -89,11 +91,15 @@ class TrainingHistory:
     background: Tensor | None = None
 
 
-def estimate_background(rgb: Tensor, mask_ids: Tensor) -> Tensor:
+def estimate_background(rgb: Tensor, mask_ids: Tensor, views: Tensor | None = None) -> Tensor:
     """Static background per camera [C, H, W, 3]: the per-pixel median over the frames where no
     object covers the pixel; pixels covered in every frame take the median of the camera's
-    background pixels. rgb [T, C, H, W, 3]; mask_ids [T, C, H, W] (0 = background)."""
-    free = (mask_ids == 0).unsqueeze(-1).expand_as(rgb)
+    background pixels. rgb [T, C, H, W, 3]; mask_ids [T, C, H, W] (0 = background); views
+    [T, C] bool, the recorded views (None: all)."""
+    free = mask_ids == 0
+    if views is not None:
+        free = free & views[:, :, None, None]
+    free = free.unsqueeze(-1).expand_as(rgb)
     # NaN marks covered samples; nanmedian ignores them
     values = torch.where(free, rgb, torch.full_like(rgb, float("nan")))
     median = values.nanmedian(dim=0).values  # [C, H, W, 3]
@@ -122,14 +128,17 @@ def view_loss(rgb: Tensor, object_alpha: Tensor, target: Tensor, masks: Tensor, 
 def sample_views(
     data: TrainingData, n: int, order: list[int], generator: torch.Generator | None
 ) -> list[tuple[int, int]]:
-    """The next ``n`` (frame, camera) pairs: every view once per epoch, in a fresh random
-    order each epoch. ``order`` holds the rest of the current epoch and is consumed."""
+    """The next ``n`` (frame, camera) pairs: every recorded view once per epoch, in a fresh
+    random order each epoch. ``order`` holds the rest of the current epoch and is consumed."""
     n_cams = len(data.cameras)
-    total = data.n_frames * n_cams
+    if data.views is None:
+        recorded = list(range(data.n_frames * n_cams))
+    else:
+        recorded = torch.nonzero(data.views.reshape(-1).cpu()).squeeze(1).tolist()
     batch = []
-    while len(batch) < min(n, total):
+    while len(batch) < min(n, len(recorded)):
         if not order:
-            order.extend(torch.randperm(total, generator=generator).tolist())
+            order.extend(recorded[i] for i in torch.randperm(len(recorded), generator=generator))
         index = order.pop()
         batch.append((index // n_cams, index % n_cams))
     return batch

@@ -446,3 +446,45 @@ def test_network_warmup_keeps_the_fitted_deformation_through_adams_first_steps()
     free, ramped = deformation_change(0), deformation_change(100)
     assert free > 1e-4  # metres: the unramped steps do move the fitted deformation
     assert ramped < 0.1 * free, (ramped, free)
+
+
+def test_a_camera_that_missed_the_frame_neither_carves_nor_votes(tiny_scene):
+    """A missing view loads as an empty mask; marked absent, it must not carve the hull away:
+    the labels equal those of carving with the other cameras alone."""
+    ids = tiny_scene.load_mask_ids(frames=[0])[0].clone()
+    grid = voxel_grid(tiny_scene.domain_lower, tiny_scene.domain_upper, resolution=48)
+    lookup = pixel_lookup(grid.centres, tiny_scene.cameras)
+    ids[1] = 0  # what load_mask_ids(missing="zeros") gives for a view not recorded
+    views = torch.tensor([True, False, True, True])
+    labels = carve_labels(lookup, ids, n_objects=2, views=views)
+    others = [0, 2, 3]
+    expected = carve_labels(lookup[others], ids[others], n_objects=2)
+    assert torch.equal(labels, expected)
+    assert (labels == 1).any() and (labels == 2).any()
+    assert not (carve_labels(lookup, ids, n_objects=2) > 0).any()  # unmarked, it carves all
+
+
+def test_views_not_recorded_are_never_sampled_and_give_no_background():
+    from mosiv_gauss.train import sample_views
+
+    gen = torch.Generator().manual_seed(0)
+    background = torch.rand(2, 4, 4, 3, generator=gen)
+    rgb = background.expand(3, -1, -1, -1, -1).clone()
+    views = torch.ones(3, 2, dtype=torch.bool)
+    views[0, 1] = False
+    rgb[0, 1] = 0.0  # the black image of the missing view
+    ids = torch.zeros(3, 2, 4, 4, dtype=torch.long)
+    est = estimate_background(rgb, ids, views)
+    assert torch.equal(est, background)
+    data = TrainingData(
+        rgb=rgb,
+        masks=torch.zeros(3, 2, 1, 4, 4),
+        cameras=[camera(4), camera(4)],
+        background=est,
+        voxel_size=0.01,
+        views=views,
+    )
+    order: list[int] = []
+    epoch = sample_views(data, 5, order, gen)
+    assert sorted(epoch) == [(0, 0), (1, 0), (1, 1), (2, 0), (2, 1)]
+    assert all(views[t, c] for t, c in sample_views(data, 20, order, gen))

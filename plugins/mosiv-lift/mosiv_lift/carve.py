@@ -146,7 +146,7 @@ def mask_hull_box(object_id: int, scene, masks: list[Tensor], *, options) -> Box
     inside = mask_consistent(
         lattice,
         object_id,
-        scene.cameras,
+        scene.cameras_at(0),
         masks,
         dilation=options.mask_dilation_px,
         views_missed=options.mask_views_missed,
@@ -331,7 +331,7 @@ def carve_object(
     kept = mask_consistent(
         samples,
         object_id,
-        scene.cameras,
+        scene.cameras_at(0),
         masks,
         dilation=options.mask_dilation_px,
         views_missed=options.mask_views_missed,
@@ -391,5 +391,6 @@ def _virtual_view_test(
 
 
 def recorded_masks(scene) -> list[Tensor]:
-    """Frame-0 instance masks of every camera, [H, W] int64 each, in cameras.json order."""
-    return [torch.from_numpy(scene.mask(c.id, 0).astype(np.int64)) for c in scene.cameras]
+    """Frame-0 instance masks, [H, W] int64 each, of the cameras that recorded frame 0
+    (``scene.cameras_at(0)``, in cameras.json order)."""
+    return [torch.from_numpy(scene.mask(c.id, 0).astype(np.int64)) for c in scene.cameras_at(0)]

@@ -95,8 +95,9 @@ def min_foreign_distance(particles: ParticleSet) -> float:
 def estimate_background(scene, camera_id: str) -> Tensor:
     """A static background [H, W, 3] in [0, 1] for scenes whose reconstruction has none: per
     pixel, the median recorded colour over the frames where no object covers it; pixels covered
-    in every frame take the median background colour of the image."""
-    frames = range(scene.n_frames)
+    in every frame take the median background colour of the image. Only the frames the camera
+    recorded count."""
+    frames = scene.recorded_frames(camera_id)
     rgb = np.stack([scene.rgb(camera_id, t) for t in frames]).astype(np.float32) / 255.0
     free = np.stack([scene.mask(camera_id, t) == 0 for t in frames])
     stack = np.where(free[..., None], rgb, np.nan)
@@ -115,7 +116,8 @@ def rest_state_psnr(
 
     ``full``: whole images (over ``backgrounds``, default the reconstruction's background or
     :func:`estimate_background`); ``objects``: only pixels inside the recorded or rendered
-    silhouettes, where the lift alone decides the colour. Mean over cameras."""
+    silhouettes, where the lift alone decides the colour. Mean over the cameras that recorded
+    frame 0."""
     appearance = particles.appearance
     binding = getattr(appearance, "binding", None)
     if binding is None:
@@ -123,7 +125,7 @@ def rest_state_psnr(
     backgrounds = backgrounds or getattr(appearance, "background", None) or {}
     n_objects = max(scene.object_ids)
     full, objects = [], []
-    for cam in scene.cameras:
+    for cam in scene.cameras_at(0):
         bg = backgrounds.get(cam.id)
         bg = estimate_background(scene, cam.id) if bg is None else bg.float().cpu()
         with torch.no_grad():

@@ -60,7 +60,7 @@ def gaussians_from_points(
     seen = torch.zeros(g)
     object_sum = torch.zeros(n_objects + 1, 3)
     object_count = torch.zeros(n_objects + 1)
-    for cam in scene.cameras:
+    for cam in scene.cameras_at(0):  # a camera that started late has no frame 0
         rgb = torch.from_numpy(scene.rgb(cam.id, 0).astype(np.float32) / 255.0)
         mask = torch.from_numpy(scene.mask(cam.id, 0).astype(np.int64))
         with torch.no_grad():

@@ -100,3 +100,19 @@ def test_lift_of_trained_gaussians_is_deterministic(fitted):
     assert torch.equal(again.positions, particles.positions)
     assert torch.equal(again.object_ids, particles.object_ids)
     assert torch.equal(again.appearance.binding.weights, particles.appearance.binding.weights)
+
+
+def test_a_camera_without_frame_0_is_left_out_of_the_lift(fitted, tmp_path):
+    """With one of the six cameras missing frame 0 (a rig's late start), the lift carves and
+    colours from the five that recorded it and meets the same thresholds."""
+    from mosiv_framework.testing.views import with_recorded_frames
+
+    scene, reconstruction, _ = fitted
+    late = read_scene(with_recorded_frames(scene.root, tmp_path / "late", {"cam_01": (1, 2)}))
+    particles = get_registry().create("lifter", "gaussians", LIFT).lift(reconstruction, late)
+    renderer = get_registry().create("renderer", "gauss-torch", {"tile_size": 8})
+    score = score_lift(particles, late, renderer, gt_spacing=SPACING, cell=SPACING)
+    for k, s in score["objects"].items():
+        assert abs(s["volume_error"]) <= MAX_VOLUME_ERROR, (k, s)
+        assert s["iou"] >= MIN_IOU, (k, s)
+    assert score["psnr"]["full"] >= MIN_PSNR_FULL_DB, score["psnr"]
