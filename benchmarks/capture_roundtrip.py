@@ -100,7 +100,8 @@ def capture_and_import(
     """Write ``scene`` as a rig's capture into out/capture, import it into out/imported with
     the reference gt attached; ``late``: frames the late camera (LATE) misses at the start;
     ``late_cameras``: the import's ``--late-cameras`` (trim: every camera drops those frames;
-    drop: the late camera is left out and the others keep every frame); ``lens``: k1,k2 of the
+    drop: the late camera is left out and the others keep every frame; keep: every camera and
+    frame, the late camera declared as starting late); ``lens``: k1,k2 of the
     rig's lens ("0,0": none); ``crf``: H.264 quality and ``pixel_format`` its chroma (None: the
     capture's defaults); ``plate``: the rig records a clean plate per camera, which the
     import's segmenter takes as its background (without one it estimates the background as
@@ -138,7 +139,8 @@ def capture_and_import(
 
 def frame_shift(late: int, late_cameras: str) -> int:
     """The scene's frame that the import's frame 0 shows: the late camera's missing frames
-    when every camera drops them (trim), 0 when that camera is left out (drop)."""
+    when every camera drops them (trim), 0 when that camera is left out (drop) or declared as
+    starting late (keep)."""
     return late if late_cameras == "trim" else 0
 
 
@@ -417,10 +419,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pixel-format", help="H.264 chroma of the capture: yuv420p or yuv444p")
     parser.add_argument(
         "--late-cameras",
-        choices=("trim", "drop"),
+        choices=("trim", "drop", "keep"),
         default="trim",
         help="the import's --late-cameras: every camera drops the late camera's missing frames "
-        "(trim, default), or the late camera is left out (drop)",
+        "(trim, default), the late camera is left out (drop), or every camera and frame is "
+        "kept, the late camera declared as starting late (keep)",
     )
     parser.add_argument(
         "--no-plate",

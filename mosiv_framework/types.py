@@ -270,7 +270,10 @@ class Frames:
     ``Camera`` (world-to-camera, metres, z up) for the same ids; n_objects: how many objects the
     scene holds, if known; domain: ((x0, y0, z0), (x1, y1, z1)) box (m) that holds the objects
     over the whole clip, if known (segmenters that carve a visual hull need it); backgrounds:
-    camera id -> uint8 [H, W, 3] image of the empty scene (a rig's clean plate), if recorded.
+    camera id -> uint8 [H, W, 3] image of the empty scene (a rig's clean plate), if recorded;
+    camera_frames: camera id -> (first, last) frames a camera recorded where it did not record
+    them all (a late start): its other frames hold no image (zeros) and a segmenter leaves
+    them out (``recorded``).
     """
 
     rgb: dict[str, np.ndarray]
@@ -278,6 +281,7 @@ class Frames:
     n_objects: int | None = None
     domain: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     backgrounds: dict[str, np.ndarray] | None = None
+    camera_frames: dict[str, tuple[int, int]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if set(self.rgb) != set(self.cameras):
@@ -303,6 +307,11 @@ class Frames:
     @property
     def camera_ids(self) -> list[str]:
         return sorted(self.rgb)
+
+    def recorded(self, camera_id: str) -> range:
+        """The frames camera ``camera_id`` recorded."""
+        first, last = self.camera_frames.get(camera_id, (0, self.n_frames - 1))
+        return range(first, last + 1)
 
     @property
     def n_frames(self) -> int:

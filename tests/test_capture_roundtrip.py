@@ -179,6 +179,7 @@ def test_the_import_leaves_the_late_camera_out_or_trims_every_camera():
     frames are the scene's own."""
     bench = load_benchmark()
     assert bench.frame_shift(2, "trim") == 2 and bench.frame_shift(2, "drop") == 0
+    assert bench.frame_shift(2, "keep") == 0
     common = dict(materials="elastic,sand", ground_height=0.0, late=2, segmenter=[])
     for policy, observed in (("trim", 13), ("drop", 15)):
         argv = bench.import_argv(

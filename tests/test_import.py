@@ -209,8 +209,40 @@ def test_cameras_that_started_late_can_be_left_out_to_keep_every_frame(scene, tm
     assert cameras_left_out({"a": 2, "b": 0, "c": 2}, "trim") == []
     with pytest.raises(CaptureError, match=r"would leave 1 camera \(a\).*b, c started later"):
         cameras_left_out({"a": 2, "b": 0, "c": 1}, "drop")
-    with pytest.raises(CaptureError, match="valid values are trim, drop"):
-        cameras_left_out({"a": 0}, "keep")
+    assert cameras_left_out({"a": 2, "b": 0, "c": 1}, "keep") == []
+    with pytest.raises(CaptureError, match="valid values are trim, drop, keep"):
+        cameras_left_out({"a": 0}, "pad")
+
+
+def test_cameras_that_started_late_can_be_kept_with_every_frame(scene, capture, tmp_path):
+    """``late_cameras="keep"``: every camera and every frame; the late cameras are declared
+    with the frames they recorded (cameras.json ``frames``), their views match the scene's, the
+    other cameras' frame 0 is the scene's frame 0, and the masks carve frame 0's hull from the
+    cameras that recorded it."""
+    import json
+
+    from mosiv_framework.capture.reference import reference_shift
+
+    out = import_recording(settings(capture, tmp_path / "s", late_cameras="keep"))
+    original, got = read_scene(scene), read_scene(out)
+    assert validate_scene(out) == []
+    assert got.camera_ids == original.camera_ids and got.n_frames == N_FRAMES
+    assert got.camera_frames == {c: (d, N_FRAMES - 1) for c, d in LATE.items()}
+    for cam in got.camera_ids:
+        frames = list(got.recorded_frames(cam))
+        ref = np.stack([original.rgb(cam, t) for t in frames])
+        mine = np.stack([got.rgb(cam, t) for t in frames])
+        assert psnr(mine, ref) > 28, cam
+        masks_ref = np.stack([original.mask(cam, t) for t in frames]) > 0
+        masks = np.stack([got.mask(cam, t) for t in frames]) > 0
+        assert (masks & masks_ref).sum() / (masks | masks_ref).sum() > 0.7, cam
+    assert [c.id for c in got.cameras_at(0)] == [c for c in got.camera_ids if c not in LATE]
+    record = json.loads((out / "import.json").read_text())
+    assert record["late_cameras_kept"] == {c: [d, N_FRAMES - 1] for c, d in LATE.items()}
+    capture_record = {
+        "cameras": [{"id": c, "start_frame": LATE.get(c, 0)} for c in original.camera_ids]
+    }
+    assert reference_shift(capture_record, record) == 0
 
 
 def test_masks_match_rendered_masks(scene, imported):

@@ -83,14 +83,23 @@ def _pixel_index(cam: Camera, points: np.ndarray) -> np.ndarray:
 
 
 def visual_hull(
-    masks: Mapping[str, np.ndarray], cameras: Mapping[str, Camera], points: np.ndarray
+    masks: Mapping[str, np.ndarray],
+    cameras: Mapping[str, Camera],
+    points: np.ndarray,
+    spans: Mapping[str, tuple[int, int]] | None = None,
 ) -> np.ndarray:
-    """[T, V] bool: voxel v lies on foreground in every camera at frame t."""
+    """[T, V] bool: voxel v lies on foreground in every camera that recorded frame t;
+    ``spans``: camera id -> (first, last) frames of a camera that did not record them all."""
     inside = None
     for cid, cam in cameras.items():
         idx = _pixel_index(cam, points)
         m = masks[cid].reshape(masks[cid].shape[0], -1) > 0
         seen = np.where(idx[None] >= 0, m[:, np.clip(idx, 0, None)], False)
+        if spans and cid in spans:  # a frame the camera did not record carves nothing
+            first, last = spans[cid]
+            absent = np.ones(len(seen), dtype=bool)
+            absent[first : last + 1] = False
+            seen[absent] = True
         inside = seen if inside is None else inside & seen
     return inside
 

@@ -150,9 +150,10 @@ def load_frames(s: ImportSettings, sources, cams) -> tuple[dict[str, np.ndarray]
     return videos, video.common_fps(rates, s.fps, s.frames_dir)
 
 
-def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bool, list]:
-    """(videos cut to a common time base, offsets, whether they were estimated, the cameras
-    left out because they started late: ``--late-cameras drop``)."""
+def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bool, list, dict]:
+    """(videos on a common time base, offsets, whether they were estimated, the cameras left
+    out because they started late: ``--late-cameras drop``, and camera id -> (first, last)
+    recorded frames of the cameras that started late: ``--late-cameras keep``)."""
     if s.offsets is not None and yaml_offsets is not None:
         raise CaptureError(f"offsets given twice (--offsets and {s.objects_yaml}); give one")
     given, where = (s.offsets, "--offsets") if s.offsets is not None else (yaml_offsets, "")
@@ -167,7 +168,12 @@ def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bo
         logger.info("cameras that started late, left out: %s", ", ".join(left_out))
         videos = {c: v for c, v in videos.items() if c not in left_out}
         offsets = {c: 0 for c in videos}  # the cameras kept all started first
-    return off.apply_offsets(videos, offsets, s.n_frames), offsets, estimated, left_out
+    if s.late_cameras == "keep":
+        videos, spans = off.pad_late_cameras(videos, offsets, s.n_frames)
+        if spans:
+            logger.info("cameras that started late, kept from their first frame: %s", spans)
+        return videos, offsets, estimated, left_out, spans
+    return off.apply_offsets(videos, offsets, s.n_frames), offsets, estimated, left_out, {}
 
 
 def read_objects(s: ImportSettings):
@@ -179,16 +185,24 @@ def read_objects(s: ImportSettings):
 
 
 def segment(
-    s: ImportSettings, videos, cameras, n_objects: int, box, plates=None
+    s: ImportSettings, videos, cameras, n_objects: int, box, plates=None, spans=None
 ) -> dict[str, np.ndarray]:
     """Masks of the registered segmenter ``s.segmenter``, checked against the objects;
-    ``plates``: the recording's clean plates (load_plates), if any."""
+    ``plates``: the recording's clean plates (load_plates), if any; ``spans``: the recorded
+    frames of cameras that started late (``synchronise``)."""
     from mosiv_framework.registry import get_registry
     from mosiv_framework.types import Frames
 
     seg = get_registry().create("segmenter", s.segmenter, s.segmenter_options)
     domain = (tuple(map(float, box[0])), tuple(map(float, box[1])))
-    frames = Frames(videos, cameras, n_objects=n_objects, domain=domain, backgrounds=plates)
+    frames = Frames(
+        videos,
+        cameras,
+        n_objects=n_objects,
+        domain=domain,
+        backgrounds=plates,
+        camera_frames=dict(spans or {}),
+    )
     masks = seg.segment(frames)
     found = max(int(m.max()) for m in masks.values())
     if found != n_objects:
@@ -252,12 +266,12 @@ def _axis_up(ground: tuple[int, float], up: np.ndarray) -> np.ndarray:
     return axis if float(axis @ up) > np.cos(np.radians(10.0)) else up
 
 
-def _locate(s, videos, cameras, n_objects, box, ground, plates=None):
+def _locate(s, videos, cameras, n_objects, box, ground, plates=None, spans=None):
     """One segmenter pass over ``box``: (masks, lower, upper, ground) where the ground is
     fitted under the hull when ``ground`` is None."""
-    masks = segment(s, videos, cameras, n_objects, box, plates)
+    masks = segment(s, videos, cameras, n_objects, box, plates, spans)
     points, step = dom.voxel_grid(box[0], box[1], s.hull_voxels)
-    hull = dom.visual_hull(masks, cameras, points)
+    hull = dom.visual_hull(masks, cameras, points, spans)
     if ground is None:
         ground = dom.fit_ground(hull, points, step)
     height = None if ground == "none" else float(ground)
@@ -265,7 +279,7 @@ def _locate(s, videos, cameras, n_objects, box, ground, plates=None):
     return masks, lo, hi, ground, step
 
 
-def _hull_frame(s, videos, cameras, origins, n_objects, ground, plates=None):
+def _hull_frame(s, videos, cameras, origins, n_objects, ground, plates=None, spans=None):
     """Masks, domain (lower, upper) and ground height (m, None = no ground), all before the
     ground offset. Two segmenter passes: the first over the region the cameras look at locates
     the objects; the second over the box around their hull (finer voxels) gives the masks,
@@ -275,10 +289,12 @@ def _hull_frame(s, videos, cameras, origins, n_objects, ground, plates=None):
     box = [centre - half, centre + half]
     if isinstance(ground, float):
         box[0][2] = max(box[0][2], ground)
-    _, lo, hi, fitted, step = _locate(s, videos, cameras, n_objects, box, ground, plates)
+    _, lo, hi, fitted, step = _locate(s, videos, cameras, n_objects, box, ground, plates, spans)
     if ground is None:  # leave room below a fitted ground for the finer hull to go lower
         lo[2] = fitted - 2 * step
-    masks, lo, hi, ground, _ = _locate(s, videos, cameras, n_objects, (lo, hi), ground, plates)
+    masks, lo, hi, ground, _ = _locate(
+        s, videos, cameras, n_objects, (lo, hi), ground, plates, spans
+    )
     check_objects_seen(masks, n_objects, plates)
     ground = None if ground == "none" else float(ground)
     logger.info("ground: %s", "none" if ground is None else f"z = {ground:.4f} m")
@@ -297,7 +313,7 @@ def import_recording(s: ImportSettings) -> Path:
     sources = video.find_sources(s.frames_dir)
     cams = load_cameras(s, set(sources))
     videos, fps = load_frames(s, sources, cams)
-    videos, offsets, estimated, left_out = synchronise(s, videos, yaml_offsets)
+    videos, offsets, estimated, left_out, spans = synchronise(s, videos, yaml_offsets)
     cams = {c: cam for c, cam in cams.items() if c in videos}
     videos = {
         c: undistort_frames(v, cams[c].intrinsics, cams[c].distortion) for c, v in videos.items()
@@ -306,7 +322,9 @@ def import_recording(s: ImportSettings) -> Path:
     align, up, ground = _alignment(s, cams)
     origins = {cid: cam.origin for cid, cam in cams.items()}
     cameras = {cid: align.camera(cam) for cid, cam in sorted(cams.items())}
-    masks, lo, hi, ground = _hull_frame(s, videos, cameras, origins, len(objects), ground, plates)
+    masks, lo, hi, ground = _hull_frame(
+        s, videos, cameras, origins, len(objects), ground, plates, spans
+    )
     shift = 0.0 if ground is None else ground  # the ground goes to z = 0
     align.offset = np.array([0.0, 0.0, -shift])
     lo, hi = lo + align.offset, hi + align.offset
@@ -320,6 +338,7 @@ def import_recording(s: ImportSettings) -> Path:
         "offsets": offsets,
         "offsets_estimated": estimated,
         "late_cameras_left_out": left_out,
+        "late_cameras_kept": {c: list(span) for c, span in spans.items()},
         "up_in_recording": up.tolist(),
         "alignment": align.as_dict(),
         "ground_fitted": s.ground is None,
@@ -327,7 +346,7 @@ def import_recording(s: ImportSettings) -> Path:
         "hints": {str(k): v for k, v in hints.items()},
     }
     write(out, s.name or out.name, fps, observed, objects, cameras, videos, masks, (lo, hi),
-          None if ground is None else 0.0, record)  # fmt: skip
+          None if ground is None else 0.0, record, spans)  # fmt: skip
     return out
 
 
@@ -339,8 +358,11 @@ def _observed(observed: int | None, n: int) -> int:
     return int(observed)
 
 
-def write(out, name, fps, observed, objects, cameras, videos, masks, box, ground, record) -> None:
-    """Write, validate and preview the scene; ``record`` goes to import.json."""
+def write(
+    out, name, fps, observed, objects, cameras, videos, masks, box, ground, record, spans=None
+) -> None:
+    """Write, validate and preview the scene; ``record`` goes to import.json; ``spans``: the
+    recorded frames of cameras that started late (their other frames are not written)."""
     from mosiv_framework.cli.data import contact_sheet
     from mosiv_framework.scene import SceneWriter, atomic_write_json, read_scene, validate_scene
 
@@ -348,10 +370,11 @@ def write(out, name, fps, observed, objects, cameras, videos, masks, box, ground
     writer = SceneWriter(
         out, name=name, fps=fps, n_frames=n, observed_frames=observed, objects=objects,
         cameras=list(cameras.values()), domain_lower=box[0].tolist(),
-        domain_upper=box[1].tolist(), ground_height=ground,
+        domain_upper=box[1].tolist(), ground_height=ground, camera_frames=spans,
     )  # fmt: skip
     for cid in cameras:
-        for t in range(n):
+        first, last = (spans or {}).get(cid, (0, n - 1))
+        for t in range(first, last + 1):
             writer.write_frame(cid, t, rgb=videos[cid][t], mask=masks[cid][t])
     atomic_write_json(out / "import.json", record)
     writer.finish()

@@ -88,19 +88,20 @@ def estimate_offsets(videos: Mapping[str, np.ndarray], **kw) -> dict[str, int]:
 
 
 #: what the import does with cameras that started after the first ones (``--late-cameras``)
-LATE_CAMERA_POLICIES = ("trim", "drop")
+LATE_CAMERA_POLICIES = ("trim", "drop", "keep")
 
 
 def cameras_left_out(offsets: Mapping[str, int], policy: str) -> list[str]:
     """The cameras the import leaves out under ``policy``: "trim" none (every camera that
     started earlier drops the leading frames the late ones lack, so all cameras keep the
     common frames), "drop" the cameras that started late (offset below the largest), so that
-    the others keep every frame. CaptureError for an unknown policy, or where "drop" would
+    the others keep every frame, "keep" none (every camera keeps every frame it recorded; the
+    late ones are declared as such, ``pad_late_cameras``). CaptureError for an unknown policy, or where "drop" would
     leave fewer than two cameras."""
     if policy not in LATE_CAMERA_POLICIES:
         valid = ", ".join(LATE_CAMERA_POLICIES)
         raise CaptureError(f"--late-cameras {policy!r}: valid values are {valid}")
-    if policy == "trim" or not offsets:
+    if policy in ("trim", "keep") or not offsets:
         return []
     first = max(offsets.values())
     late = sorted(c for c, o in offsets.items() if o < first)
@@ -112,6 +113,30 @@ def cameras_left_out(offsets: Mapping[str, int], policy: str) -> list[str]:
             "trim to keep every camera over the common frames"
         )
     return late
+
+
+def pad_late_cameras(
+    videos: Mapping[str, np.ndarray], offsets: Mapping[str, int], n_frames: int | None
+) -> tuple[dict[str, np.ndarray], dict[str, tuple[int, int]]]:
+    """``--late-cameras keep``: every camera drops the frames all of them are to drop (the
+    smallest offset), and the clip starts with the camera that started first (the largest
+    offset); a camera that started ``d`` frames after it gets ``d`` leading frames of zeros,
+    which the scene declares as not recorded. Returns (videos of equal length, camera id ->
+    (first, last) recorded frames of the late cameras). CaptureError as ``apply_offsets``."""
+    given = [offsets.get(cam, 0) for cam in videos]
+    common, first = min(given, default=0), max(given, default=0)
+    delays = {cam: first - offsets.get(cam, 0) for cam in videos}
+    padded = {
+        cam: np.concatenate([np.zeros((delays[cam],) + v.shape[1:], v.dtype), v[common:]])
+        for cam, v in videos.items()
+    }
+    out = apply_offsets(padded, {}, n_frames)
+    n = len(next(iter(out.values())))
+    spans = {cam: (d, n - 1) for cam, d in delays.items() if d > 0}
+    short = sorted(cam for cam, (d, _) in spans.items() if d >= n)
+    if short:
+        raise CaptureError(f"camera(s) {', '.join(short)} start after the last kept frame {n - 1}")
+    return out, spans
 
 
 def apply_offsets(

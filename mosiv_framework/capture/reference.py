@@ -38,10 +38,15 @@ def reference_transform(capture: dict, record: dict) -> tuple[np.ndarray, np.nda
 def reference_shift(capture: dict, record: dict) -> int:
     """The original frame that the imported scene's frame 0 shows: each camera's late start
     plus the frames the import dropped from it, which must agree over the cameras the import
-    kept (``--late-cameras drop`` leaves the late ones out)."""
+    kept (``--late-cameras drop`` leaves the late ones out; ``keep`` starts the clip with the
+    camera that started first, the largest offset less the smallest before the others')."""
     left_out = set(record.get("late_cameras_left_out") or [])
+    offsets = {c: int(o) for c, o in record["offsets"].items()}
+    earlier = 0
+    if record.get("settings", {}).get("late_cameras") == "keep" and offsets:
+        earlier = max(offsets.values()) - min(offsets.values())
     starts = {
-        c["id"]: int(c["start_frame"]) + int(record["offsets"][c["id"]])
+        c["id"]: int(c["start_frame"]) + offsets[c["id"]] - earlier
         for c in capture["cameras"]
         if c["id"] not in left_out
     }
@@ -128,7 +133,7 @@ def match_objects(scene_dir: Path, points: dict[int, np.ndarray]) -> dict[int, i
             f"{scene_dir}: {len(scene.object_ids)} objects imported, the reference has {len(refs)}"
         )
     hits = np.zeros((len(scene.object_ids), len(refs)))
-    for cam in scene.cameras:
+    for cam in scene.cameras_at(0):
         mask = np.asarray(scene.mask(cam.id, 0))
         for j, ref in enumerate(refs):
             uv, z = cam.project(torch.from_numpy(points[ref][0].astype(np.float64)))
@@ -138,7 +143,7 @@ def match_objects(scene_dir: Path, points: dict[int, np.ndarray]) -> dict[int, i
             labels = mask[px[:, 1], px[:, 0]]
             for i, oid in enumerate(scene.object_ids):
                 hits[i, j] += float(np.mean(labels == oid)) if labels.size else 0.0
-    hits /= len(scene.cameras)
+    hits /= len(scene.cameras_at(0))
     best = {oid: refs[int(np.argmax(hits[i]))] for i, oid in enumerate(scene.object_ids)}
     overlap = hits.max(axis=1)
     if len(set(best.values())) != len(best) or np.any(overlap < 0.5):

@@ -39,11 +39,12 @@ def add_parser(sub) -> None:
     )
     src.add_argument(
         "--late-cameras",
-        choices=("trim", "drop"),
+        choices=("trim", "drop", "keep"),
         default="trim",
         help="cameras that started late: trim the other cameras' leading frames to the common "
-        "ones (default), or drop those cameras and keep every frame of the others (better "
-        "when few of many cameras are late: the first frames hold the starting state)",
+        "ones (default), drop those cameras and keep every frame of the others, or keep "
+        "every camera and frame, the late cameras declared as starting late (the first "
+        "frames hold the starting state)",
     )
     src.add_argument("--frames", type=int, help="keep the first N frames after the offsets")
     src.add_argument(

@@ -148,18 +148,21 @@ class ClassicalSegmenter(Segmenter):
                 raise ConfigError(
                     f"background_frames {bad} lie outside the clip's frames 0..{frames.n_frames - 1}"
                 )
-        return {
-            cam: fgmod.estimate_background(video, opts.background_frames)
+        return {  # over the frames each camera recorded
+            cam: fgmod.estimate_background(video, _background_frames(frames, cam, opts))
             for cam, video in frames.rgb.items()
         }
 
     def foregrounds(self, frames: Frames) -> dict[str, np.ndarray]:
-        """Cleaned foreground of every camera, bool [T, H, W]."""
+        """Cleaned foreground of every camera, bool [T, H, W]; at a frame the camera did not
+        record it is all foreground, so that view carves nothing from the hull."""
         opts = self.options
         out = {}
         for cam, background in self.backgrounds(frames).items():
-            out[cam], _ = fgmod.foreground(
-                frames.rgb[cam],
+            span = _span(frames, cam)
+            out[cam] = np.ones(frames.rgb[cam].shape[:3], dtype=bool)
+            out[cam][span], _ = fgmod.foreground(
+                frames.rgb[cam][span],
                 background,
                 threshold=opts.threshold,
                 min_threshold=opts.min_threshold,
@@ -206,5 +209,28 @@ class ClassicalSegmenter(Segmenter):
                     [np.full(v.size, k, dtype=np.uint8) for k, v in enumerate(objects, 1)]
                 )
                 video[t] = hull.paint(table, fg[cam][t], voxels, labels)
+            recorded = np.zeros(len(video), dtype=bool)
+            recorded[_span(frames, cam)] = True
+            video[~recorded] = 0  # no mask where the camera recorded no image
             masks[cam] = video
         return masks
+
+
+def _background_frames(frames: Frames, camera_id: str, opts: ClassicalOptions) -> list[int]:
+    """The frames of ``camera_id`` its temporal median uses: background_frames (or every
+    frame), less those the camera did not record."""
+    recorded = frames.recorded(camera_id)
+    wanted = recorded if opts.background_frames is None else opts.background_frames
+    use = [t for t in wanted if t in recorded]
+    if not use:
+        raise ConfigError(
+            f"background_frames {opts.background_frames}: camera {camera_id!r} recorded none "
+            f"of them (it recorded frames {recorded.start}..{recorded.stop - 1})"
+        )
+    return use
+
+
+def _span(frames: Frames, camera_id: str) -> slice:
+    """The frames ``camera_id`` recorded, as a slice of its video."""
+    recorded = frames.recorded(camera_id)
+    return slice(recorded.start, recorded.stop)

@@ -118,8 +118,11 @@ class Sam2Segmenter(Segmenter):
         with tempfile.TemporaryDirectory(prefix="mosiv-sam2-") as tmp:
             for cam in frames.camera_ids:
                 folder = Path(tmp) / cam
-                write_jpeg_frames(frames.rgb[cam], folder)
-                out[cam] = self._segment_camera(folder, hull_masks[cam])
+                span = frames.recorded(cam)  # SAM2 sees only the frames the camera recorded
+                span = slice(span.start, span.stop)
+                write_jpeg_frames(frames.rgb[cam][span], folder)
+                out[cam] = np.zeros_like(hull_masks[cam])
+                out[cam][span] = self._segment_camera(folder, hull_masks[cam][span])
         return out
 
     def _segment_camera(self, folder: Path, hull: np.ndarray) -> np.ndarray:
