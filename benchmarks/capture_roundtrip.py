@@ -173,7 +173,8 @@ def import_argv(
 
 def mask_iou(scene_dir: Path, imported_dir: Path, shift: int) -> dict:
     """How well the import's masks (the segmenter's) cover the scene's own: per object
-    (original id), the IoU of each frame pooled over the cameras the import kept, its lowest
+    (original id), the IoU of each frame pooled over the cameras the import kept that recorded
+    the frame, its lowest
     and mean over the frames, and the mask area relative to the scene's (mean over frames);
     ``shift``: the scene's frame the import's frame 0 shows (``frame_shift``)."""
     from mosiv_framework.scene import read_scene
@@ -186,7 +187,7 @@ def mask_iou(scene_dir: Path, imported_dir: Path, shift: int) -> dict:
         ious, areas = [], []
         for t in range(imported.n_frames):
             inter = union = area = area_ref = 0
-            for cam in imported.camera_ids:
+            for cam in (c.id for c in imported.cameras_at(t)):
                 a = imported.mask(cam, t) == mine
                 b = original.mask(cam, t + shift) == theirs
                 inter, union = inter + int((a & b).sum()), union + int((a | b).sum())

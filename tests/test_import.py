@@ -237,6 +237,11 @@ def test_cameras_that_started_late_can_be_kept_with_every_frame(scene, capture, 
         masks = np.stack([got.mask(cam, t) for t in frames]) > 0
         assert (masks & masks_ref).sum() / (masks | masks_ref).sum() > 0.7, cam
     assert [c.id for c in got.cameras_at(0)] == [c for c in got.camera_ids if c not in LATE]
+    for cam in got.cameras_at(0):  # frame 0's hull from its two cameras: no ghost volume
+        mine, ref = got.mask(cam.id, 0), original.mask(cam.id, 0)
+        assert set(np.unique(mine)) == set(np.unique(ref)), cam.id
+        iou = ((mine > 0) & (ref > 0)).sum() / ((mine > 0) | (ref > 0)).sum()
+        assert iou > 0.7, (cam.id, iou)
     record = json.loads((out / "import.json").read_text())
     assert record["late_cameras_kept"] == {c: [d, N_FRAMES - 1] for c, d in LATE.items()}
     capture_record = {

@@ -154,13 +154,13 @@ class ClassicalSegmenter(Segmenter):
         }
 
     def foregrounds(self, frames: Frames) -> dict[str, np.ndarray]:
-        """Cleaned foreground of every camera, bool [T, H, W]; at a frame the camera did not
-        record it is all foreground, so that view carves nothing from the hull."""
+        """Cleaned foreground of every camera, bool [T, H, W] (empty at a frame the camera did
+        not record: ``segment`` leaves those views out of the hull)."""
         opts = self.options
         out = {}
         for cam, background in self.backgrounds(frames).items():
             span = _span(frames, cam)
-            out[cam] = np.ones(frames.rgb[cam].shape[:3], dtype=bool)
+            out[cam] = np.zeros(frames.rgb[cam].shape[:3], dtype=bool)
             out[cam][span], _ = fgmod.foreground(
                 frames.rgb[cam][span],
                 background,
@@ -187,8 +187,11 @@ class ClassicalSegmenter(Segmenter):
         tables = [hull.project_grid(grid, frames.cameras[c]) for c in cams]
         parts = []
         for t in range(frames.n_frames):
+            views = [i for i, c in enumerate(cams) if t in frames.recorded(c)]
             occupied = hull.carve(
-                tables, [fg[c][t] for c in cams], view_tolerance=opts.view_tolerance
+                [tables[i] for i in views],
+                [fg[cams[i]][t] for i in views],
+                view_tolerance=opts.view_tolerance,
             )
             parts.append(hull.components(occupied, grid.shape, opts.min_voxels))
         history = track.track(parts, centres, frames.n_objects, opts.max_jump)

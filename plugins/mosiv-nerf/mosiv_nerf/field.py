@@ -173,13 +173,13 @@ class FitData:
 
 
 def fit_data(scene, box: GridBox, backgrounds: dict[str, Tensor], object_ids: list[int]):
-    """The frame-0 rays of every camera that cross ``box``."""
+    """The frame-0 rays of every camera (that recorded frame 0) that cross ``box``."""
+    from mosiv_nerf.hull import frame_views
     from mosiv_nerf.volume import ray_box
 
     device = box.lo.device
     parts = []
-    ids = scene.load_mask_ids(frames=[0])[0]
-    for cam, cam_ids in zip(scene.cameras, ids):
+    for cam, cam_ids in zip(*frame_views(scene, 0)):
         o, d = cam.rays(device=device)
         o, d = o.reshape(-1, 3), d.reshape(-1, 3)
         rgb = torch.from_numpy(scene.rgb(cam.id, 0)).float().reshape(-1, 3).to(device) / 255.0

@@ -58,6 +58,14 @@ def lattice(lower, upper, nodes: int, *, device=None) -> tuple[Tensor, float]:
     return torch.stack([x, y, z], dim=-1).reshape(-1, 3), cell
 
 
+def frame_views(scene, frame: int, device=None) -> tuple[list[Camera], Tensor]:
+    """(the cameras that recorded ``frame``, their instance masks [C, H, W] at it): a camera
+    that started late neither carves nor colours the frames it missed."""
+    cameras = scene.cameras_at(frame)
+    ids = scene.load_mask_ids(frames=[frame], cameras=[c.id for c in cameras])[0]
+    return cameras, ids.to(device)
+
+
 def hull_points(
     scene, *, nodes: int, per_object: int, generator: torch.Generator, device=None
 ) -> dict[int, Tensor]:
@@ -69,8 +77,7 @@ def hull_points(
     grid, cell = lattice(*scene.domain, nodes, device=device)
     out: dict[int, list[Tensor]] = {k: [] for k in scene.object_ids}
     for t in range(scene.n_frames):
-        ids = scene.load_mask_ids(frames=[t])[0].to(device)
-        labels = carve(grid, scene.cameras, ids)
+        labels = carve(grid, *frame_views(scene, t, device))
         for k in scene.object_ids:
             cells = grid[labels == k].cpu()
             if cells.shape[0] == 0:
@@ -88,12 +95,14 @@ def hull_points(
 
 
 def backgrounds(scene) -> dict[str, Tensor]:
-    """Camera id -> [H, W, 3] static background in [0, 1]: the median over frames of the pixels
-    no mask covers; pixels covered in every frame take the mean of the uncovered ones."""
+    """Camera id -> [H, W, 3] static background in [0, 1]: the median over the frames the camera
+    recorded of the pixels no mask covers; pixels covered in every frame take the mean of the
+    uncovered ones."""
     out = {}
     for cam in scene.cameras:
-        rgb = np.stack([scene.rgb(cam.id, t) for t in range(scene.n_frames)]).astype(np.float32)
-        covered = np.stack([scene.mask(cam.id, t) > 0 for t in range(scene.n_frames)])
+        frames = scene.recorded_frames(cam.id)
+        rgb = np.stack([scene.rgb(cam.id, t) for t in frames]).astype(np.float32)
+        covered = np.stack([scene.mask(cam.id, t) > 0 for t in frames])
         rgb[covered] = np.nan
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels are filled below

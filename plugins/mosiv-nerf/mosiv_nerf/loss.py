@@ -96,8 +96,9 @@ class NerfPhotometricLoss(Loss):
         """(rgb [C, h, w, 3], masks [C, K, h, w], background [C, h, w, 3]) at ``frame``."""
         if frame not in self._targets:
             scene, size = self._scene, self.options.size
-            rgb = scene.load_rgb_tensor(frames=[frame])[0]  # [C, H, W, 3]
-            masks = scene.load_masks(frames=[frame])[0]  # [C, K, H, W]
+            # views not recorded are black and empty here, and never compared (_cameras_now)
+            rgb = scene.load_rgb_tensor(frames=[frame], missing="zeros")[0]  # [C, H, W, 3]
+            masks = scene.load_masks(frames=[frame], missing="zeros")[0]  # [C, K, H, W]
             bg = torch.stack([self._appearance.background[c.id].float() for c in scene.cameras])
             if size:
                 rgb = torch.stack([area_resize(x, size) for x in rgb])
@@ -107,12 +108,16 @@ class NerfPhotometricLoss(Loss):
         return tuple(t.to(device) for t in self._targets[frame])
 
     # ------------------------------------------------------------------------------ loss
-    def _cameras_now(self) -> list[int]:
-        n = len(self._cameras)
+    def _cameras_now(self, frame: int) -> list[int]:
+        """Indices of the cameras compared at ``frame``: ``cameras_per_call`` of those that
+        recorded it, drawn at random (all of them with 0)."""
+        scene = self._scene
+        recorded = [i for i, c in enumerate(scene.cameras) if scene.records(c.id, frame)]
         take = self.options.cameras_per_call
-        if take == 0 or take >= n:
-            return list(range(n))
-        return sorted(torch.randperm(n, generator=self._generator)[:take].tolist())
+        if take == 0 or take >= len(recorded):
+            return recorded
+        pick = torch.randperm(len(recorded), generator=self._generator)[:take]
+        return sorted(recorded[i] for i in pick.tolist())
 
     def __call__(self, predicted: GeometryFrames, target: GeometryFrames) -> Tensor:
         self._load()
@@ -135,7 +140,7 @@ class NerfPhotometricLoss(Loss):
             frames.colors, frames.opacities = frames.colors[order], frames.opacities[order]
             frames.radii, frames.object_ids = frames.radii[:, order], frames.object_ids[order]
             rgb_rec, masks, bg = self._target(frame, device)
-            for c in self._cameras_now():
+            for c in self._cameras_now(frame):
                 out = self.renderer.render(
                     frames, self._cameras[c], n_objects=n_objects, background=bg[c]
                 )

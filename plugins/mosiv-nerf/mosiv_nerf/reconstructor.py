@@ -24,7 +24,7 @@ from mosiv_framework.errors import ConfigError
 from mosiv_framework.interfaces import Reconstructor
 from mosiv_framework.types import Reconstruction
 from mosiv_nerf.field import fit_data, fit_field, hull_field, render_image
-from mosiv_nerf.hull import backgrounds, carve, hull_points, lattice
+from mosiv_nerf.hull import backgrounds, carve, frame_views, hull_points, lattice
 from mosiv_nerf.options import NerfFieldOptions
 from mosiv_nerf.volume import GridBox
 
@@ -44,7 +44,7 @@ def field_box(scene, options: NerfFieldOptions, device) -> GridBox:
     """The field's lattice: the frame-0 visual hull's bounding box plus ``margin`` voxels,
     ``resolution`` voxels along its longest side, clipped to the domain."""
     grid, coarse = lattice(*scene.domain, options.hull_resolution, device=device)
-    labels = carve(grid, scene.cameras, scene.load_mask_ids(frames=[0])[0].to(device))
+    labels = carve(grid, *frame_views(scene, 0, device))
     inside = grid[labels > 0]
     if inside.shape[0] == 0:
         raise ConfigError("the frame-0 masks carve an empty visual hull: no field to fit")
@@ -76,8 +76,7 @@ class NerfFieldReconstructor(Reconstructor):
         start = time.perf_counter()
         bgs = backgrounds(scene)
         box = field_box(scene, opts, device)
-        ids0 = scene.load_mask_ids(frames=[0])[0].to(device)
-        field = hull_field(box, scene.cameras, ids0, scene.object_ids)
+        field = hull_field(box, *frame_views(scene, 0, device), scene.object_ids)
         data = fit_data(scene, box, bgs, scene.object_ids)
         log.info(
             "nerf-field: %d x %d x %d voxels of %.4g m, %d frame-0 rays cross the box",
@@ -113,7 +112,7 @@ class NerfFieldReconstructor(Reconstructor):
         step = self.options.step_ratio * field.box.cell
         preds, recs, masks = [], [], []
         with torch.no_grad():
-            for cam in scene.cameras:
+            for cam in scene.cameras_at(0):
                 out = render_image(
                     field.sample,
                     field.box,

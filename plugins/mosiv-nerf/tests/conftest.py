@@ -32,3 +32,9 @@ def tiny_reconstruction(tiny_scene):
     from mosiv_nerf.reconstructor import NerfFieldReconstructor
 
     return NerfFieldReconstructor(**TINY_FIELD).fit(tiny_scene)
+
+
+@pytest.fixture(scope="session")
+def field_options() -> dict:
+    """The options of the tiny frame-0 fit, for a test that fits another scene alike."""
+    return dict(TINY_FIELD)

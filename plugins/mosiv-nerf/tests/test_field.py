@@ -65,3 +65,20 @@ def test_grid_render_of_the_particles_matches_frame0(tiny_scene, tiny_reconstruc
     value = psnr(pred[mask], rec[mask])
     print(f"grid render of the lifted particles: object PSNR {value:.2f} dB")
     assert value > MIN_GRID_OBJECT_PSNR_DB
+
+
+def test_a_camera_that_missed_frame_0_is_left_out_of_the_field(tiny_scene, field_options, tmp_path):
+    """cam_02 starts at frame 2 (a rig's late start): the frame-0 field is carved, fitted and
+    scored on the three cameras that recorded frame 0, and every frame still has hull points."""
+    from mosiv_nerf.reconstructor import NerfFieldReconstructor
+
+    from mosiv_framework.scene import read_scene
+    from mosiv_framework.testing.views import with_recorded_frames
+
+    late = read_scene(with_recorded_frames(tiny_scene.root, tmp_path / "late", {"cam_02": (2, 5)}))
+    recon = NerfFieldReconstructor(**field_options).fit(late)
+    report = recon.extras["nerf_fit"]
+    assert report["object_psnr_db"] > MIN_OBJECT_PSNR_DB
+    for pts in recon.points.values():
+        assert pts.shape == (6, 200, 3)
+    assert set(recon.background) == set(late.camera_ids)
