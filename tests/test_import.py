@@ -641,3 +641,28 @@ def test_a_plate_of_the_wrong_size_is_named(settling, tmp_path):
     expect_error(s, CaptureError, "cam_02.png", f"{SIZE + 4}x{SIZE}", f"{SIZE}x{SIZE}")
     (rig / "background" / "cam_02.png").unlink()
     expect_error(s, CaptureError, "cam_02", "background")
+
+
+def test_keep_pads_cameras_that_started_late_or_stopped_early():
+    """pad_late_cameras: the clip runs from the earliest start to the latest end; each camera's
+    frames land at their instants, the rest are zeros declared as not recorded; --frames cuts
+    it; what cannot be kept is refused with the cameras named."""
+    from mosiv_framework.capture.offsets import pad_late_cameras
+
+    def video(n: int, value: int) -> np.ndarray:
+        return np.stack([np.full((2, 2, 3), value + t, np.uint8) for t in range(n)])
+
+    # a: started first (drops 2 to align), b: started 2 frames late, c: 1 late and stopped early
+    videos = {"a": video(8, 0), "b": video(6, 100), "c": video(3, 200)}
+    out, spans = pad_late_cameras(videos, {"a": 2, "b": 0, "c": 1}, None)
+    assert {c: len(v) for c, v in out.items()} == {"a": 8, "b": 8, "c": 8}
+    assert spans == {"b": (2, 7), "c": (1, 3)}
+    assert out["a"][0, 0, 0, 0] == 0 and out["b"][2, 0, 0, 0] == 100
+    assert out["c"][1, 0, 0, 0] == 200 and out["c"][3, 0, 0, 0] == 202
+    assert not out["b"][:2].any() and not out["c"][4:].any()
+    out, spans = pad_late_cameras(videos, {"a": 2, "b": 0, "c": 1}, 3)
+    assert len(out["a"]) == 3 and spans == {"b": (2, 2), "c": (1, 2)}
+    with pytest.raises(CaptureError, match="--frames 9: the cameras cover 8 frames at most"):
+        pad_late_cameras(videos, {"a": 2, "b": 0, "c": 1}, 9)
+    with pytest.raises(CaptureError, match="camera\\(s\\) b start after the last kept frame 1"):
+        pad_late_cameras(videos, {"a": 2, "b": 0, "c": 1}, 2)

@@ -120,22 +120,36 @@ def pad_late_cameras(
 ) -> tuple[dict[str, np.ndarray], dict[str, tuple[int, int]]]:
     """``--late-cameras keep``: every camera drops the frames all of them are to drop (the
     smallest offset), and the clip starts with the camera that started first (the largest
-    offset); a camera that started ``d`` frames after it gets ``d`` leading frames of zeros,
-    which the scene declares as not recorded. Returns (videos of equal length, camera id ->
-    (first, last) recorded frames of the late cameras). CaptureError as ``apply_offsets``."""
+    offset) and ends with the one that stopped last (or after ``n_frames``). A camera that
+    started ``d`` frames late gets ``d`` leading frames of zeros, one that stopped early
+    trailing zeros, which the scene declares as not recorded. Returns (videos of equal
+    length, camera id -> (first, last) recorded frames of the cameras that did not record
+    every frame). CaptureError naming the cameras when fewer than two frames remain, a
+    camera starts after the last frame kept, or ``n_frames`` exceeds every camera."""
     given = [offsets.get(cam, 0) for cam in videos]
     common, first = min(given, default=0), max(given, default=0)
-    delays = {cam: first - offsets.get(cam, 0) for cam in videos}
-    padded = {
-        cam: np.concatenate([np.zeros((delays[cam],) + v.shape[1:], v.dtype), v[common:]])
-        for cam, v in videos.items()
+    starts = {cam: first - offsets.get(cam, 0) for cam in videos}
+    ends = {cam: starts[cam] + len(v) - common for cam, v in videos.items()}  # exclusive
+    longest = max(ends.values())
+    if n_frames is not None and n_frames > longest:
+        raise CaptureError(f"--frames {n_frames}: the cameras cover {longest} frames at most")
+    n = longest if n_frames is None else n_frames
+    if n < 2:
+        raise CaptureError(f"too few frames after the offsets: {n}")
+    late = sorted(cam for cam, start in starts.items() if start >= n)
+    if late:
+        raise CaptureError(f"camera(s) {', '.join(late)} start after the last kept frame {n - 1}")
+    out = {}
+    for cam, video in videos.items():
+        shape = video.shape[1:]
+        before = np.zeros((starts[cam],) + shape, video.dtype)
+        after = np.zeros((max(0, n - ends[cam]),) + shape, video.dtype)
+        out[cam] = np.concatenate([before, video[common:], after])[:n]
+    spans = {
+        cam: (starts[cam], min(ends[cam], n) - 1)
+        for cam in videos
+        if starts[cam] > 0 or ends[cam] < n
     }
-    out = apply_offsets(padded, {}, n_frames)
-    n = len(next(iter(out.values())))
-    spans = {cam: (d, n - 1) for cam, d in delays.items() if d > 0}
-    short = sorted(cam for cam, (d, _) in spans.items() if d >= n)
-    if short:
-        raise CaptureError(f"camera(s) {', '.join(short)} start after the last kept frame {n - 1}")
     return out, spans
 
 
