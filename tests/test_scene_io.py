@@ -15,6 +15,7 @@ from mosiv_framework.scene import (
     SceneWriter,
     atomic_write_bytes,
     read_scene,
+    run_check,
     write_example_scene,
     write_scene,
 )
@@ -247,6 +248,9 @@ def test_a_late_camera_is_read_with_its_recorded_frames(example, tmp_path):
     from mosiv_framework.testing.views import with_recorded_frames
 
     late = read_scene(with_recorded_frames(example, tmp_path / "late", {"cam_01": (2, 3)}))
+    lines: list[str] = []
+    assert run_check(late.root, out=lines.append) == 0
+    assert lines[-1].endswith("; cam_01 recorded frames 2..3 only")
     assert late.recorded_frames("cam_01") == range(2, 4)
     assert late.records("cam_00", 0) and not late.records("cam_01", 1)
     assert [c.id for c in late.cameras_at(1)] == [c for c in late.camera_ids if c != "cam_01"]

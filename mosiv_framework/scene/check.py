@@ -147,10 +147,14 @@ def summary(scene: Scene) -> str:
     sizes = sorted({(c.width, c.height) for c in scene.cameras})
     resolution = ", ".join(f"{w}x{h}" for w, h in sizes)
     materials = ", ".join(o.material for o in scene.objects)
+    partial = "".join(
+        f"; {cid} recorded frames {first}..{last} only"
+        for cid, (first, last) in scene.camera_frames.items()
+    )
     return (
         f"{scene.name}: {len(scene.objects)} objects ({materials}), "
         f"{len(scene.cameras)} cameras at {resolution}, {scene.n_frames} frames "
-        f"({scene.observed_frames} observed) at {scene.fps:g} fps"
+        f"({scene.observed_frames} observed) at {scene.fps:g} fps{partial}"
     )
 
 
