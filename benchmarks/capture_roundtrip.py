@@ -95,7 +95,7 @@ def capture_and_import(
     crf: int | None = None,
     pixel_format: str | None = None,
     plate: bool = True,
-    late_cameras: str = "trim",
+    late_cameras: str = "keep",
 ) -> Path:
     """Write ``scene`` as a rig's capture into out/capture, import it into out/imported with
     the reference gt attached; ``late``: frames the late camera (LATE) misses at the start;
@@ -237,7 +237,7 @@ class Rig:
     crf: int | None = None
     pixel_format: str | None = None
     plate: bool = True
-    late_cameras: str = "trim"
+    late_cameras: str = "keep"
 
     def record(self) -> dict:
         return {
@@ -421,10 +421,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--late-cameras",
         choices=("trim", "drop", "keep"),
-        default="trim",
-        help="the import's --late-cameras: every camera drops the late camera's missing frames "
-        "(trim, default), the late camera is left out (drop), or every camera and frame is "
-        "kept, the late camera declared as starting late (keep)",
+        default="keep",
+        help="the import's --late-cameras: every camera and frame kept, the late camera "
+        "declared as starting late (keep, default), every camera drops the late camera's "
+        "missing frames (trim), or the late camera is left out (drop)",
     )
     parser.add_argument(
         "--no-plate",

@@ -115,7 +115,8 @@ def settings(capture: Path, out: Path, **kw) -> ImportSettings:
 
 @pytest.fixture(scope="module")
 def imported(capture, tmp_path_factory) -> Path:
-    return import_recording(settings(capture, tmp_path_factory.mktemp("imp") / "scene"))
+    out = tmp_path_factory.mktemp("imp") / "scene"
+    return import_recording(settings(capture, out, late_cameras="trim"))
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -405,7 +406,7 @@ def test_unreadable_video_names_the_file(capture, tmp_path):
 
 def test_frame_counts_that_differ_after_offsets(capture, tmp_path):
     expect_error(
-        settings(capture, tmp_path / "s", offsets="none"),
+        settings(capture, tmp_path / "s", offsets="none", late_cameras="trim"),
         CaptureError, "different frame counts", "'cam_01': 26", "'cam_00': 28",
     )  # fmt: skip
 
@@ -532,7 +533,8 @@ def test_cli_reports_bad_input_with_one_line(capture, tmp_path, capsys):
 
     code = main(
         ["data", "import", str(tmp_path / "s"), "--recording", str(capture), "--units", "cm",
-         "--up", "y", "--ground", "y=0", "--materials", "elastic,sand", "--offsets", "none"]
+         "--up", "y", "--ground", "y=0", "--materials", "elastic,sand", "--offsets", "none",
+         "--late-cameras", "trim"]
     )  # fmt: skip
     err = capsys.readouterr().err
     assert code == 2
@@ -560,8 +562,14 @@ def test_round_trip_with_the_capture_writer(scene, tmp_path):
         assert torch.allclose(got.camera(cam.id).world_to_camera, cam.world_to_camera, atol=1e-9)
     record = json.loads((out / "import.json").read_text())
     assert record["offsets"] == {c: 0 if c == "cam_02" else 3 for c in original.camera_ids}
-    ref = np.stack([original.rgb("cam_00", t + 3) for t in range(got.n_frames)])
-    assert psnr(np.stack([got.rgb("cam_00", t) for t in range(got.n_frames)]), ref) > 28
+    # the default --late-cameras keep: every frame, cam_02 declared as starting 3 frames late
+    assert got.n_frames == original.n_frames and got.camera_frames == {
+        "cam_02": (3, original.n_frames - 1)
+    }
+    for cam in ("cam_00", "cam_02"):
+        frames = got.recorded_frames(cam)
+        ref = np.stack([original.rgb(cam, t) for t in frames])
+        assert psnr(np.stack([got.rgb(cam, t) for t in frames]), ref) > 28, cam
 
 
 # --------------------------------------------------------------- clean plates of the empty scene

@@ -44,8 +44,10 @@ class ImportSettings:
     materials: str | None = None
     objects_yaml: Path | None = None
     offsets: str | None = None
-    #: cameras that started late: "trim" the others' leading frames, or "drop" those cameras
-    late_cameras: str = "trim"
+    #: cameras that started late (or stopped early): "keep" every camera and frame, the late
+    #: ones declared with the frames they recorded; "trim" the others' leading frames; or
+    #: "drop" the late cameras
+    late_cameras: str = "keep"
     units: str | None = None
     up: str | None = None
     ground: str | None = None

@@ -40,11 +40,11 @@ def add_parser(sub) -> None:
     src.add_argument(
         "--late-cameras",
         choices=("trim", "drop", "keep"),
-        default="trim",
-        help="cameras that started late: trim the other cameras' leading frames to the common "
-        "ones (default), drop those cameras and keep every frame of the others, or keep "
-        "every camera and frame, the late cameras declared as starting late (the first "
-        "frames hold the starting state)",
+        default="keep",
+        help="cameras that started late or stopped early: keep every camera and frame, each "
+        "camera declared with the frames it recorded (default: the first frames hold the "
+        "starting state), trim every camera to the frames all recorded, or drop the late "
+        "cameras and keep every frame of the others",
     )
     src.add_argument("--frames", type=int, help="keep the first N frames after the offsets")
     src.add_argument(
