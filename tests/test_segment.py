@@ -184,6 +184,32 @@ def test_classical_masks_match_the_true_masks(two_spheres):
     assert min(scores[best]) >= 0.9, scores[best]
 
 
+def test_a_camera_that_missed_the_first_frames_neither_carves_nor_votes_there(two_spheres):
+    """cam_01 recorded frames 3.. only (its earlier frames are zeros): the other cameras' masks
+    of frames 0..2 are those of segmenting without cam_01 at all, cam_01 has no mask there, and
+    its later masks still cover the spheres. The domain reaches past the cameras' views, where
+    a missing view that voted would leave ghost volume."""
+    frames, true, plate = two_spheres
+    lower, upper = (np.asarray(b, dtype=float) for b in frames.domain)
+    wide = (tuple(lower - 1.5), tuple(upper + 1.5))
+    frames = Frames(frames.rgb, frames.cameras, 2, wide)
+    segmenter = get_registry().create("segmenter", "classical", {"background_dir": str(plate)})
+    rgb = {c: v.copy() for c, v in frames.rgb.items()}
+    rgb["cam_01"][:3] = 0
+    late = Frames(rgb, frames.cameras, 2, frames.domain, camera_frames={"cam_01": (3, 11)})
+    masks = segmenter.segment(late)
+    others = [c for c in frames.rgb if c != "cam_01"]
+    alone = segmenter.segment(
+        Frames({c: frames.rgb[c] for c in others}, {c: frames.cameras[c] for c in others}, 2,
+               frames.domain)
+    )  # fmt: skip
+    for cam in others:
+        np.testing.assert_array_equal(masks[cam][:3], alone[cam][:3])
+    assert not masks["cam_01"][:3].any()
+    later = {"cam_01": true["cam_01"][3:]}
+    assert min(_iou(later, {"cam_01": masks["cam_01"][3:]}, k, k) for k in (1, 2)) >= 0.8
+
+
 def test_classical_without_n_objects_finds_both_spheres(two_spheres):
     frames, true, plate = two_spheres
     frames = Frames(frames.rgb, frames.cameras, None, frames.domain)
