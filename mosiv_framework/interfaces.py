@@ -72,6 +72,9 @@ class Simulator(ABC):
     supported_laws: frozenset[str] = frozenset()
     #: physics-term names this backend implements
     supported_terms: frozenset[str] = frozenset()
+    #: with the ``expression`` term: the features (mosiv_framework.expression.FEATURES) it
+    #: applies; None means all of them
+    expression_features: tuple[str, ...] | None = None
 
     @property
     def torch_device(self) -> torch.device:

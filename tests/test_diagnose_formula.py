@@ -244,6 +244,8 @@ def test_the_law_tested_uses_only_features_the_simulator_applies():
     assert applicable_features(SimpleNamespace(supported_terms={"expression"}), None) == FEATURES
     single = applicable_features(SimpleNamespace(supported_terms={"expression"}), "single_field")
     assert single == NODE_FEATURES
+    local_only = SimpleNamespace(supported_terms={"expression"}, expression_features=NODE_FEATURES)
+    assert applicable_features(local_only, "multi_field") == NODE_FEATURES  # taichi-mpm's case
     rng = np.random.default_rng(1)
     samples = _samples(lambda p, v, t: np.array([-2.0 * v[0], 0.0, 0.0]), rng)
     with_contact = _law(x={"contact": 1.0})

@@ -102,3 +102,37 @@ def parity_pair():
         name: registry.create("simulator", name, {**SCENE_OPTIONS, "device": "cpu"})
         for name in ("warp-mpm", "taichi-mpm")
     }
+
+
+def test_warp_and_taichi_apply_the_same_expression(parity_pair):
+    """The expression term's node-local features on the collision scene: both backends'
+    positions after 1 and 4 frames within TOLERANCES, and their gradients w.r.t. every
+    coefficient within the gradient tolerance."""
+    import torch
+
+    from mosiv_framework.testing.parity import TOLERANCES, WORLD, standard_scenes
+    from mosiv_framework.testing.shapes import default_params
+
+    particles, velocities = standard_scenes()["collision"]
+    values = {"a_x:1": 0.8, "a_y:v_y": -1.5, "a_z:|v|v_z": -0.4, "a_x:h": -3.0}
+    values.update({"a_y:t": 2.0, "a_z:x": 1.0})
+    weights = torch.linspace(0.5, 1.5, len(particles))
+    positions, grads = {}, {}
+    for name, sim in parity_pair.items():
+        params = default_params(particles, velocities=velocities)
+        params.terms["expression"] = {
+            n: torch.tensor(v, requires_grad=True) for n, v in values.items()
+        }
+        traj = sim.rollout(particles, params, world=WORLD, frames=4)
+        loss = sum(((traj.positions[f] - 0.5) ** 2).sum(1).mul(weights).mean() for f in (1, 4))
+        loss.backward()
+        positions[name] = traj.positions.detach()
+        grads[name] = torch.stack([params.terms["expression"][n].grad for n in values])
+    warp, taichi = positions["warp-mpm"], positions["taichi-mpm"]
+    for f in (1, 4):
+        gap = float((warp[f] - taichi[f]).norm(dim=1).max()) / WORLD.extent
+        assert gap <= TOLERANCES["positions_frac"], (f, gap)
+    a, b = grads["warp-mpm"], grads["taichi-mpm"]
+    assert (a.abs() > 0).all(), a
+    rel = ((a - b).abs() / torch.maximum(a.abs(), b.abs())).max()
+    assert rel <= TOLERANCES["gradient_rel"], (a, b)

@@ -43,10 +43,13 @@ STEP_FLOOR = 1e-3
 def applicable_features(simulator, contact: str | None) -> tuple[str, ...] | None:
     """The features an expression candidate may use on ``simulator`` (None: it has no
     expression term): the node-local ones, and the other objects' with one velocity field
-    per object (``contact`` multi_field)."""
+    per object (``contact`` multi_field), of those the simulator applies
+    (``Simulator.expression_features``)."""
     if NAME not in set(getattr(simulator, "supported_terms", ())):
         return None
-    return FEATURES if contact in (None, "multi_field") else NODE_FEATURES
+    usable = FEATURES if contact in (None, "multi_field") else NODE_FEATURES
+    applied = getattr(simulator, "expression_features", None) or FEATURES
+    return tuple(f for f in usable if f in applied)
 
 
 def scene_up(world) -> tuple[float, float, float]:

@@ -55,6 +55,7 @@ class RolloutRun:
                 eng.load(0, state, grads=False)
             self.checkpoints.append(state)
             eng.reset_frame_diagnostics()
+            eng.set_frame(f)
             for s in range(S):
                 eng.step(s, diagnostics=True)
             eng.raise_if_diverged(frame=f + 1)
@@ -75,6 +76,7 @@ class RolloutRun:
         carry = None
         for f in reversed(range(self.frames)):
             eng.load(0, self.checkpoints[f], grads=False)
+            eng.set_frame(f)
             for s in range(S):
                 eng.step(s, diagnostics=False)
             eng.zero_state_grads()

@@ -28,6 +28,7 @@ class Engine:
         self.dt = 0.0
         self.ground_z = 0.0
         self.has_ground = 0
+        self.clock = 0.0  # s: the start time of the frame being simulated (``set_frame``)
         self.object_ids: list[int] = []
         self.advice_info: dict[int, str] = {}
         self._x0: torch.Tensor | None = None
@@ -48,8 +49,15 @@ class Engine:
         """Copy packed parameter arrays (numpy float32/int32) into their fields."""
         f = self.fields
         f.law_id.from_numpy(arrays["law_id"])
+        f.expr_on[None] = int(arrays["expr_on"])
+        f.up.from_numpy(arrays["up"])
         for name, fld in f.param_fields().items():
             fld.from_numpy(arrays[name])
+
+    def set_frame(self, frame: int) -> None:
+        """Substeps run next belong to ``frame`` (0-based: the one from frame to frame + 1);
+        the expression term's time feature reads its start time."""
+        self.clock = frame * self.substeps * self.dt
 
     # ------------------------------------------------------------------ forward
     def start(self) -> None:
@@ -81,8 +89,12 @@ class Engine:
         k.stress(s, self.n, self.dt)
         for i, j in STENCIL_ROWS:
             k.p2g(s, self.n, i, j, self._pm_level())
-        k.grid_forces(self.dt)
+        k.grid_forces(*self._force_args(s))
         k.grid_contact(self.ground_z, self.has_ground)
+
+    def _force_args(self, s: int) -> tuple[float, float, float]:
+        """grid_forces' arguments at substep s: dt, the time (s), the ground's height (m)."""
+        return self.dt, self.clock + s * self.dt, self.ground_z if self.has_ground else 0.0
 
     def _pm_level(self) -> float:
         """Height (m) up to which p2g records the arriving momentum: the ground's, or none."""
@@ -164,7 +176,7 @@ class Engine:
         for i, j in STENCIL_ROWS:
             k.g2p.grad(s, n, i, j)
         k.grid_contact.grad(self.ground_z, self.has_ground)
-        k.grid_forces.grad(self.dt)
+        k.grid_forces.grad(*self._force_args(s))
         for i, j in STENCIL_ROWS:
             k.p2g.grad(s, n, i, j, self._pm_level())
         k.stress.grad(s, n, dt)

@@ -14,7 +14,11 @@ from dataclasses import dataclass
 
 import taichi as ti
 
+from mosiv_framework.expression import NODE_FEATURES
 from mosiv_taichi_mpm.laws import MAX_LAW_PARAMS
+
+#: the expression term's node-local features (the other objects' ones are warp-mpm's only)
+N_NODE_FEATURES = len(NODE_FEATURES)
 
 #: empty grid cells added around the scene domain on every side; the slip walls live in them
 PAD_CELLS = 3
@@ -129,6 +133,11 @@ class SimFields:
         self.quad_drag = ti.field(f32, needs_grad=True)  # 1/m
         self.damping = ti.field(f32, needs_grad=True)  # material_damping viscosity (Pa s)
         self.ground_e = ti.field(f32, needs_grad=True)  # ground_restitution coefficient
+        # the expression term (mosiv_framework.expression): one vec3 (a_x, a_y, a_z) per
+        # node-local feature, in NODE_FEATURES order; up and on are not differentiated
+        self.expr_coef = ti.field(vec, needs_grad=True)
+        self.expr_on = ti.field(ti.i32)  # 1 where the rollout has the term
+        self.up = ti.field(vec)  # unit vector opposite gravity, for the height feature
 
         # diagnostics (forward only): first flagged substep * 4 + reason, per object
         self.div_code = ti.field(ti.i32)
@@ -145,7 +154,8 @@ class SimFields:
             self.law_id, self.law_p, self.rho, self.friction, self.v0, self.div_code
         )
         fb.place(self.ground_mu, self.gravity, self.wind, self.lin_drag, self.quad_drag)
-        fb.place(self.damping, self.ground_e)
+        fb.place(self.damping, self.ground_e, self.expr_on, self.up)
+        fb.dense(ti.i, N_NODE_FEATURES).place(self.expr_coef)
         fb.dense(ti.ij, (K, K + 1)).place(self.contact)
         fb.lazy_grad()
         self._tree = fb.finalize()
@@ -164,6 +174,7 @@ class SimFields:
             "quad_drag": self.quad_drag,
             "damping": self.damping,
             "ground_e": self.ground_e,
+            "expr_coef": self.expr_coef,
         }
 
     def nbytes(self) -> int:

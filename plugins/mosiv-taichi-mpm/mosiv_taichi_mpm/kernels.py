@@ -258,8 +258,10 @@ class MPMKernels:
                     self.pm[g, node[0], node[1], node[2]] += weight * (mom + MC @ (dcell * self.dx))
 
     @ti.kernel
-    def grid_forces(self, dt: ti.f32):
-        """v = (m v)/m + dt (gravity + wind - c_lin v - c_quad |v| v) on nodes with mass."""
+    def grid_forces(self, dt: ti.f32, time: ti.f32, ground_h: ti.f32):
+        """v = (m v)/m + dt (gravity + wind - c_lin v - c_quad |v| v + expression) on nodes
+        with mass; ``time`` (s) since frame 0 at this substep, ``ground_h`` (m) the ground's
+        height (0 without one) for the expression's height feature."""
         for I in ti.grouped(self.m):
             vel = ti.Vector.zero(ti.f32, 3)
             if self.m[I] > MASS_EPS:
@@ -267,8 +269,23 @@ class MPMKernels:
                 speed = ti.sqrt(vel.dot(vel) + NORMAL_EPS)
                 acc = self.gravity[None] + self.wind[None]
                 acc -= self.lin_drag[None] * vel + self.quad_drag[None] * speed * vel
+                if self.expr_on[None] != 0:
+                    node = self.origin + self.dx * ti.Vector([I[1], I[2], I[3]], ti.f32)
+                    acc += self._expression(node, vel, speed, time, ground_h)
                 vel += dt * acc
             self.vf[I] = vel
+
+    @ti.func
+    def _expression(self, x, v, speed, time, ground_h):
+        """a = sum_k c_k phi_k over expression.NODE_FEATURES in their order: 1, x, y, z, h,
+        v_x..v_z, |v|v_x..|v|v_z, t; c_k = expr_coef[k] = (c in a_x, a_y, a_z)."""
+        h = x.dot(self.up[None]) - ground_h
+        a = self.expr_coef[0] + x[0] * self.expr_coef[1] + x[1] * self.expr_coef[2]
+        a += x[2] * self.expr_coef[3] + h * self.expr_coef[4]
+        a += v[0] * self.expr_coef[5] + v[1] * self.expr_coef[6] + v[2] * self.expr_coef[7]
+        a += (speed * v[0]) * self.expr_coef[8] + (speed * v[1]) * self.expr_coef[9]
+        a += (speed * v[2]) * self.expr_coef[10]
+        return a + time * self.expr_coef[11]
 
     @ti.func
     def _coulomb(self, rel, normal, mu):

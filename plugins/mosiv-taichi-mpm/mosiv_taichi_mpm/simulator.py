@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from mosiv_framework.errors import ConfigError
+from mosiv_framework.expression import NODE_FEATURES, parse_coefficient, up_vector
 from mosiv_framework.interfaces import Simulator
 from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, World
 from mosiv_taichi_mpm import runtime
@@ -30,6 +31,9 @@ TERMS: dict[str, dict[str, tuple[int, ...]]] = {
     "material_damping": {"viscosity": ()},
     "ground_restitution": {"coefficient": ()},
 }
+#: the expression term takes any coefficient a_AXIS:FEATURE of a node-local feature
+#: (mosiv_framework.expression); the other objects' features are warp-mpm's only
+EXPRESSION_TERM = "expression"
 #: term parameter -> the field that carries it
 _TERM_FIELD = {
     ("linear_drag", "coefficient"): "lin_drag",
@@ -56,7 +60,8 @@ class TaichiMPMSimulator(Simulator):
     """Differentiable multi-object MLS-MPM on Taichi (docs/PHYSICS.md, MLS-MPM scheme)."""
 
     supported_laws = frozenset(LAW_IDS)
-    supported_terms = frozenset(TERMS)
+    supported_terms = frozenset(TERMS) | {EXPRESSION_TERM}
+    expression_features = NODE_FEATURES
 
     def __init__(self, options: TaichiMPMOptions | None = None, **kwargs):
         self.options = options if options is not None else TaichiMPMOptions(**kwargs)
@@ -206,16 +211,13 @@ class TaichiMPMSimulator(Simulator):
             if v0 is None or tuple(v0.shape) != (3,):
                 problems.append(f"params.initial_velocity[{k}] must be a [3] tensor (m/s)")
         for term, values in params.terms.items():
-            if term == "expression":  # its node features and centre sums exist in warp-mpm only
-                problems.append(
-                    "physics term 'expression' (a discovered force law applied on grid nodes) "
-                    "is implemented by the warp-mpm simulator, not by taichi-mpm: set "
-                    f"simulator.name: warp-mpm to use it; taichi-mpm implements {sorted(TERMS)}"
-                )
+            if term == EXPRESSION_TERM:
+                problems += _expression_problems(values)
                 continue
             if term not in TERMS:
+                valid = sorted(self.supported_terms)
                 problems.append(
-                    f"physics term {term!r} not supported by taichi-mpm; valid: {sorted(TERMS)}"
+                    f"physics term {term!r} not supported by taichi-mpm; valid: {valid}"
                 )
                 continue
             for pname, shape in TERMS[term].items():
@@ -268,6 +270,13 @@ class TaichiMPMSimulator(Simulator):
             if term in params.terms:
                 t = params.terms[term][pname].detach().cpu().numpy().astype(np.float32)
                 out[fld] = t.reshape(out[fld].shape)
+        expression = params.terms.get(EXPRESSION_TERM, {})
+        out["expr_on"] = np.array(1 if expression else 0, np.int32)
+        out["expr_coef"] = np.zeros((len(NODE_FEATURES), 3), np.float32)
+        for name, value in expression.items():
+            axis, feature = parse_coefficient(name)
+            out["expr_coef"][NODE_FEATURES.index(feature), axis] = float(value.detach())
+        out["up"] = up_vector(world.gravity).numpy().astype(np.float32)
         return out
 
     def _unpack_grads(self, g: dict[str, np.ndarray], names, params, object_ids):
@@ -285,8 +294,35 @@ class TaichiMPMSimulator(Simulator):
         for (term, pname), fld in _TERM_FIELD.items():
             if term in params.terms:
                 by_name[f"term.{term}.{pname}"] = g[fld]
+        for name in params.terms.get(EXPRESSION_TERM, {}):
+            axis, feature = parse_coefficient(name)
+            by_name[f"term.{EXPRESSION_TERM}.{name}"] = g["expr_coef"][
+                NODE_FEATURES.index(feature), axis
+            ]
         out = []
         for name in names:
             arr = by_name.get(name)
             out.append(None if arr is None else torch.as_tensor(np.array(arr, np.float32)))
         return out
+
+
+def _expression_problems(values: dict[str, torch.Tensor]) -> list[str]:
+    """What taichi-mpm cannot apply of an expression: names that are no (axis, feature) pair,
+    values that are not one finite number, and the other objects' features."""
+    problems = []
+    for name, value in values.items():
+        try:
+            _, feature = parse_coefficient(name)
+        except ValueError as exc:
+            problems.append(str(exc))
+            continue
+        if feature not in NODE_FEATURES:
+            problems.append(
+                f"expression parameter {name!r}: the other objects' features (dp_*, dv_*) are "
+                "applied by the warp-mpm simulator only (set simulator.name: warp-mpm); "
+                f"taichi-mpm applies {', '.join(NODE_FEATURES)}"
+            )
+        t = torch.as_tensor(value)
+        if t.numel() != 1 or not bool(torch.isfinite(t).all()):
+            problems.append(f"expression parameter {name!r} must be one finite number (got {t})")
+    return problems
