@@ -47,6 +47,11 @@ def collect(root: Path, seeds: list[int]) -> dict:
     return out
 
 
+def dev_means(rows: dict, dev: list[int]) -> dict[str, float]:
+    """Policy -> mean future Chamfer (mm^2) over the development seeds."""
+    return {p: sum(rows[str(s)][p]["future_cd_mm2"] for s in dev) / len(dev) for p in POLICIES}
+
+
 def table(rows: dict, dev: list[int]) -> str:
     lines = [
         "| seed | direct | direct, reseeded | trim | drop | keep |",
@@ -57,7 +62,7 @@ def table(rows: dict, dev: list[int]) -> str:
         cells = [f"{row['direct']:,.0f}", f"{row['reseeded']:,.0f}"]
         cells += [f"{row[p]['future_cd_mm2']:,.0f}" for p in POLICIES]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    means = {p: sum(rows[str(s)][p]["future_cd_mm2"] for s in dev) / len(dev) for p in POLICIES}
+    means = dev_means(rows, dev)
     lines.append(
         "| mean of the development seeds | | | "
         + " | ".join(f"{means[p]:,.0f}" for p in POLICIES)
@@ -76,9 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--machine", default="", help="where the runs ran")
     args = parser.parse_args(argv)
     rows = collect(args.root, args.seeds)
-    means = {
-        p: sum(rows[str(s)][p]["future_cd_mm2"] for s in args.dev) / len(args.dev) for p in POLICIES
-    }
+    means = dev_means(rows, args.dev)
     print(table(rows, args.dev))
     print(f"lowest development mean: {min(means, key=means.get)}")
     if args.out:

@@ -102,6 +102,22 @@ def parse_coefficient(name: str) -> tuple[int, str]:
     return AXES.index(head[2:]), feature
 
 
+def coefficient_problems(values) -> list[str]:
+    """What a backend cannot apply of an expression's coefficients (name -> value): names
+    that are no (axis, feature) pair, and values that are not one finite number."""
+    problems = []
+    for name, value in values.items():
+        try:
+            parse_coefficient(name)
+        except ValueError as exc:
+            problems.append(str(exc))
+            continue
+        t = torch.as_tensor(value)
+        if t.numel() != 1 or not bool(torch.isfinite(t).all()):
+            problems.append(f"expression parameter {name!r} must be one finite number (got {t})")
+    return problems
+
+
 def uses_relative(values) -> bool:
     """Whether an expression's parameters (names) use the other objects' features."""
     return any(parse_coefficient(name)[1] in RELATIVE_FEATURES for name in values)

@@ -96,8 +96,8 @@ def cameras_left_out(offsets: Mapping[str, int], policy: str) -> list[str]:
     started earlier drops the leading frames the late ones lack, so all cameras keep the
     common frames), "drop" the cameras that started late (offset below the largest), so that
     the others keep every frame, "keep" none (every camera keeps every frame it recorded; the
-    late ones are declared as such, ``pad_late_cameras``). CaptureError for an unknown policy, or where "drop" would
-    leave fewer than two cameras."""
+    late ones are declared as such, ``pad_late_cameras``). CaptureError for an unknown policy,
+    or where "drop" would leave fewer than two cameras."""
     if policy not in LATE_CAMERA_POLICIES:
         valid = ", ".join(LATE_CAMERA_POLICIES)
         raise CaptureError(f"--late-cameras {policy!r}: valid values are {valid}")

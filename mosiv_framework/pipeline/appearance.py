@@ -31,8 +31,8 @@ def can_render(particles: ParticleSet) -> bool:
 
 def rollout_images(traj: Trajectory, particles: ParticleSet, scene) -> tuple[list, list, list]:
     """(predicted, recorded, regions): per frame of ``traj``, the images of every scene camera
-    that recorded the frame as one batch [C, 3, H, W] in [0, 1] (sRGB; the layout of ``metrics.image_metrics``),
-    predicted ones composited over the reconstruction's background (black where it has none
+    that recorded the frame as one batch [C, 3, H, W] in [0, 1] (sRGB; the layout of
+    ``metrics.image_metrics``), predicted ones composited over the reconstruction's background (black where it has none
     for a camera), and the object region [C, H, W] bool: pixels inside the recorded instance
     mask or the rendered silhouette (alpha >= 1/2), where the objects' own PSNR is taken."""
     appearance = particles.appearance

@@ -131,14 +131,14 @@ def sample_views(
     """The next ``n`` (frame, camera) pairs: every recorded view once per epoch, in a fresh
     random order each epoch. ``order`` holds the rest of the current epoch and is consumed."""
     n_cams = len(data.cameras)
-    if data.views is None:
-        recorded = list(range(data.n_frames * n_cams))
-    else:
-        recorded = torch.nonzero(data.views.reshape(-1).cpu()).squeeze(1).tolist()
+    total = data.n_frames * n_cams if data.views is None else int(data.views.sum())
     batch = []
-    while len(batch) < min(n, len(recorded)):
-        if not order:
-            order.extend(recorded[i] for i in torch.randperm(len(recorded), generator=generator))
+    while len(batch) < min(n, total):
+        if not order:  # a new epoch: the recorded views' flat indices, shuffled
+            shuffled = torch.randperm(total, generator=generator)
+            if data.views is not None:
+                shuffled = torch.nonzero(data.views.reshape(-1).cpu()).squeeze(1)[shuffled]
+            order.extend(shuffled.tolist())
         index = order.pop()
         batch.append((index // n_cams, index % n_cams))
     return batch

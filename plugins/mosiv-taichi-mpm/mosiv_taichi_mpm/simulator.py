@@ -12,7 +12,14 @@ import numpy as np
 import torch
 
 from mosiv_framework.errors import ConfigError
-from mosiv_framework.expression import NODE_FEATURES, parse_coefficient, up_vector
+from mosiv_framework.expression import NAME as EXPRESSION_TERM
+from mosiv_framework.expression import (
+    NODE_FEATURES,
+    RELATIVE_FEATURES,
+    coefficient_problems,
+    parse_coefficient,
+    up_vector,
+)
 from mosiv_framework.interfaces import Simulator
 from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, World
 from mosiv_taichi_mpm import runtime
@@ -31,9 +38,6 @@ TERMS: dict[str, dict[str, tuple[int, ...]]] = {
     "material_damping": {"viscosity": ()},
     "ground_restitution": {"coefficient": ()},
 }
-#: the expression term takes any coefficient a_AXIS:FEATURE of a node-local feature
-#: (mosiv_framework.expression); the other objects' features are warp-mpm's only
-EXPRESSION_TERM = "expression"
 #: term parameter -> the field that carries it
 _TERM_FIELD = {
     ("linear_drag", "coefficient"): "lin_drag",
@@ -307,22 +311,15 @@ class TaichiMPMSimulator(Simulator):
 
 
 def _expression_problems(values: dict[str, torch.Tensor]) -> list[str]:
-    """What taichi-mpm cannot apply of an expression: names that are no (axis, feature) pair,
-    values that are not one finite number, and the other objects' features."""
-    problems = []
-    for name, value in values.items():
-        try:
-            _, feature = parse_coefficient(name)
-        except ValueError as exc:
-            problems.append(str(exc))
-            continue
-        if feature not in NODE_FEATURES:
-            problems.append(
-                f"expression parameter {name!r}: the other objects' features (dp_*, dv_*) are "
-                "applied by the warp-mpm simulator only (set simulator.name: warp-mpm); "
-                f"taichi-mpm applies {', '.join(NODE_FEATURES)}"
-            )
-        t = torch.as_tensor(value)
-        if t.numel() != 1 or not bool(torch.isfinite(t).all()):
-            problems.append(f"expression parameter {name!r} must be one finite number (got {t})")
-    return problems
+    """What taichi-mpm cannot apply of an expression: what no backend can
+    (``coefficient_problems``), and the other objects' features."""
+    problems = coefficient_problems(values)
+    if problems:
+        return problems
+    return [
+        f"expression parameter {name!r}: the other objects' features (dp_*, dv_*) are applied "
+        "by the warp-mpm simulator only (set simulator.name: warp-mpm); taichi-mpm applies "
+        f"{', '.join(NODE_FEATURES)}"
+        for name in values
+        if parse_coefficient(name)[1] in RELATIVE_FEATURES
+    ]

@@ -6,7 +6,12 @@ from __future__ import annotations
 import torch
 
 from mosiv_framework.errors import ConfigError
-from mosiv_framework.expression import FEATURES, parse_coefficient, uses_relative
+from mosiv_framework.expression import (
+    FEATURES,
+    coefficient_problems,
+    parse_coefficient,
+    uses_relative,
+)
 from mosiv_framework.expression import NAME as EXPRESSION
 from mosiv_framework.types import ParticleSet, SimulationParams, World
 from mosiv_warp_mpm.laws import LAW_IDS, LAW_PARAM_NAMES, N_SLOTS
@@ -153,16 +158,7 @@ def expression_problems(values: dict[str, torch.Tensor], contact: str) -> list[s
     """What is wrong with the expression term's coefficients: names that are no (axis,
     feature) pair, values that are not finite numbers, and the other objects' features
     without one velocity field per object."""
-    problems = []
-    for name, value in values.items():
-        try:
-            parse_coefficient(name)
-        except ValueError as exc:
-            problems.append(str(exc))
-            continue
-        t = torch.as_tensor(value)
-        if t.numel() != 1 or not bool(torch.isfinite(t).all()):
-            problems.append(f"expression parameter {name!r} must be one finite number (got {t})")
+    problems = coefficient_problems(values)
     if not problems and contact != "multi_field" and uses_relative(values):
         problems.append(
             "expression uses the other objects' features (dp_*, dv_*), which need one velocity "
