@@ -17,8 +17,8 @@ if [ ! -d /root/site/warp ]; then
   python3 -m pip install -q --no-index --no-deps --target /root/site /root/stash/*.whl \
     $(ls .ti/*.whl 2>/dev/null)
 fi
-export PYTHONPATH=/root/site:$PWD/.tideps:$PWD:$PWD/plugins/mosiv-warp-mpm:$PWD/plugins/mosiv-taichi-mpm:$PWD/plugins/mosiv-gauss:$PWD/plugins/mosiv-lift:$PWD/plugins/mosiv-synth
-for d in . plugins/mosiv-warp-mpm plugins/mosiv-taichi-mpm plugins/mosiv-gauss plugins/mosiv-lift plugins/mosiv-synth; do
+export PYTHONPATH=/root/site:$PWD/.tideps:$PWD:$PWD/plugins/mosiv-warp-mpm:$PWD/plugins/mosiv-taichi-mpm:$PWD/plugins/mosiv-gauss:$PWD/plugins/mosiv-lift:$PWD/plugins/mosiv-synth:$PWD/plugins/mosiv-genesis:$PWD/plugins/mosiv-nerf
+for d in . plugins/mosiv-warp-mpm plugins/mosiv-taichi-mpm plugins/mosiv-gauss plugins/mosiv-lift plugins/mosiv-synth plugins/mosiv-genesis plugins/mosiv-nerf; do
   python3 -m pip install -q --no-deps --no-build-isolation --no-index -e "$d" >/dev/null 2>&1 || true
 done
 export PATH=$PATH:/root/.local/bin

@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -265,6 +266,48 @@ def test_a_scene_replaced_at_the_same_path_reruns_and_matches_a_fresh_run(
     Ballistic.calls = 0
     run_pipeline(recipe, run_dir=run)
     assert Ballistic.calls == 0
+
+
+def copied_without_times(source: Path, target: Path) -> Path:
+    """``source`` copied as ``cp -r`` does: the bytes, with every file's time new."""
+    return shutil.copytree(source, target, copy_function=shutil.copyfile)
+
+
+def test_a_run_copied_with_its_scene_to_another_place_resumes_every_stage(tmp_path, registry):
+    # as a suite prepared on one machine, diagnosed on a GPU machine and copied back
+    scene = write_example_scene(tmp_path / "a" / "scene", n_frames=8, n_cameras=2, size=24)
+    first = run_pipeline(
+        loaded(registry, scene, tmp_path / "a" / "run"), run_dir=tmp_path / "a" / "run"
+    )
+    moved_scene = copied_without_times(scene, tmp_path / "b" / "scene")
+    moved_run = copied_without_times(tmp_path / "a" / "run", tmp_path / "b" / "run")
+    assert (moved_scene / "scene.json").stat().st_mtime_ns != (
+        scene / "scene.json"
+    ).stat().st_mtime_ns
+
+    Ballistic.calls = 0
+    again = run_pipeline(loaded(registry, moved_scene, moved_run), run_dir=moved_run)
+    assert Ballistic.calls == 0
+    assert scores(again) == pytest.approx(scores(first))
+
+
+def test_bytes_changed_behind_an_unchanged_size_and_time_rerun_the_stages(
+    tmp_path, registry, caplog
+):
+    scene = write_example_scene(tmp_path / "scene", n_frames=8, n_cameras=2, size=24)
+    notes = scene / "notes.txt"  # a file of the scene's that the stages do not parse
+    notes.write_text("take 1")
+    run = tmp_path / "run"
+    run_pipeline(loaded(registry, scene, run), run_dir=run)
+    # edited in place: same size, its time put back
+    stat = notes.stat()
+    notes.write_text("take 2")
+    os.utime(notes, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert (notes.stat().st_size, notes.stat().st_mtime_ns) == (stat.st_size, stat.st_mtime_ns)
+
+    with caplog.at_level(logging.INFO, logger="mosiv_framework"):
+        run_pipeline(loaded(registry, scene, run), run_dir=run)
+    assert "scene changed since the last run: rerunning from reconstruct" in caplog.text
 
 
 # ---------------------------------------------------------------------- failed runs

@@ -322,8 +322,8 @@ def run_suite(
     ``prepare_only`` generates and runs the entries' pipelines (synthesis, identification,
     evaluation) without diagnosing them, and returns ``{"prepared": [names]}``. Why: those
     stages are about a third of an entry's time, and a suite prepared on one machine is
-    diagnosed on another from its finished stages, provided ``out`` is the same path there (the
-    scene's path is part of every stage's key).
+    diagnosed on another from its finished stages, wherever ``out`` lies there (a stage's key
+    holds the scene's content, not its path).
 
     ``scenes_only`` generates the entries' scenes and nothing else, and returns
     ``{"generated": [names]}``. Why: a scene source may need an engine that the GPU machine

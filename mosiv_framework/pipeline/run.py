@@ -151,7 +151,9 @@ def prepare_scene(recipe: DictConfig, plain: dict):
 def stage_keys(plain: dict) -> dict[str, str]:
     """Each stage's configuration fingerprint, chained: a stage's key covers the stages
     before it."""
-    key = fingerprint(plain["scene"]["path"], plain["reconstructor"])
+    # not the scene's path: its content is the stage's input (``scene_digest``), so a run
+    # folder and its scene copied elsewhere resume there
+    key = fingerprint(plain["reconstructor"])
     keys = {"reconstruct": key}
     keys["lift"] = key = fingerprint(key, plain["lifter"])
     key = fingerprint(key, plain["simulator"], plain["losses"], _identify_key(plain["identify"]))

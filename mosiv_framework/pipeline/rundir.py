@@ -3,8 +3,9 @@
 Every file is written under a temporary name and moved into place with ``os.replace``: an
 interrupted run never leaves a truncated result under a final name. A stage counts as done only
 when its marker records the same configuration fingerprint as the current recipe and the same
-digest of the inputs it reads (the scene's files): a scene replaced at the same path is not
-mistaken for the one the results came from.
+digest of the inputs it reads (the bytes of the scene's files): a scene replaced at the same path
+is not mistaken for the one the results came from, and a run folder copied to another machine
+with its scene, and back, resumes there.
 
 ``run.json`` (format ``mosiv-run/1``) marks a folder as MOSIV's own: ``mosiv run`` writes into a
 new folder, an empty one, or one holding run.json (or the stage markers of a run made before
@@ -59,9 +60,8 @@ RUN_FILES = (
 )
 #: written beside a run before it starts: the diagnosis suite's per-entry log. Kept by --force.
 COMPANIONS = ("suite.log",)
-#: scene files whose content (not only size and time) enters the scene digest: small, and what
-#: a hand-edited scene most likely changes
-CONTENT_HASHED = ("scene.json", "cameras.json", "gt/params.json")
+#: bytes read at a time while hashing a scene file
+HASH_CHUNK = 1 << 20
 #: entries named in the message refusing a folder
 SHOWN = 5
 
@@ -73,28 +73,48 @@ def fingerprint(*parts: Any) -> str:
 
 
 def scene_digest(path: str | Path) -> str:
-    """A short hash of a scene folder's contents: every file's relative path, size and
-    modification time (ns), and the bytes of its small JSON declarations.
+    """A short hash of a scene folder's contents: every file's relative path and bytes.
 
-    Size and time stand in for the content of the images and gt/points.npz: hashing every frame
-    would cost more than some stages, and a scene written again gets new times."""
+    Content, not modification times: a scene folder copied to another machine and back (with
+    ``cp -r``, which gives every file a new time) is the same scene, and the stages finished on
+    it resume; a scene written again with the same bytes is the same scene too. Each file's
+    hash is remembered for the process under its path, size, inode and times (the change time
+    too, which no one can set back), so a second digest of an unchanged folder reads nothing
+    again."""
     root = Path(path)
     digest = hashlib.sha256()
     for folder, dirs, files in os.walk(root):  # links to folders are not followed
         dirs.sort()
         for name in sorted(files):
             file = Path(folder) / name
-            try:
-                stat = file.stat()
-            except OSError:  # a broken link: its name still counts
-                stat = None
-            size, mtime = (stat.st_size, stat.st_mtime_ns) if stat else (-1, -1)
-            digest.update(f"{file.relative_to(root).as_posix()}\0{size}\0{mtime}\n".encode())
-    for name in CONTENT_HASHED:
-        file = root / name
-        if file.is_file():
-            digest.update(f"{name}\0".encode() + hashlib.sha256(file.read_bytes()).digest())
+            digest.update(f"{file.relative_to(root).as_posix()}\0{file_hash(file)}\n".encode())
     return digest.hexdigest()[:16]
+
+
+#: (path, size, inode, mtime_ns, ctime_ns) -> the file's content hash, for this process
+_FILE_HASHES: dict[tuple, str] = {}
+
+
+def file_hash(file: Path) -> str:
+    """The hash of ``file``'s bytes ("missing" for a broken link or an unreadable file, whose
+    name still counts in the folder's digest)."""
+    try:
+        stat = file.stat()
+    except OSError:
+        return "missing"
+    key = (str(file.resolve()), stat.st_size, stat.st_ino, stat.st_mtime_ns, stat.st_ctime_ns)
+    known = _FILE_HASHES.get(key)
+    if known is not None:
+        return known
+    content = hashlib.blake2b(digest_size=16)
+    try:
+        with open(file, "rb") as handle:
+            while chunk := handle.read(HASH_CHUNK):
+                content.update(chunk)
+    except OSError:
+        return "missing"
+    _FILE_HASHES[key] = content.hexdigest()
+    return _FILE_HASHES[key]
 
 
 class RunDir:
