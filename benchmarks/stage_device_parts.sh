@@ -5,18 +5,26 @@
 # with the dependencies that machine lacks, and any FOLDERs given (a scene suite, say), which
 # land under /root/stash/data/NAME there. One tar, split into 50 MB parts .dv1 .dv2 ...
 # (git-ignored).
-#   bash benchmarks/stage_device_parts.sh [--no-ray] [FOLDER ...]
-# (--no-ray: leave Ray out, one part less, for work that runs --part processes itself)
+#   bash benchmarks/stage_device_parts.sh [--no-ray] [--genesis] [FOLDER ...]
+# (--no-ray: leave Ray out, one part less, for work that runs --part processes itself;
+#  --genesis: add genesis-world and what it imports that the machine lacks, about 550 MB, for
+#  `mosiv bench sim --peer genesis` there; benchmarks/genesis_wheels.py lists them, at the
+#  versions installed here, so run this where mosiv-genesis[engine] is installed)
 # Then, back to back with nothing else in the same batch (the machine goes back 30 s after a
 # call), one call per part, each carrying its part:
 #   mkdir -p /root/stash && cp .dvN/* /root/stash/
 # and in the last call (or any later one): source benchmarks/gpu_setup.sh && ...
 set -eu
 with_ray=1
-if [ "${1:-}" = "--no-ray" ]; then
-  with_ray=0
+with_genesis=0
+while [ $# -gt 0 ]; do
+  case "$1" in
+  --no-ray) with_ray=0 ;;
+  --genesis) with_genesis=1 ;;
+  *) break ;;
+  esac
   shift
-fi
+done
 [ -f .wp3/warp.name ] || { echo "stage the warp wheel into .wp1 .wp2 .wp3 first" >&2; exit 2; }
 pack=.dvpack
 rm -rf "$pack" .dv[0-9]* && mkdir -p "$pack/wheels" "$pack/data"
@@ -29,6 +37,29 @@ cp .wp3/*.whl "$pack/wheels/"
 [ "$with_ray" = 1 ] && python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
   --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
   -d "$pack/wheels" "ray>=2.9" jsonschema jsonschema-specifications referencing rpds-py
+if [ "$with_genesis" = 1 ]; then
+  python3 benchmarks/genesis_wheels.py --skip-present "$pack/wheels" > "$pack/genesis.txt"
+  while read -r requirement; do
+    python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
+      --implementation cp --platform manylinux_2_35_x86_64 --platform manylinux_2_34_x86_64 \
+      --platform manylinux_2_31_x86_64 --platform manylinux_2_28_x86_64 \
+      --platform manylinux_2_27_x86_64 --platform manylinux_2_24_x86_64 \
+      --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
+      --platform manylinux_2_12_x86_64 --platform manylinux2010_x86_64 \
+      --platform manylinux_2_5_x86_64 --platform manylinux1_x86_64 \
+      -d "$pack/wheels" "$requirement" 2>/dev/null && continue
+    # no wheel on the index (an sdist only): build one here, which serves Python 3.12 only
+    # when the package is pure Python
+    python3 -m pip wheel -q --no-deps -w "$pack/built" "$requirement"
+    for wheel in "$pack"/built/*.whl; do
+      case "$wheel" in
+      *-py3-none-any.whl | *-py2.py3-none-any.whl) mv "$wheel" "$pack/wheels/" ;;
+      *) echo "$requirement: no wheel for Python 3.12 on the index and not pure Python" >&2; exit 2 ;;
+      esac
+    done
+  done < "$pack/genesis.txt"
+  rm -rf "$pack/built" "$pack/genesis.txt"
+fi
 for folder in "$@"; do
   cp -r "$folder" "$pack/data/$(basename "$folder")"
 done
