@@ -28,6 +28,8 @@ from mosiv_framework.cli.main import main
 from mosiv_framework.interfaces import Simulator
 from mosiv_framework.pipeline import run_pipeline
 from mosiv_framework.pipeline.formats import RUN
+from mosiv_framework.pipeline.run import stage_keys
+from mosiv_framework.pipeline.rundir import earlier_scene_digest
 from mosiv_framework.recipes import validate_recipe
 from mosiv_framework.registry import Component, Registry, hookimpl, manager
 from mosiv_framework.scene.example import write_example_scene
@@ -308,6 +310,53 @@ def test_bytes_changed_behind_an_unchanged_size_and_time_rerun_the_stages(
     with caplog.at_level(logging.INFO, logger="mosiv_framework"):
         run_pipeline(loaded(registry, scene, run), run_dir=run)
     assert "scene changed since the last run: rerunning from reconstruct" in caplog.text
+
+
+def as_earlier_markers(run: Path, scene: Path, recipe) -> None:
+    """Rewrite a run's stage markers as MOSIV wrote them before the scene entered by its
+    content: keys holding the scene's path, the scene digested by file times."""
+    plain = OmegaConf.to_container(recipe, resolve=True)
+    keys, digest = stage_keys(plain, earlier=True), earlier_scene_digest(scene)
+    for marker in (run / "stages").glob("*.json"):
+        data = json.loads(marker.read_text())
+        data.update(config=keys[marker.stem], inputs=digest)
+        marker.write_text(json.dumps(data))
+
+
+def test_markers_of_the_earlier_form_resume_and_are_rewritten(tmp_path, registry, caplog):
+    scene = write_example_scene(tmp_path / "scene", n_frames=8, n_cameras=2, size=24)
+    run = tmp_path / "run"
+    recipe = loaded(registry, scene, run)
+    first = run_pipeline(recipe, run_dir=run)
+    as_earlier_markers(run, scene, recipe)
+
+    Ballistic.calls = 0
+    with caplog.at_level(logging.INFO, logger="mosiv_framework"):
+        again = run_pipeline(recipe, run_dir=run)
+    assert Ballistic.calls == 0
+    assert scores(again) == pytest.approx(scores(first))
+    carried = (
+        "stage markers of an earlier MOSIV carried over: reconstruct, lift, identify, evaluate"
+    )
+    assert carried in caplog.text
+    current = stage_keys(OmegaConf.to_container(recipe, resolve=True))
+    for stage, key in current.items():
+        assert json.loads((run / "stages" / f"{stage}.json").read_text())["config"] == key
+
+
+def test_markers_of_the_earlier_form_on_a_copied_scene_rerun(tmp_path, registry):
+    # the earlier digest held file times, so it cannot vouch for a copy: the stages rerun
+    scene = write_example_scene(tmp_path / "scene", n_frames=8, n_cameras=2, size=24)
+    run = tmp_path / "run"
+    recipe = loaded(registry, scene, run)
+    run_pipeline(recipe, run_dir=run)
+    as_earlier_markers(run, scene, recipe)
+    shutil.rmtree(scene)
+    write_example_scene(scene, n_frames=8, n_cameras=2, size=24)
+
+    Ballistic.calls = 0
+    run_pipeline(recipe, run_dir=run)
+    assert Ballistic.calls > 0
 
 
 # ---------------------------------------------------------------------- failed runs

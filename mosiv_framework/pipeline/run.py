@@ -32,6 +32,7 @@ from mosiv_framework.pipeline.rundir import (
     OutputFolder,
     RunDir,
     RunRecord,
+    earlier_scene_digest,
     fingerprint,
     scene_digest,
 )
@@ -148,12 +149,13 @@ def prepare_scene(recipe: DictConfig, plain: dict):
     return scene, warnings
 
 
-def stage_keys(plain: dict) -> dict[str, str]:
+def stage_keys(plain: dict, *, earlier: bool = False) -> dict[str, str]:
     """Each stage's configuration fingerprint, chained: a stage's key covers the stages
-    before it."""
+    before it. ``earlier``: the keys markers recorded before the scene entered by its content,
+    when the first key held the scene's path."""
     # not the scene's path: its content is the stage's input (``scene_digest``), so a run
     # folder and its scene copied elsewhere resume there
-    key = fingerprint(plain["reconstructor"])
+    key = fingerprint(*([plain["scene"]["path"]] if earlier else []), plain["reconstructor"])
     keys = {"reconstruct": key}
     keys["lift"] = key = fingerprint(key, plain["lifter"])
     key = fingerprint(key, plain["simulator"], plain["losses"], _identify_key(plain["identify"]))
@@ -197,6 +199,22 @@ class Progress:
     def mark(self, stage: str, **info) -> None:
         self.rd.mark_done(stage, self.keys[stage], self.digest, **info)
         self.record.stage_done(stage)
+
+    def carry_earlier_markers(self, plain: dict, scene_root: Path) -> None:
+        """Markers written before the scene entered by its content (keys holding the scene's
+        path, the scene digested by file times) still describe this run when the scene is
+        where and as it was: rewrite them in the current form instead of rerunning."""
+        earlier_keys, earlier_digest = stage_keys(plain, earlier=True), None
+        carried = []
+        for stage in STAGES:
+            if self.rd.stage_state(stage, self.keys[stage], self.digest) != "missing":
+                continue
+            earlier_digest = earlier_digest or earlier_scene_digest(scene_root)
+            if self.rd.stage_done(stage, earlier_keys[stage], earlier_digest):
+                self.rd.rekey_marker(stage, self.keys[stage], self.digest)
+                carried.append(stage)
+        if carried:
+            log.info("stage markers of an earlier MOSIV carried over: %s", ", ".join(carried))
 
     def announce_changes(self) -> None:
         """Say so when the scene changed under finished stages, and where the run restarts."""
@@ -260,7 +278,9 @@ def open_run(recipe: DictConfig, plain: dict, folder: OutputFolder, scene) -> Pr
         digest=digest,
     )
     record.save()
-    return Progress(rd, record, stage_keys(plain), digest)
+    progress = Progress(rd, record, stage_keys(plain), digest)
+    progress.carry_earlier_markers(plain, Path(scene.root))
+    return progress
 
 
 def run_stages(recipe, plain, scene, progress: Progress, warnings, *, started) -> dict:

@@ -117,6 +117,29 @@ def file_hash(file: Path) -> str:
     return _FILE_HASHES[key]
 
 
+def earlier_scene_digest(path: str | Path) -> str:
+    """The scene digest stage markers recorded before the content digest: every file's
+    relative path, size and modification time, and the bytes of scene.json, cameras.json and
+    gt/params.json. Kept only to recognise those markers (``Progress.carry_earlier_markers``)."""
+    root = Path(path)
+    digest = hashlib.sha256()
+    for folder, dirs, files in os.walk(root):
+        dirs.sort()
+        for name in sorted(files):
+            file = Path(folder) / name
+            try:
+                stat = file.stat()
+            except OSError:
+                stat = None
+            size, mtime = (stat.st_size, stat.st_mtime_ns) if stat else (-1, -1)
+            digest.update(f"{file.relative_to(root).as_posix()}\0{size}\0{mtime}\n".encode())
+    for name in ("scene.json", "cameras.json", "gt/params.json"):
+        file = root / name
+        if file.is_file():
+            digest.update(f"{name}\0".encode() + hashlib.sha256(file.read_bytes()).digest())
+    return digest.hexdigest()[:16]
+
+
 class RunDir:
     def __init__(self, root: str | Path):
         self.root = Path(root)
@@ -177,6 +200,13 @@ class RunDir:
     def mark_done(self, stage: str, config_hash: str, inputs: str | None = None, **info) -> None:
         record = {"config": config_hash, **({"inputs": inputs} if inputs else {}), **info}
         self.save_json(f"stages/{stage}.json", stamped(STAGE, record))
+
+    def rekey_marker(self, stage: str, config_hash: str, inputs: str) -> None:
+        """Rewrite ``stage``'s marker under another key and inputs, keeping what else it
+        records."""
+        marker = self.load_json(f"stages/{stage}.json")
+        info = {k: v for k, v in marker.items() if k not in ("format", "config", "inputs")}
+        self.mark_done(stage, config_hash, inputs, **info)
 
 
 # --------------------------------------------------------------------- the folder of a run
