@@ -207,6 +207,9 @@ class Progress:
         earlier_keys, earlier_digest = stage_keys(plain, earlier=True), None
         carried = []
         for stage in STAGES:
+            # a new run has no markers: nothing to carry, and no earlier digest to compute
+            if not self.rd.path(f"stages/{stage}.json").is_file():
+                continue
             if self.rd.stage_state(stage, self.keys[stage], self.digest) != "missing":
                 continue
             earlier_digest = earlier_digest or earlier_scene_digest(scene_root)
