@@ -17,6 +17,13 @@ if [ ! -d /root/site/warp ]; then
   python3 -m pip install -q --no-index --no-deps --target /root/site /root/stash/*.whl \
     $(ls .ti/*.whl 2>/dev/null)
 fi
+# GL libraries staged for Genesis (stage_device_parts.sh --genesis), unpacked into / once
+if ls /root/stash/data/debs/*.deb > /dev/null 2>&1 && ! ldconfig -p | grep -q libGL.so.1; then
+  for deb in /root/stash/data/debs/*.deb; do dpkg -x "$deb" /; done
+  ldconfig
+fi
+# no display there: pyglet (imported by Genesis's viewer) must not look for an X server
+export PYGLET_HEADLESS=1
 export PYTHONPATH=/root/site:$PWD/.tideps:$PWD:$PWD/plugins/mosiv-warp-mpm:$PWD/plugins/mosiv-taichi-mpm:$PWD/plugins/mosiv-gauss:$PWD/plugins/mosiv-lift:$PWD/plugins/mosiv-synth:$PWD/plugins/mosiv-genesis:$PWD/plugins/mosiv-nerf
 for d in . plugins/mosiv-warp-mpm plugins/mosiv-taichi-mpm plugins/mosiv-gauss plugins/mosiv-lift plugins/mosiv-synth plugins/mosiv-genesis plugins/mosiv-nerf; do
   python3 -m pip install -q --no-deps --no-build-isolation --no-index -e "$d" >/dev/null 2>&1 || true

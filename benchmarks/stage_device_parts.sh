@@ -7,9 +7,10 @@
 # (git-ignored).
 #   bash benchmarks/stage_device_parts.sh [--no-ray] [--genesis] [FOLDER ...]
 # (--no-ray: leave Ray out, one part less, for work that runs --part processes itself;
-#  --genesis: add genesis-world and what it imports that the machine lacks, about 550 MB, for
+#  --genesis: add genesis-world and what it imports that the machine lacks, about 560 MB, for
 #  `mosiv bench sim --peer genesis` there; benchmarks/genesis_wheels.py lists them, at the
-#  versions installed here, so run this where mosiv-genesis[engine] is installed)
+#  versions installed here, so run this where mosiv-genesis[engine] is installed; the GL
+#  libraries it loads come as Debian packages through apt-get download)
 # Then, back to back with nothing else in the same batch (the machine goes back 30 s after a
 # call), one call per part, each carrying its part:
 #   mkdir -p /root/stash && cp .dvN/* /root/stash/
@@ -59,6 +60,14 @@ if [ "$with_genesis" = 1 ]; then
     done
   done < "$pack/genesis.txt"
   rm -rf "$pack/built" "$pack/genesis.txt"
+  # genesis imports pygel3d, which loads the system's libGL.so.1: the GPU image has none, so the
+  # GL dispatch libraries travel as Debian packages that gpu_setup.sh unpacks there
+  mkdir -p "$pack/data/debs" /tmp/amd64/partial
+  apt_options='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'
+  # shellcheck disable=SC2086
+  apt-get $apt_options update > /dev/null
+  # shellcheck disable=SC2086
+  (cd "$pack/data/debs" && apt-get $apt_options download libgl1 libglx0 libglvnd0 libegl1 libopengl0 > /dev/null)
 fi
 for folder in "$@"; do
   cp -r "$folder" "$pack/data/$(basename "$folder")"
