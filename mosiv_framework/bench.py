@@ -222,6 +222,32 @@ def run_bench(
     bench cube; ``options``: further simulator options (e.g. warp-mpm's grid_window)."""
     config = {"device": device, "grid": grid, "substeps": substeps, **(options or {})}
     simulator = get_registry().create("simulator", backend, config)
+    return measure(
+        simulator,
+        backend=backend,
+        device=device,
+        particles=particles,
+        grid=grid,
+        substeps=substeps,
+        frames=frames,
+        backward=backward,
+    )
+
+
+def measure(
+    simulator,
+    *,
+    backend: str,
+    device: str,
+    particles: int,
+    grid: int,
+    substeps: int,
+    frames: int = 2,
+    backward: bool = True,
+) -> BenchResult:
+    """``run_bench`` on a simulator made already (made with that ``device``, ``grid`` and
+    ``substeps``): timing it again re-uses its compiled kernels and buffers, as an
+    identification's iterations do."""
     torch_device = torch.device("cuda" if device == "cuda" else "cpu")
     world = bench_world()
     parts = bench_particles(particles, grid=grid).to(torch_device)

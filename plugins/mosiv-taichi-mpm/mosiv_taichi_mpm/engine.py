@@ -12,16 +12,26 @@ import torch
 from mosiv_framework.errors import SimulationDiverged
 from mosiv_taichi_mpm.autograd import STATE_NAMES, empty_state
 from mosiv_taichi_mpm.fields import NO_DIVERGENCE, Layout, SimFields
-from mosiv_taichi_mpm.kernels import REASON_LEFT_DOMAIN, REASON_NONFINITE, STENCIL_ROWS, MPMKernels
+from mosiv_taichi_mpm.forward_kernels import FusedForwardKernels
+from mosiv_taichi_mpm.kernels import REASON_LEFT_DOMAIN, REASON_NONFINITE, STENCIL_ROWS
 
 
 class Engine:
     """Fields and kernels for one Layout and set of law ids, plus per-rollout settings."""
 
-    def __init__(self, layout: Layout, present_laws: tuple[int, ...], device: torch.device):
+    def __init__(
+        self,
+        layout: Layout,
+        present_laws: tuple[int, ...],
+        device: torch.device,
+        *,
+        fused_forward: bool = True,
+    ):
         self.layout = layout
         self.fields = SimFields(layout)
-        self.kernels = MPMKernels(self.fields, present_laws)
+        self.kernels = FusedForwardKernels(self.fields, present_laws)
+        #: forward substeps through the fused kernels (forward_kernels.py) or the split ones
+        self.fused_forward = fused_forward
         self.device = device
         self.substeps = layout.substeps
         self.n = 0
@@ -68,13 +78,22 @@ class Engine:
     def step(self, s: int, *, diagnostics: bool) -> None:
         """One substep from buffer s to s + 1."""
         k, n, dt = self.kernels, self.n, self.dt
-        self._grid(s)
+        if self.fused_forward:
+            k.clear_grid(False)
+            k.p2g_fused(s, n, dt, self._pm_level())
+            k.grid_forces(*self._force_args(s))
+            k.grid_contact(self.ground_z, self.has_ground)
+        else:
+            self._grid(s)
         if diagnostics and k.multi:
             k.detect_contact(self.ground_z, self.has_ground)
-        k.clear_particle_velocity(s, n)
-        for i, j in STENCIL_ROWS:
-            k.g2p(s, n, i, j)
-        k.advect(s, n, dt)
+        if self.fused_forward:
+            k.g2p_advect(s, n, dt)
+        else:
+            k.clear_particle_velocity(s, n)
+            for i, j in STENCIL_ROWS:
+                k.g2p(s, n, i, j)
+            k.advect(s, n, dt)
         if k.needs_svd:
             k.svd(s, n)
         else:

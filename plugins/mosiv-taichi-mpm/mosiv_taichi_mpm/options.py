@@ -9,7 +9,13 @@ from mosiv_framework.simulation import MPMOptions
 
 @dataclass(frozen=True)
 class TaichiMPMOptions(MPMOptions):
-    """The shared MPM options (see mosiv_framework.simulation.MPMOptions); grid <= 1024."""
+    """The shared MPM options (see mosiv_framework.simulation.MPMOptions); grid <= 1024.
+
+    fused_forward: advance the forward substeps with the fused kernels of forward_kernels.py
+    (true, the default) or with the split kernels whose adjoints the reverse pass runs (false:
+    the same equations, kept to measure what the fusion saves)."""
+
+    fused_forward: bool = True
 
     backend = "taichi-mpm"
 
@@ -17,4 +23,6 @@ class TaichiMPMOptions(MPMOptions):
         problems = super().problems()
         if isinstance(self.grid, int) and self.grid > 1024:
             problems.append(f"grid={self.grid!r}: must be <= 1024 cells")
+        if not isinstance(self.fused_forward, bool):
+            problems.append(f"fused_forward={self.fused_forward!r}: must be true or false")
         return problems

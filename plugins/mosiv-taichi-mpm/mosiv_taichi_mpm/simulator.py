@@ -182,7 +182,9 @@ class TaichiMPMSimulator(Simulator):
         if self._engine_key != key:
             if self._engine is not None and self._engine_key[2] == generation:
                 self._engine.destroy()
-            self._engine = Engine(layout, present, self.torch_device)
+            self._engine = Engine(
+                layout, present, self.torch_device, fused_forward=self.options.fused_forward
+            )
             self._engine_key = key
         return self._engine
 
