@@ -14,6 +14,13 @@ Usage (repository root, after ``source benchmarks/gpu_setup.sh``)::
 
     python3 benchmarks/device_queue.py start JOBFILE --slots 3 --code-version COMMIT
     bash benchmarks/device_batch.sh wait SECONDS 'GLOB' ...   # later calls: wait, pack results
+    python3 benchmarks/device_queue.py stop                    # end the queue and its jobs
+
+``stop`` frees the GPU before the lease's end (for a benchmark that must run alone, say): the
+queue starts nothing more and every running job's process group is ended (``NAME.rc`` then
+reads ``stopped``); what the jobs saved stays. It finds them by the process ids the queue
+records (``JOBS/queue.pid``, ``JOBS/NAME.pid``), not by matching command lines, which would
+also match the device call that runs ``stop``.
 
 JOBFILE holds one job per line, ``NAME COMMAND...`` (COMMAND in shell syntax, run by bash in
 the job's snapshot); blank lines and lines starting with # are skipped. Each job logs to
@@ -30,6 +37,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -170,14 +178,17 @@ def launch(
     log = open(jobs_dir / f"{job.name}.log", "w")  # noqa: SIM115 (the child holds it open)
     (jobs_dir / f"{job.name}.queued").unlink(missing_ok=True)
     print(f"{time.strftime('%H:%M:%S')} start {job.name} on GPU {gpu}", flush=True)
-    return subprocess.Popen(
+    process = subprocess.Popen(
         ["bash", "-c", job.command],
         cwd=tree,
         env=job_environment(tree, gpu, threads, code_version),
         stdout=log,
         stderr=subprocess.STDOUT,
         stdin=subprocess.DEVNULL,
+        start_new_session=True,  # its own process group, which ``stop`` ends as a whole
     )
+    (jobs_dir / f"{job.name}.pid").write_text(f"{process.pid}\n")
+    return process
 
 
 def run_queue(
@@ -192,6 +203,7 @@ def run_queue(
     """Run every job in a copy of ``source``, at most ``slots`` at once per GPU, each with
     ``MOSIV_CODE_VERSION=code_version`` where given; returns how many failed."""
     gpus = gpu_ids(max(n_gpus, 1))
+    (jobs_dir / "queue.pid").write_text(f"{os.getpid()}\n")
     waiting = list(jobs)
     running: dict[str, tuple[str, subprocess.Popen]] = {}
     on_gpu = {gpu: 0 for gpu in gpus}
@@ -202,6 +214,7 @@ def run_queue(
             if code is None:
                 continue
             (jobs_dir / f"{name}.rc").write_text(f"{code}\n")
+            (jobs_dir / f"{name}.pid").unlink(missing_ok=True)
             on_gpu[gpu] -= 1
             shutil.rmtree(jobs_dir / f"{name}.tree", ignore_errors=True)
             failed += code != 0
@@ -219,12 +232,49 @@ def run_queue(
     return failed
 
 
+def _signal(pid: int, sig: int, *, group: bool) -> bool:
+    """Send ``sig`` to a process (or its process group); False where it is gone already."""
+    try:
+        (os.killpg if group else os.kill)(pid, sig)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def stop(jobs_dir: Path, grace_seconds: float = 10.0) -> list[str]:
+    """End the queue recorded in ``jobs_dir`` and every job it started that is still running
+    (SIGTERM, then SIGKILL after ``grace_seconds``); returns the names of the jobs stopped."""
+    queue_pid = jobs_dir / "queue.pid"
+    if queue_pid.exists():
+        _signal(int(queue_pid.read_text()), signal.SIGKILL, group=False)  # starts nothing more
+        queue_pid.unlink()
+    running = {}
+    for pid_file in sorted(jobs_dir.glob("*.pid")):
+        name = pid_file.stem
+        if not (jobs_dir / f"{name}.rc").exists():
+            running[name] = int(pid_file.read_text())
+        pid_file.unlink()
+    alive = {name: pid for name, pid in running.items() if _signal(pid, signal.SIGTERM, group=True)}
+    deadline = time.time() + grace_seconds
+    while alive and time.time() < deadline:
+        time.sleep(0.2)
+        alive = {name: pid for name, pid in alive.items() if _signal(pid, 0, group=True)}
+    for pid in alive.values():
+        _signal(pid, signal.SIGKILL, group=True)
+    for name in running:
+        (jobs_dir / f"{name}.rc").write_text("stopped\n")
+        shutil.rmtree(jobs_dir / f"{name}.tree", ignore_errors=True)
+    return sorted(running)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
-        "verb", choices=["start", "run"], help="start: detach and run; run: run here"
+        "verb",
+        choices=["start", "run", "stop"],
+        help="start: detach and run; run: run here; stop: end the queue and its running jobs",
     )
-    parser.add_argument("jobfile", type=Path)
+    parser.add_argument("jobfile", type=Path, nargs="?", help="the jobs (start and run)")
     parser.add_argument("--slots", type=int, default=3, help="jobs at once per GPU (default 3)")
     parser.add_argument("--gpus", type=int, default=None, help="GPUs to use (default: all seen)")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads per job")
@@ -240,6 +290,12 @@ def main(argv: list[str] | None = None) -> int:
         "$(git rev-parse --short HEAD) from the machine that sent it)",
     )
     args = parser.parse_args(argv)
+    if args.verb == "stop":
+        stopped = stop(args.jobs_dir)
+        print(f"stopped the queue in {args.jobs_dir}; jobs ended: {', '.join(stopped) or 'none'}")
+        return 0
+    if args.jobfile is None:
+        parser.error(f"{args.verb} needs a JOBFILE")
     code_version = args.code_version or checkout_version()
     if args.slots < 1:
         parser.error(f"--slots {args.slots}: want at least 1 job per GPU")

@@ -171,3 +171,68 @@ def test_wait_packs_logs_but_not_the_checkout_snapshots(tmp_path):
     assert any(n.endswith("jobs/a.log") for n in names)
     assert any(n.endswith("jobs/a.rc") for n in names)
     assert not [n for n in names if "checkout-" in n or ".tree" in n]
+
+
+def _gone(pid: int) -> bool:
+    """The process has ended (a zombie whose parent has not reaped it counts as ended)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return True
+    return stat.rsplit(")", 1)[1].split()[0] == "Z"
+
+
+def _wait_for(predicate, seconds: float) -> bool:
+    import time
+
+    deadline = time.time() + seconds
+    while not predicate() and time.time() < deadline:
+        time.sleep(0.2)
+    return predicate()
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads process states from /proc")
+def test_stop_ends_the_queue_and_its_running_jobs_but_not_the_caller(tmp_path):
+    """``stop`` ends the detached queue (nothing more starts) and the running job's whole
+    process group, marks the job stopped, and leaves the process that called it alone (a
+    command-line match on the jobs' command would have matched the caller too)."""
+    jobfile = tmp_path / "jobs.txt"
+    marker = tmp_path / "child.pid"
+    # the job's own child (sleep) must end with it: the job's process group is ended
+    jobfile.write_text(f"first sleep 120 & echo $! > {marker}; wait\nsecond sleep 120\n")
+    jobs_dir = tmp_path / "jobs"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    args = [sys.executable, str(QUEUE), "start", str(jobfile), "--gpus", "1", "--slots", "1"]
+    subprocess.run([*args, "--jobs-dir", str(jobs_dir)], env=env, check=True, timeout=60)
+    assert _wait_for(lambda: marker.exists() and marker.read_text().strip(), 60)
+    queue_pid = int((jobs_dir / "queue.pid").read_text())
+    job_pid = int((jobs_dir / "first.pid").read_text())
+    child_pid = int(marker.read_text())
+
+    stopped = subprocess.run(
+        [sys.executable, str(QUEUE), "stop", "--jobs-dir", str(jobs_dir)],
+        env=env, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert stopped.returncode == 0, stopped.stderr
+    assert "jobs ended: first" in stopped.stdout
+    assert _wait_for(lambda: all(_gone(p) for p in (queue_pid, job_pid, child_pid)), 15)
+    assert (jobs_dir / "first.rc").read_text().strip() == "stopped"
+    assert not (jobs_dir / "first.tree").exists()
+    assert not (jobs_dir / "queue.pid").exists() and not (jobs_dir / "first.pid").exists()
+    # the queue is gone, so the second job never starts
+    import time
+
+    time.sleep(2 * device_queue.POLL_SECONDS)
+    assert not (jobs_dir / "second.log").exists()
+    # a second stop finds nothing to end
+    again = subprocess.run(
+        [sys.executable, str(QUEUE), "stop", "--jobs-dir", str(jobs_dir)],
+        env=env, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert "jobs ended: none" in again.stdout
+
+
+def test_start_without_a_job_file_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        device_queue.main(["start", "--jobs-dir", str(tmp_path)])
+    assert "start needs a JOBFILE" in capsys.readouterr().err
