@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # On the GPU machine (Python 3.12, CUDA torch, no package index): install the staged wheels
-# (warp, Ray, taichi where carried) and this checkout, offline.
+# (warp, Ray, taichi and Genesis where staged) and this checkout, offline.
 # The wheels travel in the parts that benchmarks/stage_device_parts.sh makes (one device call
 # each, copied into /root/stash); the folders packed with them land in /root/stash/data.
-# Usage: source benchmarks/gpu_setup.sh   (repository root; carry .ti and .tideps, the small
-# pure-Python packages taichi needs: dill colorama rich pygments markdown-it-py mdurl)
+# Usage: source benchmarks/gpu_setup.sh   (repository root; taichi comes staged with
+# `stage_device_parts.sh --taichi`, or carried as .ti with .tideps, the small pure-Python
+# packages it needs: dill colorama rich pygments markdown-it-py mdurl)
 set -e
 # When the checkout plus .ti no longer fits one call (64 MiB), split the taichi wheel like warp's:
 #   split -b 30M .ti/taichi-*.whl .tia/ti.part. ; move ti.part.ab and the small wheels to .tib;

@@ -5,8 +5,10 @@
 # with the dependencies that machine lacks, and any FOLDERs given (a scene suite, say), which
 # land under /root/stash/data/NAME there. One tar, split into 50 MB parts .dv1 .dv2 ...
 # (git-ignored).
-#   bash benchmarks/stage_device_parts.sh [--no-ray] [--genesis] [FOLDER ...]
+#   bash benchmarks/stage_device_parts.sh [--no-ray] [--genesis] [--taichi] [FOLDER ...]
 # (--no-ray: leave Ray out, one part less, for work that runs --part processes itself;
+#  --taichi: add the taichi wheel at the version installed here and the small pure-Python
+#  packages it imports, about 55 MB, for taichi-mpm there;
 #  --genesis: add genesis-world and what it imports that the machine lacks, about 560 MB, for
 #  `mosiv bench sim --peer genesis` there; benchmarks/genesis_wheels.py lists them, at the
 #  versions installed here, so run this where mosiv-genesis[engine] is installed; the GL
@@ -18,10 +20,12 @@
 set -eu
 with_ray=1
 with_genesis=0
+with_taichi=0
 while [ $# -gt 0 ]; do
   case "$1" in
   --no-ray) with_ray=0 ;;
   --genesis) with_genesis=1 ;;
+  --taichi) with_taichi=1 ;;
   *) break ;;
   esac
   shift
@@ -38,6 +42,13 @@ cp .wp3/*.whl "$pack/wheels/"
 [ "$with_ray" = 1 ] && python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
   --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
   -d "$pack/wheels" "ray>=2.9" jsonschema jsonschema-specifications referencing rpds-py
+if [ "$with_taichi" = 1 ]; then
+  taichi_version=$(python3 -c "import importlib.metadata as m; print(m.version('taichi'))")
+  python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+    --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 \
+    --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
+    -d "$pack/wheels" "taichi==$taichi_version" dill colorama rich pygments markdown-it-py mdurl
+fi
 if [ "$with_genesis" = 1 ]; then
   python3 benchmarks/genesis_wheels.py --skip-present "$pack/wheels" > "$pack/genesis.txt"
   while read -r requirement; do
