@@ -9,8 +9,8 @@ differentiated, so a substep becomes
 ``clear_grid`` -> ``p2g_fused(s)`` -> ``grid_forces`` -> ``grid_contact`` -> ``g2p_advect(s)``
 -> ``svd(s)`` -> ``plasticity(s)``
 
-with the same equations, evaluated in the same order per particle, writing the same per-substep
-fields. The reverse pass re-simulates a frame with these kernels too and then runs the split
+with the same equations (the node and stress functions of ``kernels.py``), evaluated in the same
+order per particle, writing the same per-substep fields. The reverse pass re-simulates a frame with these kernels too and then runs the split
 kernels' adjoints, which recompute the substep's grid with the split P2G (the same sums in
 another order of the particles' atomic adds).
 """
@@ -18,8 +18,7 @@ another order of the particles' atomic adds).
 # no `from __future__ import annotations`: Taichi reads the annotations at runtime
 import taichi as ti
 
-from mosiv_taichi_mpm.kernels import MPMKernels, kelvin_voigt_tau, stencil
-from mosiv_taichi_mpm.laws import kirchhoff_stress
+from mosiv_taichi_mpm.kernels import MPMKernels
 
 
 @ti.data_oriented
@@ -34,30 +33,13 @@ class FusedForwardKernels(MPMKernels):
         (grad m)_i += m_p grad w; on nodes at or below ground_z (m) the arriving momentum
         (p m)_i += w m_p (v_p + C dpos)."""
         for p in range(n):
-            k = self.obj[p]
-            g = k if ti.static(self.multi) else 0
-            mass = self.rho[k] * self.vol[p]
-            C = self.C[s, p]
-            tau = kirchhoff_stress(
-                self.present, self.law_id[k], self.F[s, p], self.U[s, p], self.sig[s, p],
-                C, self.Jp[s, p], self.law_p[k],
-            )  # fmt: skip
-            tau += kelvin_voigt_tau(self.damping[None], self.F[s, p], C)
-            A = -dt * 4.0 * self.inv_dx * self.inv_dx * self.vol[p] * tau + mass * C
-            MC = mass * C
-            xg = (self.x[s, p] - self.origin) * self.inv_dx
-            base = ti.cast(xg - 0.5, ti.i32)
-            fx = xg - ti.cast(base, ti.f32)
+            g = self.obj[p] if ti.static(self.multi) else 0
+            mass, A = self.mass_and_affine(s, p, dt)
+            base, fx = self.stencil_cell(self.x[s, p])
             mom = mass * self.v[s, p]
+            MC = mass * self.C[s, p]
             for i, j, l in ti.static(ti.ndrange(3, 3, 3)):
-                offset = ti.Vector([i, j, l])
-                weight, grad_w, dcell = stencil(fx, offset)
-                node = base + offset
-                self.m[g, node[0], node[1], node[2]] += weight * mass
-                self.mv[g, node[0], node[1], node[2]] += weight * (mom + A @ (dcell * self.dx))
-                self.gm[g, node[0], node[1], node[2]] += (mass * self.inv_dx) * grad_w
-                if self.origin[2] + node[2] * self.dx <= ground_z:  # for ground_restitution
-                    self.pm[g, node[0], node[1], node[2]] += weight * (mom + MC @ (dcell * self.dx))
+                self.scatter_node(g, base, fx, ti.Vector([i, j, l]), mass, mom, A, MC, ground_z)
 
     @ti.kernel
     def g2p_advect(self, s: ti.i32, n: ti.i32, dt: ti.f32):
@@ -66,18 +48,13 @@ class FusedForwardKernels(MPMKernels):
         order), then x += dt v (kept inside the padded grid) and F_trial = (I + dt C) F."""
         for p in range(n):
             g = self.obj[p] if ti.static(self.multi) else 0
-            xg = (self.x[s, p] - self.origin) * self.inv_dx
-            base = ti.cast(xg - 0.5, ti.i32)
-            fx = xg - ti.cast(base, ti.f32)
+            base, fx = self.stencil_cell(self.x[s, p])
             v = ti.Vector.zero(ti.f32, 3)
             C = ti.Matrix.zero(ti.f32, 3, 3)
             for i, j, l in ti.static(ti.ndrange(3, 3, 3)):
-                offset = ti.Vector([i, j, l])
-                weight, _grad_w, dcell = stencil(fx, offset)
-                node = base + offset
-                gv = self.vg[g, node[0], node[1], node[2]]
-                v += weight * gv
-                C += (4.0 * self.inv_dx * weight) * gv.outer_product(dcell)
+                dv, dC = self.gather_node(g, base, fx, ti.Vector([i, j, l]))
+                v += dv
+                C += dC
             self.v[s + 1, p] = v
             self.C[s + 1, p] = C
             x_new = (self.x[s, p] + dt * v - self.origin) * self.inv_dx

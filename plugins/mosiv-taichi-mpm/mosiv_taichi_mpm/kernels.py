@@ -217,17 +217,51 @@ class MPMKernels:
         """Per particle: mass m_p = rho V0 and MLS affine term A = -dt 4/dx^2 V0 tau + m_p C,
         tau = the law's Kirchhoff stress + the ``material_damping`` viscous stress."""
         for p in range(n):
-            k = self.obj[p]
-            mass = self.rho[k] * self.vol[p]
-            tau = kirchhoff_stress(
-                self.present, self.law_id[k], self.F[s, p], self.U[s, p], self.sig[s, p],
-                self.C[s, p], self.Jp[s, p], self.law_p[k],
-            )  # fmt: skip
-            tau += kelvin_voigt_tau(self.damping[None], self.F[s, p], self.C[s, p])
+            mass, A = self.mass_and_affine(s, p, dt)
             self.pmass[p] = mass
-            self.affine[p] = -dt * 4.0 * self.inv_dx * self.inv_dx * self.vol[p] * tau + (
-                mass * self.C[s, p]
-            )
+            self.affine[p] = A
+
+    @ti.func
+    def mass_and_affine(self, s, p, dt):
+        """Particle p's mass m_p = rho V0 (kg) and MLS affine term A = -dt 4/dx^2 V0 tau + m_p C
+        at buffer s (shared with the fused forward)."""
+        k = self.obj[p]
+        mass = self.rho[k] * self.vol[p]
+        tau = kirchhoff_stress(
+            self.present, self.law_id[k], self.F[s, p], self.U[s, p], self.sig[s, p],
+            self.C[s, p], self.Jp[s, p], self.law_p[k],
+        )  # fmt: skip
+        tau += kelvin_voigt_tau(self.damping[None], self.F[s, p], self.C[s, p])
+        A = -dt * 4.0 * self.inv_dx * self.inv_dx * self.vol[p] * tau + mass * self.C[s, p]
+        return mass, A
+
+    @ti.func
+    def stencil_cell(self, x):
+        """The stencil's base node of a particle at x (m) and its offset from it, in cells."""
+        xg = (x - self.origin) * self.inv_dx
+        base = ti.cast(xg - 0.5, ti.i32)
+        return base, xg - ti.cast(base, ti.f32)
+
+    @ti.func
+    def scatter_node(self, g, base, fx, offset, mass, mom, A, MC, ground_z):
+        """One P2G node: m_i += w m_p; (m v)_i += w (m_p v_p + A dpos); (grad m)_i += m_p grad
+        w; on nodes at or below ground_z (m) the arriving momentum (p m)_i += w m_p (v_p + C
+        dpos). mom = m_p v_p, MC = m_p C."""
+        weight, grad_w, dcell = stencil(fx, offset)
+        node = base + offset
+        self.m[g, node[0], node[1], node[2]] += weight * mass
+        self.mv[g, node[0], node[1], node[2]] += weight * (mom + A @ (dcell * self.dx))
+        self.gm[g, node[0], node[1], node[2]] += (mass * self.inv_dx) * grad_w
+        if self.origin[2] + node[2] * self.dx <= ground_z:  # for ground_restitution
+            self.pm[g, node[0], node[1], node[2]] += weight * (mom + MC @ (dcell * self.dx))
+
+    @ti.func
+    def gather_node(self, g, base, fx, offset):
+        """One G2P node's contributions to v (w v_i) and to C (4/dx^2 w v_i dpos^T)."""
+        weight, _grad_w, dcell = stencil(fx, offset)
+        node = base + offset
+        gv = self.vg[g, node[0], node[1], node[2]]
+        return weight * gv, (4.0 * self.inv_dx * weight) * gv.outer_product(dcell)
 
     @ti.kernel
     def p2g(self, s: ti.i32, n: ti.i32, i: ti.template(), j: ti.template(), ground_z: ti.f32):
@@ -241,21 +275,12 @@ class MPMKernels:
         for p in range(n):
             g = self.obj[p] if ti.static(self.multi) else 0
             mass = self.pmass[p]
-            xg = (self.x[s, p] - self.origin) * self.inv_dx
-            base = ti.cast(xg - 0.5, ti.i32)
-            fx = xg - ti.cast(base, ti.f32)
+            base, fx = self.stencil_cell(self.x[s, p])
             mom = mass * self.v[s, p]
-            A = self.affine[p]
             MC = mass * self.C[s, p]
             for l in ti.static(range(3)):
                 offset = ti.Vector([i, j, l])
-                weight, grad_w, dcell = stencil(fx, offset)
-                node = base + offset
-                self.m[g, node[0], node[1], node[2]] += weight * mass
-                self.mv[g, node[0], node[1], node[2]] += weight * (mom + A @ (dcell * self.dx))
-                self.gm[g, node[0], node[1], node[2]] += (mass * self.inv_dx) * grad_w
-                if self.origin[2] + node[2] * self.dx <= ground_z:  # for ground_restitution
-                    self.pm[g, node[0], node[1], node[2]] += weight * (mom + MC @ (dcell * self.dx))
+                self.scatter_node(g, base, fx, offset, mass, mom, self.affine[p], MC, ground_z)
 
     @ti.kernel
     def grid_forces(self, dt: ti.f32, time: ti.f32, ground_h: ti.f32):
@@ -373,16 +398,11 @@ class MPMKernels:
         C += 4/dx^2 w v_i dpos^T (APIC); accumulated into the fields (see ``p2g``)."""
         for p in range(n):
             g = self.obj[p] if ti.static(self.multi) else 0
-            xg = (self.x[s, p] - self.origin) * self.inv_dx
-            base = ti.cast(xg - 0.5, ti.i32)
-            fx = xg - ti.cast(base, ti.f32)
+            base, fx = self.stencil_cell(self.x[s, p])
             for l in ti.static(range(3)):
-                offset = ti.Vector([i, j, l])
-                weight, _grad_w, dcell = stencil(fx, offset)
-                node = base + offset
-                gv = self.vg[g, node[0], node[1], node[2]]
-                self.v[s + 1, p] += weight * gv
-                self.C[s + 1, p] += (4.0 * self.inv_dx * weight) * gv.outer_product(dcell)
+                dv, dC = self.gather_node(g, base, fx, ti.Vector([i, j, l]))
+                self.v[s + 1, p] += dv
+                self.C[s + 1, p] += dC
 
     @ti.kernel
     def advect(self, s: ti.i32, n: ti.i32, dt: ti.f32):
