@@ -445,7 +445,7 @@ def main(argv: list[str] | None = None) -> int:
         command = gi.command_line(argv).replace(
             "benchmarks/genesis_identify.py", "benchmarks/genesis_video.py", 1
         )
-        gt.write_results(args.write_results, table, command=command)
+        gt.write_results(args.write_results, table, command=command, merged=args.merge)
         print(f"[genesis-video] wrote the section '{gt.SECTION}' of {args.write_results}")
     return 0
 

@@ -437,8 +437,16 @@ def data_text(rows: list[dict]) -> str:
     )
 
 
-def section_text(table: dict, *, command: str, date: str) -> str:
-    """The RESULTS.md section: what was run, on what, and the tables."""
+#: how each row of a merged table was made (the merge only reads them)
+PART_COMMAND = (
+    "python benchmarks/genesis_video.py --scenes SCENES --out OUT --only SCENE --method METHOD "
+    "--part"
+)
+
+
+def section_text(table: dict, *, command: str, date: str, merged: bool = False) -> str:
+    """The RESULTS.md section: what was run, on what, and the tables. ``merged``: the table was
+    merged from --part runs, whose command (with each run's overrides as --set) comes first."""
     rows = table["rows"]
     devices = sorted({r.get("device", "unknown") for r in rows if _ok(r)})
     codes = sorted({r["code"] for r in rows if r.get("code")})
@@ -448,8 +456,9 @@ def section_text(table: dict, *, command: str, date: str) -> str:
         "(OmniPhysGS-RGB, with and without the true material family) on the same from-video "
         "Stages I-II, and CoupNeRF*, one process per scene and method, each end to end."
     )
+    runs = f"`{PART_COMMAND}` per scene and method, the overrides below as `--set`, then "
     items = [
-        f"Command: `{command}`",
+        f"Command: {runs if merged else ''}`{command}`",
         f"Machine: {', '.join(devices) or 'unknown'}. Date {date}. Code {', '.join(codes) or 'unknown'}.",
         f"Data: {data_text(rows)}.",
         *(f"Settings of {line}." for line in settings_lines(rows)),
@@ -473,7 +482,8 @@ def place_section(text: str, body: str) -> str:
     return "".join(lines[:following]) + body.rstrip("\n") + "\n\n" + "".join(lines[following:])
 
 
-def write_results(path: Path, table: dict, *, command: str) -> None:
+def write_results(path: Path, table: dict, *, command: str, merged: bool = False) -> None:
     date = datetime.date.today().isoformat()
     text = path.read_text() if path.is_file() else "# Results\n"
-    path.write_text(place_section(text, section_text(table, command=command, date=date)))
+    body = section_text(table, command=command, date=date, merged=merged)
+    path.write_text(place_section(text, body))

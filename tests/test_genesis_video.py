@@ -283,6 +283,10 @@ def test_results_section_goes_after_from_video_and_is_replaced_in_place():
     twice = table_mod.place_section(once, body.replace("Date D", "Date E"))
     assert twice.count(f"## {table_mod.SECTION}") == 1 and "Date D" not in twice
     assert twice.replace("Date E", "Date D") == once
+    merged = table_mod.section_text(table, command="MERGE", date="D", merged=True)
+    words = " ".join(merged.split())
+    assert f"Command: `{table_mod.PART_COMMAND}` per scene and method" in words
+    assert words.index(table_mod.PART_COMMAND) < words.index("`MERGE`")
 
 
 def test_tiny_genesis_scene_one_process_per_run_then_merge(tmp_path):
