@@ -46,7 +46,9 @@ class DynamicGaussOptions:
             tracks before the photometric training (0 disables it);
         lambda_ssim: weight of (1 - SSIM); lambda_radius: weight of the mean radius in voxel
             units (eq. 2's |r_t|_1 made dimensionless); lambda_mask: weight of the per-object
-            silhouette L1 against the instance masks; lambda_track: weight of the squared
+            silhouette L1 against the instance masks; lambda_mask_coarse: weight of the same
+            L1 between mask_pool x mask_pool block means (0: off; ``train.coarse_mask_l1``), for
+            bodies whose masks are scattered dots; lambda_track: weight of the squared
             excess (voxels^2) over ``track_tolerance`` voxels of the distance between each
             object's mean Gaussian centre and its visual-hull centroid at the trained frames,
             where that hull is non-empty (a guard: an object a few pixels wide gives the
@@ -112,6 +114,8 @@ class DynamicGaussOptions:
     lambda_ssim: float = 0.2
     lambda_radius: float = 0.001
     lambda_mask: float = 0.5
+    lambda_mask_coarse: float = 0.0
+    mask_pool: int = 4
     lambda_track: float = 0.01
     track_tolerance: float = 5.0
     lambda_hull: float = 0.0
@@ -163,6 +167,7 @@ class DynamicGaussOptions:
             "max_gaussians": (2, 100_000_000),
             "refine_iterations": (0, 10_000_000),
             "refine_neighbours": (1, 64),
+            "mask_pool": (1, 64),
             "tile_size": (1, 256),
             "seed": (0, 2**63 - 1),
         }
@@ -173,6 +178,7 @@ class DynamicGaussOptions:
             if not _is_int(value) or not lo <= value <= hi:
                 problems.append(f"{name}={value!r}: must be an integer in [{lo}, {hi}]")
         non_negative = ("lambda_ssim", "lambda_radius", "lambda_mask", "lambda_track")
+        non_negative += ("lambda_mask_coarse",)
         non_negative += ("lambda_hull", "lambda_refine_smooth")
         non_negative += ("track_tolerance", "densify_grad")
         for name in non_negative:

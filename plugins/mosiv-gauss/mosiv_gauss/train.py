@@ -5,12 +5,17 @@ background of their camera and compared with the video:
 
     L = L1(I_hat, I) + lambda_ssim (1 - SSIM(I_hat, I))              (eq. 2, photometric)
         + lambda_mask mean_k L1(A_k, M_k)                           (per-object silhouettes)
+        + lambda_mask_coarse mean_k L1(P(A_k), P(M_k))              (the same, block means)
         + lambda_radius mean(r_t) / voxel                           (eq. 2's |r_t|_1)
 
 where A_k is the rendered alpha of object k's Gaussians (occlusion included, it is composited)
 and M_k the instance mask of object k. The mask term is what keeps a Gaussian's object id
 meaningful through contact: a Gaussian of object 1 that drifts into object 2 is drawn into A_1
-where M_1 is 0 and is pushed back out.
+where M_1 is 0 and is pushed back out. P averages over ``mask_pool`` x ``mask_pool`` pixel
+blocks: where a body spread thinner than a pixel shows as scattered dots (sand or a liquid
+drawn as its particles), the per-pixel L1 is lowest with nothing drawn at all (every gap costs
+what a dot gains), while the block means ask for a faint cover of the right density where the
+dots are. On a solid body the two terms agree.
 
 Before the photometric steps, ``fit_motion_prior`` fits the deformation networks to the
 per-object visual-hull centroid tracks, so training starts with every object roughly where the
@@ -113,7 +118,8 @@ def estimate_background(rgb: Tensor, mask_ids: Tensor, views: Tensor | None = No
 
 
 def view_loss(rgb: Tensor, object_alpha: Tensor, target: Tensor, masks: Tensor, opts) -> Tensor:
-    """Eq. 2's photometric terms plus the per-object mask L1, mean over a batch of images.
+    """Eq. 2's photometric terms plus the per-object mask L1 (and, when
+    ``opts.lambda_mask_coarse`` is on, its block-mean version), mean over a batch of images.
 
     rgb, target [B, H, W, 3]; object_alpha, masks [B, K, H, W].
     """
@@ -122,7 +128,21 @@ def view_loss(rgb: Tensor, object_alpha: Tensor, target: Tensor, masks: Tensor, 
     true = target.permute(0, 3, 1, 2)
     structural = 1.0 - kornia.metrics.ssim(pred, true, SSIM_WINDOW).mean()
     mask = (object_alpha - masks).abs().mean()
-    return l1 + opts.lambda_ssim * structural + opts.lambda_mask * mask
+    loss = l1 + opts.lambda_ssim * structural + opts.lambda_mask * mask
+    if opts.lambda_mask_coarse > 0:
+        loss = loss + opts.lambda_mask_coarse * coarse_mask_l1(object_alpha, masks, opts.mask_pool)
+    return loss
+
+
+def coarse_mask_l1(object_alpha: Tensor, masks: Tensor, pool: int) -> Tensor:
+    """Mean L1 between the ``pool`` x ``pool`` block means of the rendered per-object alphas and
+    of the masks, both [B, K, H, W] (a partial block at the border is averaged over the pixels
+    it has)."""
+
+    def blocks(x: Tensor) -> Tensor:
+        return torch.nn.functional.avg_pool2d(x, pool, stride=pool, ceil_mode=True)
+
+    return (blocks(object_alpha) - blocks(masks)).abs().mean()
 
 
 def sample_views(

@@ -18,6 +18,7 @@ from mosiv_gauss.reconstructor import (
 )
 from mosiv_gauss.train import (
     TrainingData,
+    coarse_mask_l1,
     densify_and_prune,
     estimate_background,
     hull_loss,
@@ -369,9 +370,41 @@ def test_more_time_octaves_let_the_bases_follow_an_abrupt_change():
         get_registry().create("reconstructor", "gauss-dynamic", {"time_frequencies": -1})
 
 
+def test_block_mean_mask_term_asks_for_the_density_of_scattered_dots():
+    """A body drawn as dots on a quarter of the pixels of an 8 x 8 region: the per-pixel mask
+    L1 of a uniform cover of alpha a is lowest with nothing drawn (a = 0), the 4 x 4 block-mean
+    L1 at the dots' density (a = 0.25), where it is zero; on a solid mask both vanish at a = 1."""
+    dots = torch.zeros(1, 1, 16, 16)
+    dots[0, 0, 4:12:2, 4:12:2] = 1.0
+    region = torch.zeros(1, 1, 16, 16)
+    region[0, 0, 4:12, 4:12] = 1.0
+    levels = torch.linspace(0.0, 1.0, 21)
+    per_pixel = torch.stack([(a * region - dots).abs().mean() for a in levels])
+    blocks = torch.stack([coarse_mask_l1(a * region, dots, 4) for a in levels])
+    assert float(levels[per_pixel.argmin()]) == 0.0
+    assert float(levels[blocks.argmin()]) == pytest.approx(0.25)
+    assert float(blocks.min()) == pytest.approx(0.0, abs=1e-7)
+    assert float(coarse_mask_l1(region, region, 4)) == 0.0
+    # in view_loss the term is added with its weight, and nothing changes when it is off
+    rgb = torch.zeros(1, 16, 16, 3)
+    alpha = 0.25 * region
+    off = DynamicGaussOptions(lambda_mask_coarse=0.0)
+    on = DynamicGaussOptions(lambda_mask_coarse=2.0, mask_pool=4)
+    gap = view_loss(rgb, alpha, rgb, dots, on) - view_loss(rgb, alpha, rgb, dots, off)
+    assert float(gap) == pytest.approx(2.0 * float(coarse_mask_l1(alpha, dots, 4)), abs=1e-7)
+    # a partial block at the border is the mean of the pixels it has: a full cover of a
+    # 15 x 15 image against an empty mask differs by 1 in every block
+    full, empty = torch.ones(1, 1, 15, 15), torch.zeros(1, 1, 15, 15)
+    assert float(coarse_mask_l1(full, empty, 4)) == pytest.approx(1.0)
+
+
 def test_bad_options_name_the_option_and_its_range():
     with pytest.raises(ConfigError, match="lambda_mask"):
         get_registry().create("reconstructor", "gauss-dynamic", {"lambda_mask": -1.0})
+    with pytest.raises(ConfigError, match="lambda_mask_coarse"):
+        get_registry().create("reconstructor", "gauss-dynamic", {"lambda_mask_coarse": -1.0})
+    with pytest.raises(ConfigError, match="mask_pool"):
+        get_registry().create("reconstructor", "gauss-dynamic", {"mask_pool": 0})
     with pytest.raises(ConfigError, match="lambda_track"):
         get_registry().create("reconstructor", "gauss-dynamic", {"lambda_track": -0.1})
     with pytest.raises(ConfigError, match="lambda_hull"):
