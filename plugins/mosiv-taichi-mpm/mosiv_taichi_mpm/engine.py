@@ -78,13 +78,7 @@ class Engine:
     def step(self, s: int, *, diagnostics: bool) -> None:
         """One substep from buffer s to s + 1."""
         k, n, dt = self.kernels, self.n, self.dt
-        if self.fused_forward:
-            k.clear_grid(False)
-            k.p2g_fused(s, n, dt, self._pm_level())
-            k.grid_forces(*self._force_args(s))
-            k.grid_contact(self.ground_z, self.has_ground)
-        else:
-            self._grid(s)
+        self._grid(s, fused=self.fused_forward)
         if diagnostics and k.multi:
             k.detect_contact(self.ground_z, self.has_ground)
         if self.fused_forward:
@@ -102,12 +96,17 @@ class Engine:
         if diagnostics:
             k.check(s + 1, n, s)
 
-    def _grid(self, s: int) -> None:
+    def _grid(self, s: int, *, fused: bool = False) -> None:
+        """The grid of substep s: P2G (the fused kernel, or the split ones whose adjoints the
+        reverse pass runs), then the grid forces and contact."""
         k = self.kernels
         k.clear_grid(False)
-        k.stress(s, self.n, self.dt)
-        for i, j in STENCIL_ROWS:
-            k.p2g(s, self.n, i, j, self._pm_level())
+        if fused:
+            k.p2g_fused(s, self.n, self.dt, self._pm_level())
+        else:
+            k.stress(s, self.n, self.dt)
+            for i, j in STENCIL_ROWS:
+                k.p2g(s, self.n, i, j, self._pm_level())
         k.grid_forces(*self._force_args(s))
         k.grid_contact(self.ground_z, self.has_ground)
 
