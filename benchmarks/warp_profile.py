@@ -8,11 +8,12 @@ Usage (GPU machine):
 
 Forward: the summed CUDA time of each kernel over one frame (no graph capture, so Warp can
 time every launch). Backward: one frame's adjoint as autograd.WarpRollout.backward runs it for
-a one-frame rollout -- copy each particle's parameters and each grid node's body acceleration
-and drag (once per rollout), load the frame's checkpoint, re-simulate the frame keeping every
+a one-frame rollout -- copy each particle's parameters and each grid node's coefficients
+(once per rollout), load the frame's checkpoint, re-simulate the frame keeping every
 substep's state, then per substep in reverse: zero the gradients, replay the substep under a
 Warp tape, run the tape's adjoint kernels; then sum the per-particle parameter gradients per
-object and the per-node ones per member (once per frame, torch, timed by its wall clock) -- each phase timed on its own, summed per (phase, kernel) with launch counts, sorted,
+object and the per-node ones per member and field (once per frame, torch, timed by its wall
+clock) -- each phase timed on its own, summed per (phase, kernel) with launch counts, sorted,
 with each row's share of the backward total. Beside it: the forward frame, the implied
 particle-substeps/s of forward + backward, the same frame through the captured CUDA graphs that
 rollouts replay, peak GPU memory, and a check that the profiled schedule gives the real path's
@@ -48,11 +49,18 @@ re-simulation and the taped replay), zeroes gradients, and launches four adjoint
    (state.NodeCoefficients, 40 bytes a node, 98 MB at grid 128; per_node = 1), gathered with
    the particles' copies, its gradients summed per member in float64 in the reduce row; the
    switch (only compared, so no gradient) from a copy without a gradient, which Warp's adjoint
-   skips, as do the taped field_moments and other_centres. Not yet measured on a GPU. Not
-   fixed: the expression's coefficients (when the term is on), friction and the ground
-   coefficients are still read per node from the tables, their adjoints float32 atomics onto
-   a few addresses. --table-reads profiles the taped kernels reading the tables, as before the
-   copies (particles' and nodes'), for comparison. --ablate-parameter-gradients removes every
+   skips, as do the taped field_moments and other_centres. Measured on an H200: 43.3 -> 7.2
+   ms a frame. The adjoint grid_boundaries (21 ms a frame on an H200, 7.7x its forward) read
+   friction in every node with mass (field_sums' hand-written adjoint adds m times its zero
+   adjoint there even where no two fields meet) and the ground friction and restitution on
+   every ground-layer node with mass, from the tables. Fixed the same way: the taped
+   grid_boundaries reads each node's copy of its object's friction (8 more bytes a node) and
+   each ground-layer node's of the ground coefficients (16 bytes a node of the layers at or
+   below the ground, per member: 1.7 MB at grid 128), summed in the reduce row. Not yet
+   measured on a GPU. Not fixed: the expression's coefficients (when the term is on) are still
+   read per node from the tables, their adjoints float32 atomics onto a few addresses.
+   --table-reads profiles the taped kernels reading the tables, as before the copies
+   (particles' and nodes'), for comparison. --ablate-parameter-gradients removes every
    parameter gradient (the copies' and the tables', friction's excepted), so Warp skips those
    atomics: what it recovers is what the parameter adjoints still cost.
 2. Recomputation. Every substep's forward runs three times (rollout, re-simulation, taped
@@ -390,16 +398,18 @@ def without_parameter_gradients(setup: Setup, start: ParticleState, frame: int) 
     """The profiled adjoint again with every parameter gradient array removed (the particles'
     copies' and the tables'), so that Warp's adjoints skip their parameter atomics (suspect 1):
     ms per (phase, name) and total. The copies' values (the particles' and the nodes') are
-    gathered first (the taped kernels read them); no gradient is summed. Friction keeps its gradient: field_sums' hand-written
-    adjoint writes into it unchecked (read once per node with mass, not per particle)."""
+    gathered first (the taped kernels read them); no gradient is summed. Friction keeps its
+    gradient, the table's and the nodes' copy's: field_sums' hand-written adjoint writes into
+    it unchecked (the copy's: one uncontended atomic per node with mass)."""
     run = setup.run
     ws = run.backward_workspace()
     ws.begin_parameters(run)
     arrays = [*vars(run.tables).values(), *ws.parameter_copies()]
+    kept = (run.tables.friction, ws.node_coefficients.friction)
     tables = [
         a
         for a in arrays
-        if isinstance(a, wp.array) and a.requires_grad and a is not run.tables.friction
+        if isinstance(a, wp.array) and a.requires_grad and not any(a is k for k in kept)
     ]
     for a in tables:
         a.requires_grad = False

@@ -24,11 +24,12 @@ own copy of its object's law parameters, density and viscosity once per backward
 adjoints add into one address per particle), and after each frame the per-particle gradients
 are summed per object in float64 (``collect_parameter_gradients``). The same for the grid: the
 taped grid_free_velocity read its member's body acceleration and drag in every node with mass,
-so each node gets its own copy (state.NodeCoefficients, 40 bytes a node), summed per member in
-float64 after each frame; it reads the expression switches, whose gradient is zero (they are
-only compared), from a copy without a gradient, so no atomics at all. Still read per node from
-the tables, their adjoints float32 atomics onto a few addresses: the expression's coefficients,
-and grid_boundaries' friction and ground coefficients.
+and grid_boundaries its objects' friction there and its ground friction and restitution on the
+ground layers, so each node gets its own copy (state.NodeCoefficients, 48 bytes a node and 16
+a ground-layer node), summed per member and object in float64 after each frame;
+grid_free_velocity reads the expression switches, whose gradient is zero (they are only
+compared), from a copy without a gradient, so no atomics at all. Still read per node from the
+tables, their adjoints float32 atomics onto a few addresses: the expression's coefficients.
 """
 
 from __future__ import annotations
@@ -126,19 +127,22 @@ class BackwardWorkspace:
         self.carry = ParticleState(n, dev, requires_grad=True)
         #: each particle's copy of its object's parameters, read by the taped P2G and G2P
         self.gathered = ParticleParams(n, dev)
-        #: each grid node's copy of its member's body acceleration and drag, read by the taped
-        #: grid_free_velocity, and the expression switches without a gradient
-        self.node_coefficients = NodeCoefficients(run.batch * run.layout.size, run.batch, dev)
+        #: each grid node's copy of its member's body acceleration and drag, its object's
+        #: friction and (on the ground layers) its member's ground coefficients, read by the
+        #: taped grid kernels, and the expression switches without a gradient
+        self.node_coefficients = NodeCoefficients(run.layout, run.batch, run.ground_layers, dev)
         #: False: the taped kernels read the per-object tables instead, every particle's and
         #: node's parameter adjoint added by float32 atomics into the tables' few gradient
         #: entries each substep (the accumulation before the copies; tests and warp_profile.py
         #: compare)
         self.gather_parameters = True
         #: float64 [B K, 7] per-object sums of the law parameters', density's and viscosity's
-        #: gradients over the frames back-propagated so far, and [B, 5] per-member sums of the
-        #: body acceleration's and drag's (``collect_parameter_gradients``)
+        #: gradients over the frames back-propagated so far, [B, 7] per-member sums of the body
+        #: acceleration's, drag's, ground friction's and restitution's, and [B F] per-field
+        #: sums of the friction's (``collect_parameter_gradients``)
         self._parameter_sums: torch.Tensor | None = None
         self._coefficient_sums: torch.Tensor | None = None
+        self._friction_sums: torch.Tensor | None = None
         self._obj: torch.Tensor | None = None
         #: the captured adjoint, per value of MPMRun.centres and gather_parameters (the
         #: launches differ: a graph captured with the copies would replay them after the
@@ -157,9 +161,8 @@ class BackwardWorkspace:
     def begin_parameters(self, run) -> None:
         """Before a rollout's backward (after ``run.tables.zero_grad``): copy each particle's
         object's law parameters, density and viscosity into ``gathered`` and each node's
-        member's body acceleration, drag and expression switches into ``node_coefficients``
-        (the tables hold the rollout's values until its backward ends), zero their gradients
-        and the sums."""
+        coefficients and the expression switches into ``node_coefficients`` (the tables hold
+        the rollout's values until its backward ends), zero their gradients and the sums."""
         if not self.gather_parameters:
             return
         t = run.tables
@@ -170,28 +173,41 @@ class BackwardWorkspace:
             outputs=self.gathered.arrays(),
             device=run.device,
         )
-        c = self.node_coefficients
-        wp.launch(
-            K.gather_node_coefficients,
-            dim=c.accel.shape[0],
-            inputs=[t.accel, t.drag, run.layout.size],
-            outputs=c.arrays(),
-            device=run.device,
-        )
-        wp.copy(c.expr_switch, t.expr_switch)
+        self._gather_node_coefficients(run)
         for a in self.parameter_copies():
             a.grad.zero_()
         self._obj = wp.to_torch(run.obj).long()
         dev = wp.device_to_torch(run.device)
         self._parameter_sums = torch.zeros(t.batch * t.k, 7, dtype=torch.float64, device=dev)
-        self._coefficient_sums = torch.zeros(t.batch, 5, dtype=torch.float64, device=dev)
+        self._coefficient_sums = torch.zeros(t.batch, 7, dtype=torch.float64, device=dev)
+        fields = t.batch * run.layout.fields
+        self._friction_sums = torch.zeros(fields, dtype=torch.float64, device=dev)
+
+    def _gather_node_coefficients(self, run) -> None:
+        """The nodes' copies of the tables' grid coefficients (state.NodeCoefficients)."""
+        t, c = run.tables, self.node_coefficients
+        wp.launch(
+            K.gather_node_coefficients,
+            dim=c.accel.shape[0],
+            inputs=[t.accel, t.drag, t.friction, run.layout.size, c.field_nodes],
+            outputs=[c.accel, c.drag, c.friction],
+            device=run.device,
+        )
+        wp.launch(
+            K.gather_ground_coefficients,
+            dim=c.ground_friction.shape[0],
+            inputs=[t.ground_friction, t.ground_restitution, c.member_rows],
+            outputs=[c.ground_friction, c.ground_restitution],
+            device=run.device,
+        )
+        wp.copy(c.expr_switch, t.expr_switch)
 
     def collect_parameter_gradients(self, run) -> None:
         """After a frame's adjoint: sum the particles' parameter gradients per object and the
-        nodes' coefficient gradients per member in float64 into the rollout's sums, zero them
-        for the next frame, and write the sums into the tables' gradients (float32; viscosity
-        summed over each member's objects), where ObjectTables.grad_theta reads them. The
-        expression switches' gradient stays the tables' (zero: only compared)."""
+        nodes' coefficient gradients per member or field in float64 into the rollout's sums,
+        zero them for the next frame, and write the sums into the tables' gradients (float32;
+        viscosity summed over each member's objects), where ObjectTables.grad_theta reads
+        them. The expression switches' gradient stays the tables' (zero: only compared)."""
         if not self.gather_parameters:
             return
         _torch_waits_for_warp(run.device)
@@ -210,20 +226,34 @@ class BackwardWorkspace:
         _warp_waits_for_torch(run.device)  # later Warp work reads or zeroes these arrays
 
     def _collect_coefficient_gradients(self, run) -> None:
-        """The nodes' body acceleration and drag gradients summed per member (the flat nodes
-        are member-major: member b's are rows b S .. (b + 1) S - 1) in float64, one torch.sum
-        per array (a fixed-order reduction, where index_add_ would add in schedule order on
-        CUDA), into the rollout's sums and the tables' gradients; the nodes' zeroed."""
+        """The nodes' coefficient gradients summed in float64 into the rollout's sums and the
+        tables' gradients, the nodes' zeroed: body acceleration, drag and the ground's per
+        member (the copies are member-major: member b's nodes, or its ground-layer rows, are
+        one block), friction per field (the friction row grid_boundaries reads for field f of
+        member b is b F + f: each object's own in multi-field mode, unused in single-field
+        mode). One torch.sum per array, a fixed-order reduction, where index_add_ would add in
+        schedule order on CUDA.
+        """
         t, c = run.tables, self.node_coefficients
-        accel = wp.to_torch(c.accel.grad)
-        drag = wp.to_torch(c.drag.grad)
+        grads = [wp.to_torch(a.grad) for a in c.arrays()]
+        accel, drag, friction, ground_friction, ground_restitution = grads
+        per_member = [
+            accel.view(t.batch, -1, 3),
+            drag.view(t.batch, -1, 2),
+            ground_friction.view(t.batch, c.member_rows, 1),  # no rows without a ground
+            ground_restitution.view(t.batch, c.member_rows, 1),
+        ]
         sums = self._coefficient_sums
-        sums[:, :3] += accel.view(t.batch, -1, 3).sum(1, dtype=torch.float64)
-        sums[:, 3:] += drag.view(t.batch, -1, 2).sum(1, dtype=torch.float64)
-        accel.zero_()
-        drag.zero_()
+        sums += torch.cat([g.sum(1, dtype=torch.float64) for g in per_member], dim=1)
+        self._friction_sums += friction.view(-1, c.field_nodes).sum(1, dtype=torch.float64)
+        for grad in grads:
+            grad.zero_()
         wp.to_torch(t.accel.grad).copy_(sums[:, :3])
-        wp.to_torch(t.drag.grad).copy_(sums[:, 3:].reshape(-1))
+        wp.to_torch(t.drag.grad).copy_(sums[:, 3:5].reshape(-1))
+        wp.to_torch(t.ground_friction.grad).copy_(sums[:, 5])
+        wp.to_torch(t.ground_restitution.grad).copy_(sums[:, 6])
+        rows = self._friction_sums.shape[0]  # B F: every row in multi-field mode
+        wp.to_torch(t.friction.grad)[:rows].copy_(self._friction_sums)
 
     def adjoint_frame(self, run, start: ParticleState, *, frame: int) -> None:
         """carry.grad: d(loss)/d(state at the frame's end) -> d(loss)/d(state at its start);

@@ -21,6 +21,7 @@ def field_sums(
     grid_gm: wp.array(dtype=wp.vec3),
     friction: wp.array(dtype=float),
     first: int,
+    stride: int,
     node: int,
     per_field: int,
     n_fields: int,
@@ -29,8 +30,9 @@ def field_sums(
 ):
     # over fields f != skip with mass m_f > mass_eps at this node:
     # (sum m_f [kg], sum m_f v_f [kg m/s], sum grad m_f [kg/m], sum m_f mu_f [kg], count);
-    # node is field 0's flat index and friction[first + f] is field f's coefficient (first:
-    # the member's first object in a batched rollout, 0 otherwise)
+    # node is field 0's flat index and friction[first + f stride] is field f's coefficient:
+    # in the per-object table, first is the member's first object (0 unless batched) and
+    # stride 1; in the nodes' copies (state.NodeCoefficients), first is node, stride per_field
     m_sum = float(0.0)  # noqa: UP018 (Warp needs dynamic variables in a dynamic loop)
     p_sum = wp.vec3()
     g_sum = wp.vec3()
@@ -43,7 +45,7 @@ def field_sums(
             m_sum += m
             p_sum += m * grid_vs[n]
             g_sum += grid_gm[n]
-            mu_sum += m * friction[first + f]
+            mu_sum += m * friction[first + f * stride]
             count += 1
     return m_sum, p_sum, g_sum, mu_sum, count
 
@@ -55,6 +57,7 @@ def adj_field_sums(
     grid_gm: wp.array(dtype=wp.vec3),
     friction: wp.array(dtype=float),
     first: int,
+    stride: int,
     node: int,
     per_field: int,
     n_fields: int,
@@ -67,14 +70,16 @@ def adj_field_sums(
     adj_count: int,
 ):
     # each sum is linear per field: d/dm_f = 1, v_f, 0, mu_f; d/dv_f = m_f; d/dgrad m_f = 1;
-    # d/dmu_f = m_f (array adjoints accumulate atomically: other nodes share friction[f])
+    # d/dmu_f = m_f (array adjoints accumulate atomically: every node shares a table's
+    # friction[first + f], so the taped kernel reads the nodes' own copies instead)
     for f in range(n_fields):
         n = f * per_field + node
         m = grid_m[n]
+        row = first + f * stride
         if f != skip and m > mass_eps:
             wp.adjoint[grid_m][n] += (
-                adj_m_sum + wp.dot(adj_p_sum, grid_vs[n]) + adj_mu_sum * (friction[first + f])
+                adj_m_sum + wp.dot(adj_p_sum, grid_vs[n]) + adj_mu_sum * (friction[row])
             )
             wp.adjoint[grid_vs][n] += m * adj_p_sum
             wp.adjoint[grid_gm][n] += adj_g_sum
-            wp.adjoint[friction][first + f] += m * adj_mu_sum
+            wp.adjoint[friction][row] += m * adj_mu_sum

@@ -13,8 +13,9 @@ coefficients) are indexed by b. A single rollout is the batch of one (b = 0).
 P2G and G2P read the law parameters, density and viscosity from the per-object tables or, in
 the backward's taped replay, from each particle's copy of them (``per_particle``,
 parameter_rows): same values, same results, but uncontended parameter adjoints. Likewise
-grid_free_velocity reads the body acceleration and drag from the per-member tables or, taped,
-from each node's copy (``per_node``, state.NodeCoefficients).
+grid_free_velocity reads the body acceleration and drag, and grid_boundaries the contact
+friction and the ground's friction and restitution, from the per-member and per-object tables
+or, taped, from each node's copy (``per_node``, state.NodeCoefficients).
 
 P2G and G2P read each particle array once per thread, into a local used from then on: Warp's
 adjoint of a read a[p] is an atomic add into a's gradient at p, one per read in the code (P2G
@@ -171,17 +172,45 @@ def gather_particle_params(
 def gather_node_coefficients(
     accel: wp.array(dtype=wp.vec3),
     drag: wp.array(dtype=float),
+    friction: wp.array(dtype=float),
     member_nodes: int,
+    field_nodes: int,
     node_accel: wp.array(dtype=wp.vec3),
     node_drag: wp.array(dtype=float),
+    node_friction: wp.array(dtype=float),
 ):
-    # flat node n's copy of what grid_free_velocity reads per member (state.NodeCoefficients):
-    # body acceleration and drag of member n // member_nodes (member_nodes = GridLayout.size)
+    # flat node n's copy of what grid_free_velocity and grid_boundaries read per member or
+    # object (state.NodeCoefficients): body acceleration and drag of member n // member_nodes
+    # (member_nodes = GridLayout.size) and the friction row n // field_nodes (nodes per field),
+    # the row grid_boundaries reads for the node's field (first + f)
     n = wp.tid()
     b = n // member_nodes
     node_accel[n] = accel[b]
     node_drag[2 * n] = drag[2 * b]
     node_drag[2 * n + 1] = drag[2 * b + 1]
+    node_friction[n] = friction[n // field_nodes]
+
+
+@wp.func
+def ground_row(b: int, i: int, j: int, k: int, nodes: wp.vec3i, layers: int):
+    # row of member b's ground-layer node (i, j, k), k < layers, in the nodes' ground copies
+    return ((b * nodes[0] + i) * nodes[1] + j) * layers + k
+
+
+@wp.kernel
+def gather_ground_coefficients(
+    ground_friction: wp.array(dtype=float),
+    ground_restitution: wp.array(dtype=float),
+    member_rows: int,
+    node_friction: wp.array(dtype=float),
+    node_restitution: wp.array(dtype=float),
+):
+    # ground-layer row g's copy (ground_row) of member g // member_rows's ground friction and
+    # restitution (member_rows = NX NY ground layers, state.NodeCoefficients)
+    g = wp.tid()
+    b = g // member_rows
+    node_friction[g] = ground_friction[b]
+    node_restitution[g] = ground_restitution[b]
 
 
 @wp.kernel
@@ -373,18 +402,24 @@ def grid_boundaries(
     grid_gm: wp.array(dtype=wp.vec3),
     grid_pm: wp.array(dtype=wp.vec3),
     n_fields: int,
-    friction: wp.array(dtype=float),
     nodes: wp.vec3i,
     ground_on: int,
     ground_k: float,
+    ground_layers: int,
+    friction: wp.array(dtype=float),
     ground_friction: wp.array(dtype=float),
     ground_restitution: wp.array(dtype=float),
+    per_node: int,
     box_lo: wp.vec3i,
     box_dims: wp.vec3i,
     grid_v: wp.array(dtype=wp.vec3),
 ):
     # multi-field Coulomb contact, ground plane and slip walls at one spatial node of the box;
-    # one thread per (batch member, node), n_fields = fields per member
+    # one thread per (batch member, node), n_fields = fields per member.
+    # per_node: friction from the nodes' copies (row n of field f's node), the ground's from the
+    # ground-layer nodes' (ground_row, ground_layers = the layers k <= ground_k), not the tables'
+    # rows first + f and b: as in grid_free_velocity, the tables' adjoints would be float32
+    # atomics of every node with mass onto a few addresses
     t = wp.tid()
     box_count = box_dims[0] * box_dims[1] * box_dims[2]
     b = t // box_count
@@ -395,11 +430,19 @@ def grid_boundaries(
     per_field = nodes[0] * nodes[1] * nodes[2]
     first = b * n_fields  # the member's first field, and its first object in multi-field mode
     s = node_index(first, i, j, k, nodes)
+    mu_first = first  # field f's friction at mu_first + f mu_stride (field_sums)
+    mu_stride = 1
+    r = b
+    if per_node != 0:
+        mu_first = s
+        mu_stride = per_field
+        r = ground_row(b, i, j, k, nodes, ground_layers)
     # sums over fields go through field_sums: Warp cannot differentiate a local variable
     # accumulated in a loop over the run-time field count
     m_tot, p_tot, g_tot, mu_tot, count = field_sums(
-        grid_m, grid_vs, grid_gm, friction, first, s, per_field, n_fields, -1, MASS_EPS
-    )
+        grid_m, grid_vs, grid_gm, friction, mu_first, mu_stride, s, per_field, n_fields, -1,
+        MASS_EPS,
+    )  # fmt: skip
     for f in range(n_fields):
         n = f * per_field + s
         m = grid_m[n]
@@ -410,16 +453,17 @@ def grid_boundaries(
                 # total cancels catastrophically when f dominates the node's mass (and rounds
                 # differently under CUDA's fused multiply-adds), which gave wild coefficients
                 m_other, p_other, g_other, mu_other, n_other = field_sums(
-                    grid_m, grid_vs, grid_gm, friction, first, s, per_field, n_fields, f, MASS_EPS
-                )
+                    grid_m, grid_vs, grid_gm, friction, mu_first, mu_stride, s, per_field,
+                    n_fields, f, MASS_EPS,
+                )  # fmt: skip
                 # outward normal of f against the others: normalize(gm_f - sum of the others' gm)
                 d = grid_gm[n] - g_other
                 normal = d / safe_norm(d)
-                mu = 0.5 * (friction[first + f] + mu_other / m_other)
+                mu = 0.5 * (friction[mu_first + f * mu_stride] + mu_other / m_other)
                 v = coulomb_contact(v, p_tot / m_tot, normal, mu)
             if ground_on != 0 and float(k) <= ground_k:
                 v_in = grid_pm[n][2] / m
-                v = ground_contact(v, v_in, ground_friction[b], ground_restitution[b])
+                v = ground_contact(v, v_in, ground_friction[r], ground_restitution[r])
             v = slip_walls(v, i, j, k, nodes)
         grid_v[n] = v
 

@@ -8,6 +8,9 @@ the schedule). ``WarpMPMSimulator`` (simulator.py) makes one per rollout shape a
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import torch
 import warp as wp
 
@@ -90,6 +93,10 @@ class MPMRun:
         self.ground_on = int(world.ground_height is not None)
         z0 = layout.origin[2]
         self.ground_k = ((world.ground_height or 0.0) - z0) / layout.dx + 1e-4
+        #: node layers k <= ground_k, where the ground contact acts: the kernels compare in
+        #: float32, so the count comes from ground_k rounded as they see it
+        top = math.floor(float(np.float32(self.ground_k))) if self.ground_on else -1
+        self.ground_layers = min(max(top + 1, 0), layout.nodes[2])
         #: the current frame's start time (s), read by the expression term (``set_clock``)
         self.clock = wp.zeros(1, dtype=float, device=device)
         self.up = wp.vec3(*up_vector(world.gravity).tolist())
@@ -245,8 +252,9 @@ class MPMRun:
         ``gathered``: None, P2G reads the per-object tables (forward rollouts, re-simulation);
         else the particles' own copies of them (the taped replay, whose parameter adjoints then
         land on one address per particle: kernels.parameter_rows). ``coefficients``: likewise
-        for grid_free_velocity's body acceleration and drag (the nodes' copies, ``per_node``)
-        and the expression switches (a copy without a gradient). Same values, same results.
+        for grid_free_velocity's body acceleration and drag and grid_boundaries' friction and
+        ground coefficients (the nodes' copies, ``per_node``) and the expression switches (a
+        copy without a gradient). Same values, same results.
         """
         lay, t, dev = self.layout, self.tables, self.device
         origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
@@ -266,6 +274,8 @@ class MPMRun:
         switch = None if c is None else c.expr_switch
         self.centre_sums(grid, box, switch)
         coef_inputs = [t.accel, t.drag, 0] if c is None else [c.accel, c.drag, 1]
+        bound = t if c is None else c
+        bound_inputs = [bound.friction, bound.ground_friction, bound.ground_restitution]
         wp.launch(
             K.grid_free_velocity,
             dim=self.batch * lay.fields * box.count,
@@ -277,8 +287,8 @@ class MPMRun:
         wp.launch(
             K.grid_boundaries,
             dim=self.batch * box.count,
-            inputs=[grid.m, grid.vs, grid.gm, grid.pm, lay.fields, t.friction, nodes]
-            + [self.ground_on, self.ground_k, t.ground_friction, t.ground_restitution]
+            inputs=[grid.m, grid.vs, grid.gm, grid.pm, lay.fields, nodes, self.ground_on]
+            + [self.ground_k, self.ground_layers, *bound_inputs, int(c is not None)]
             + [box_lo, box_dims],
             outputs=[grid.v],
             device=dev,

@@ -152,34 +152,47 @@ class ParticleParams:
 
 
 class NodeCoefficients:
-    """Each grid node's copy of its member's per-member coefficients that grid_free_velocity
-    reads: body acceleration ``accel`` [S] vec3 (m/s^2) and drag ``drag`` [2 S] (node n's
-    linear coefficient (1/s) at 2 n, quadratic (1/m) at 2 n + 1), with gradients, over the
-    S = batch x GridLayout.size flat nodes (every field's, PAD layers included); and
+    """Each grid node's copy of the per-member and per-object coefficients that the grid kernels
+    read, with gradients: for grid_free_velocity its member's body acceleration ``accel`` [S]
+    vec3 (m/s^2) and drag ``drag`` [2 S] (node n's linear coefficient (1/s) at 2 n, quadratic
+    (1/m) at 2 n + 1), for grid_boundaries the contact ``friction`` [S] of its field's object,
+    over the S = batch x GridLayout.size flat nodes (every field's, PAD layers included); the
+    ground's ``ground_friction`` and ``ground_restitution`` [G] only on the ground layers, the
+    nodes where grid_boundaries reads them (k <= MPMRun.ground_k: ``layers`` of them), once per
+    member and spatial node, G = batch x NX x NY x layers (kernels.ground_row); and
     ``expr_switch`` [2 B], a copy of the expression switches without a gradient.
 
-    The taped grid_free_velocity reads these instead of ObjectTables (its ``per_node`` flag), so
-    that the adjoints of accel and drag add into one address per node rather than into the
-    member's few, shared by every node with mass (autograd.BackwardWorkspace sums them per
-    member). The switches are only compared (> 0.5), so their gradient is zero: a copy without
-    one makes Warp skip the zero atomics that the tables' switch reads issued per node.
+    The taped grid kernels read these instead of ObjectTables (their ``per_node`` flag), so that
+    the coefficients' adjoints add into one address per node rather than into the member's or
+    object's few, shared by every node with mass (autograd.BackwardWorkspace sums them per
+    member and object). The switches are only compared (> 0.5), so their gradient is zero: a
+    copy without one makes Warp skip the zero atomics that the tables' switch reads issued per
+    node.
 
-    Memory: 5 float32 values and 5 gradients, 40 bytes a node: at grid 128 on the bench's cubic
-    domain 135^3 = 2.46 M nodes per field (PAD layers included), 98 MB a field. The copies
-    cover the whole grid even where the CPU visits a window of it (state.NodeBox): the window
-    moves every substep, and nodes outside it are only never read.
+    Memory: 6 float32 values and 6 gradients, 48 bytes a node, and 16 bytes a ground-layer node
+    per member: at grid 128 on the bench's cubic domain 135^3 = 2.46 M nodes per field (PAD
+    layers included), 118 MB a field, and 6 ground layers of 135^2, 1.7 MB. The copies cover
+    the whole grid even where the CPU visits a window of it (state.NodeBox): the window moves
+    every substep, and nodes outside it are only never read.
     """
 
-    FIELDS = ("accel", "drag")
+    FIELDS = ("accel", "drag", "friction", "ground_friction", "ground_restitution")
 
-    def __init__(self, nodes: int, batch: int, device):
+    def __init__(self, layout: GridLayout, batch: int, layers: int, device):
         kw = {"device": device, "requires_grad": True}
+        nodes = batch * layout.size
+        #: nodes per field, and ground-layer rows per member (kernels.gather_*_coefficients)
+        self.field_nodes = layout.nodes_per_field
+        self.member_rows = layout.nodes[0] * layout.nodes[1] * layers
         self.accel = wp.zeros(nodes, dtype=wp.vec3, **kw)
         self.drag = wp.zeros(2 * nodes, dtype=float, **kw)
+        self.friction = wp.zeros(nodes, dtype=float, **kw)
+        self.ground_friction = wp.zeros(batch * self.member_rows, dtype=float, **kw)
+        self.ground_restitution = wp.zeros(batch * self.member_rows, dtype=float, **kw)
         self.expr_switch = wp.zeros(2 * batch, dtype=float, device=device)
 
     def arrays(self) -> list[wp.array]:
-        """The copies with gradients (accel, drag)."""
+        """The copies with gradients, in FIELDS' order."""
         return [getattr(self, f) for f in self.FIELDS]
 
     def nbytes(self) -> int:

@@ -152,9 +152,11 @@ GRAD_RTOL_CUDA = 1e-3
 
 def _leaves(params: SimulationParams) -> dict[str, torch.Tensor]:
     """The member's differentiable inputs: object 1's E (and yield stress where plastic),
-    object 2's density, the ground friction and object 1's initial velocity."""
+    object 2's density and contact friction, the ground friction and object 1's initial
+    velocity."""
     one, two = params.objects[1].values, params.objects[2].values
     leaves = {"E": one["E"], "rho": two["rho"], "v0": params.initial_velocity[1]}
+    leaves["friction"] = two["friction"]
     if "yield_stress" in one:
         leaves["yield_stress"] = one["yield_stress"]
     leaves["ground_friction"] = params.ground_friction

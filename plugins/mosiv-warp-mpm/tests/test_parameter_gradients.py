@@ -13,7 +13,9 @@ acceleration and drag (state.NodeCoefficients), summed per member in float64 aft
 and the expression switches from a copy without a gradient: on a scene with gravity, wind,
 linear and quadratic drag and an expression of the other objects' features, all identified,
 the acceleration and drag gradients agree with the table reads' to float32 round-off and the
-rest as above.
+rest as above. The taped grid_boundaries reads each node's copy of its object's contact
+friction and, on the ground layers, of its member's ground friction and restitution: their
+gradients agree in the same way, on the same scene with a bouncy ground.
 """
 
 from __future__ import annotations
@@ -30,6 +32,9 @@ WORLD = World((0.0, 0.0, 0.0), (0.5, 0.5, 0.5), ground_height=0.0, fps=24.0)
 #: |new - old| <= RTOL |old| per quantity that goes through the copies: each is a sum over
 #: particles and substeps in float32 either way, in another order (measured: up to 1e-5)
 RTOL = {"E": 1e-4, "nu": 1e-4, "yield_stress": 1e-4, "rho": 1e-4, "viscosity": 1e-4}
+#: the same for the boundary coefficients that go through the nodes' copies (measured: up to
+#: 1.4e-6 for friction, 5e-7 for the ground's)
+BOUNDARY_RTOL = {"friction": 1e-4, "ground_friction": 1e-4}
 #: the same for the per-member coefficients that go through the nodes' copies, by full name
 TERM_RTOL = {
     "term.gravity.acceleration": 1e-4,
@@ -47,6 +52,9 @@ TERMS = {
     "quadratic_drag": {"coefficient": 0.4},
     "expression": {"a_x:dp_x": 0.5, "a_z:v_z": -0.2},
 }
+#: a bouncy ground: the restitution goes through the ground-layer nodes' copies
+RESTITUTION = {"ground_restitution": {"coefficient": 0.5}}
+RESTITUTION_RTOL = {"term.ground_restitution.coefficient": 1e-4}
 
 
 def _scene(terms: dict | None = None):
@@ -103,7 +111,7 @@ def _compare(new: dict, old: dict, rtol: dict[str, float]) -> set[str]:
             err = float((new[name] - g).abs().max()) / float(g.abs().max())
             assert err <= rtol[key], f"{name}: {new[name]} vs {g} ({err:.2g})"
             checked.add(key)
-        else:  # initial velocities, friction, ground, expression: not through the copies
+        else:  # initial velocities and the expression: not through the copies
             assert _same(new[name], g), name
     return checked
 
@@ -112,7 +120,8 @@ def test_gathered_parameter_gradients_match_the_table_reads(sim) -> None:
     pos_new, new = _rollout(sim, gather=True)
     pos_old, old = _rollout(sim, gather=False)
     assert _same(pos_new, pos_old)
-    assert _compare(new, old, RTOL) == set(RTOL)
+    rtol = RTOL | BOUNDARY_RTOL
+    assert _compare(new, old, rtol) == set(rtol)
     # and the gathered path is reproducible: the same rollout gives the same gradients
     _, again = _rollout(sim, gather=True)
     assert all(_same(again[n], g) for n, g in new.items())
@@ -122,22 +131,41 @@ def test_node_coefficient_gradients_match_the_table_reads(sim) -> None:
     pos_new, new = _rollout(sim, gather=True, terms=TERMS)
     pos_old, old = _rollout(sim, gather=False, terms=TERMS)
     assert _same(pos_new, pos_old)
-    assert _compare(new, old, RTOL | TERM_RTOL) == set(RTOL | TERM_RTOL)
+    rtol = RTOL | BOUNDARY_RTOL | TERM_RTOL
+    assert _compare(new, old, rtol) == set(rtol)
     # every expression coefficient has a gradient (the switch's copy gates nothing off)
     assert all(float(new[f"term.expression.{c}"].abs()) > 0 for c in TERMS["expression"])
     _, again = _rollout(sim, gather=True, terms=TERMS)
     assert all(_same(again[n], g) for n, g in new.items())
 
 
-def test_the_copies_cost_56_bytes_a_particle_and_40_a_node(sim) -> None:
+def test_boundary_coefficient_gradients_match_the_table_reads(sim) -> None:
+    # contact between the two balls (both frictions) and a bounce off a frictional ground
+    pos_new, new = _rollout(sim, gather=True, terms=RESTITUTION)
+    pos_old, old = _rollout(sim, gather=False, terms=RESTITUTION)
+    assert _same(pos_new, pos_old)
+    rtol = RTOL | BOUNDARY_RTOL | RESTITUTION_RTOL
+    assert _compare(new, old, rtol) == set(rtol)
+    for name in ("obj1.friction", "obj2.friction", "ground_friction", *RESTITUTION_RTOL):
+        assert float(new[name].abs()) > 0, name  # the coefficient acted in this scene
+    _, again = _rollout(sim, gather=True, terms=RESTITUTION)
+    assert all(_same(again[n], g) for n, g in new.items())
+
+
+def test_the_copies_cost_56_bytes_a_particle_and_48_a_node(sim) -> None:
     p, _ = _scene()
     _rollout(sim, gather=True)
     run = sim._grad_run
     ws = run.backward_workspace()
     assert ws.gathered.nbytes() == 56 * len(p)
     nodes = run.batch * run.layout.size  # every field's nodes, PAD layers included
+    # the ground's copies: 16 bytes a node of the ground layers (k <= ground_k), per member
+    nx, ny, nz = run.layout.nodes
+    ground_k = np.float32(run.ground_k)  # as the kernels compare it
+    assert run.ground_layers == sum(np.float32(k) <= ground_k for k in range(nz)) > 0
+    ground = run.batch * nx * ny * run.ground_layers
     switches = 2 * run.batch * 4
-    assert ws.node_coefficients.nbytes() == 40 * nodes + switches
+    assert ws.node_coefficients.nbytes() == 48 * nodes + 16 * ground + switches
     assert ws.nbytes() > ws.gathered.nbytes() + ws.node_coefficients.nbytes()
 
 
