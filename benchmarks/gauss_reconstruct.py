@@ -142,6 +142,7 @@ def main(argv=None) -> dict:
         "resolution": [scene.cameras[0].width, scene.cameras[0].height],
         "options": recon.extras["options"],
         "n_gaussians": recon.extras["n_gaussians"],
+        "skipped_steps": recon.extras["skipped_steps"],
         "psnr_db": training["psnr_mean"],
         "psnr_db_min": training["psnr_min"],
         "iou_min": training["iou_min"],

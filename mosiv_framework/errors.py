@@ -32,7 +32,7 @@ EXIT_CODES: dict[int, str] = {
     EXIT_FINDING: "the command ran and reports a negative finding (data check: problems found)",
     EXIT_USAGE: "invalid command line, recipe, option or run folder argument",
     EXIT_SCENE: "the scene folder does not follow mosiv-scene/1",
-    EXIT_DIVERGED: "a simulation diverged",
+    EXIT_DIVERGED: "a simulation or a reconstruction diverged",
     EXIT_UNAVAILABLE: "a component or stage is not installed or not available",
     EXIT_OUTPUT: "a file or folder could not be written or read, or an output folder was refused",
     EXIT_INTERNAL: "internal error (a bug); rerun with -v for the traceback",
@@ -98,6 +98,27 @@ class SimulationDiverged(MosivError):
 
 def _rebuild_diverged(fields: dict) -> SimulationDiverged:
     return SimulationDiverged(**fields)
+
+
+class ReconstructionDiverged(MosivError):
+    """A reconstructor's optimisation kept producing non-finite losses or gradients.
+
+    Names the stage, the step, and what was not finite, so the user can act on it.
+    """
+
+    exit_code = EXIT_DIVERGED
+
+    def __init__(self, *, stage: str, step: int, what: str, advice: str):
+        self.stage, self.step, self.what, self.advice = stage, step, what, advice
+        super().__init__(f"{stage} diverged at step {step}: {what}. {advice}")
+
+    def __reduce__(self):
+        fields = dict(stage=self.stage, step=self.step, what=self.what, advice=self.advice)
+        return (_rebuild_reconstruction_diverged, (fields,))
+
+
+def _rebuild_reconstruction_diverged(fields: dict) -> ReconstructionDiverged:
+    return ReconstructionDiverged(**fields)
 
 
 class StageNotAvailable(MosivError):

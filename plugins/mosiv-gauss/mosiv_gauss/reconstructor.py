@@ -168,6 +168,8 @@ class GaussDynamicReconstructor(Reconstructor):
             "n_seeds": n_seeds,
             "n_gaussians": model.n_gaussians,
             "final_loss": history.loss[-1] if history.loss else None,
+            "skipped_steps": len(history.skipped_steps),
+            "first_skipped_step": history.skipped_steps[0] if history.skipped_steps else None,
             "motion_prior_loss": motion[-1] if motion else None,
             "refine_loss": refine_loss[-1] if refine_loss else None,
             "seconds": time.perf_counter() - start,

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import kornia
 import torch
 
+from mosiv_framework.errors import ReconstructionDiverged
 from mosiv_framework.types import GaussianFrames
 from mosiv_gauss.dynamic_options import DynamicGaussOptions
 from mosiv_gauss.model import DynamicGaussians
@@ -94,6 +95,8 @@ class TrainingHistory:
     motion_loss: list[float] = field(default_factory=list)
     n_gaussians: list[int] = field(default_factory=list)
     background: Tensor | None = None
+    #: steps skipped because their loss or a gradient was not finite
+    skipped_steps: list[int] = field(default_factory=list)
 
 
 def estimate_background(rgb: Tensor, mask_ids: Tensor, views: Tensor | None = None) -> Tensor:
@@ -297,6 +300,42 @@ def shape_terms(
     return total
 
 
+#: a step whose loss or gradients are not finite is skipped (the parameters keep their last
+#: finite values); this many skipped in a row end the stage with ReconstructionDiverged, since
+#: then no view gives a finite loss any more
+MAX_SKIPPED_IN_A_ROW = 25
+
+
+def non_finite_parts(loss: Tensor, groups: dict[str, list[Tensor]]) -> list[str]:
+    """What is not finite after ``loss.backward()``: "loss" and the name of every group of
+    parameters one of whose gradients holds a NaN or an infinity (empty: the step is sound).
+    One device synchronisation for all of them."""
+    checks = [torch.isfinite(loss).all()]
+    names = ["loss"]
+    for name, params in groups.items():
+        grads = [p.grad for p in params if p.grad is not None]
+        if grads:
+            checks.append(torch.stack([torch.isfinite(g).all() for g in grads]).all())
+            names.append(name)
+    sound = torch.stack(checks).cpu().tolist()
+    return [n for n, ok in zip(names, sound, strict=True) if not ok]
+
+
+def skip_or_stop(skipped: list[int], step: int, bad: list[str], stage: str) -> None:
+    """Record that ``step`` is skipped (``bad``: what was not finite) and raise
+    ReconstructionDiverged once MAX_SKIPPED_IN_A_ROW steps in a row were."""
+    skipped.append(step)
+    recent = skipped[-MAX_SKIPPED_IN_A_ROW:]
+    if len(recent) == MAX_SKIPPED_IN_A_ROW and recent[-1] - recent[0] == len(recent) - 1:
+        raise ReconstructionDiverged(
+            stage=stage,
+            step=step,
+            what=f"{len(recent)} steps in a row with a non-finite {' and '.join(bad)}",
+            advice="Lower the learning rates (reconstructor.lr_*) or the number of Gaussians "
+            "(reconstructor.max_gaussians), and check the masks of the scene",
+        )
+
+
 def fit_motion_prior(
     model: DynamicGaussians,
     tracks: Tensor,
@@ -322,7 +361,8 @@ def fit_motion_prior(
     shift = tracks - tracks[:1]  # [T, K, 3]
     target = model.means.detach().unsqueeze(0) + shift[:, model.object_ids - 1]
     opt = torch.optim.Adam(model.network_parameters(), lr=lr)
-    history = []
+    history: list[float] = []
+    skipped: list[int] = []
     bar = _bar(range(iterations), progress, "gauss motion prior")
     for step in bar:
         means, _ = model.at(frames)
@@ -340,6 +380,10 @@ def fit_motion_prior(
                         ) / (len(frames) * model.n_objects)
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        bad = non_finite_parts(loss, {"network": model.network_parameters()})
+        if bad:
+            skip_or_stop(skipped, step, bad, "the Gaussians' motion prior")
+            continue
         opt.step()
         history.append(loss.item())
     return history
@@ -491,16 +535,24 @@ def train_dynamic(
     base_lrs = [[g["lr"] for g in o.param_groups] for o in optimizers]
     warmup = opts.iterations // 15 if opts.network_warmup is None else opts.network_warmup
 
+    net_params = model.network_parameters()
     order: list[int] = []
     grad_sum = torch.zeros(model.n_gaussians, device=device)
     grad_count = torch.zeros(model.n_gaussians, device=device)
     bar = _bar(range(opts.iterations), opts.progress, "gauss training")
     for step in bar:
+        trained = {"Gaussians": list(model.canonical_parameters()), "network": net_params}
+        if bg_opt is not None:
+            trained["background"] = [background]
         _schedule_learning_rates(step, opts.iterations, optimizers, base_lrs, net_opt, warmup)
         loss = _training_loss(model, data, opts, background, order, generator)
         for o in optimizers:
             o.zero_grad(set_to_none=True)
         loss.backward()
+        bad = non_finite_parts(loss, trained)
+        if bad:
+            skip_or_stop(history.skipped_steps, step, bad, "Gaussian training")
+            continue
         with torch.no_grad():
             norm = model.means.grad.norm(dim=-1)
             grad_sum += norm

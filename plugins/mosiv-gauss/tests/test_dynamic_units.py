@@ -3,6 +3,7 @@ central finite differences), background estimate, densification and pruning, sav
 
 from __future__ import annotations
 
+import mosiv_gauss.train as gauss_train
 import pytest
 import torch
 from mosiv_gauss.dynamic_options import DynamicGaussOptions
@@ -27,7 +28,7 @@ from mosiv_gauss.train import (
     view_loss,
 )
 
-from mosiv_framework.errors import ConfigError
+from mosiv_framework.errors import ConfigError, ReconstructionDiverged
 from mosiv_framework.registry import get_registry
 from mosiv_framework.scene.cameras import Camera
 from mosiv_framework.types import GaussianFrames
@@ -521,3 +522,49 @@ def test_views_not_recorded_are_never_sampled_and_give_no_background():
     epoch = sample_views(data, 5, order, gen)
     assert sorted(epoch) == [(0, 0), (1, 0), (1, 1), (2, 0), (2, 1)]
     assert all(views[t, c] for t, c in sample_views(data, 20, order, gen))
+
+
+def _nan_on_steps(monkeypatch, bad_steps) -> None:
+    """Make the training loss NaN on the steps in ``bad_steps`` (call order)."""
+    real = gauss_train._training_loss
+    calls = []
+
+    def loss(*args, **kwargs):
+        value = real(*args, **kwargs)
+        calls.append(len(calls))
+        return value * float("nan") if bad_steps(calls[-1]) else value
+
+    monkeypatch.setattr(gauss_train, "_training_loss", loss)
+
+
+def _tiny_training(iterations: int):
+    model = small_model(n_frames=2)
+    gen = torch.Generator().manual_seed(2)
+    data = TrainingData(
+        rgb=torch.rand(2, 1, 24, 24, 3, generator=gen),
+        masks=torch.zeros(2, 1, 2, 24, 24),
+        cameras=[camera()],
+        background=torch.zeros(1, 24, 24, 3),
+        voxel_size=0.01,
+    )
+    options = DynamicGaussOptions(iterations=iterations, densify_from=10**6, progress=False)
+    return model, data, options
+
+
+def test_a_step_with_a_non_finite_loss_is_skipped_and_the_parameters_stay_finite(monkeypatch):
+    _nan_on_steps(monkeypatch, lambda step: step == 2)
+    model, data, options = _tiny_training(6)
+    history = train_dynamic(model, data, options, generator=torch.Generator().manual_seed(0))
+    assert history.skipped_steps == [2]
+    assert len(history.loss) == 5
+    for param in [*model.canonical_parameters(), *model.network_parameters()]:
+        assert torch.isfinite(param).all()
+
+
+def test_training_that_never_gives_a_finite_loss_stops_naming_the_step(monkeypatch):
+    _nan_on_steps(monkeypatch, lambda step: step >= 1)
+    model, data, options = _tiny_training(gauss_train.MAX_SKIPPED_IN_A_ROW + 10)
+    with pytest.raises(ReconstructionDiverged) as caught:
+        train_dynamic(model, data, options, generator=torch.Generator().manual_seed(0))
+    assert caught.value.step == gauss_train.MAX_SKIPPED_IN_A_ROW  # steps 1..25 skipped
+    assert "Gaussian training" in str(caught.value) and "non-finite loss" in str(caught.value)
