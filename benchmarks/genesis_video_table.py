@@ -322,7 +322,9 @@ def target_lines(summary: dict) -> list[str]:
                 value += f" ({', '.join(s['kinds'])})"
             status = "met" if s["met"] else "not met"
             if s["missing"]:
-                status += f" ({len(s['missing'])} scenes without a run: {', '.join(s['missing'])})"
+                n_missing = len(s["missing"])
+                scenes = "scene" if n_missing == 1 else "scenes"
+                status += f" ({n_missing} {scenes} without a run: {', '.join(s['missing'])})"
         goal = f"{op} {target:g} {unit}".strip()
         lines.append(f"| {title} | {s['n']} | {value} | {goal} | {status} |")
     return lines
