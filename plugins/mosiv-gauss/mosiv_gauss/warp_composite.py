@@ -5,9 +5,16 @@ binning stay in torch (``project_isotropic``, ``bin_to_tiles``), and this module
 torch slices of ``_composite_slice`` with two kernels that walk each pixel's tile list:
 
     forward:  w_g = alpha_g T_g,  T_{g+1} = T_g (1 - alpha_g),  out_f = sum_g w_g c_gf
-    backward: the same list in reverse, T_g = T_{g+1} / (1 - alpha_g) recovered from the final
-              transmittance, dL/dalpha_g = T_g sum_f dL/dout_f c_gf - S_g / (1 - alpha_g) with
-              S_g = sum_f dL/dout_f sum_{h behind g} w_h c_hf (3D Gaussian splatting's backward)
+    backward: dL/dalpha_g = T_g sum_f dL/dout_f c_gf - S_g / (1 - alpha_g) with
+              S_g = sum_f dL/dout_f sum_{h behind g} w_h c_hf (3D Gaussian splatting's backward),
+              walking the list front to back as the forward does: T_g is recomputed the same
+              way and S_g = sum_f dL/dout_f out_f - (the same sum over g and those in front).
+
+Why front to back: 3D Gaussian splatting walks the list back to front, recovering
+T_g = T_{g+1} / (1 - alpha_g) from the final transmittance. Behind a few thousand overlapping
+Gaussians the forward's T sticks at float32's smallest subnormal (rounding no longer lowers it),
+and dividing it back up through the same Gaussians overflows to inf, giving NaN gradients
+(dense liquids after densification did this). Recomputing T forwards never divides.
 
 with alpha_g = min(o_g exp(-q/2), max_alpha) inside the cut-off q <= cutoff^2, exactly the
 torch model, so the torch path is the reference it is tested against. Gradients reach the
@@ -58,7 +65,6 @@ def composite_forward(
     cutoff2: float,
     max_alpha: float,
     out: wp.array2d(dtype=float),
-    final_trans: wp.array(dtype=float),
 ):
     pid = wp.tid()
     t = tile_of(pid, width, tile, tiles_x)
@@ -76,7 +82,6 @@ def composite_forward(
             for f in range(n_feat):
                 out[pid, f] = out[pid, f] + w * features[g, f]
             trans = trans * (1.0 - alpha)
-    final_trans[pid] = trans
 
 
 @wp.kernel
@@ -93,7 +98,7 @@ def composite_backward(
     tiles_x: int,
     cutoff2: float,
     max_alpha: float,
-    final_trans: wp.array(dtype=float),
+    out: wp.array2d(dtype=float),
     grad_out: wp.array2d(dtype=float),
     grad_uv: wp.array2d(dtype=float),
     grad_inv_var: wp.array2d(dtype=float),
@@ -103,13 +108,14 @@ def composite_backward(
     pid = wp.tid()
     t = tile_of(pid, width, tile, tiles_x)
     p = pixel_centre(pid, width)
-    trans = final_trans[pid]  # transmittance behind the last Gaussian, walked back to the front
-    # S: sum_f dL/dout_f * (features composited behind the current one)
-    behind = float(0.0)  # noqa: UP018 (Warp: a variable the loop changes)
     n_feat = features.shape[1]
-    first = tile_start[t]
-    for k in range(tile_count[t]):
-        j = first + tile_count[t] - 1 - k
+    # sum_f dL/dout_f out_f: every Gaussian's share, w_h sum_f dL/dout_f c_hf, summed
+    total = float(0.0)  # noqa: UP018 (Warp: a variable the loop changes)
+    for f in range(n_feat):
+        total = total + grad_out[pid, f] * out[pid, f]
+    trans = float(1.0)  # noqa: UP018 (transmittance in front of the current Gaussian)
+    upto = float(0.0)  # noqa: UP018 (the shares of the current Gaussian and those in front)
+    for j in range(tile_start[t], tile_start[t] + tile_count[t]):
         g = pair_gaussian[j]
         du = p[0] - uv[g, 0]
         dv = p[1] - uv[g, 1]
@@ -117,15 +123,16 @@ def composite_backward(
         if q <= cutoff2:
             raw = opacity[g] * wp.exp(-0.5 * q)
             alpha = wp.min(raw, max_alpha)
-            trans = trans / (1.0 - alpha)  # in front of g
             w = alpha * trans
             dot = float(0.0)  # noqa: UP018 (Warp: a variable the loop changes)
             for f in range(n_feat):
                 go = grad_out[pid, f]
                 wp.atomic_add(grad_features, g, f, w * go)
                 dot = dot + go * features[g, f]
+            upto = upto + w * dot
+            behind = total - upto  # S_g: the shares of the Gaussians behind g
             d_alpha = trans * dot - behind / (1.0 - alpha)
-            behind = behind + w * dot
+            trans = trans * (1.0 - alpha)
             if raw < max_alpha:  # the clamp passes no gradient
                 wp.atomic_add(grad_opacity, g, d_alpha * wp.exp(-0.5 * q))
                 d_q = d_alpha * raw * -0.5
@@ -168,7 +175,6 @@ class WarpComposite(torch.autograd.Function):
         f32 = [x.detach().float() for x in (uv, inv_var, opacity, features)]
         lists = [x.to(torch.int32) for x in (bins.start, bins.count, bins.gaussian)]
         out = torch.zeros(width * height, features.shape[1], dtype=torch.float32, device=device)
-        final = torch.empty(width * height, dtype=torch.float32, device=device)
         scalars = [width, tile, tiles_x, float(cutoff2), float(max_alpha)]
         with _Stream(device):
             wp.launch(
@@ -177,16 +183,16 @@ class WarpComposite(torch.autograd.Function):
                 inputs=[_warp(lists[0], wp.int32), _warp(lists[1], wp.int32)]
                 + [_warp(lists[2], wp.int32), _warp(f32[0], wp.float32), _warp(f32[1], wp.float32)]
                 + [_warp(f32[2], wp.float32), _warp(f32[3], wp.float32), *scalars],
-                outputs=[_warp(out, wp.float32), _warp(final, wp.float32)],
+                outputs=[_warp(out, wp.float32)],
                 device=dev,
             )
-        ctx.save_for_backward(*f32, *lists, final)
+        ctx.save_for_backward(*f32, *lists, out)
         ctx.layout, ctx.dtype = layout, uv.dtype
         return out.to(uv.dtype)
 
     @staticmethod
     def backward(ctx, grad_out):
-        uv, inv_var, opacity, features, start, count, gaussian, final = ctx.saved_tensors
+        uv, inv_var, opacity, features, start, count, gaussian, out = ctx.saved_tensors
         width, height, tile, tiles_x, cutoff2, max_alpha = ctx.layout
         device = uv.device
         grads = [torch.zeros_like(x) for x in (uv, inv_var, opacity, features)]
@@ -197,7 +203,7 @@ class WarpComposite(torch.autograd.Function):
                 dim=width * height,
                 inputs=[_warp(start, wp.int32), _warp(count, wp.int32), _warp(gaussian, wp.int32)]
                 + [_warp(uv, wp.float32), _warp(inv_var, wp.float32), _warp(opacity, wp.float32)]
-                + [_warp(features, wp.float32), *scalars, _warp(final, wp.float32)]
+                + [_warp(features, wp.float32), *scalars, _warp(out, wp.float32)]
                 + [_warp(grad_out.float(), wp.float32)],
                 outputs=[_warp(g, wp.float32) for g in grads],
                 device=wp.device_from_torch(device),
