@@ -53,14 +53,20 @@ def test_warp_images_match_the_torch_rasterizer():
         assert float((a - b).abs().max()) < 1e-5, name
 
 
-def _stack(requires_grad: bool, g: int = 3000, k: int = 3) -> GaussianFrames:
-    """``g`` half-transparent Gaussians piled within 5 cm: a pixel sees thousands of them, so
-    the transmittance behind them underflows float32 (as a dense liquid after densification)."""
+def _stack(
+    requires_grad: bool, g: int = 3000, k: int = 3, opacity: tuple[float, float] = (0.2, 0.45)
+) -> GaussianFrames:
+    """``g`` Gaussians piled within 5 cm, opacities uniform in ``opacity``: a pixel sees all of
+    them, so the transmittance behind them underflows float32 (as in a dense liquid after
+    densification). Recovered by division from the final transmittance, as the backward once
+    did, these gave NaN (3,000 half-transparent) or gradients 1e5-1e7 times too large (400
+    nearly opaque)."""
     gen = torch.Generator().manual_seed(5)
     means = (torch.rand(1, g, 3, generator=gen) - 0.5) * 0.05
     radii = 0.05 + 0.02 * torch.rand(1, g, generator=gen)
     colors = torch.rand(g, 3, generator=gen)
-    opacities = 0.2 + 0.25 * torch.rand(g, generator=gen)
+    low, high = opacity
+    opacities = low + (high - low) * torch.rand(g, generator=gen)
     leaves = [t.to(DEVICE).requires_grad_(requires_grad) for t in (means, radii, colors, opacities)]
     return GaussianFrames(*leaves, (torch.arange(g) % k + 1).to(DEVICE))
 
@@ -81,7 +87,15 @@ def _gradients_of_both_backends(make_scene):
     return grads
 
 
-@pytest.mark.parametrize("make_scene", [_scene, _stack], ids=["overlapping", "thousands deep"])
+def _opaque_stack(requires_grad: bool) -> GaussianFrames:
+    return _stack(requires_grad, g=400, opacity=(0.85, 0.95))
+
+
+@pytest.mark.parametrize(
+    "make_scene",
+    [_scene, _stack, _opaque_stack],
+    ids=["overlapping", "thousands deep", "hundreds deep, nearly opaque"],
+)
 def test_warp_gradients_match_the_torch_rasterizer(make_scene):
     grads = _gradients_of_both_backends(make_scene)
     for name, a, b in zip(("means", "radii", "colors", "opacities"), grads["warp"], grads["torch"]):
