@@ -32,12 +32,12 @@ from dataclasses import dataclass, field
 import kornia
 import torch
 
-from mosiv_framework.errors import ReconstructionDiverged
 from mosiv_framework.types import GaussianFrames
 from mosiv_gauss.dynamic_options import DynamicGaussOptions
 from mosiv_gauss.model import DynamicGaussians
 from mosiv_gauss.options import TorchRasterizerOptions
 from mosiv_gauss.rasterizer import rasterize
+from mosiv_gauss.step_guard import non_finite_parts, skip_or_stop
 
 Tensor = torch.Tensor
 
@@ -298,42 +298,6 @@ def shape_terms(
         )
         total = total + opts.lambda_hull * shape
     return total
-
-
-#: a step whose loss or gradients are not finite is skipped (the parameters keep their last
-#: finite values); this many skipped in a row end the stage with ReconstructionDiverged, since
-#: then no view gives a finite loss any more
-MAX_SKIPPED_IN_A_ROW = 25
-
-
-def non_finite_parts(loss: Tensor, groups: dict[str, list[Tensor]]) -> list[str]:
-    """What is not finite after ``loss.backward()``: "loss" and the name of every group of
-    parameters one of whose gradients holds a NaN or an infinity (empty: the step is sound).
-    One device synchronisation for all of them."""
-    checks = [torch.isfinite(loss).all()]
-    names = ["loss"]
-    for name, params in groups.items():
-        grads = [p.grad for p in params if p.grad is not None]
-        if grads:
-            checks.append(torch.stack([torch.isfinite(g).all() for g in grads]).all())
-            names.append(name)
-    sound = torch.stack(checks).cpu().tolist()
-    return [n for n, ok in zip(names, sound, strict=True) if not ok]
-
-
-def skip_or_stop(skipped: list[int], step: int, bad: list[str], stage: str) -> None:
-    """Record that ``step`` is skipped (``bad``: what was not finite) and raise
-    ReconstructionDiverged once MAX_SKIPPED_IN_A_ROW steps in a row were."""
-    skipped.append(step)
-    recent = skipped[-MAX_SKIPPED_IN_A_ROW:]
-    if len(recent) == MAX_SKIPPED_IN_A_ROW and recent[-1] - recent[0] == len(recent) - 1:
-        raise ReconstructionDiverged(
-            stage=stage,
-            step=step,
-            what=f"{len(recent)} steps in a row with a non-finite {' and '.join(bad)}",
-            advice="Lower the learning rates (reconstructor.lr_*) or the number of Gaussians "
-            "(reconstructor.max_gaussians), and check the masks of the scene",
-        )
 
 
 def fit_motion_prior(

@@ -17,6 +17,7 @@ from mosiv_gauss.reconstructor import (
     save_reconstruction,
     to_reconstruction,
 )
+from mosiv_gauss.step_guard import MAX_SKIPPED_IN_A_ROW
 from mosiv_gauss.train import (
     TrainingData,
     coarse_mask_l1,
@@ -563,8 +564,8 @@ def test_a_step_with_a_non_finite_loss_is_skipped_and_the_parameters_stay_finite
 
 def test_training_that_never_gives_a_finite_loss_stops_naming_the_step(monkeypatch):
     _nan_on_steps(monkeypatch, lambda step: step >= 1)
-    model, data, options = _tiny_training(gauss_train.MAX_SKIPPED_IN_A_ROW + 10)
+    model, data, options = _tiny_training(MAX_SKIPPED_IN_A_ROW + 10)
     with pytest.raises(ReconstructionDiverged) as caught:
         train_dynamic(model, data, options, generator=torch.Generator().manual_seed(0))
-    assert caught.value.step == gauss_train.MAX_SKIPPED_IN_A_ROW  # steps 1..25 skipped
+    assert caught.value.step == MAX_SKIPPED_IN_A_ROW  # steps 1..25 skipped
     assert "Gaussian training" in str(caught.value) and "non-finite loss" in str(caught.value)
