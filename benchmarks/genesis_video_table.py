@@ -58,6 +58,7 @@ def scores_of(metrics: dict) -> dict:
         keep = ("cd_mm2_max", "cd_floor_multiple", "iou_min")
         out["stage1"] = {
             "chamfer_floor_mm2": recon.get("chamfer_floor_mm2"),
+            "skipped_steps": recon.get("skipped_steps"),
             "per_object": {
                 k: {key: o.get(key) for key in keep} for k, o in recon["per_object"].items()
             },

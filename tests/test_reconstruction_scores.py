@@ -47,10 +47,11 @@ def test_scores_per_object_against_the_floor_and_the_masks():
     # own particle both ways (2 mm < half the spacing), so the Chamfer is 2 * (2 mm)^2
     points = {1: gt[1].clone(), 2: torch.stack([gt[2][0], gt[2][1] + shift])}
     training = {"iou": {"1": [0.95, 0.91], "2": [None, 0.8]}}
-    recon = Reconstruction(points=points, extras={"training": training})
+    recon = Reconstruction(points=points, extras={"training": training, "skipped_steps": 3})
     scene = _Scene(gt, {"generator_params": {"particle_size": spacing}})
     scores = reconstruction_scores(recon, scene)
-    assert scores["particle_spacing_m"] == spacing
+    assert scores["particle_spacing_m"] == spacing and scores["skipped_steps"] == 3
+    assert reconstruction_scores(Reconstruction(points=points), scene)["skipped_steps"] is None
     floor = scores["chamfer_floor_mm2"]
     assert floor == pytest.approx(chamfer_floor_mm2(gt, spacing=spacing))
     one, two = scores["per_object"]["1"], scores["per_object"]["2"]

@@ -347,8 +347,10 @@ def reconstruction_scores(reconstruction, scene) -> dict:
     Gaussian centres to the true particles per frame, its worst frame and that frame's multiple
     of the scene's floor (``metrics.chamfer_floor_mm2``, the worst object and frame of a perfect
     dense reconstruction on the particles' spacing), and the mask IoU per frame and its worst
-    frame where the reconstructor scored its own fit (gauss-dynamic's ``extras["training"]``).
-    Identification fits these centres, so a run's accuracy is bounded by them."""
+    frame where the reconstructor scored its own fit (gauss-dynamic's ``extras["training"]``),
+    and the optimisation steps it skipped for a non-finite loss or gradient where it reports them
+    (``extras["skipped_steps"]``; None where it does not). Identification fits these centres,
+    so a run's accuracy is bounded by them."""
     gt = scene.gt_points()
     spacing = gt_particle_spacing(scene.gt_params())
     floor = chamfer_floor_mm2(gt, spacing=spacing) if spacing is not None else None
@@ -370,7 +372,12 @@ def reconstruction_scores(reconstruction, scene) -> dict:
             "iou_per_frame": iou,
             "iou_min": min(defined) if defined else None,
         }
-    return {"chamfer_floor_mm2": floor, "particle_spacing_m": spacing, "per_object": per_object}
+    return {
+        "chamfer_floor_mm2": floor,
+        "particle_spacing_m": spacing,
+        "skipped_steps": (reconstruction.extras or {}).get("skipped_steps"),
+        "per_object": per_object,
+    }
 
 
 def _peak_memory_gb(simulator=None) -> float:
