@@ -287,7 +287,9 @@ def table_one(table: dict, block: str) -> list[str]:
 
 def stage_one(table: dict) -> list[str]:
     """Ours' Stage I per scene and object: worst-frame Gaussian Chamfer, the floor, the
-    multiple and the worst-frame mask IoU."""
+    multiple and the worst-frame mask IoU; below it, the scenes whose Stage I skipped steps for
+    a non-finite loss or gradient."""
+    skipped = []
     lines = ["| scene | object | family | Gaussian CD, worst frame mm^2 | scene floor mm^2 |"]
     lines[0] += " multiple of the floor | mask IoU, worst frame |"
     lines.append("|---|---|---|---:|---:|---:|---:|")
@@ -295,6 +297,8 @@ def stage_one(table: dict) -> list[str]:
         stage1 = row.get("stage1") if _ok(row) else None
         if not stage1:
             continue
+        if stage1.get("skipped_steps"):
+            skipped.append(f"{scene} {stage1['skipped_steps']}")
         families = (row.get("data") or {}).get("materials") or []
         for k, o in stage1["per_object"].items():
             family = families[int(k) - 1] if 0 < int(k) <= len(families) else "-"
@@ -305,6 +309,11 @@ def stage_one(table: dict) -> list[str]:
                 _num(o["iou_min"], "iou"),
             ]
             lines.append(f"| {scene} | {k} | {family} | " + " | ".join(cells) + " |")
+    if skipped:
+        lines += [
+            "",
+            "Stage I steps skipped for a non-finite loss or gradient: " + ", ".join(skipped),
+        ]
     return lines
 
 

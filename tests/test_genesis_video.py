@@ -120,7 +120,7 @@ def _table1_rows():
             cd=500.0,
             time_s=400.0,
             gb=3.0,
-            stage1=_stage1([1.5, 3.5], [0.91, 0.88]),
+            stage1={**_stage1([1.5, 3.5], [0.91, 0.88]), "skipped_steps": 4},
         ),  # fmt: skip
         _row("E-P", "coupnerf", psnr=26.0, cd=900.0, time_s=900.0, gb=20.0),
         {"scene": "E-S", "method": "coupnerf", "seed": 0, "error": "SimulationDiverged: boom"},
@@ -160,6 +160,7 @@ def test_table_one_means_targets_and_runtime():
     assert "| mean observed PSNR | 2 | 32.00 dB | >= 31.5 dB | met |" in text
     assert "| mask IoU per object, worst frame | 4 | 0.880 (3 of 4 objects within) |" in text
     assert "- E-S CoupNeRF*: SimulationDiverged: boom" in text
+    assert "Stage I steps skipped for a non-finite loss or gradient: E-S 4" in text
 
 
 def test_a_scene_without_ours_leaves_every_target_unmet():
