@@ -61,6 +61,18 @@ def small_model(g: int = 24, *, n_frames: int = 4, seed: int = 0, dtype=torch.fl
     return model.to(dtype)
 
 
+def random_images(*, n_frames: int, seed: int) -> TrainingData:
+    """One camera's random 24 x 24 images over ``n_frames``, no masks, a black background."""
+    gen = torch.Generator().manual_seed(seed)
+    return TrainingData(
+        rgb=torch.rand(n_frames, 1, 24, 24, 3, generator=gen),
+        masks=torch.zeros(n_frames, 1, 2, 24, 24),
+        cameras=[camera()],
+        background=torch.zeros(1, 24, 24, 3),
+        voxel_size=0.01,
+    )
+
+
 def camera(size: int = 24) -> Camera:
     return Camera.look_at((0.5, -1.0, 0.7), (0.0, 0.0, 0.3), width=size, height=size, fx=40.0)
 
@@ -458,14 +470,7 @@ def test_network_warmup_keeps_the_fitted_deformation_through_adams_first_steps()
         with torch.no_grad():  # a fitted-looking deformation: non-zero coefficients
             model.coefficients.net[-1].weight.normal_(0.0, 0.1)
             before = model.residuals([0, 1, 2])[..., :3].clone()
-        gen = torch.Generator().manual_seed(1)
-        data = TrainingData(
-            rgb=torch.rand(3, 1, 24, 24, 3, generator=gen),
-            masks=torch.zeros(3, 1, 2, 24, 24),
-            cameras=[camera()],
-            background=torch.zeros(1, 24, 24, 3),
-            voxel_size=0.01,
-        )
+        data = random_images(n_frames=3, seed=1)
         options = DynamicGaussOptions(
             iterations=3,
             views_per_step=3,
@@ -540,14 +545,7 @@ def _nan_on_steps(monkeypatch, bad_steps) -> None:
 
 def _tiny_training(iterations: int):
     model = small_model(n_frames=2)
-    gen = torch.Generator().manual_seed(2)
-    data = TrainingData(
-        rgb=torch.rand(2, 1, 24, 24, 3, generator=gen),
-        masks=torch.zeros(2, 1, 2, 24, 24),
-        cameras=[camera()],
-        background=torch.zeros(1, 24, 24, 3),
-        voxel_size=0.01,
-    )
+    data = random_images(n_frames=2, seed=2)
     options = DynamicGaussOptions(iterations=iterations, densify_from=10**6, progress=False)
     return model, data, options
 

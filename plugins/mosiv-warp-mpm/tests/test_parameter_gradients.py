@@ -116,40 +116,35 @@ def _compare(new: dict, old: dict, rtol: dict[str, float]) -> set[str]:
     return checked
 
 
-def test_gathered_parameter_gradients_match_the_table_reads(sim) -> None:
-    pos_new, new = _rollout(sim, gather=True)
-    pos_old, old = _rollout(sim, gather=False)
+def _copies_match_the_table_reads(sim, rtol: dict, terms=None) -> dict:
+    """Gradients through the copies (``gather``) against the table reads: the same positions,
+    each gradient within its ``rtol``, and the same gradients again on a second rollout (the
+    gathered path is reproducible). Returns the gathered path's gradients."""
+    pos_new, new = _rollout(sim, gather=True, terms=terms)
+    pos_old, old = _rollout(sim, gather=False, terms=terms)
     assert _same(pos_new, pos_old)
-    rtol = RTOL | BOUNDARY_RTOL
     assert _compare(new, old, rtol) == set(rtol)
-    # and the gathered path is reproducible: the same rollout gives the same gradients
-    _, again = _rollout(sim, gather=True)
+    _, again = _rollout(sim, gather=True, terms=terms)
     assert all(_same(again[n], g) for n, g in new.items())
+    return new
+
+
+def test_gathered_parameter_gradients_match_the_table_reads(sim) -> None:
+    _copies_match_the_table_reads(sim, RTOL | BOUNDARY_RTOL)
 
 
 def test_node_coefficient_gradients_match_the_table_reads(sim) -> None:
-    pos_new, new = _rollout(sim, gather=True, terms=TERMS)
-    pos_old, old = _rollout(sim, gather=False, terms=TERMS)
-    assert _same(pos_new, pos_old)
-    rtol = RTOL | BOUNDARY_RTOL | TERM_RTOL
-    assert _compare(new, old, rtol) == set(rtol)
+    new = _copies_match_the_table_reads(sim, RTOL | BOUNDARY_RTOL | TERM_RTOL, terms=TERMS)
     # every expression coefficient has a gradient (the switch's copy gates nothing off)
     assert all(float(new[f"term.expression.{c}"].abs()) > 0 for c in TERMS["expression"])
-    _, again = _rollout(sim, gather=True, terms=TERMS)
-    assert all(_same(again[n], g) for n, g in new.items())
 
 
 def test_boundary_coefficient_gradients_match_the_table_reads(sim) -> None:
     # contact between the two balls (both frictions) and a bounce off a frictional ground
-    pos_new, new = _rollout(sim, gather=True, terms=RESTITUTION)
-    pos_old, old = _rollout(sim, gather=False, terms=RESTITUTION)
-    assert _same(pos_new, pos_old)
     rtol = RTOL | BOUNDARY_RTOL | RESTITUTION_RTOL
-    assert _compare(new, old, rtol) == set(rtol)
+    new = _copies_match_the_table_reads(sim, rtol, terms=RESTITUTION)
     for name in ("obj1.friction", "obj2.friction", "ground_friction", *RESTITUTION_RTOL):
         assert float(new[name].abs()) > 0, name  # the coefficient acted in this scene
-    _, again = _rollout(sim, gather=True, terms=RESTITUTION)
-    assert all(_same(again[n], g) for n, g in new.items())
 
 
 def test_the_copies_cost_56_bytes_a_particle_and_48_a_node(sim) -> None:
