@@ -34,7 +34,9 @@ at once as Ray tasks), so its peak memory is its own; its row goes to
 ``OUT/parts/SCENE/RUN.json``, and the table is always merged from those, so parts made on
 several machines merge into one. A rerun resumes each run's finished stages.
 Writes ``OUT/table.json`` and ``OUT/table.md``; ``--write-results FILE`` replaces the section
-"From video on Genesis scenes" of FILE.
+"From video on Genesis scenes" of FILE. ``--development E-S,F-F`` names the scenes that recipe
+settings were chosen on: they stay in the table, marked, and the targets are judged on the
+others (the test scenes).
 """
 
 from __future__ import annotations
@@ -340,12 +342,16 @@ def read_parts(out: Path) -> list[dict]:
     return sorted(rows, key=lambda r: (r["scene"], r["method"], r.get("seed", 0)))
 
 
-def merge(out: Path) -> dict:
-    """table.json and table.md from every part under ``out``."""
+def merge(out: Path, development: list[str] | tuple = ()) -> dict:
+    """table.json and table.md from every part under ``out``; ``development``: the scenes that
+    settings were chosen on (the targets are judged on the others)."""
     rows = read_parts(out)
     if not rows:
         raise SystemExit(f"--merge: no rows under {out / 'parts'}; run the suite first")
-    table = gt.make_table(rows)
+    unknown = sorted(set(development) - {r["scene"] for r in rows})
+    if unknown:
+        raise SystemExit(f"--development: no runs of {', '.join(unknown)} under {out / 'parts'}")
+    table = gt.make_table(rows, development)
     (out / "table.json").write_text(json.dumps(table, indent=2) + "\n")
     (out / "table.md").write_text(gt.markdown(table))
     return table
@@ -389,6 +395,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--seeds", type=int, default=2, help="Stage I seeds of the ablation")
     parser.add_argument("--merge", action="store_true", help="only merge OUT/parts into tables")
     parser.add_argument("--write-results", type=Path, default=None, help="e.g. docs/RESULTS.md")
+    parser.add_argument(
+        "--development",
+        default="",
+        help="comma-separated scenes that settings were chosen on; the targets are judged on "
+        "the other (test) scenes",
+    )
     add_scale_flags(parser, "runs")
     parser.add_argument("--part", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -412,10 +424,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     runnable = [*METHODS, *ABLATION]
     sets = parse_sets(args.set, runnable)
+    development = [d.strip() for d in args.development.split(",") if d.strip()]
     if args.merge:
         if not (args.out / MARKER).is_file():
             raise SystemExit(f"--merge: {args.out} is not a folder of this benchmark")
-        table = merge(args.out)
+        table = merge(args.out, development)
     elif args.part:
         names = gi.find_scenes(args.scenes, args.only)
         if len(names) != 1 or args.method not in runnable:
@@ -439,7 +452,7 @@ def main(argv: list[str] | None = None) -> int:
         claim_output(args.out)
         jobs = plan_jobs(names, methods, ablation_scenes=ablation, seeds=args.seeds)
         run_jobs(args, jobs, scale)
-        table = merge(args.out)
+        table = merge(args.out, development)
     print(gt.markdown(table))
     if args.write_results is not None:
         command = gi.command_line(argv).replace(

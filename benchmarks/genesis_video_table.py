@@ -99,21 +99,33 @@ def table_rows(rows: list[dict]) -> dict[str, dict[str, dict]]:
     return cells
 
 
-def summarise(rows: list[dict]) -> dict:
+def _block_means(good: list[dict]) -> dict:
+    return {
+        block: {
+            key: {"value": _mean(_value(r, block, key) for r in good), "n": len(good)}
+            for key in BLOCK_KEYS
+        }
+        for block in BLOCKS
+    }
+
+
+def summarise(rows: list[dict], development: list[str] | tuple = ()) -> dict:
     """Means per method and block over the scenes it ran, ours against TARGETS, runtime and
-    memory per method, and the failed runs."""
+    memory per method, and the failed runs. ``development``: the scenes that settings were
+    chosen on; the targets are then judged on the other (test) scenes, and the means over the
+    test scenes come beside those over all scenes."""
     cells = table_rows(rows)
     scenes = sorted({s for found in cells.values() for s in found})
+    development = sorted(s for s in development if s in scenes)
+    test = [s for s in scenes if s not in development]
     out: dict = {"scenes": scenes, "methods": list(cells), "means": {}, "runtime": {}}
+    out["development"] = development
+    out["test_means"] = {}
     for method, found in cells.items():
         good = [r for r in found.values() if _ok(r)]
-        out["means"][method] = {
-            block: {
-                key: {"value": _mean(_value(r, block, key) for r in good), "n": len(good)}
-                for key in BLOCK_KEYS
-            }
-            for block in BLOCKS
-        }
+        out["means"][method] = _block_means(good)
+        if development:
+            out["test_means"][method] = _block_means([r for r in good if r["scene"] in test])
         times = [r["time_s"] for r in good]
         memory = [r["peak_memory_gb"] for r in good if r.get("peak_memory_gb") is not None]
         out["runtime"][method] = {
@@ -130,7 +142,10 @@ def summarise(rows: list[dict]) -> dict:
         for r in found.values()
         if not _ok(r)
     ]
-    out["targets"] = targets(cells.get("ours", {}), scenes)
+    ours = cells.get("ours", {})
+    out["targets"] = targets({s: r for s, r in ours.items() if s in test}, test)
+    if development:
+        out["targets_all"] = targets(ours, scenes)
     return out
 
 
@@ -249,9 +264,10 @@ def _difference(obj, rival, block, key, complete, values, spread) -> dict:
     }
 
 
-def make_table(rows: list[dict]) -> dict:
+def make_table(rows: list[dict], development: list[str] | tuple = ()) -> dict:
     """What table.json holds: the rows, table 1's summary and the ablation's."""
-    return {"rows": rows, "summary": summarise(rows), "ablation": ablation_summary(rows)}
+    summary = summarise(rows, development)
+    return {"rows": rows, "summary": summary, "ablation": ablation_summary(rows)}
 
 
 # --------------------------------------------------------------------------------------------
@@ -271,16 +287,24 @@ def _num(value, key: str = "") -> str:
 def table_one(table: dict, block: str) -> list[str]:
     """Table 1 of one block: a row per quantity and method, a column per scene and the mean."""
     summary, cells = table["summary"], table_rows(table["rows"])
-    scenes = summary["scenes"]
-    lines = ["| metric | method | " + " | ".join(scenes) + " | mean |"]
-    lines.append("|---|---|" + "---:|" * (len(scenes) + 1))
+    scenes, development = summary["scenes"], summary.get("development") or []
+    heads = [f"{s} (dev)" if s in development else s for s in scenes] + ["mean"]
+    n_test = len(scenes) - len(development)
+    if development:
+        heads.append("test mean")
+    lines = ["| metric | method | " + " | ".join(heads) + " |"]
+    lines.append("|---|---|" + "---:|" * len(heads))
     for key, title, _ in QUANTITIES:
         for method in summary["methods"]:
             found = cells[method]
             values = [_value(found[s], block, key) if s in found else None for s in scenes]
-            mean = summary["means"][method][block][key]
-            n = f" (n={mean['n']})" if mean["n"] != len(scenes) else ""
-            cells_text = [_num(v, key) for v in values] + [_num(mean["value"], key) + n]
+            cells_text = [_num(v, key) for v in values]
+            means = [(summary["means"][method][block][key], len(scenes))]
+            if development:
+                means.append((summary["test_means"][method][block][key], n_test))
+            for mean, full in means:
+                n = f" (n={mean['n']})" if mean["n"] != full else ""
+                cells_text.append(_num(mean["value"], key) + n)
             lines.append(f"| {title} | {LABELS[method]} | " + " | ".join(cells_text) + " |")
     return lines
 
@@ -317,19 +341,42 @@ def stage_one(table: dict) -> list[str]:
     return lines
 
 
+def _target_value(s: dict, key: str, unit: str) -> str:
+    if s["value"] is None:
+        return "-"
+    value = f"{_num(s['value'], key.replace('observed_', '').replace('future_', ''))}"
+    value = f"{value} {unit}".strip()
+    if "count" in s:
+        value += f" ({s['count']} of {s['n']} objects within)"
+    if key == "memory":
+        value += f" ({', '.join(s['kinds'])})"
+    return value
+
+
 def target_lines(summary: dict) -> list[str]:
-    lines = ["| quantity (ours) | n | value | target | status |", "|---|---|---|---|---|"]
+    """The targets of ours; with development scenes, judged on the test scenes, and the value
+    over all scenes beside."""
+    development = summary.get("development") or []
+    lines = []
+    if development:
+        n_test = len(summary["scenes"]) - len(development)
+        lines += [
+            f"Judged on the {n_test} test scenes; settings were chosen on the development "
+            f"scenes {', '.join(development)} (marked dev above).",
+            "",
+            "| quantity (ours) | n | value, test scenes | all scenes | target | status |",
+            "|---|---|---|---|---|---|",
+        ]
+    else:
+        lines += ["| quantity (ours) | n | value | target | status |", "|---|---|---|---|---|"]
     for key, title, op, target, unit in TARGETS:
         s = summary["targets"][key]
+        value = _target_value(s, key, unit)
+        if development:
+            value += " | " + _target_value(summary["targets_all"][key], key, unit)
         if s["value"] is None:
-            value, status = "-", "not measured"
+            status = "not measured"
         else:
-            value = f"{_num(s['value'], key.replace('observed_', '').replace('future_', ''))}"
-            value = f"{value} {unit}".strip()
-            if "count" in s:
-                value += f" ({s['count']} of {s['n']} objects within)"
-            if key == "memory":
-                value += f" ({', '.join(s['kinds'])})"
             status = "met" if s["met"] else "not met"
             if s["missing"]:
                 n_missing = len(s["missing"])
@@ -418,6 +465,13 @@ def markdown(table: dict) -> str:
 # docs/RESULTS.md
 
 
+def effective_overrides(overrides: list[str]) -> list[str]:
+    """``overrides`` as the recipe reader applies them: a later ``key=value`` replaces an earlier
+    one of the same key (the tool's own defaults come first, the user's ``--set`` after)."""
+    last = {o.split("=", 1)[0]: o for o in overrides}
+    return list(last.values())
+
+
 def settings_lines(rows: list[dict]) -> list[str]:
     """Each method's recipe and the overrides its runs had (every distinct set)."""
     out = []
@@ -427,8 +481,9 @@ def settings_lines(rows: list[dict]) -> list[str]:
             continue
         distinct = []
         for r in found:
-            if r["overrides"] not in distinct:
-                distinct.append(r["overrides"])
+            effective = effective_overrides(r["overrides"])
+            if effective not in distinct:
+                distinct.append(effective)
         sets = "; ".join(" ".join(f"`{o}`" for o in d) or "none" for d in distinct)
         label = LABELS.get(method, VARIANT_LABEL.get(method, method))
         out.append(f"{label}: {found[0].get('recipe', '-')}; overrides {sets}")

@@ -163,6 +163,24 @@ def test_table_one_means_targets_and_runtime():
     assert "Stage I steps skipped for a non-finite loss or gradient: E-S 4" in text
 
 
+def test_development_scenes_are_marked_and_the_targets_judged_on_the_others():
+    table_mod = _load("genesis_video_table")
+    table = table_mod.make_table(_table1_rows(), development=["E-S"])
+    s = table["summary"]
+    assert s["development"] == ["E-S"]
+    # judged on E-P alone (the test scene); all scenes' value beside it
+    assert s["targets"]["observed_psnr"]["value"] == pytest.approx(33.0)
+    assert s["targets"]["observed_psnr"]["n"] == 1 and not s["targets"]["observed_psnr"]["missing"]
+    assert s["targets"]["gaussian_cd"]["value"] == 2.5 and s["targets"]["gaussian_cd"]["met"]
+    assert s["targets_all"]["gaussian_cd"]["value"] == 3.5
+    assert s["test_means"]["ours"]["future"]["cd_mm2"]["value"] == pytest.approx(600.0)
+    text = table_mod.markdown(table)
+    assert "| metric | method | E-P | E-S (dev) | mean | test mean |" in text
+    assert "| PSNR dB | MOSIV (ours) | 33.00 | 31.00 | 32.00 | 33.00 |" in text
+    assert "| mean observed PSNR | 1 | 33.00 dB | 32.00 dB | >= 31.5 dB | met |" in text
+    assert "development scenes E-S" in text
+
+
 def test_a_scene_without_ours_leaves_every_target_unmet():
     table_mod = _load("genesis_video_table")
     rows = _table1_rows()[:1] + [_row("E-S", "coupnerf", psnr=40.0, cd=1.0)]
@@ -241,6 +259,16 @@ def test_methods_recipes_and_overrides():
         bench.Job("E-S", "scene-cd"), scene=TINY, run_dir=Path("r"), overrides=variant
     )
     assert list(cfg.losses) == ["scene-chamfer"] and cfg.reconstructor.seed == 1
+
+
+def test_settings_name_each_key_once_with_the_value_that_applied():
+    table = _load("genesis_video_table")
+    row = _row("E-S", "ours", psnr=31.0, cd=500.0)
+    # the tool's default first, then the user's --set of the same key and another key
+    row["overrides"] = ["simulator.substeps=400", "simulator.grid=48", "simulator.substeps=250"]
+    (line,) = table.settings_lines([row])
+    assert "`simulator.substeps=250` `simulator.grid=48`" in line
+    assert "substeps=400" not in line
 
 
 def test_jobs_share_stage_one_and_two_and_run_after_what_they_wait_for():
