@@ -42,6 +42,9 @@ OURS = [
     "lifter.virtual_views=4",
     "lifter.virtual_resolution=24",
     "losses.chamfer.max_points=128",
+    # the recipe's global stage and contact choice, shrunk
+    "identify.global_candidates=2",
+    "identify.contact_iterations=1",
 ]
 COUPNERF = [
     "reconstructor.resolution=16",
@@ -350,6 +353,9 @@ def test_tiny_genesis_scene_one_process_per_run_then_merge(tmp_path):
         assert 0.0 <= obj["iou_min"] <= 1.0
     targets = table["summary"]["targets"]
     assert targets["gaussian_cd"]["n"] == 2 and targets["iou"]["n"] == 2
+    # ours identifies as on a recording: the contact chosen from the observed frames
+    identified = json.loads((out / "runs" / "E-S" / "ours" / "identified.json").read_text())
+    assert identified["contact"]["mode"] in ("multi_field", "single_field")
     text = results.read_text()
     assert text.startswith("# Results\n\n## From video\n\nkept\n\n## From video on Genesis")
     assert text.endswith("## Noise\n\nkept too\n") and str(tmp_path) not in text
