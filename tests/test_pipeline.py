@@ -108,6 +108,11 @@ def test_pipeline_recovers_ballistic_motion_and_resumes(tmp_path, registry):
     history = read_history(run / "identify/history.json")
     horizons = [h["horizon"] for h in history]
     assert horizons[0] == 2 and horizons[-1] == 3 and horizons == sorted(horizons)  # curriculum
+    # each stage's time, within the run's whole time
+    times = on_disk["stage_times_s"]
+    assert set(times) == {"reconstruct", "lift", "identify", "evaluate"}
+    assert all(t >= 0.0 for t in times.values()) and times["identify"] > 0.0
+    assert sum(times.values()) <= on_disk["time_s"] + 1e-3
 
     # a rerun with the same recipe resumes every stage, the evaluation too: nothing rolls out
     Ballistic.calls = 0
@@ -126,6 +131,10 @@ def test_pipeline_recovers_ballistic_motion_and_resumes(tmp_path, registry):
     # the starting point's loss, 10 iterations, the evaluation rollout
     assert Ballistic.calls == 12
     assert (run / "reconstruction.pt").stat().st_mtime_ns == before
+    # the resumed stages keep the times they took when they ran
+    rerun_times = json.loads((run / "metrics.json").read_text())["stage_times_s"]
+    assert rerun_times["reconstruct"] == times["reconstruct"]
+    assert rerun_times["lift"] == times["lift"]
 
 
 def test_run_files_carry_their_format_and_older_files_still_resume(tmp_path, registry):

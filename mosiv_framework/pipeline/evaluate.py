@@ -268,12 +268,16 @@ def evaluate_run(
     run_dir,
     started=None,
     refine=None,
+    stage_times=None,
 ) -> dict:
     """Roll ``identified`` over every frame, score it, write metrics.json, plots and videos.
 
     ``refine`` (see ``simulator_refiner``) lets a diverging rollout retry with more substeps.
+    ``stage_times``: seconds each earlier stage took (``Progress.stage_times``); metrics.json
+    records them beside the evaluation's own (its rollout and scores, before plots and videos).
     """
-    t_start = time.perf_counter() if started is None else started
+    t_evaluate = time.perf_counter()
+    t_start = t_evaluate if started is None else started
     rd = run_dir
     world = scene.world
     # the identified families may differ from the lifted ones (library baseline, scope "all")
@@ -302,6 +306,11 @@ def evaluate_run(
         "time_s": time.perf_counter() - t_start,
         "peak_memory_gb": _peak_memory_gb(simulator),
     }
+    if stage_times is not None:
+        metrics["stage_times_s"] = {
+            **stage_times,
+            "evaluate": round(time.perf_counter() - t_evaluate, 3),
+        }
     if note is not None:
         metrics["evaluation_note"] = note
     if reconstruction.gaussians is not None and scene.has_gt:

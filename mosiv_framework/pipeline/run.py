@@ -200,6 +200,16 @@ class Progress:
         self.rd.mark_done(stage, self.keys[stage], self.digest, **info)
         self.record.stage_done(stage)
 
+    def stage_times(self) -> dict[str, float | None]:
+        """Seconds each finished stage before evaluation took when it ran (a resumed stage
+        keeps the time of the run that made it; None where its marker predates the timing)."""
+        times = {}
+        for stage in STAGES[:-1]:
+            marker = f"stages/{stage}.json"
+            found = self.rd.path(marker).is_file()
+            times[stage] = self.rd.load_json(marker).get("time_s") if found else None
+        return times
+
     def carry_earlier_markers(self, plain: dict, scene_root: Path) -> None:
         """Markers written before the scene entered by its content (keys holding the scene's
         path, the scene digested by file times) still describe this run when the scene is
@@ -308,6 +318,7 @@ def run_stages(recipe, plain, scene, progress: Progress, warnings, *, started) -
     else:
         # the checkpoint of an interrupted identification resumes only on the same scene
         checkpoint_key = fingerprint(progress.keys["identify"], progress.digest)
+        t_identify = time.perf_counter()
         identified = identify_stage(
             recipe,
             scene,
@@ -319,7 +330,7 @@ def run_stages(recipe, plain, scene, progress: Progress, warnings, *, started) -
             checkpoint_key,
             warnings=warnings,
         )
-        progress.mark("identify")
+        progress.mark("identify", time_s=round(time.perf_counter() - t_identify, 3))
 
     # evaluation rolls out with the contact identification used (identify.contact: auto
     # may have chosen another than the recipe's simulator.contact)
@@ -352,11 +363,13 @@ def reconstruct_stage(recipe, scene, progress: Progress):
     log.info("reconstructing with %r", name)
     reconstructor = get_registry().create("reconstructor", name, options)
     before = set(p.name for p in rd.root.iterdir())
+    t_start = time.perf_counter()
     reconstruction = reconstructor.fit(scene, run_dir=rd.root)
+    elapsed = round(time.perf_counter() - t_start, 3)
     # what the reconstructor saved of its own in the run folder is the run's too
     progress.record.add_files(p.name for p in rd.root.iterdir() if p.name not in before)
     rd.save_torch("reconstruction.pt", reconstruction)
-    progress.mark("reconstruct")
+    progress.mark("reconstruct", time_s=elapsed)
     return reconstruction
 
 
@@ -367,9 +380,11 @@ def lift_stage(recipe, scene, reconstruction, progress: Progress):
         return rd.load_torch("particles.pt")
     name, options = component(recipe.lifter)
     log.info("lifting with %r", name)
+    t_start = time.perf_counter()
     particles = get_registry().create("lifter", name, options).lift(reconstruction, scene)
+    elapsed = round(time.perf_counter() - t_start, 3)
     rd.save_torch("particles.pt", particles)
-    progress.mark("lift", particles=len(particles))
+    progress.mark("lift", particles=len(particles), time_s=elapsed)
     return particles
 
 
@@ -419,6 +434,7 @@ def evaluate_stage(recipe, stages: dict, identified, simulators, progress: Progr
         run_dir=rd,
         started=started,
         refine=refine,
+        stage_times=progress.stage_times(),
     )
     progress.mark("evaluate")
     return metrics
