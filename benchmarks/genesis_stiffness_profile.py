@@ -256,6 +256,7 @@ def plot(rows: list[dict], path: Path) -> None:
     """Per model (a row of panels), each body's observed and future Chamfer against the
     factor on E."""
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -274,9 +275,12 @@ def plot(rows: list[dict], path: Path) -> None:
             for ax, block in zip(row_axes, ("observed", "future")):
                 values = [r[f"{block}_cd"] for _, r in ok]
                 ax.plot([f for f, _ in ok], values, marker="o", label=label)
+        factors = sorted({r["factor"] for r in rows})
         for ax, block in zip(row_axes, ("observed", "future")):
             ax.set_xscale("log")
             ax.set_yscale("log")
+            ax.set_xticks(factors, [f"{f:g}" for f in factors])
+            ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
             ax.axvline(1.0, color="grey", lw=0.8)
             ax.set_xlabel("E / true E")
             ax.set_ylabel("Chamfer of the body (mm^2)")
@@ -292,15 +296,15 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def section_text(rows: list[dict], *, command: str, report: str) -> str:
+def section_text(rows: list[dict], *, command: str, report: str, data: str | None = None) -> str:
     machines = sorted({str(r.get("device", "not recorded")) for r in rows})
     codes = sorted({str(r.get("code", "not recorded")) for r in rows})
     models = sorted({r["model"] for r in rows})
     intro = (
         "Each elastic or plasticine body's Young's modulus scaled by a factor, every other "
         "parameter at its true value (gt/params.json), Genesis's own frame-0 particles and "
-        "initial velocities rolled out by warp-mpm with the model closest to Genesis "
-        f"({', '.join(models)}: stress law / contact / grid / substeps), and the body's Chamfer "
+        "initial velocities rolled out by warp-mpm with each model named (stress law / contact "
+        f"/ grid / substeps: {', '.join(models)}), and the body's Chamfer "
         "against gt/points.npz over the observed and the future frames: how much the observed "
         "frames say about E."
     )
@@ -315,7 +319,7 @@ def section_text(rows: list[dict], *, command: str, report: str) -> str:
             f"Code {', '.join(codes)}.",
             "- Data: the Genesis scenes of [From video on Genesis scenes]"
             "(#from-video-on-genesis-scenes) (`mosiv data suite SCENES --source genesis "
-            "--ranges wide`), their solid bodies.",
+            "--ranges wide`), their solid bodies" + (f"; the rows in `{data}`." if data else "."),
             "",
             markdown(rows),
             f"![observed and future Chamfer against the factor on E](img/{PLOT})",
@@ -375,7 +379,8 @@ def main(argv: list[str] | None = None) -> int:
     print(markdown(rows))
     if args.write_results is not None:
         command = "python benchmarks/genesis_stiffness_profile.py " + shlex.join(shown_args(argv))
-        body = section_text(rows, command=args.measured_with or command, report=command)
+        data = None if args.out.is_absolute() else args.out.as_posix()
+        body = section_text(rows, command=args.measured_with or command, report=command, data=data)
         text = args.write_results.read_text() if args.write_results.is_file() else "# Results\n"
         new = replace_section(text, body, title=SECTION, before=SECTION_BEFORE)
         args.write_results.write_text(new)
