@@ -226,17 +226,23 @@ def section_text(rows: list[dict], *, command: str, report: str) -> str:
     )
 
 
-def gather(out: Path) -> list[dict]:
-    """Every row of every model_error.json under ``out``, sorted by scene and configuration."""
+def gather_rows(out: Path, name: str, fmt: str, what: str) -> list[dict]:
+    """Every row of every ``name`` file of format ``fmt`` under ``out`` (one process per scene
+    may each have written its own folder); ``what`` names the table in errors."""
     rows = []
-    for path in sorted(out.rglob("model_error.json")):
+    for path in sorted(out.rglob(name)):
         data = json.loads(path.read_text())
-        if data.get("format") != FORMAT:
-            raise SystemExit(f"{path}: not a model-error table (format {data.get('format')!r})")
+        if data.get("format") != fmt:
+            raise SystemExit(f"{path}: not {what} (format {data.get('format')!r})")
         rows += data["rows"]
     if not rows:
-        raise SystemExit(f"--report: no model_error.json under {out}")
+        raise SystemExit(f"--report: no {name} under {out}")
     return rows
+
+
+def gather(out: Path) -> list[dict]:
+    """Every row of every model_error.json under ``out``."""
+    return gather_rows(out, "model_error.json", FORMAT, "a model-error table")
 
 
 def parse_args(argv: list[str] | None):

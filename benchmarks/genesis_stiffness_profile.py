@@ -36,7 +36,7 @@ from pathlib import Path
 
 import torch
 from genesis_identify import _device_name, _fill, find_scenes, replace_section
-from genesis_model_error import LAW_MAPS, frame0_particles, true_params
+from genesis_model_error import LAW_MAPS, frame0_particles, gather_rows, true_params
 from identify_suite import code_version
 
 from mosiv_framework.errors import SimulationDiverged
@@ -147,15 +147,7 @@ def measure_all(args) -> list[dict]:
 
 
 def gather(out: Path) -> list[dict]:
-    rows = []
-    for path in sorted(out.rglob("stiffness_profile.json")):
-        data = json.loads(path.read_text())
-        if data.get("format") != FORMAT:
-            raise SystemExit(f"{path}: not a stiffness profile (format {data.get('format')!r})")
-        rows += data["rows"]
-    if not rows:
-        raise SystemExit(f"--report: no stiffness_profile.json under {out}")
-    return rows
+    return gather_rows(out, "stiffness_profile.json", FORMAT, "a stiffness profile")
 
 
 # --------------------------------------------------------------------------------------------
