@@ -244,5 +244,12 @@ class Viewer:
         player = getattr(self, "_player", None)
         if player is not None:
             player.join(timeout=5)
+        # viser prints its "stopped" line from its server thread, and its own stop() waits
+        # only 1 s for that thread: on a loaded machine the line came after the redirect
+        # ended, so the redirect lasts until the thread is gone.
+        websock = getattr(self.server, "_websock_server", None)
+        server_thread = getattr(websock, "_server_thread", None)
         with contextlib.redirect_stdout(io.StringIO()):
             self.server.stop()
+            if server_thread is not None:
+                server_thread.join(timeout=30)
