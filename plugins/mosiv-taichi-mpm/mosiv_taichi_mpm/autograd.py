@@ -5,6 +5,8 @@ Backward walks the frames from last to first: it reloads a frame's checkpoint, r
 frame's substeps into the per-substep buffers, then runs the kernels' adjoints substep by
 substep in reverse (recomputing that substep's grid first), carrying the state adjoint to the
 previous frame. Memory is O(frames x particles) + O(substeps x particles) for one frame.
+A rollout that nothing differentiates runs ``RolloutRun.forward`` alone on a forward-only engine
+and keeps no checkpoints: O(particles) besides the positions and velocities it returns.
 """
 
 from __future__ import annotations
@@ -29,13 +31,15 @@ class RolloutRun:
     """One rollout's forward results and what its backward needs.
 
     ``engine`` is the simulator's problem object providing ``step``, ``export``, ``load``,
-    ``start`` and the adjoint helpers (see simulator.py ``Problem``).
+    ``start`` and the adjoint helpers (engine.py ``Engine``). ``keep_checkpoints``: keep each
+    frame's starting state for ``backward`` (false for a rollout nothing differentiates).
     """
 
     engine: object
     frames: int
     n: int
     device: torch.device
+    keep_checkpoints: bool = True
     checkpoints: list[dict[str, torch.Tensor]] = field(default_factory=list)
     positions: torch.Tensor | None = None
     velocities: torch.Tensor | None = None
@@ -53,7 +57,8 @@ class RolloutRun:
         for f in range(self.frames):
             if f > 0:
                 eng.load(0, state, grads=False)
-            self.checkpoints.append(state)
+            if self.keep_checkpoints:
+                self.checkpoints.append(state)
             eng.reset_frame_diagnostics()
             eng.set_frame(f)
             for s in range(S):
@@ -66,6 +71,9 @@ class RolloutRun:
         self.positions = torch.stack(pos)
         self.velocities = torch.stack(vel)
         self.contact = None if contact[0] is None else torch.stack(contact)
+
+    def checkpoint_bytes(self) -> int:
+        return sum(t.numel() * t.element_size() for c in self.checkpoints for t in c.values())
 
     def backward(self, grad_positions: torch.Tensor) -> None:
         """Accumulate d(loss)/d(parameters) into the engine's parameter adjoints."""

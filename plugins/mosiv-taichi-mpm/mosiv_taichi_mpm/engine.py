@@ -1,7 +1,8 @@
 """One allocated problem: fields + kernels + the substep sequence and its adjoint.
 
 ``Engine`` is what ``autograd.RolloutRun`` drives; the simulator builds one per problem size and
-material set and re-uses it across rollouts.
+material set and re-uses it across rollouts: a differentiable one for rollouts that autograd
+will differentiate, a forward-only one (no adjoints, two particle-state buffers) for the rest.
 """
 
 from __future__ import annotations
@@ -17,7 +18,11 @@ from mosiv_taichi_mpm.kernels import REASON_LEFT_DOMAIN, REASON_NONFINITE, STENC
 
 
 class Engine:
-    """Fields and kernels for one Layout and set of law ids, plus per-rollout settings."""
+    """Fields and kernels for one Layout and set of law ids, plus per-rollout settings.
+
+    ``differentiable=False`` allocates forward-only fields (fields.py): the forward methods work
+    as on a differentiable engine, with the same results; the adjoint ones must not be called.
+    """
 
     def __init__(
         self,
@@ -26,9 +31,11 @@ class Engine:
         device: torch.device,
         *,
         fused_forward: bool = True,
+        differentiable: bool = True,
     ):
         self.layout = layout
-        self.fields = SimFields(layout)
+        self.differentiable = differentiable
+        self.fields = SimFields(layout, differentiable=differentiable)
         self.kernels = FusedForwardKernels(self.fields, present_laws)
         #: forward substeps through the fused kernels (forward_kernels.py) or the split ones
         self.fused_forward = fused_forward
@@ -71,12 +78,12 @@ class Engine:
 
     # ------------------------------------------------------------------ forward
     def start(self) -> None:
-        """Frame 0 into buffer 0: rest shape, v = v0 of each object."""
+        """Frame 0 as the state at substep boundary 0: rest shape, v = v0 of each object."""
         self.kernels.rest_state(self.n, self._x0)
         self.kernels.initial_velocity(self.n)
 
     def step(self, s: int, *, diagnostics: bool) -> None:
-        """One substep from buffer s to s + 1."""
+        """One substep from the state at substep boundary s to that at s + 1."""
         k, n, dt = self.kernels, self.n, self.dt
         self._grid(s, fused=self.fused_forward)
         if diagnostics and k.multi:
@@ -169,6 +176,8 @@ class Engine:
 
     # ------------------------------------------------------------------ adjoint
     def zero_param_grads(self) -> None:
+        if not self.differentiable:  # the first adjoint call of a backward (autograd.py)
+            raise RuntimeError("a forward-only taichi-mpm engine has no adjoints to run")
         for fld in self.fields.param_fields().values():
             fld.grad.fill(0)
 

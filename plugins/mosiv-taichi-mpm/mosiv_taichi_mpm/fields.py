@@ -1,10 +1,15 @@
 """Taichi field allocation for one problem size (particles, objects, grid, substeps).
 
 All fields of a problem live in one SNode tree built with ``ti.FieldsBuilder`` so that they can
-be freed together (``destroy``) when a later rollout needs another size. Particle state is kept
-for every substep of one video frame (index 0..substeps): Taichi's reverse-mode autodiff needs
-every value a kernel read to still be there when its adjoint runs (the global data access
-rule), so substep s+1 is written to fresh storage instead of overwriting substep s.
+be freed together (``destroy``) when a later rollout needs another size.
+
+Differentiable fields keep the particle state of every substep of one video frame (buffers
+0..substeps) and an adjoint beside every float field: Taichi's reverse-mode autodiff needs every
+value a kernel read to still be there when its adjoint runs (the global data access rule), so
+substep s+1 is written to fresh storage instead of overwriting substep s. Forward-only fields
+(``differentiable=False``) have no adjoints and two state buffers that substeps take in turn
+(s mod 2): nothing reads a substep's state once the next one is written, so their size does not
+depend on the substep count.
 """
 
 from __future__ import annotations
@@ -80,62 +85,68 @@ def make_layout(
 
 @ti.data_oriented
 class SimFields:
-    """Every field of one problem; ``.grad`` companions exist for all differentiable ones."""
+    """Every field of one problem. ``differentiable``: every float field has a ``.grad``
+    companion and each substep its own state buffer (see the module docstring); otherwise two
+    state buffers and no adjoints, for rollouts that nothing differentiates."""
 
-    def __init__(self, layout: Layout):
+    def __init__(self, layout: Layout, *, differentiable: bool = True):
         self.layout = layout
-        f32, S, N = ti.f32, layout.substeps, layout.capacity
+        self.differentiable = differentiable
+        #: particle-state buffers (x .. Jp): one per substep boundary, or two taking turns
+        self.state_buffers = layout.substeps + 1 if differentiable else 2
+        #: buffers of the trial F and its singular values, which only their own substep reads
+        self.trial_buffers = layout.substeps if differentiable else 1
+        f32, g = ti.f32, differentiable
         mat = ti.types.matrix(3, 3, f32)
         vec = ti.types.vector(3, f32)
 
-        # particle state per substep of one frame: s = 0..S (index [s, p])
-        self.x = ti.field(vec, needs_grad=True)  # position (m)
-        self.v = ti.field(vec, needs_grad=True)  # velocity (m/s)
-        self.C = ti.field(mat, needs_grad=True)  # APIC affine velocity (1/s)
-        self.F = ti.field(mat, needs_grad=True)  # elastic deformation gradient
-        self.U = ti.field(mat, needs_grad=True)  # left rotation of F's SVD
-        self.V = ti.field(mat, needs_grad=True)  # right rotation of F's SVD
-        self.sig = ti.field(vec, needs_grad=True)  # singular values of F
-        self.Jp = ti.field(f32, needs_grad=True)  # plastic volume ratio (snow)
-        # per substep s = 0..S-1: trial F = (I + dt C) F and its singular values
-        self.F_trial = ti.field(mat, needs_grad=True)
-        self.sig_trial = ti.field(vec, needs_grad=True)
+        # particle state of substep s in buffer s (differentiable) or s mod 2: index [buffer, p]
+        self.x = ti.field(vec, needs_grad=g)  # position (m)
+        self.v = ti.field(vec, needs_grad=g)  # velocity (m/s)
+        self.C = ti.field(mat, needs_grad=g)  # APIC affine velocity (1/s)
+        self.F = ti.field(mat, needs_grad=g)  # elastic deformation gradient
+        self.U = ti.field(mat, needs_grad=g)  # left rotation of F's SVD
+        self.V = ti.field(mat, needs_grad=g)  # right rotation of F's SVD
+        self.sig = ti.field(vec, needs_grad=g)  # singular values of F
+        self.Jp = ti.field(f32, needs_grad=g)  # plastic volume ratio (snow)
+        # per substep s = 0..S-1 (or one buffer): trial F = (I + dt C) F and its singular values
+        self.F_trial = ti.field(mat, needs_grad=g)
+        self.sig_trial = ti.field(vec, needs_grad=g)
 
         # per particle, recomputed every substep: mass (kg) and MLS affine momentum term
-        self.pmass = ti.field(f32, needs_grad=True)
-        self.affine = ti.field(mat, needs_grad=True)
+        self.pmass = ti.field(f32, needs_grad=g)
+        self.affine = ti.field(mat, needs_grad=g)
 
         # constant per particle
         self.obj = ti.field(ti.i32)  # object index 0..K-1
         self.vol = ti.field(f32)  # rest volume (m^3)
 
         # grid, one velocity field per object (or one shared): index [g, i, j, k]
-        self.m = ti.field(f32, needs_grad=True)  # mass (kg)
-        self.mv = ti.field(vec, needs_grad=True)  # momentum incl. stress impulse (kg m/s)
-        self.gm = ti.field(vec, needs_grad=True)  # mass gradient (kg/m) for contact normals
+        self.m = ti.field(f32, needs_grad=g)  # mass (kg)
+        self.mv = ti.field(vec, needs_grad=g)  # momentum incl. stress impulse (kg m/s)
+        self.gm = ti.field(vec, needs_grad=g)  # mass gradient (kg/m) for contact normals
         # momentum without this substep's stress impulse (kg m/s), on ground-layer nodes only:
         # the arriving velocity that ground_restitution reflects
-        self.pm = ti.field(vec, needs_grad=True)
-        self.vf = ti.field(vec, needs_grad=True)  # velocity after body forces (m/s)
-        self.vg = ti.field(vec, needs_grad=True)  # velocity after contact and boundaries (m/s)
+        self.pm = ti.field(vec, needs_grad=g)
+        self.vf = ti.field(vec, needs_grad=g)  # velocity after body forces (m/s)
+        self.vg = ti.field(vec, needs_grad=g)  # velocity after contact and boundaries (m/s)
 
         # parameters (differentiable), index [k] per object
-        K = layout.n_objects
         self.law_id = ti.field(ti.i32)
-        self.law_p = ti.field(ti.types.vector(MAX_LAW_PARAMS, f32), needs_grad=True)
-        self.rho = ti.field(f32, needs_grad=True)  # kg/m^3
-        self.friction = ti.field(f32, needs_grad=True)
-        self.v0 = ti.field(vec, needs_grad=True)  # initial velocity (m/s)
-        self.ground_mu = ti.field(f32, needs_grad=True)
-        self.gravity = ti.field(vec, needs_grad=True)  # m/s^2 (world or `gravity` term)
-        self.wind = ti.field(vec, needs_grad=True)  # m/s^2
-        self.lin_drag = ti.field(f32, needs_grad=True)  # 1/s
-        self.quad_drag = ti.field(f32, needs_grad=True)  # 1/m
-        self.damping = ti.field(f32, needs_grad=True)  # material_damping viscosity (Pa s)
-        self.ground_e = ti.field(f32, needs_grad=True)  # ground_restitution coefficient
+        self.law_p = ti.field(ti.types.vector(MAX_LAW_PARAMS, f32), needs_grad=g)
+        self.rho = ti.field(f32, needs_grad=g)  # kg/m^3
+        self.friction = ti.field(f32, needs_grad=g)
+        self.v0 = ti.field(vec, needs_grad=g)  # initial velocity (m/s)
+        self.ground_mu = ti.field(f32, needs_grad=g)
+        self.gravity = ti.field(vec, needs_grad=g)  # m/s^2 (world or `gravity` term)
+        self.wind = ti.field(vec, needs_grad=g)  # m/s^2
+        self.lin_drag = ti.field(f32, needs_grad=g)  # 1/s
+        self.quad_drag = ti.field(f32, needs_grad=g)  # 1/m
+        self.damping = ti.field(f32, needs_grad=g)  # material_damping viscosity (Pa s)
+        self.ground_e = ti.field(f32, needs_grad=g)  # ground_restitution coefficient
         # the expression term (mosiv_framework.expression): one vec3 (a_x, a_y, a_z) per
         # node-local feature, in NODE_FEATURES order; up and on are not differentiated
-        self.expr_coef = ti.field(vec, needs_grad=True)
+        self.expr_coef = ti.field(vec, needs_grad=g)
         self.expr_on = ti.field(ti.i32)  # 1 where the rollout has the term
         self.up = ti.field(vec)  # unit vector opposite gravity, for the height feature
 
@@ -143,10 +154,15 @@ class SimFields:
         self.div_code = ti.field(ti.i32)
         self.contact = ti.field(ti.i32)  # [K, K+1] object-object / ground contact this frame
 
+        self._tree = self._place(layout)
+
+    def _place(self, layout: Layout):
+        """Place every field in one SNode tree, which ``destroy`` frees as a whole."""
+        N, K = layout.capacity, layout.n_objects
         fb = ti.FieldsBuilder()
         per_step = (self.x, self.v, self.C, self.F, self.U, self.V, self.sig, self.Jp)
-        fb.dense(ti.ij, (S + 1, N)).place(*per_step)
-        fb.dense(ti.ij, (S, N)).place(self.F_trial, self.sig_trial)
+        fb.dense(ti.ij, (self.state_buffers, N)).place(*per_step)
+        fb.dense(ti.ij, (self.trial_buffers, N)).place(self.F_trial, self.sig_trial)
         fb.dense(ti.i, N).place(self.obj, self.vol, self.pmass, self.affine)
         grid_shape = (layout.n_fields, *layout.nodes)
         fb.dense(ti.ijkl, grid_shape).place(self.m, self.mv, self.gm, self.pm, self.vf, self.vg)
@@ -157,8 +173,9 @@ class SimFields:
         fb.place(self.damping, self.ground_e, self.expr_on, self.up)
         fb.dense(ti.i, N_NODE_FEATURES).place(self.expr_coef)
         fb.dense(ti.ij, (K, K + 1)).place(self.contact)
-        fb.lazy_grad()
-        self._tree = fb.finalize()
+        if self.differentiable:
+            fb.lazy_grad()  # places an adjoint beside every float field (needs_grad or not)
+        return fb.finalize()
 
     #: the differentiable parameter fields, by the name the simulator maps tensors to
     def param_fields(self) -> dict[str, ti.Field]:
@@ -178,14 +195,16 @@ class SimFields:
         }
 
     def nbytes(self) -> int:
-        """Approximate bytes held by these fields (values and gradients)."""
-        lay = self.layout
-        per_particle_step = 3 + 3 + 9 + 9 + 9 + 9 + 3 + 1
-        trial = 9 + 3
-        n_nodes = lay.n_fields * math.prod(lay.nodes)
-        floats = lay.capacity * ((lay.substeps + 1) * per_particle_step + lay.substeps * trial)
-        floats += lay.capacity * 10 + n_nodes * (1 + 3 * 5)
-        return 4 * (2 * floats + 2 * lay.capacity)
+        """Bytes held by these fields, read from their shapes: values, and the adjoints that
+        ``lazy_grad`` placed beside every float field of differentiable ones."""
+        total = 0
+        for fld in vars(self).values():
+            if not isinstance(fld, ti.Field):
+                continue
+            elements = math.prod(fld.shape) * getattr(fld, "n", 1) * getattr(fld, "m", 1)
+            copies = 2 if self.differentiable and fld.dtype == ti.f32 else 1
+            total += 4 * elements * copies  # every field is 32-bit
+        return total
 
     def destroy(self) -> None:
         """Free the device memory of every field (they must not be used afterwards).

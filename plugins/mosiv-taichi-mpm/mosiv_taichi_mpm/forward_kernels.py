@@ -33,11 +33,12 @@ class FusedForwardKernels(MPMKernels):
         (grad m)_i += m_p grad w; on nodes at or below ground_z (m) the arriving momentum
         (p m)_i += w m_p (v_p + C dpos)."""
         for p in range(n):
+            a = self.state_at(s)
             g = self.obj[p] if ti.static(self.multi) else 0
             mass, A = self.mass_and_affine(s, p, dt)
-            base, fx = self.stencil_cell(self.x[s, p])
-            mom = mass * self.v[s, p]
-            MC = mass * self.C[s, p]
+            base, fx = self.stencil_cell(self.x[a, p])
+            mom = mass * self.v[a, p]
+            MC = mass * self.C[a, p]
             for i, j, l in ti.static(ti.ndrange(3, 3, 3)):
                 self.scatter_node(g, base, fx, ti.Vector([i, j, l]), mass, mom, A, MC, ground_z)
 
@@ -47,17 +48,18 @@ class FusedForwardKernels(MPMKernels):
         v = sum w v_i and C = sum 4/dx^2 w v_i dpos^T over the 27 nodes (in the split kernels'
         order), then x += dt v (kept inside the padded grid) and F_trial = (I + dt C) F."""
         for p in range(n):
+            a, b, t = self.state_at(s), self.state_at(s + 1), self.trial_at(s)
             g = self.obj[p] if ti.static(self.multi) else 0
-            base, fx = self.stencil_cell(self.x[s, p])
+            base, fx = self.stencil_cell(self.x[a, p])
             v = ti.Vector.zero(ti.f32, 3)
             C = ti.Matrix.zero(ti.f32, 3, 3)
             for i, j, l in ti.static(ti.ndrange(3, 3, 3)):
                 dv, dC = self.gather_node(g, base, fx, ti.Vector([i, j, l]))
                 v += dv
                 C += dC
-            self.v[s + 1, p] = v
-            self.C[s + 1, p] = C
-            x_new = (self.x[s, p] + dt * v - self.origin) * self.inv_dx
+            self.v[b, p] = v
+            self.C[b, p] = C
+            x_new = (self.x[a, p] + dt * v - self.origin) * self.inv_dx
             x_new = ti.min(ti.max(x_new, self.lo), self.hi)
-            self.x[s + 1, p] = self.origin + x_new * self.dx
-            self.F_trial[s, p] = (ti.Matrix.identity(ti.f32, 3) + dt * C) @ self.F[s, p]
+            self.x[b, p] = self.origin + x_new * self.dx
+            self.F_trial[t, p] = (ti.Matrix.identity(ti.f32, 3) + dt * C) @ self.F[a, p]

@@ -1,11 +1,15 @@
 """Taichi kernels of one MLS-MPM substep (Hu et al. 2018, APIC, quadratic B-splines).
 
-A substep from buffer ``s`` to ``s + 1`` runs, in order:
+A substep from the particle state at substep boundary ``s`` to that at ``s + 1`` runs, in order:
 ``clear_grid`` -> ``stress(s)`` -> ``p2g(s, 0..2)`` -> ``grid_forces`` -> ``grid_contact`` ->
 ``clear_particle_velocity(s)`` -> ``g2p(s, 0..2)`` -> ``advect(s)`` -> ``svd(s)`` -> ``plasticity(s)``.
 Every kernel except ``svd`` is differentiated by Taichi (``kernel.grad``); ``svd_backward`` is the
 hand-written adjoint of ``svd``. Kernels read and write disjoint fields so that the recorded
 values survive until their adjoints run. ``check`` and ``detect_contact`` are forward-only.
+
+Kernels find boundary s's state in buffer ``state_at(s)`` and substep s's trial F in
+``trial_at(s)``: the buffer of that index on differentiable fields, one of two (or the one) on
+forward-only fields, which keep no history (fields.py).
 """
 
 # no `from __future__ import annotations`: Taichi reads the annotations at runtime
@@ -87,6 +91,27 @@ class MPMKernels:
         # particles are kept inside [1, nodes - 2] cells so the 3x3x3 stencil stays on the grid
         self.lo = 1.0
         self.hi = ti.Vector([n - 2.0 - 1e-3 for n in lay.nodes], ti.f32)
+        #: forward-only fields: two state buffers taking turns, one trial buffer
+        self.rotating = not fields.differentiable
+
+    @ti.func
+    def state_at(self, s):
+        """The buffer of the particle state at substep boundary s: s on differentiable fields,
+        s mod 2 on forward-only ones (boundary s + 1 overwrites s - 1, which nothing reads
+        again). The branch is static: differentiable kernels index by s as they always did."""
+        b = s
+        if ti.static(self.rotating):
+            b = s % 2
+        return b
+
+    @ti.func
+    def trial_at(self, s):
+        """The buffer of substep s's trial F and its singular values: s, or 0 on forward-only
+        fields (only substep s's own svd and plasticity read them)."""
+        t = s
+        if ti.static(self.rotating):
+            t = 0
+        return t
 
     # ------------------------------------------------------------------------------------------
     # state transfer (not differentiated; the autograd function moves adjoints explicitly)
@@ -131,66 +156,69 @@ class MPMKernels:
         sig: ti.types.ndarray(),
         Jp: ti.types.ndarray(),
     ):
-        """Copy buffer s (values or adjoints) to (to_fields=False) or from flat arrays."""
+        """Copy boundary s's state (values or adjoints) to (to_fields=False) or from flat
+        arrays."""
         for p in range(n):
+            a = self.state_at(s)
             for i in ti.static(range(3)):
                 if ti.static(to_fields):
                     if ti.static(use_grad):
-                        self.x.grad[s, p][i] = x[p, i]
-                        self.v.grad[s, p][i] = v[p, i]
-                        self.sig.grad[s, p][i] = sig[p, i]
+                        self.x.grad[a, p][i] = x[p, i]
+                        self.v.grad[a, p][i] = v[p, i]
+                        self.sig.grad[a, p][i] = sig[p, i]
                     else:
-                        self.x[s, p][i] = x[p, i]
-                        self.v[s, p][i] = v[p, i]
-                        self.sig[s, p][i] = sig[p, i]
+                        self.x[a, p][i] = x[p, i]
+                        self.v[a, p][i] = v[p, i]
+                        self.sig[a, p][i] = sig[p, i]
                 else:
                     if ti.static(use_grad):
-                        x[p, i] = self.x.grad[s, p][i]
-                        v[p, i] = self.v.grad[s, p][i]
-                        sig[p, i] = self.sig.grad[s, p][i]
+                        x[p, i] = self.x.grad[a, p][i]
+                        v[p, i] = self.v.grad[a, p][i]
+                        sig[p, i] = self.sig.grad[a, p][i]
                     else:
-                        x[p, i] = self.x[s, p][i]
-                        v[p, i] = self.v[s, p][i]
-                        sig[p, i] = self.sig[s, p][i]
+                        x[p, i] = self.x[a, p][i]
+                        v[p, i] = self.v[a, p][i]
+                        sig[p, i] = self.sig[a, p][i]
                 for j in ti.static(range(3)):
                     if ti.static(to_fields):
                         if ti.static(use_grad):
-                            self.C.grad[s, p][i, j] = C[p, i, j]
-                            self.F.grad[s, p][i, j] = F[p, i, j]
-                            self.U.grad[s, p][i, j] = U[p, i, j]
-                            self.V.grad[s, p][i, j] = V[p, i, j]
+                            self.C.grad[a, p][i, j] = C[p, i, j]
+                            self.F.grad[a, p][i, j] = F[p, i, j]
+                            self.U.grad[a, p][i, j] = U[p, i, j]
+                            self.V.grad[a, p][i, j] = V[p, i, j]
                         else:
-                            self.C[s, p][i, j] = C[p, i, j]
-                            self.F[s, p][i, j] = F[p, i, j]
-                            self.U[s, p][i, j] = U[p, i, j]
-                            self.V[s, p][i, j] = V[p, i, j]
+                            self.C[a, p][i, j] = C[p, i, j]
+                            self.F[a, p][i, j] = F[p, i, j]
+                            self.U[a, p][i, j] = U[p, i, j]
+                            self.V[a, p][i, j] = V[p, i, j]
                     else:
                         if ti.static(use_grad):
-                            C[p, i, j] = self.C.grad[s, p][i, j]
-                            F[p, i, j] = self.F.grad[s, p][i, j]
-                            U[p, i, j] = self.U.grad[s, p][i, j]
-                            V[p, i, j] = self.V.grad[s, p][i, j]
+                            C[p, i, j] = self.C.grad[a, p][i, j]
+                            F[p, i, j] = self.F.grad[a, p][i, j]
+                            U[p, i, j] = self.U.grad[a, p][i, j]
+                            V[p, i, j] = self.V.grad[a, p][i, j]
                         else:
-                            C[p, i, j] = self.C[s, p][i, j]
-                            F[p, i, j] = self.F[s, p][i, j]
-                            U[p, i, j] = self.U[s, p][i, j]
-                            V[p, i, j] = self.V[s, p][i, j]
+                            C[p, i, j] = self.C[a, p][i, j]
+                            F[p, i, j] = self.F[a, p][i, j]
+                            U[p, i, j] = self.U[a, p][i, j]
+                            V[p, i, j] = self.V[a, p][i, j]
             if ti.static(to_fields):
                 if ti.static(use_grad):
-                    self.Jp.grad[s, p] = Jp[p]
+                    self.Jp.grad[a, p] = Jp[p]
                 else:
-                    self.Jp[s, p] = Jp[p]
+                    self.Jp[a, p] = Jp[p]
             else:
                 if ti.static(use_grad):
-                    Jp[p] = self.Jp.grad[s, p]
+                    Jp[p] = self.Jp.grad[a, p]
                 else:
-                    Jp[p] = self.Jp[s, p]
+                    Jp[p] = self.Jp[a, p]
 
     @ti.kernel
     def add_position_grad(self, s: ti.i32, n: ti.i32, g: ti.types.ndarray()):
         """dL/dx[s] += g (the loss gradient of the positions output at a frame boundary)."""
         for p in range(n):
-            self.x.grad[s, p] += ti.Vector([g[p, 0], g[p, 1], g[p, 2]])
+            a = self.state_at(s)
+            self.x.grad[a, p] += ti.Vector([g[p, 0], g[p, 1], g[p, 2]])
 
     @ti.kernel
     def clear_grid(self, grads: ti.template()):
@@ -224,15 +252,15 @@ class MPMKernels:
     @ti.func
     def mass_and_affine(self, s, p, dt):
         """Particle p's mass m_p = rho V0 (kg) and MLS affine term A = -dt 4/dx^2 V0 tau + m_p C
-        at buffer s (shared with the fused forward)."""
-        k = self.obj[p]
+        at substep boundary s (shared with the fused forward)."""
+        a, k = self.state_at(s), self.obj[p]
         mass = self.rho[k] * self.vol[p]
         tau = kirchhoff_stress(
-            self.present, self.law_id[k], self.F[s, p], self.U[s, p], self.sig[s, p],
-            self.C[s, p], self.Jp[s, p], self.law_p[k],
+            self.present, self.law_id[k], self.F[a, p], self.U[a, p], self.sig[a, p],
+            self.C[a, p], self.Jp[a, p], self.law_p[k],
         )  # fmt: skip
-        tau += kelvin_voigt_tau(self.damping[None], self.F[s, p], self.C[s, p])
-        A = -dt * 4.0 * self.inv_dx * self.inv_dx * self.vol[p] * tau + mass * self.C[s, p]
+        tau += kelvin_voigt_tau(self.damping[None], self.F[a, p], self.C[a, p])
+        A = -dt * 4.0 * self.inv_dx * self.inv_dx * self.vol[p] * tau + mass * self.C[a, p]
         return mass, A
 
     @ti.func
@@ -273,11 +301,12 @@ class MPMKernels:
         split in nine kernels because the adjoint's compile time grows faster than linearly
         with kernel size."""
         for p in range(n):
+            a = self.state_at(s)
             g = self.obj[p] if ti.static(self.multi) else 0
             mass = self.pmass[p]
-            base, fx = self.stencil_cell(self.x[s, p])
-            mom = mass * self.v[s, p]
-            MC = mass * self.C[s, p]
+            base, fx = self.stencil_cell(self.x[a, p])
+            mom = mass * self.v[a, p]
+            MC = mass * self.C[a, p]
             for l in ti.static(range(3)):
                 offset = ti.Vector([i, j, l])
                 self.scatter_node(g, base, fx, offset, mass, mom, self.affine[p], MC, ground_z)
@@ -389,70 +418,75 @@ class MPMKernels:
     def clear_particle_velocity(self, s: ti.i32, n: ti.i32):
         """Zero v[s + 1] and C[s + 1] before ``g2p`` accumulates into them."""
         for p in range(n):
-            self.v[s + 1, p] = ti.Vector.zero(ti.f32, 3)
-            self.C[s + 1, p] = ti.Matrix.zero(ti.f32, 3, 3)
+            b = self.state_at(s + 1)
+            self.v[b, p] = ti.Vector.zero(ti.f32, 3)
+            self.C[b, p] = ti.Matrix.zero(ti.f32, 3, 3)
 
     @ti.kernel
     def g2p(self, s: ti.i32, n: ti.i32, i: ti.template(), j: ti.template()):
         """G2P gather over the 3 stencil nodes with offsets (i, j, 0..2): v += w v_i,
         C += 4/dx^2 w v_i dpos^T (APIC); accumulated into the fields (see ``p2g``)."""
         for p in range(n):
+            a, b = self.state_at(s), self.state_at(s + 1)
             g = self.obj[p] if ti.static(self.multi) else 0
-            base, fx = self.stencil_cell(self.x[s, p])
+            base, fx = self.stencil_cell(self.x[a, p])
             for l in ti.static(range(3)):
                 dv, dC = self.gather_node(g, base, fx, ti.Vector([i, j, l]))
-                self.v[s + 1, p] += dv
-                self.C[s + 1, p] += dC
+                self.v[b, p] += dv
+                self.C[b, p] += dC
 
     @ti.kernel
     def advect(self, s: ti.i32, n: ti.i32, dt: ti.f32):
         """x += dt v (kept inside the padded grid), F_trial = (I + dt C) F."""
         for p in range(n):
-            x_new = (self.x[s, p] + dt * self.v[s + 1, p] - self.origin) * self.inv_dx
+            a, b, t = self.state_at(s), self.state_at(s + 1), self.trial_at(s)
+            x_new = (self.x[a, p] + dt * self.v[b, p] - self.origin) * self.inv_dx
             x_new = ti.min(ti.max(x_new, self.lo), self.hi)
-            self.x[s + 1, p] = self.origin + x_new * self.dx
-            self.F_trial[s, p] = (ti.Matrix.identity(ti.f32, 3) + dt * self.C[s + 1, p]) @ self.F[
-                s, p
-            ]
+            self.x[b, p] = self.origin + x_new * self.dx
+            self.F_trial[t, p] = (ti.Matrix.identity(ti.f32, 3) + dt * self.C[b, p]) @ self.F[a, p]
 
     @ti.kernel
     def svd(self, s: ti.i32, n: ti.i32):
         """F_trial = U diag(s) V^T with proper rotations (not differentiated by Taichi)."""
         for p in range(n):
-            U, S, V = ti.svd(self.F_trial[s, p])
-            self.U[s + 1, p] = U
-            self.V[s + 1, p] = V
-            self.sig_trial[s, p] = ti.Vector([S[0, 0], S[1, 1], S[2, 2]])
+            b, t = self.state_at(s + 1), self.trial_at(s)
+            U, S, V = ti.svd(self.F_trial[t, p])
+            self.U[b, p] = U
+            self.V[b, p] = V
+            self.sig_trial[t, p] = ti.Vector([S[0, 0], S[1, 1], S[2, 2]])
 
     @ti.kernel
     def svd_backward(self, s: ti.i32, n: ti.i32):
         """Hand-written adjoint of ``svd`` (svd_grad.py)."""
         for p in range(n):
-            self.F_trial.grad[s, p] += svd_adjoint(
-                self.U[s + 1, p], self.sig_trial[s, p], self.V[s + 1, p],
-                self.U.grad[s + 1, p], self.sig_trial.grad[s, p], self.V.grad[s + 1, p],
+            b, t = self.state_at(s + 1), self.trial_at(s)
+            self.F_trial.grad[t, p] += svd_adjoint(
+                self.U[b, p], self.sig_trial[t, p], self.V[b, p],
+                self.U.grad[b, p], self.sig_trial.grad[t, p], self.V.grad[b, p],
             )  # fmt: skip
 
     @ti.kernel
     def plasticity(self, s: ti.i32, n: ti.i32, dt: ti.f32):
         """Return map of the particle's law: (F_trial, plastic_J) -> (F, s, plastic_J)."""
         for p in range(n):
+            a, b, t = self.state_at(s), self.state_at(s + 1), self.trial_at(s)
             k = self.obj[p]
             F_new, s_new, Jp_new = return_map(
-                self.present, self.law_id[k], self.F_trial[s, p], self.U[s + 1, p], self.sig_trial[s, p],
-                self.V[s + 1, p], self.Jp[s, p], self.law_p[k], dt,
+                self.present, self.law_id[k], self.F_trial[t, p], self.U[b, p], self.sig_trial[t, p],
+                self.V[b, p], self.Jp[a, p], self.law_p[k], dt,
             )  # fmt: skip
-            self.F[s + 1, p] = F_new
-            self.sig[s + 1, p] = s_new
-            self.Jp[s + 1, p] = Jp_new
+            self.F[b, p] = F_new
+            self.sig[b, p] = s_new
+            self.Jp[b, p] = Jp_new
 
     @ti.kernel
     def copy_identity_svd(self, s: ti.i32, n: ti.i32):
         """Without SVD laws U, V are unused; keep them (and the trial s) defined anyway."""
         for p in range(n):
-            self.U[s + 1, p] = ti.Matrix.identity(ti.f32, 3)
-            self.V[s + 1, p] = ti.Matrix.identity(ti.f32, 3)
-            self.sig_trial[s, p] = ti.Vector([1.0, 1.0, 1.0])
+            b, t = self.state_at(s + 1), self.trial_at(s)
+            self.U[b, p] = ti.Matrix.identity(ti.f32, 3)
+            self.V[b, p] = ti.Matrix.identity(ti.f32, 3)
+            self.sig_trial[t, p] = ti.Vector([1.0, 1.0, 1.0])
 
     # ------------------------------------------------------------------------------------------
     # diagnostics (forward only)
@@ -461,12 +495,13 @@ class MPMKernels:
     def check(self, s: ti.i32, n: ti.i32, step: ti.i32):
         """Flag non-finite state or particles pinned at the grid clamp: div_code = step*4+reason."""
         for p in range(n):
-            total = self.x[s, p].sum() + self.v[s, p].sum() + self.F[s, p].sum() + self.Jp[s, p]
+            a = self.state_at(s)
+            total = self.x[a, p].sum() + self.v[a, p].sum() + self.F[a, p].sum() + self.Jp[a, p]
             reason = 0
             if not (ti.abs(total) < FLOAT_BIG):
                 reason = REASON_NONFINITE
             else:
-                xg = (self.x[s, p] - self.origin) * self.inv_dx
+                xg = (self.x[a, p] - self.origin) * self.inv_dx
                 if (xg <= self.lo + 1e-4).any() or (xg >= self.hi - 1e-4).any():
                     reason = REASON_LEFT_DOMAIN
             if reason != 0:

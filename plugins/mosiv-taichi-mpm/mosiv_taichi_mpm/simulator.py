@@ -70,9 +70,10 @@ class TaichiMPMSimulator(Simulator):
     def __init__(self, options: TaichiMPMOptions | None = None, **kwargs):
         self.options = options if options is not None else TaichiMPMOptions(**kwargs)
         self.device_name = runtime.resolve_device(self.options.device)
-        self._engine: Engine | None = None
+        #: engines of the current layout, by whether they are differentiable
+        self._engines: dict[bool, Engine] = {}
         self._engine_key: tuple | None = None
-        self._peak_checkpoint_bytes = 0
+        self._peak_field_bytes = 0
         self._peak_bytes = 0
 
     @property
@@ -82,17 +83,18 @@ class TaichiMPMSimulator(Simulator):
     # ------------------------------------------------------------------ memory
     def reset_peak_memory(self) -> None:
         self._peak_bytes = 0
+        self._peak_field_bytes = 0
         if self.device_name == "cuda":
             torch.cuda.reset_peak_memory_stats()
 
     def peak_memory_bytes(self) -> int | None:
-        """Taichi field bytes (values + adjoints) plus the torch checkpoints of the last rollout
+        """The largest of the rollouts since ``reset_peak_memory``: the Taichi field bytes of the
+        engine it ran on (values, and adjoints where differentiable) plus its torch checkpoints
         (on CUDA: plus torch's own peak allocation, which holds the checkpoints)."""
         if self._peak_bytes == 0:
             return None
         if self.device_name == "cuda":
-            fields = self._engine.fields.nbytes() if self._engine else 0
-            return fields + int(torch.cuda.max_memory_allocated())
+            return self._peak_field_bytes + int(torch.cuda.max_memory_allocated())
         return self._peak_bytes
 
     def evaluate_law(self, family, F, values, *, plastic_J=None, velocity_gradient=None, dt=1e-3):
@@ -117,7 +119,10 @@ class TaichiMPMSimulator(Simulator):
         self._validate(particles, params, object_ids)
         dev = self.torch_device
         families = [params.objects[k].family for k in object_ids]
-        engine = self.engine_for(len(particles), families, world)
+        names, tensors = zip(*params.named_tensors())
+        # only a rollout autograd will differentiate needs the per-substep buffers and adjoints
+        differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+        engine = self.engine_for(len(particles), families, world, differentiable=differentiable)
 
         index_of = {k: i for i, k in enumerate(object_ids)}
         obj = particles.object_ids.detach().cpu().numpy()
@@ -132,17 +137,21 @@ class TaichiMPMSimulator(Simulator):
             ground_z=world.ground_height,
             advice_info={k: self._advice(params, k) for k in object_ids},
         )
-        names, tensors = zip(*params.named_tensors())
         engine.set_params(self._pack(params, object_ids, world))
 
-        run = RolloutRun(engine=engine, frames=frames, n=len(particles), device=dev)
+        run = RolloutRun(engine, frames, len(particles), dev, keep_checkpoints=differentiable)
 
         def grads_of():
             return self._unpack_grads(engine.param_grads(), names, params, object_ids)
 
-        positions = RolloutFunction.apply(run, grads_of, *tensors)
-        ckpt = frames * sum(t.numel() * 4 for t in run.checkpoints[0].values())
-        self._peak_bytes = max(self._peak_bytes, engine.fields.nbytes() + ckpt)
+        if differentiable:
+            positions = RolloutFunction.apply(run, grads_of, *tensors)
+        else:
+            run.forward()
+            positions = run.positions
+        field_bytes = engine.fields.nbytes()
+        self._peak_field_bytes = max(self._peak_field_bytes, field_bytes)
+        self._peak_bytes = max(self._peak_bytes, field_bytes + run.checkpoint_bytes())
         out_device = particles.positions.device
         return Trajectory(
             positions=positions.to(out_device),
@@ -161,9 +170,12 @@ class TaichiMPMSimulator(Simulator):
                 advice += f" or the material_damping viscosity ({eta:g} Pa s)"
         return advice
 
-    def engine_for(self, n_particles: int, families: list[str], world: World) -> Engine:
+    def engine_for(
+        self, n_particles: int, families: list[str], world: World, *, differentiable: bool = True
+    ) -> Engine:
         """The compiled engine for ``n_particles`` particles of objects with ``families`` (one
-        per object, in object order) in ``world``'s domain; reused while the layout holds."""
+        per object, in object order) in ``world``'s domain; reused while the layout holds.
+        ``differentiable=False``: the forward-only engine of that layout (fields.py)."""
         generation = runtime.ensure(self.device_name)
         layout = make_layout(
             n_particles=n_particles,
@@ -175,18 +187,27 @@ class TaichiMPMSimulator(Simulator):
             domain_upper=tuple(world.domain_upper),
         )
         present = tuple(sorted({LAW_IDS[f] for f in families}))
-        return self._get_engine(layout, present, generation)
+        return self._get_engine(layout, present, generation, differentiable)
 
-    def _get_engine(self, layout, present, generation) -> Engine:
+    def _get_engine(self, layout, present, generation, differentiable: bool) -> Engine:
+        """Each kind is built on first use; both are freed when the layout changes (their
+        fields are already gone when the runtime's generation did)."""
         key = (layout, present, generation)
         if self._engine_key != key:
-            if self._engine is not None and self._engine_key[2] == generation:
-                self._engine.destroy()
-            self._engine = Engine(
-                layout, present, self.torch_device, fused_forward=self.options.fused_forward
-            )
+            if self._engine_key is not None and self._engine_key[2] == generation:
+                for engine in self._engines.values():
+                    engine.destroy()
+            self._engines = {}
             self._engine_key = key
-        return self._engine
+        if differentiable not in self._engines:
+            self._engines[differentiable] = Engine(
+                layout,
+                present,
+                self.torch_device,
+                fused_forward=self.options.fused_forward,
+                differentiable=differentiable,
+            )
+        return self._engines[differentiable]
 
     # ------------------------------------------------------------------ validation
     def _validate(self, particles, params: SimulationParams, object_ids: list[int]) -> None:
