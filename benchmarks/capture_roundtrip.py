@@ -44,6 +44,8 @@ from pathlib import Path
 
 from genesis_identify import _portable
 
+from mosiv_framework.logs import configure_logging, level_from_flags
+
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_RECIPE = ROOT / "recipes" / "video_paper.yaml"
 QUICK_RECIPE = ROOT / "recipes" / "video_quickstart.yaml"
@@ -442,6 +444,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("overrides", nargs="*", help="extra recipe overrides key=value")
     args = parser.parse_args(argv)
+    # the pipeline's progress (stages, global candidates) is logged at INFO: show it
+    configure_logging(level_from_flags())
     whole = args.part is None and not args.merge
     if whole and args.out.exists() and any(args.out.iterdir()):
         parser.error(f"--out {args.out}: not empty; give a new or empty folder")

@@ -68,6 +68,7 @@ from genesis_identify_table import (  # noqa: F401 (other benchmarks import thes
 )
 from identify_suite import _timed, code_version
 
+from mosiv_framework.logs import configure_logging, level_from_flags
 from mosiv_framework.scale import Task, run_command, run_tasks
 from mosiv_framework.scale.flags import add_scale_flags, scale_options
 
@@ -276,6 +277,8 @@ def main(argv: list[str] | None = None) -> int:
         help="write the --part run of each scene as a job of benchmarks/device_queue.py, run none",
     )
     args = parser.parse_args(argv)
+    # the pipeline's progress (stages, global candidates) is logged at INFO: show it
+    configure_logging(level_from_flags())
     if sum([args.part, args.merge, args.job_file is not None]) > 1:
         parser.error(
             "--part runs one scene, --merge tabulates the parts, --job-file lists the "

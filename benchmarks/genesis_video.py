@@ -63,6 +63,7 @@ from video_suite import (
     wait_for_shared_stages,
 )
 
+from mosiv_framework.logs import configure_logging, level_from_flags
 from mosiv_framework.scale import Task, run_command, run_tasks
 from mosiv_framework.scale.flags import add_scale_flags, scale_options
 
@@ -422,6 +423,8 @@ def _split(text: str, valid, flag: str) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = parse_args(argv)
+    # the pipeline's progress (stages, global candidates) is logged at INFO: show it
+    configure_logging(level_from_flags())
     runnable = [*METHODS, *ABLATION]
     sets = parse_sets(args.set, runnable)
     development = [d.strip() for d in args.development.split(",") if d.strip()]

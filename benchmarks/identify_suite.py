@@ -69,6 +69,7 @@ from identify_suite_table import (
 )
 from omegaconf import OmegaConf
 
+from mosiv_framework.logs import configure_logging, level_from_flags
 from mosiv_framework.pipeline import ensure_scene, run_pipeline
 from mosiv_framework.pipeline.contact import simulator_section
 from mosiv_framework.pipeline.evaluate import score
@@ -500,6 +501,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--part", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("overrides", nargs="*", help="key=value recipe overrides for every run")
     args = parser.parse_args(argv)
+    # the pipeline's progress (stages, global candidates) is logged at INFO: show it
+    configure_logging(level_from_flags())
     scale = scale_options(args)
     selected = select_pairs(pairs=args.pairs, scenes=args.scenes)
     extra = [*setting_overrides(args), *args.overrides]

@@ -38,6 +38,7 @@ from pathlib import Path
 
 from identify_suite import _fmt, _timed, errors_of
 
+from mosiv_framework.logs import configure_logging, level_from_flags
 from mosiv_framework.scale import Task, run_tasks
 from mosiv_framework.scale.flags import add_scale_flags, scale_options
 
@@ -275,6 +276,8 @@ def check_mode(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = parse_args(argv)
+    # the pipeline's progress (stages, global candidates) is logged at INFO: show it
+    configure_logging(level_from_flags())
     if args.genesis:
         import genesis_noise
 

@@ -25,6 +25,7 @@ import numpy as np
 
 from mosiv_framework.diagnose.report import loaded_table
 from mosiv_framework.diagnose.suite import DEFAULT_RECIPES, suite_entries
+from mosiv_framework.logs import configure_logging, level_from_flags
 from mosiv_framework.scale import Task, run_tasks
 from mosiv_framework.scale.flags import add_scale_flags, scale_options
 
@@ -82,6 +83,8 @@ def main() -> None:
     parser.add_argument("--diagnoses", type=Path, default=None)
     parser.add_argument("--fractions", default="0.25,0.5")
     args = parser.parse_args()
+    # the pipeline's progress (stages, global candidates) is logged at INFO: show it
+    configure_logging(level_from_flags())
     fractions = tuple(float(x) for x in args.fractions.split(","))
     known = {e.name: e for e in suite_entries(False)}
     unknown = sorted(set(args.entries) - set(known))

@@ -29,6 +29,7 @@ from pathlib import Path
 
 from identify_suite import LETTERS, PAIRS, _fmt, _timed, errors_of, select_pairs
 
+from mosiv_framework.logs import configure_logging, level_from_flags
 from mosiv_framework.scale import Task, run_tasks
 from mosiv_framework.scale.flags import add_scale_flags, scale_options
 
@@ -400,6 +401,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("overrides", nargs="*", help="key=value recipe overrides for every run")
     args = parser.parse_args(argv)
+    # the pipeline's progress (stages, global candidates) is logged at INFO: show it
+    configure_logging(level_from_flags())
     known = {v[0]: v for v in VARIANTS}
     chosen = [n.strip() for n in args.variants.split(",") if n.strip()]
     unknown = [n for n in chosen if n not in known]

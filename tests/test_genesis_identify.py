@@ -376,8 +376,9 @@ def test_merge_tabulates_the_part_rows(tmp_path):
         bench.main(["--scenes", str(scenes), "--out", str(out), "--merge"])
 
 
-def test_end_to_end_on_the_tiny_genesis_scene(tmp_path):
-    """The whole command on CPU: a row per scene, table files, and the RESULTS section."""
+def test_end_to_end_on_the_tiny_genesis_scene(tmp_path, capfd):
+    """The whole command on CPU: a row per scene, table files, the RESULTS section, and the
+    pipeline's progress on stderr."""
     bench = _bench()
     scenes = tmp_path / "scenes"
     scenes.mkdir()
@@ -400,6 +401,8 @@ def test_end_to_end_on_the_tiny_genesis_scene(tmp_path):
     argv = ["--scenes", str(scenes), "--out", str(tmp_path / "out")]
     argv += [x for s in sets for x in ("--set", s)] + ["--write-results", str(results)]
     assert bench.main(argv) == 0
+    # the global stage's candidates are logged at INFO, which the benchmark shows
+    assert "global candidate 2/2" in capfd.readouterr().err
     table = json.loads((tmp_path / "out" / "table.json").read_text())
     (row,) = table["rows"]
     assert "error" not in row, row.get("error")
