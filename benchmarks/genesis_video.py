@@ -6,7 +6,8 @@ made, runs each method from the recorded videos and masks, end to end, and score
 - ``ours``: ``recipes/video_paper.yaml`` (object-aware dynamic Gaussians, lifting, object-wise
   Chamfer + silhouette identification);
 - ``library``: OmniPhysGS-RGB, the discrete-library baseline from video: ours' Stages I-II
-  (run afresh) with the identify section of ``recipes/baselines/library.yaml`` (itself a
+  (copied from ours' run of the scene, which therefore runs too; its wall time counts them as
+  they ran there) with the identify section of ``recipes/baselines/library.yaml`` (itself a
   ground-truth recipe): each object takes the best of every family's prototypes;
 - ``library-oracle``: the same given the true material family (``identify.library_scope=family``);
 - ``coupnerf``: CoupNeRF* (``recipes/baselines/coupnerf.yaml``, plugin mosiv-nerf).
@@ -133,9 +134,14 @@ class Job:
 
     @property
     def shares_from(self) -> Job | None:
-        """The run whose Stage I-II this one copies: an ablation variant takes ours' of its
-        seed (same scene, reconstructor and lifter, so the same stage keys)."""
-        return Job(self.scene, "ours", self.seed) if self.method in ABLATION else None
+        """The run whose Stage I-II this one copies: an ablation variant and a method that runs
+        ours' Stages I-II (the library baselines) take ours' of its seed (same scene,
+        reconstructor and lifter, so the same stage keys). Sharing them makes the baselines
+        differ from ours in identification alone, and saves their Stage I."""
+        method = METHODS.get(self.method)
+        if self.method in ABLATION or (method is not None and method.base == "ours"):
+            return Job(self.scene, "ours", self.seed)
+        return None
 
 
 def parse_sets(sets: list[str], known: list[str]) -> dict[str | None, list[str]]:
@@ -265,9 +271,18 @@ def run_job(job: Job, *, scenes: Path, out: Path, sets: dict) -> dict:
         return {**row, "error": why}
     device = gi._device_name(cfg)
     row.update(gt.scores_of(metrics), time_s=elapsed, device=device)
+    if shared is not None:  # end to end: its own stages plus the Stage I-II it copied
+        row["own_time_s"] = elapsed
+        row["time_s"] = elapsed + shared_stage_seconds(row.get("stage_times_s"))
     row["memory"] = "RSS" if device == "CPU" else "GPU"
     row["shared_stages"] = shared is not None
     return row
+
+
+def shared_stage_seconds(stage_times: dict | None) -> float:
+    """Seconds the copied Stage I-II took where they ran (their markers keep the time)."""
+    stage_times = stage_times or {}
+    return sum(stage_times.get(stage) or 0.0 for stage in ("reconstruct", "lift"))
 
 
 def copy_shared_stages(shared: Path, run_dir: Path) -> None:
@@ -300,7 +315,13 @@ def plan_jobs(names, methods, *, ablation_scenes=(), seeds: int = 1) -> list[Job
     """Table 1's runs (every method on every scene), then the ablation's: on each ablation
     scene and Stage I seed, ours and every variant. Runs that others copy Stage I-II from come
     first, so with fewer workers than runs none waits on a run that has no worker."""
-    first = [Job(n, m) for n in names for m in methods]
+    first = []
+    for name in names:  # a method that shares ours' Stage I-II needs ours' run, before it
+        for method in methods:
+            job = Job(name, method)
+            if job.shares_from is not None:
+                first.append(job.shares_from)
+            first.append(job)
     first += [Job(n, "ours", s) for n in ablation_scenes for s in range(seeds)]
     rest = [Job(n, v, s) for n in ablation_scenes for s in range(seeds) for v in ABLATION]
     jobs, seen = [], set()

@@ -299,6 +299,10 @@ def test_jobs_share_stage_one_and_two_and_run_after_what_they_wait_for():
     assert len(variants) == 2 * len(bench.ABLATION)
     assert {j.shares_from.name for j in variants} == {"E-S/ours", "E-S/ours-seed1"}
     assert bench.Job("E-S", "coupnerf").shares_from is None
+    # the library baselines identify on ours' Stages I-II: ours' run comes first, once
+    library = bench.plan_jobs(["E-P"], ["library", "library-oracle"])
+    assert [j.name for j in library] == ["E-P/ours", "E-P/library", "E-P/library-oracle"]
+    assert {j.shares_from.name for j in library[1:]} == {"E-P/ours"}
 
 
 def test_a_foreign_output_folder_is_refused(tmp_path):
@@ -346,14 +350,21 @@ def test_tiny_genesis_scene_one_process_per_run_then_merge(tmp_path):
     out = tmp_path / "out"
     sets = [*COMMON, *(f"ours:{s}" for s in OURS), *(f"coupnerf:{s}" for s in COUPNERF)]
     base = ["--scenes", str(scenes), "--out", str(out)] + [x for s in sets for x in ("--set", s)]
-    for method in ("ours", "coupnerf"):
+    for method in ("ours", "library", "coupnerf"):
         assert bench.main([*base, "--only", "E-S", "--method", method, "--part"]) == 0
     results = tmp_path / "RESULTS.md"
     results.write_text("# Results\n\n## From video\n\nkept\n\n## Noise\n\nkept too\n")
     assert bench.main(["--out", str(out), "--merge", "--write-results", str(results)]) == 0
     table = json.loads((out / "table.json").read_text())
     rows = {r["method"]: r for r in table["rows"]}
-    assert set(rows) == {"ours", "coupnerf"}
+    assert set(rows) == {"ours", "library", "coupnerf"}
+    # the library baseline copied ours' Stage I-II: its time counts them as they ran there
+    library, ours = rows["library"], rows["ours"]
+    assert library["shared_stages"] and not ours["shared_stages"]
+    for stage in ("reconstruct", "lift"):
+        assert library["stage_times_s"][stage] == ours["stage_times_s"][stage]
+    stages_one_two = ours["stage_times_s"]["reconstruct"] + ours["stage_times_s"]["lift"]
+    assert library["time_s"] == pytest.approx(library["own_time_s"] + stages_one_two)
     for row in rows.values():
         assert "error" not in row, row.get("error")
         for block in ("observed", "future"):
@@ -384,4 +395,4 @@ def test_tiny_genesis_scene_one_process_per_run_then_merge(tmp_path):
     after = json.loads((out / "parts" / "E-S" / "ours.json").read_text())
     assert after["time_s"] == before["time_s"] and after["observed"] == before["observed"]
     merged = json.loads((out / "table.json").read_text())
-    assert {r["method"] for r in merged["rows"]} == {"ours", "coupnerf"}  # CoupNeRF* kept
+    assert {r["method"] for r in merged["rows"]} == {"ours", "library", "coupnerf"}  # kept
