@@ -10,9 +10,6 @@ substep count.
 import pytest
 import torch
 
-from mosiv_framework.testing.shapes import combine, default_params, sphere
-from mosiv_framework.types import World
-
 FRAMES = 5
 #: metres; the same kernels in the same order, so only the order of the particles' float32
 #: atomic adds onto grid nodes may differ between runs (measured: 0 on the CPU); the split and
@@ -22,35 +19,19 @@ POSITION_TOLERANCE = 1e-6
 VELOCITY_TOLERANCE = POSITION_TOLERANCE * 24 * 30
 
 
-def _scene(requires_grad: bool):
-    """Two SVD-law spheres (plasticine, sand) thrown into each other and onto the table."""
-    world = World(
-        domain_lower=(0.0, 0.0, 0.0),
-        domain_upper=(0.5, 0.5, 0.5),
-        gravity=(0.0, 0.0, -9.8),
-        ground_height=0.0,
-        fps=24.0,
-    )
-    a = sphere((0.17, 0.25, 0.12), 0.06, spacing=1.0 / 48, object_id=1, material="plasticine")
-    b = sphere((0.33, 0.25, 0.15), 0.06, spacing=1.0 / 48, object_id=2, material="sand")
-    particles = combine([a, b])
-    params = default_params(
-        particles,
-        overrides={1: {"friction": 0.4, "yield_stress": 800.0}, 2: {"friction": 0.2}},
-        velocities={1: (1.2, 0.1, -0.4), 2: (-1.2, 0.0, -0.6)},
-        terms={"ground_restitution": {"coefficient": 0.3}, "linear_drag": {"coefficient": 0.3}},
-        requires_grad=requires_grad,
-    )
-    return particles, params, world
+#: a ground bounce and a drag: terms every engine applies
+TERMS = {"ground_restitution": {"coefficient": 0.3}, "linear_drag": {"coefficient": 0.3}}
 
 
 @pytest.mark.parametrize("fused_forward", [True, False], ids=["fused", "split"])
-def test_forward_only_rollout_equals_the_differentiable_one(simulator_factory, fused_forward):
+def test_forward_only_rollout_equals_the_differentiable_one(
+    simulator_factory, thrown_spheres, fused_forward
+):
     sim = simulator_factory(grid=16, substeps=30, fused_forward=fused_forward)
-    particles, params, world = _scene(requires_grad=False)
+    particles, params, world = thrown_spheres(TERMS, requires_grad=False)
     with torch.no_grad():
         forward = sim.rollout(particles, params, world=world, frames=FRAMES)
-    particles, params, world = _scene(requires_grad=True)
+    particles, params, world = thrown_spheres(TERMS, requires_grad=True)
     taped = sim.rollout(particles, params, world=world, frames=FRAMES)
     assert taped.positions.requires_grad, "the second rollout did not take the reverse-mode path"
     assert not forward.positions.requires_grad
@@ -65,15 +46,15 @@ def test_forward_only_rollout_equals_the_differentiable_one(simulator_factory, f
     assert torch.equal(forward.contact, taped.contact)
 
 
-def _peak_bytes(sim, requires_grad: bool) -> int:
-    particles, params, world = _scene(requires_grad)
+def _peak_bytes(sim, scene, requires_grad: bool) -> int:
+    particles, params, world = scene(TERMS, requires_grad=requires_grad)
     sim.reset_peak_memory()
     with torch.set_grad_enabled(requires_grad):
         sim.rollout(particles, params, world=world, frames=2)
     return sim.peak_memory_bytes()
 
 
-def test_forward_only_memory_does_not_grow_with_substeps():
+def test_forward_only_memory_does_not_grow_with_substeps(thrown_spheres):
     """Field bytes (read from the allocated fields' shapes) plus checkpoints, at 10 and 40
     substeps a frame: the same forward only; the differentiable rollout's grow with the
     per-substep buffers. Fresh simulators: the shared ones may hold a differentiable engine of
@@ -82,9 +63,9 @@ def test_forward_only_memory_does_not_grow_with_substeps():
 
     few = make_simulator(device="cpu", grid=16, substeps=10)
     many = make_simulator(device="cpu", grid=16, substeps=40)
-    forward = {s: _peak_bytes(sim, False) for s, sim in ((10, few), (40, many))}
+    forward = {s: _peak_bytes(sim, thrown_spheres, False) for s, sim in ((10, few), (40, many))}
     assert forward[10] == forward[40], f"forward-only bytes grow with substeps: {forward}"
-    particles, params, world = _scene(False)
+    particles, params, world = thrown_spheres(TERMS)
     families = [params.objects[k].family for k in particles.object_list]
     for sim in (few, many):
         fields = sim.engine_for(len(particles), families, world, differentiable=False).fields
@@ -93,7 +74,7 @@ def test_forward_only_memory_does_not_grow_with_substeps():
         # forward-only one may exist after forward-only rollouts
         assert set(sim._engines) == {False}, "a forward-only rollout built another engine"
 
-    taped = {s: _peak_bytes(sim, True) for s, sim in ((10, few), (40, many))}
+    taped = {s: _peak_bytes(sim, thrown_spheres, True) for s, sim in ((10, few), (40, many))}
     # 30 more substeps x (46 state + 12 trial floats) x 2 (values, adjoints) x 4 bytes a particle
     n = len(particles)
     assert taped[40] - taped[10] >= 30 * 58 * 2 * 4 * n, f"differentiable bytes: {taped}"

@@ -11,8 +11,6 @@ import pytest
 import torch
 
 from mosiv_framework.errors import ConfigError
-from mosiv_framework.testing.shapes import combine, default_params, sphere
-from mosiv_framework.types import World
 
 #: metres; the two paths sum the particles' P2G contributions in another order (float32), which
 #: moves positions by about 1e-6 m over these frames; a wrong weight, node or stress moves them
@@ -21,38 +19,24 @@ POSITION_TOLERANCE = 2e-5
 FRAMES = 6
 
 
-def _scene(expression: bool):
-    world = World(
-        domain_lower=(0.0, 0.0, 0.0),
-        domain_upper=(0.5, 0.5, 0.5),
-        gravity=(0.0, 0.0, -9.8),
-        ground_height=0.0,
-        fps=24.0,
-    )
-    a = sphere((0.17, 0.25, 0.12), 0.06, spacing=1.0 / 48, object_id=1, material="plasticine")
-    b = sphere((0.33, 0.25, 0.15), 0.06, spacing=1.0 / 48, object_id=2, material="sand")
-    particles = combine([a, b])
-    terms = {
+def _terms(expression: bool) -> dict:
+    """Every library term the fused kernel applies, or an expression term."""
+    if expression:  # a sideways push, a drag in v_x and a spring in the height
+        return {"expression": {"a_y:1": 0.4, "a_x:v_x": -0.5, "a_z:h": -2.0}}
+    return {
         "wind": {"acceleration": [0.5, -0.2, 0.0]},
         "linear_drag": {"coefficient": 0.3},
         "quadratic_drag": {"coefficient": 0.2},
         "material_damping": {"viscosity": 0.5},
         "ground_restitution": {"coefficient": 0.3},
     }
-    if expression:  # a sideways push, a drag in v_x and a spring in the height
-        terms = {"expression": {"a_y:1": 0.4, "a_x:v_x": -0.5, "a_z:h": -2.0}}
-    params = default_params(
-        particles,
-        overrides={1: {"friction": 0.4, "yield_stress": 800.0}, 2: {"friction": 0.2}},
-        velocities={1: (1.2, 0.1, -0.4), 2: (-1.2, 0.0, -0.6)},
-        terms=terms,
-    )
-    return particles, params, world
 
 
 @pytest.mark.parametrize("expression", [False, True], ids=["library_terms", "expression"])
-def test_fused_forward_rolls_out_as_the_split_kernels(simulator_factory, expression):
-    particles, params, world = _scene(expression)
+def test_fused_forward_rolls_out_as_the_split_kernels(
+    simulator_factory, thrown_spheres, expression
+):
+    particles, params, world = thrown_spheres(_terms(expression))
     fused = simulator_factory(grid=16, substeps=30)
     split = simulator_factory(grid=16, substeps=30, fused_forward=False)
     assert fused.options.fused_forward and not split.options.fused_forward
