@@ -27,6 +27,9 @@ beside the run-to-run spread.
         --merge --write-results docs/RESULTS.md
     python benchmarks/genesis_video.py --scenes runs/genesis --out runs/genesis_video \\
         --methods ours --ablation --seeds 2 --jobs 8 --gpus-per-task 0.125
+    python benchmarks/genesis_video.py --scenes runs/genesis --out runs/genesis_video \
+        --write-jobs runs/video.jobs --scenes-there SCENES --out-there OUT
+        # for a GPU machine: python3 benchmarks/device_queue.py start video.jobs --slots 10
 
 ``--set key=value`` overrides every method's recipe, ``--set METHOD:key=value`` one method's
 (the library baselines and the ablation's variants run ours' Stages I-II and take ours' too).
@@ -45,6 +48,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import shutil
 import sys
 import time
@@ -338,6 +342,25 @@ def part_command(args, job: Job) -> list[str]:
     return command + [x for s in args.set for x in ("--set", s)]
 
 
+def write_job_file(args, jobs: list[Job]) -> None:
+    """The planned runs as ``benchmarks/device_queue.py`` lines, ``NAME COMMAND``: each run's
+    --part process with the folders as the machine that runs them sees them, the script by its
+    path in the checkout (the queue runs each job in a snapshot of it). A run that copies Stage
+    I-II comes after the run it copies from, so the queue starts that one first."""
+    scenes = args.scenes_there or str(args.scenes)
+    out = args.out_there or str(args.out)
+    lines = []
+    for job in jobs:
+        command = ["python3", "benchmarks/genesis_video.py", "--scenes", scenes, "--out", out]
+        command += ["--only", job.scene, "--method", job.method, "--seed", str(job.seed)]
+        command += ["--part", *(x for s in args.set for x in ("--set", s))]
+        lines.append(f"{job.scene}-{job.run} {shlex.join(command)}")
+    if args.write_jobs.exists():
+        raise SystemExit(f"--write-jobs {args.write_jobs}: exists; give a new file")
+    args.write_jobs.write_text("\n".join(lines) + "\n")
+    print(f"[genesis-video] {len(lines)} runs in {args.write_jobs}")
+
+
 def run_jobs(args, jobs: list[Job], scale: dict) -> None:
     """Each job as a process of its own running this script with ``--part``: one after another
     here, or as Ray tasks (``--jobs``, ``--ray-address``)."""
@@ -423,6 +446,21 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         help="comma-separated scenes that settings were chosen on; the targets are judged on "
         "the other (test) scenes",
     )
+    parser.add_argument(
+        "--write-jobs",
+        type=Path,
+        default=None,
+        help="write the planned runs as a benchmarks/device_queue.py job file (one --part "
+        "process per line, Stage I-II sharers after the run they copy) instead of running them",
+    )
+    parser.add_argument(
+        "--scenes-there",
+        default=None,
+        help="with --write-jobs: the --scenes folder on the machine that runs the jobs",
+    )
+    parser.add_argument(
+        "--out-there", default=None, help="with --write-jobs: the --out folder there"
+    )
     add_scale_flags(parser, "runs")
     parser.add_argument("--part", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -472,9 +510,12 @@ def main(argv: list[str] | None = None) -> int:
             ablation = [n for n in names if n in wanted]
             if not ablation:
                 raise SystemExit(f"--ablation: none of {', '.join(wanted)} in --scenes")
+        jobs = plan_jobs(names, methods, ablation_scenes=ablation, seeds=args.seeds)
+        if args.write_jobs is not None:
+            write_job_file(args, jobs)
+            return 0
         scale = scale_options(args)
         claim_output(args.out)
-        jobs = plan_jobs(names, methods, ablation_scenes=ablation, seeds=args.seeds)
         run_jobs(args, jobs, scale)
         table = merge(args.out, development)
     print(gt.markdown(table))

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -303,6 +304,38 @@ def test_jobs_share_stage_one_and_two_and_run_after_what_they_wait_for():
     library = bench.plan_jobs(["E-P"], ["library", "library-oracle"])
     assert [j.name for j in library] == ["E-P/ours", "E-P/library", "E-P/library-oracle"]
     assert {j.shares_from.name for j in library[1:]} == {"E-P/ours"}
+
+
+def test_planned_runs_as_a_device_queue_job_file(tmp_path):
+    bench = _load("genesis_video")
+    queue = _load("device_queue")
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    for name in ("E-P", "E-S"):
+        (scenes / name).symlink_to(TINY, target_is_directory=True)
+    jobs = tmp_path / "video.jobs"
+    out = tmp_path / "out"
+    common = ["--scenes", str(scenes), "--out", str(out), "--write-jobs", str(jobs)]
+    there = ["--scenes-there", "/data/genesis", "--out-there", "/runs/gv"]
+    sets = ["--set", "simulator.grid=48", "--set", "ours:reconstructor.iterations=5"]
+    argv = [*common, *there, "--methods", "library,coupnerf", *sets]
+    assert bench.main(argv) == 0
+    assert not out.exists()  # nothing ran, nothing claimed
+    parsed = queue.read_jobs(jobs)
+    names = [j.name for j in parsed]
+    assert names == ["E-P-ours", "E-P-library", "E-P-coupnerf", "E-S-ours", "E-S-library",
+                     "E-S-coupnerf"]  # fmt: skip
+    library = shlex.split(parsed[1].command)
+    assert library[:2] == ["python3", "benchmarks/genesis_video.py"]
+    assert library[library.index("--scenes") + 1] == "/data/genesis"
+    assert library[library.index("--out") + 1] == "/runs/gv"
+    assert library[library.index("--method") + 1] == "library" and "--part" in library
+    assert " ".join(sets) in parsed[1].command
+    # each line parses back into the run it names
+    again = bench.parse_args(library[2:])
+    assert again.part and again.only == "E-P" and again.method == "library"
+    with pytest.raises(SystemExit, match="exists; give a new file"):
+        bench.main(argv)
 
 
 def test_a_foreign_output_folder_is_refused(tmp_path):
