@@ -46,10 +46,11 @@ VARIANT_LABEL = {folder: label for folder, label, *_ in VARIANTS}
 
 def scores_of(metrics: dict) -> dict:
     """What a row keeps of a run's metrics.json: the observed and future blocks, the peak
-    memory and, for a Gaussian Stage I, per object its worst-frame Chamfer, that as a multiple
+    memory (the run's, its copied Stage I-II included) and each stage's, and, for a Gaussian Stage I, per object its worst-frame Chamfer, that as a multiple
     of the scene's Chamfer floor, and its worst-frame mask IoU."""
     out: dict = {"peak_memory_gb": metrics.get("peak_memory_gb")}
     out["stage_times_s"] = metrics.get("stage_times_s")
+    out["stage_peak_memory_gb"] = metrics.get("stage_peak_memory_gb")
     for block in BLOCKS:
         values = metrics.get(block)
         out[block] = None if values is None else {k: values.get(k) for k in BLOCK_KEYS}

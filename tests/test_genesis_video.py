@@ -398,6 +398,11 @@ def test_tiny_genesis_scene_one_process_per_run_then_merge(tmp_path):
         assert library["stage_times_s"][stage] == ours["stage_times_s"][stage]
     stages_one_two = ours["stage_times_s"]["reconstruct"] + ours["stage_times_s"]["lift"]
     assert library["time_s"] == pytest.approx(library["own_time_s"] + stages_one_two)
+    # and its peak memory counts what they needed there
+    for stage in ("reconstruct", "lift"):
+        peak = ours["stage_peak_memory_gb"][stage]
+        assert library["stage_peak_memory_gb"][stage] == peak
+        assert library["peak_memory_gb"] >= peak
     for row in rows.values():
         assert "error" not in row, row.get("error")
         for block in ("observed", "future"):

@@ -136,6 +136,19 @@ def test_pipeline_recovers_ballistic_motion_and_resumes(tmp_path, registry):
     assert rerun_times["reconstruct"] == times["reconstruct"]
     assert rerun_times["lift"] == times["lift"]
 
+    # each stage records the peak memory it needed; a run whose first stages ran in another
+    # process (resumed, or copied as the benchmarks' baselines do) reports theirs too
+    peaks = json.loads((run / "metrics.json").read_text())["stage_peak_memory_gb"]
+    assert set(peaks) == {"reconstruct", "lift", "identify"}
+    assert all(p > 0.0 for p in peaks.values())
+    marker = run / "stages" / "reconstruct.json"
+    elsewhere = {**json.loads(marker.read_text()), "peak_memory_gb": 1000.0}
+    marker.write_text(json.dumps(elsewhere))  # as if Stage I had run in a 1 TB process
+    run_pipeline(make_recipe(tmp_path, registry, velocity_iterations=9), run_dir=run)
+    copied = json.loads((run / "metrics.json").read_text())
+    assert copied["stage_peak_memory_gb"]["reconstruct"] == 1000.0
+    assert copied["peak_memory_gb"] == 1000.0
+
 
 def test_run_files_carry_their_format_and_older_files_still_resume(tmp_path, registry):
     from mosiv_framework.pipeline import formats
@@ -410,3 +423,18 @@ class CoarseStepPlugin:
     def mosiv_simulators(self, register):
         factory = CoarseStepBallistic
         register(Component("simulator", "coarse-step", factory=factory, options=CoarseStepOptions))
+
+
+def test_the_run_peak_takes_only_stage_peaks_of_the_same_kind(monkeypatch):
+    from mosiv_framework.pipeline import memory
+
+    monkeypatch.setattr(memory, "memory_kind", lambda: memory.GPU)
+    stages = {
+        "reconstruct": {"peak_memory_gb": 9.0, "memory": memory.GPU},
+        "lift": {"peak_memory_gb": 50.0, "memory": memory.RSS},  # host memory: not comparable
+        "identify": None,  # a marker from before the record
+    }
+    assert memory.run_peak_gb(4.0, stages) == 9.0
+    assert memory.run_peak_gb(12.0, stages) == 12.0
+    monkeypatch.setattr(memory, "memory_kind", lambda: memory.RSS)
+    assert memory.run_peak_gb(4.0, stages) == 50.0

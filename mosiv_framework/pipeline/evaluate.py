@@ -8,7 +8,6 @@ the loss curve.
 from __future__ import annotations
 
 import logging
-import resource
 import time
 from dataclasses import replace
 
@@ -18,6 +17,7 @@ from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.metrics import chamfer_floor_mm2, chamfer_mm2, frame_metrics
 from mosiv_framework.pipeline.appearance import can_render, rollout_images
 from mosiv_framework.pipeline.formats import METRICS, stamped
+from mosiv_framework.pipeline.memory import peak_memory_gb, run_peak_gb
 from mosiv_framework.pipeline.uncertainty import mark_coverage
 from mosiv_framework.pipeline.video import pick_camera, save_rollout_npz, write_comparison_video
 from mosiv_framework.types import SimulationParams, Trajectory
@@ -269,12 +269,16 @@ def evaluate_run(
     started=None,
     refine=None,
     stage_times=None,
+    stage_peaks=None,
 ) -> dict:
     """Roll ``identified`` over every frame, score it, write metrics.json, plots and videos.
 
     ``refine`` (see ``simulator_refiner``) lets a diverging rollout retry with more substeps.
     ``stage_times``: seconds each earlier stage took (``Progress.stage_times``); metrics.json
     records them beside the evaluation's own (its rollout and scores, before plots and videos).
+    ``stage_peaks``: each earlier stage's recorded peak memory (``Progress.stage_peaks``);
+    metrics.json's ``peak_memory_gb`` is the largest of those and this process's own, so a run
+    that resumed or copied its first stages still reports what they needed.
     """
     t_evaluate = time.perf_counter()
     t_start = t_evaluate if started is None else started
@@ -304,8 +308,12 @@ def evaluate_run(
         "params": rd.load_json("identified.json"),
         "param_error": parameter_errors(identified, scene.gt_params()) if scene.has_gt else None,
         "time_s": time.perf_counter() - t_start,
-        "peak_memory_gb": _peak_memory_gb(simulator),
+        "peak_memory_gb": run_peak_gb(peak_memory_gb(simulator), stage_peaks or {}),
     }
+    if stage_peaks:
+        metrics["stage_peak_memory_gb"] = {
+            stage: (peak or {}).get("peak_memory_gb") for stage, peak in stage_peaks.items()
+        }
     if stage_times is not None:
         metrics["stage_times_s"] = {
             **stage_times,
@@ -387,14 +395,3 @@ def reconstruction_scores(reconstruction, scene) -> dict:
         "skipped_steps": (reconstruction.extras or {}).get("skipped_steps"),
         "per_object": per_object,
     }
-
-
-def _peak_memory_gb(simulator=None) -> float:
-    """Peak GPU memory if CUDA was used, else the process's peak resident memory (GiB).
-
-    On CUDA the simulator's own count is included: a backend with its own allocator (Warp's
-    pool, Taichi's fields) holds memory that torch's peak does not see."""
-    if torch.cuda.is_available() and torch.cuda.max_memory_allocated() > 0:
-        backend = simulator.peak_memory_bytes() if simulator is not None else None
-        return max(torch.cuda.max_memory_allocated(), backend or 0) / 2**30
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # ru_maxrss is KiB on Linux

@@ -27,6 +27,7 @@ from mosiv_framework.pipeline.contact import simulator_section
 from mosiv_framework.pipeline.evaluate import evaluate_run
 from mosiv_framework.pipeline.formats import recipe_header
 from mosiv_framework.pipeline.identification import check_terms_supported, identify_stage
+from mosiv_framework.pipeline.memory import stage_peak
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.pipeline.rundir import (
     OutputFolder,
@@ -210,6 +211,17 @@ class Progress:
             times[stage] = self.rd.load_json(marker).get("time_s") if found else None
         return times
 
+    def stage_peaks(self) -> dict[str, dict | None]:
+        """The peak memory each finished stage before evaluation recorded when it ran
+        (``memory.stage_peak``; None where its marker predates the record)."""
+        peaks = {}
+        for stage in STAGES[:-1]:
+            marker = f"stages/{stage}.json"
+            found = self.rd.path(marker).is_file()
+            info = self.rd.load_json(marker) if found else {}
+            peaks[stage] = {k: info[k] for k in ("peak_memory_gb", "memory") if k in info} or None
+        return peaks
+
     def carry_earlier_markers(self, plain: dict, scene_root: Path) -> None:
         """Markers written before the scene entered by its content (keys holding the scene's
         path, the scene digested by file times) still describe this run when the scene is
@@ -330,7 +342,8 @@ def run_stages(recipe, plain, scene, progress: Progress, warnings, *, started) -
             checkpoint_key,
             warnings=warnings,
         )
-        progress.mark("identify", time_s=round(time.perf_counter() - t_identify, 3))
+        elapsed = round(time.perf_counter() - t_identify, 3)
+        progress.mark("identify", time_s=elapsed, **stage_peak(simulator))
 
     # evaluation rolls out with the contact identification used (identify.contact: auto
     # may have chosen another than the recipe's simulator.contact)
@@ -369,7 +382,7 @@ def reconstruct_stage(recipe, scene, progress: Progress):
     # what the reconstructor saved of its own in the run folder is the run's too
     progress.record.add_files(p.name for p in rd.root.iterdir() if p.name not in before)
     rd.save_torch("reconstruction.pt", reconstruction)
-    progress.mark("reconstruct", time_s=elapsed)
+    progress.mark("reconstruct", time_s=elapsed, **stage_peak())
     return reconstruction
 
 
@@ -384,7 +397,7 @@ def lift_stage(recipe, scene, reconstruction, progress: Progress):
     particles = get_registry().create("lifter", name, options).lift(reconstruction, scene)
     elapsed = round(time.perf_counter() - t_start, 3)
     rd.save_torch("particles.pt", particles)
-    progress.mark("lift", particles=len(particles), time_s=elapsed)
+    progress.mark("lift", particles=len(particles), time_s=elapsed, **stage_peak())
     return particles
 
 
@@ -435,6 +448,7 @@ def evaluate_stage(recipe, stages: dict, identified, simulators, progress: Progr
         started=started,
         refine=refine,
         stage_times=progress.stage_times(),
+        stage_peaks=progress.stage_peaks(),
     )
     progress.mark("evaluate")
     return metrics

@@ -1,0 +1,51 @@
+"""Peak memory of a run, stage by stage.
+
+A stage's marker records the process's peak so far when the stage ends; a run that resumes
+stages (or copies them from another run, as the benchmarks' baselines do) still reports the
+peak its stages needed, where they ran, not only the peak of the process that finished it.
+"""
+
+from __future__ import annotations
+
+import resource
+
+import torch
+
+GPU = "GPU"
+RSS = "RSS"
+
+
+def memory_kind() -> str:
+    """What ``peak_memory_gb`` measures in this process: GPU memory once CUDA was used, else
+    the process's resident memory."""
+    if torch.cuda.is_available() and torch.cuda.max_memory_allocated() > 0:
+        return GPU
+    return RSS
+
+
+def peak_memory_gb(simulator=None) -> float:
+    """Peak GPU memory if CUDA was used, else the process's peak resident memory (GiB).
+
+    On CUDA the simulator's own count is included: a backend with its own allocator (Warp's
+    pool, Taichi's fields) holds memory that torch's peak does not see."""
+    if memory_kind() == GPU:
+        backend = simulator.peak_memory_bytes() if simulator is not None else None
+        return max(torch.cuda.max_memory_allocated(), backend or 0) / 2**30
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # ru_maxrss is KiB on Linux
+
+
+def stage_peak(simulator=None) -> dict:
+    """What a stage's marker records of memory: the peak so far (GiB) and what it measures."""
+    return {"peak_memory_gb": round(peak_memory_gb(simulator), 4), "memory": memory_kind()}
+
+
+def run_peak_gb(own_gb: float, stage_peaks: dict[str, dict | None]) -> float:
+    """The run's peak: the finishing process's own and every earlier stage's recorded peak of
+    the same kind (a stage measured as resident memory says nothing of GPU memory)."""
+    kind = memory_kind()
+    recorded = [
+        p["peak_memory_gb"]
+        for p in stage_peaks.values()
+        if p and p.get("memory") == kind and p.get("peak_memory_gb") is not None
+    ]
+    return max([own_gb, *recorded])
