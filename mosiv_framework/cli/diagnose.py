@@ -78,6 +78,19 @@ def _add_suite_parser(sub) -> None:
         "under the rule given by --z, --min-drop, --bic-margin, --block, --require-nonzero, "
         "--min-effect and --grid-bic, and print the table",
     )
+    _add_decision_rule_flags(suite)
+    suite.add_argument(
+        "--plot",
+        metavar="PNG",
+        help="with --replay: also draw the replayed suite into this file (a run always writes "
+        "OUT/suite.png)",
+    )
+    suite.set_defaults(handler=diagnose_suite)
+
+
+def _add_decision_rule_flags(suite) -> None:
+    """The acceptance rule's settings that --replay decides the finished entries again under
+    (each defaults to the recipe's, shown in brackets)."""
     suite.add_argument("--z", type=float, help="held-out drop over its bootstrap spread (2)")
     suite.add_argument(
         "--min-drop", type=float, help="smallest held-out drop worth naming, a fraction (0.2)"
@@ -103,13 +116,6 @@ def _add_suite_parser(sub) -> None:
         help="the grid-stability check also requires the information criterion at the second "
         "grid (on); decided again from the second grid's saved tables where recorded",
     )
-    suite.add_argument(
-        "--plot",
-        metavar="PNG",
-        help="with --replay: also draw the replayed suite into this file (a run always writes "
-        "OUT/suite.png)",
-    )
-    suite.set_defaults(handler=diagnose_suite)
 
 
 def diagnose(args) -> int:

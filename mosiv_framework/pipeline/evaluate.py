@@ -326,6 +326,13 @@ def evaluate_run(
     mark_coverage(metrics["param_error"], metrics["params"])  # intervals holding the truth
     metrics = stamped(METRICS, metrics)
     rd.save_json("metrics.json", metrics)
+    _save_rollout_views(recipe, scene, traj, reference, rd)
+    return metrics
+
+
+def _save_rollout_views(recipe, scene, traj, reference, rd) -> None:
+    """The evaluated rollout beside its numbers: the centroid plot, the rollout (rollout.pt,
+    rollout.npz) and, when the recipe asks, the prediction-against-reference video."""
     plot_centroids(
         traj,
         reference,
@@ -348,7 +355,6 @@ def evaluate_run(
             fps=recipe.evaluate.video_fps or scene.fps,
             observed_frames=scene.observed_frames,
         )
-    return metrics
 
 
 def gt_particle_spacing(gt_params: dict) -> float | None:
