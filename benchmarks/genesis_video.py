@@ -28,8 +28,8 @@ beside the run-to-run spread.
     python benchmarks/genesis_video.py --scenes runs/genesis --out runs/genesis_video \\
         --methods ours --ablation --seeds 2 --jobs 8 --gpus-per-task 0.125
     python benchmarks/genesis_video.py --scenes runs/genesis --out runs/genesis_video \
-        --write-jobs runs/video.jobs --scenes-there SCENES --out-there OUT
-        # for a GPU machine: python3 benchmarks/device_queue.py start video.jobs --slots 10
+        --job-file video.jobs     # on a GPU machine without Ray: the runs as queue jobs
+    python3 benchmarks/device_queue.py start video.jobs --slots 5
 
 ``--set key=value`` overrides every method's recipe, ``--set METHOD:key=value`` one method's
 (the library baselines and the ablation's variants run ours' Stages I-II and take ours' too).
@@ -343,22 +343,25 @@ def part_command(args, job: Job) -> list[str]:
 
 
 def write_job_file(args, jobs: list[Job]) -> None:
-    """The planned runs as ``benchmarks/device_queue.py`` lines, ``NAME COMMAND``: each run's
-    --part process with the folders as the machine that runs them sees them, the script by its
-    path in the checkout (the queue runs each job in a snapshot of it). A run that copies Stage
-    I-II comes after the run it copies from, so the queue starts that one first."""
-    scenes = args.scenes_there or str(args.scenes)
-    out = args.out_there or str(args.out)
+    """The planned runs as ``benchmarks/device_queue.py`` lines, ``NAME COMMAND``, on the
+    machine that runs them. Folders are absolute (each job runs in its own snapshot of the
+    checkout and every row must land in the one OUT); the script is named by its path in the
+    checkout. A run that copies Stage I-II comes after the run it copies, so the queue starts
+    that one first."""
+    if args.job_file.exists():
+        raise SystemExit(f"--job-file {args.job_file}: exists; give a new file")
+    folders = ["--scenes", str(args.scenes.resolve()), "--out", str(args.out.resolve())]
     lines = []
     for job in jobs:
-        command = ["python3", "benchmarks/genesis_video.py", "--scenes", scenes, "--out", out]
-        command += ["--only", job.scene, "--method", job.method, "--seed", str(job.seed)]
-        command += ["--part", *(x for s in args.set for x in ("--set", s))]
+        command = ["python3", "benchmarks/genesis_video.py", *folders, "--only", job.scene]
+        command += ["--method", job.method, "--seed", str(job.seed), "--part"]
+        command += [x for s in args.set for x in ("--set", s)]
         lines.append(f"{job.scene}-{job.run} {shlex.join(command)}")
-    if args.write_jobs.exists():
-        raise SystemExit(f"--write-jobs {args.write_jobs}: exists; give a new file")
-    args.write_jobs.write_text("\n".join(lines) + "\n")
-    print(f"[genesis-video] {len(lines)} runs in {args.write_jobs}")
+    args.job_file.write_text("\n".join(lines) + "\n")
+    print(
+        f"[genesis-video] {len(lines)} runs in {args.job_file}: python3 "
+        f"benchmarks/device_queue.py start {args.job_file} --slots 5"
+    )
 
 
 def run_jobs(args, jobs: list[Job], scale: dict) -> None:
@@ -447,23 +450,17 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "the other (test) scenes",
     )
     parser.add_argument(
-        "--write-jobs",
+        "--job-file",
         type=Path,
         default=None,
-        help="write the planned runs as a benchmarks/device_queue.py job file (one --part "
-        "process per line, Stage I-II sharers after the run they copy) instead of running them",
-    )
-    parser.add_argument(
-        "--scenes-there",
-        default=None,
-        help="with --write-jobs: the --scenes folder on the machine that runs the jobs",
-    )
-    parser.add_argument(
-        "--out-there", default=None, help="with --write-jobs: the --out folder there"
+        help="write the planned runs as jobs of benchmarks/device_queue.py (one --part process "
+        "per line, Stage I-II sharers after the run they copy), run none",
     )
     add_scale_flags(parser, "runs")
     parser.add_argument("--part", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if sum([args.part, args.merge, args.job_file is not None]) > 1:
+        parser.error("--part runs one run, --merge tabulates, --job-file lists: give one")
     if not args.merge and args.scenes is None:
         parser.error("--scenes is required unless --merge")
     if args.seeds < 1:
@@ -511,7 +508,7 @@ def main(argv: list[str] | None = None) -> int:
             if not ablation:
                 raise SystemExit(f"--ablation: none of {', '.join(wanted)} in --scenes")
         jobs = plan_jobs(names, methods, ablation_scenes=ablation, seeds=args.seeds)
-        if args.write_jobs is not None:
+        if args.job_file is not None:
             write_job_file(args, jobs)
             return 0
         scale = scale_options(args)
