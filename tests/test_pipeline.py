@@ -435,6 +435,7 @@ def test_the_run_peak_takes_only_stage_peaks_of_the_same_kind(monkeypatch):
         "identify": None,  # a marker from before the record
     }
     assert memory.run_peak_gb(4.0, stages) == 9.0
+    assert memory.comparable_peaks(stages) == {"reconstruct": 9.0, "lift": None, "identify": None}
     assert memory.run_peak_gb(12.0, stages) == 12.0
     monkeypatch.setattr(memory, "memory_kind", lambda: memory.RSS)
     assert memory.run_peak_gb(4.0, stages) == 50.0

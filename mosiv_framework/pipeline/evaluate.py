@@ -17,7 +17,7 @@ from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.metrics import chamfer_floor_mm2, chamfer_mm2, frame_metrics
 from mosiv_framework.pipeline.appearance import can_render, rollout_images
 from mosiv_framework.pipeline.formats import METRICS, stamped
-from mosiv_framework.pipeline.memory import peak_memory_gb, run_peak_gb
+from mosiv_framework.pipeline.memory import comparable_peaks, peak_memory_gb, run_peak_gb
 from mosiv_framework.pipeline.uncertainty import mark_coverage
 from mosiv_framework.pipeline.video import pick_camera, save_rollout_npz, write_comparison_video
 from mosiv_framework.types import SimulationParams, Trajectory
@@ -311,9 +311,7 @@ def evaluate_run(
         "peak_memory_gb": run_peak_gb(peak_memory_gb(simulator), stage_peaks or {}),
     }
     if stage_peaks:
-        metrics["stage_peak_memory_gb"] = {
-            stage: (peak or {}).get("peak_memory_gb") for stage, peak in stage_peaks.items()
-        }
+        metrics["stage_peak_memory_gb"] = comparable_peaks(stage_peaks)
     if stage_times is not None:
         metrics["stage_times_s"] = {
             **stage_times,

@@ -39,13 +39,18 @@ def stage_peak(simulator=None) -> dict:
     return {"peak_memory_gb": round(peak_memory_gb(simulator), 4), "memory": memory_kind()}
 
 
-def run_peak_gb(own_gb: float, stage_peaks: dict[str, dict | None]) -> float:
-    """The run's peak: the finishing process's own and every earlier stage's recorded peak of
-    the same kind (a stage measured as resident memory says nothing of GPU memory)."""
+def comparable_peaks(stage_peaks: dict[str, dict | None]) -> dict[str, float | None]:
+    """Each stage's recorded peak (GiB) where it measured what this process measures (a stage
+    measured as resident memory says nothing of GPU memory, and the reverse); else None."""
     kind = memory_kind()
-    recorded = [
-        p["peak_memory_gb"]
-        for p in stage_peaks.values()
-        if p and p.get("memory") == kind and p.get("peak_memory_gb") is not None
-    ]
+    return {
+        stage: peak.get("peak_memory_gb") if peak and peak.get("memory") == kind else None
+        for stage, peak in stage_peaks.items()
+    }
+
+
+def run_peak_gb(own_gb: float, stage_peaks: dict[str, dict | None]) -> float:
+    """The run's peak: the finishing process's own and every earlier stage's comparable
+    recorded peak."""
+    recorded = [gb for gb in comparable_peaks(stage_peaks).values() if gb is not None]
     return max([own_gb, *recorded])
