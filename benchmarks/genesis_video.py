@@ -49,10 +49,10 @@ import argparse
 import json
 import os
 import shlex
-import shutil
 import sys
 import time
 import traceback
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -61,11 +61,12 @@ import genesis_video_table as gt
 from identify_suite import _timed, code_version
 from video_suite import (
     SHARED_POLL_S,
-    SHARED_STAGES,
     STAGES_FAILED,
     VARIANTS,
+    copy_shared_stages,
+    making_shared_stages,
+    reused_shared_stages,
     variant_losses,
-    wait_for_shared_stages,
 )
 
 from mosiv_framework.logs import configure_logging, level_from_flags
@@ -257,13 +258,14 @@ def run_job(job: Job, *, scenes: Path, out: Path, sets: dict) -> dict:
     try:
         cfg = load_job_recipe(job, scene=scene, run_dir=run_dir, overrides=overrides)
         if shared is not None:
-            copy_shared_stages(shared, run_dir)
+            copy_shared_stages(shared, run_dir, poll_s=SHARED_POLL_S)
         if torch.cuda.is_available():
             torch.cuda.reset_peak_memory_stats()
         marker = run_dir / "stages" / "identify.json"
         before = marker.read_text() if marker.is_file() else None
         started = time.perf_counter()
-        metrics = run_pipeline(cfg, run_dir=run_dir)
+        with making_shared_stages(run_dir) if shared is None else nullcontext():
+            metrics = run_pipeline(cfg, run_dir=run_dir)
         elapsed = _timed(run_dir, before, time.perf_counter() - started)
     except Exception as exc:  # one failed run must not lose the others' rows
         traceback.print_exc()
@@ -275,11 +277,12 @@ def run_job(job: Job, *, scenes: Path, out: Path, sets: dict) -> dict:
         return {**row, "error": why}
     device = gi._device_name(cfg)
     row.update(gt.scores_of(metrics), time_s=elapsed, device=device)
-    if shared is not None:  # end to end: its own stages plus the Stage I-II it copied
+    row["memory"] = "RSS" if device == "CPU" else "GPU"
+    # copied Stage I-II the pipeline used (it makes its own where its settings differ)
+    row["shared_stages"] = shared is not None and reused_shared_stages(shared, run_dir)
+    if row["shared_stages"]:  # end to end: its own stages plus the Stage I-II it copied
         row["own_time_s"] = elapsed
         row["time_s"] = elapsed + shared_stage_seconds(row.get("stage_times_s"))
-    row["memory"] = "RSS" if device == "CPU" else "GPU"
-    row["shared_stages"] = shared is not None
     return row
 
 
@@ -287,15 +290,6 @@ def shared_stage_seconds(stage_times: dict | None) -> float:
     """Seconds the copied Stage I-II took where they ran (their markers keep the time)."""
     stage_times = stage_times or {}
     return sum(stage_times.get(stage) or 0.0 for stage in ("reconstruct", "lift"))
-
-
-def copy_shared_stages(shared: Path, run_dir: Path) -> None:
-    """Wait for Stage I-II of ``shared`` and copy them into ``run_dir`` (once)."""
-    wait_for_shared_stages(shared, poll_s=SHARED_POLL_S)
-    for name in SHARED_STAGES:
-        if not (run_dir / name).exists():
-            (run_dir / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(shared / name, run_dir / name)
 
 
 def part_path(out: Path, job: Job) -> Path:

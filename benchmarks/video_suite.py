@@ -21,10 +21,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
+import socket
 import statistics
 import time
 import traceback
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 from identify_suite import LETTERS, PAIRS, _fmt, _timed, errors_of, select_pairs
@@ -62,6 +65,11 @@ SHARED_STAGES = ("reconstruction.pt", "particles.pt", "stages/reconstruct.json",
 STAGES_FAILED = "stages_failed.txt"
 #: seconds between a waiting variant's looks for its scene's Stage I-II (which take minutes)
 SHARED_POLL_S = 10.0
+#: written beside a run's folder (the run folder takes no foreign file) while the run makes
+#: Stage I-II that others copy: its host and process id
+STAGES_OWNER_SUFFIX = ".stages_owner.json"
+#: hours a run waits for the Stage I-II it copies before it gives up (a run never started)
+SHARED_WAIT_H = 4.0
 
 
 def variant_losses(recipe_losses: dict, granularity: str, terms: tuple[str, ...]) -> dict:
@@ -102,15 +110,12 @@ def _run_one(job: dict) -> dict:
         if problems:
             raise SystemExit("; ".join(problems))
         if shared is not None:
-            wait_for_shared_stages(shared, poll_s=SHARED_POLL_S)
-            for name in SHARED_STAGES:
-                if not (run_dir / name).exists():
-                    (run_dir / name).parent.mkdir(parents=True, exist_ok=True)
-                    shutil.copy2(shared / name, run_dir / name)
+            copy_shared_stages(shared, run_dir, poll_s=SHARED_POLL_S)
         marker = run_dir / "stages" / "identify.json"
         before = marker.read_text() if marker.is_file() else None
         started = time.perf_counter()
-        metrics = run_pipeline(OmegaConf.create(resolved), run_dir=run_dir)
+        with making_shared_stages(run_dir) if shared is None else nullcontext():
+            metrics = run_pipeline(OmegaConf.create(resolved), run_dir=run_dir)
         elapsed = _timed(run_dir, before, time.perf_counter() - started)
     except Exception as exc:  # one failed run must not lose the others' rows
         traceback.print_exc()
@@ -130,15 +135,82 @@ def _run_one(job: dict) -> dict:
     }
 
 
-def wait_for_shared_stages(shared: Path, *, poll_s: float) -> None:
+@contextmanager
+def making_shared_stages(run_dir: Path):
+    """While the block runs, ``run_dir`` names this process as the one making its Stage I-II,
+    so that a run waiting to copy them can tell a run that died from one still going."""
+    owner = owner_path(run_dir)
+    owner.parent.mkdir(parents=True, exist_ok=True)
+    owner.write_text(json.dumps({"host": socket.gethostname(), "pid": os.getpid()}) + "\n")
+    try:
+        yield
+    finally:
+        owner.unlink(missing_ok=True)
+
+
+def owner_path(run_dir: Path) -> Path:
+    """Where the run making ``run_dir``'s Stage I-II names itself while it runs."""
+    return run_dir.with_name(run_dir.name + STAGES_OWNER_SUFFIX)
+
+
+def _owner_ended(shared: Path) -> str | None:
+    """Why the run making ``shared``'s Stage I-II will not finish them: its process, on this
+    host, has ended; None while it runs, before it starts, or on another host (unknowable)."""
+    try:
+        owner = json.loads(owner_path(shared).read_text())
+    except (FileNotFoundError, ValueError):
+        return None
+    if owner.get("host") != socket.gethostname():
+        return None
+    try:
+        os.kill(int(owner["pid"]), 0)
+    except ProcessLookupError:
+        return f"its process {owner['pid']} ended without them (killed, or out of memory)"
+    except PermissionError:
+        return None
+    return None
+
+
+def wait_for_shared_stages(
+    shared: Path, *, poll_s: float, max_wait_s: float = SHARED_WAIT_H * 3600
+) -> None:
     """Block until the scene's first variant has finished Stage I-II in ``shared`` (its lift
-    marker exists); raise if that run failed first. Later variants wait here instead of for
-    every scene's first variant, so a scene's supervisions run side by side."""
+    marker exists); raise if that run failed first, if its process ended without them, or
+    after ``max_wait_s`` (a run that was never started). Later variants wait here instead of
+    for every scene's first variant, so a scene's supervisions run side by side."""
+    deadline = time.monotonic() + max_wait_s
     while not (shared / "stages" / "lift.json").is_file():
         failed = shared / STAGES_FAILED
         if failed.is_file():
             raise RuntimeError(f"Stage I-II of this scene failed in {shared}: {failed.read_text()}")
+        ended = _owner_ended(shared)
+        if ended is not None:
+            raise RuntimeError(f"Stage I-II of this scene never came in {shared}: {ended}")
+        if time.monotonic() > deadline:
+            raise RuntimeError(
+                f"waited {max_wait_s / 3600:g} h for Stage I-II in {shared}: start the run "
+                "that makes them (ours of this scene) before the runs that copy them"
+            )
         time.sleep(poll_s)
+
+
+def copy_shared_stages(shared: Path, run_dir: Path, *, poll_s: float) -> None:
+    """Wait for ``shared``'s Stage I-II, then copy them into ``run_dir``: always the current
+    files, so a rerun after the shared run's stages changed does not keep an older copy."""
+    wait_for_shared_stages(shared, poll_s=poll_s)
+    for name in SHARED_STAGES:
+        (run_dir / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(shared / name, run_dir / name)
+
+
+def reused_shared_stages(shared: Path, run_dir: Path) -> bool:
+    """Whether ``run_dir``'s pipeline used the copied Stage I-II (its markers are still the
+    shared run's) rather than making its own (its settings for them differ)."""
+    markers = ("stages/reconstruct.json", "stages/lift.json")
+    return all(
+        (run_dir / m).is_file() and (run_dir / m).read_text() == (shared / m).read_text()
+        for m in markers
+    )
 
 
 def _jobs_for(selected, *, recipe, out, seed, extra, threads, variants):

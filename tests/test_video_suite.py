@@ -86,3 +86,44 @@ def test_a_later_variant_stops_waiting_when_the_first_one_failed(tmp_path):
     (shared / suite.STAGES_FAILED).write_text("RuntimeError: lifting found no cell\n")
     with pytest.raises(RuntimeError, match="no cell"):
         suite.wait_for_shared_stages(shared, poll_s=0.02)
+
+
+def test_a_later_variant_stops_waiting_when_the_first_ones_process_died(tmp_path):
+    import subprocess
+
+    suite = _suite()
+    shared = tmp_path / "ours"
+    with suite.making_shared_stages(shared):  # a live owner: this process
+        assert suite._owner_ended(shared) is None
+    assert not suite.owner_path(shared).exists()  # let go when the block ends
+    # a run killed hard leaves its owner file behind, naming a process that has ended
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    owner = {"host": suite.socket.gethostname(), "pid": dead.pid}
+    suite.owner_path(shared).write_text(suite.json.dumps(owner))
+    with pytest.raises(RuntimeError, match=f"process {dead.pid} ended without them"):
+        suite.wait_for_shared_stages(shared, poll_s=0.01)
+
+
+def test_a_later_variant_gives_up_on_a_run_never_started(tmp_path):
+    suite = _suite()
+    with pytest.raises(RuntimeError, match="start the run that makes them"):
+        suite.wait_for_shared_stages(tmp_path / "ours", poll_s=0.01, max_wait_s=0.05)
+
+
+def test_copies_are_refreshed_and_their_use_is_told_apart(tmp_path):
+    suite = _suite()
+    shared, run = tmp_path / "ours", tmp_path / "library"
+    for name in suite.SHARED_STAGES:
+        (shared / name).parent.mkdir(parents=True, exist_ok=True)
+        (shared / name).write_text(f"first {name}")
+    suite.copy_shared_stages(shared, run, poll_s=0.01)
+    assert suite.reused_shared_stages(shared, run)
+    # the shared run's stages were made again (other settings): a rerun copies the new ones
+    (shared / "stages" / "lift.json").write_text("second")
+    assert not suite.reused_shared_stages(shared, run)
+    suite.copy_shared_stages(shared, run, poll_s=0.01)
+    assert (run / "stages" / "lift.json").read_text() == "second"
+    # the copying run made its own Stage I (its settings differ): not a shared run
+    (run / "stages" / "reconstruct.json").write_text("its own")
+    assert not suite.reused_shared_stages(shared, run)
