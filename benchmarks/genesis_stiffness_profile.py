@@ -309,9 +309,10 @@ def section_text(rows: list[dict], *, command: str, report: str, data: str | Non
             f"- Command: `{command}`, then `{report}`",
             f"- Machine: {', '.join(machines)}. Date {datetime.date.today().isoformat()}. "
             f"Code {', '.join(codes)}.",
-            "- Data: the Genesis scenes of [From video on Genesis scenes]"
-            "(#from-video-on-genesis-scenes) (`mosiv data suite SCENES --source genesis "
-            "--ranges wide`), their solid bodies" + (f"; the rows in `{data}`." if data else "."),
+            "- Data: scenes of the Genesis suite of [Identification on Genesis scenes]"
+            "(#identification-on-genesis-scenes) (`mosiv data suite SCENES --source genesis "
+            "--ranges wide`, seeds 0-12), their solid bodies"
+            + (f"; the rows in `{data}`." if data else "."),
             "",
             markdown(rows),
             f"![observed and future Chamfer against the factor on E](img/{PLOT})",
