@@ -27,7 +27,7 @@ beside the run-to-run spread.
         --merge --write-results docs/RESULTS.md
     python benchmarks/genesis_video.py --scenes runs/genesis --out runs/genesis_video \\
         --methods ours --ablation --seeds 2 --jobs 8 --gpus-per-task 0.125
-    python benchmarks/genesis_video.py --scenes runs/genesis --out runs/genesis_video \
+    python benchmarks/genesis_video.py --scenes runs/genesis --out runs/genesis_video \\
         --job-file video.jobs     # on a GPU machine without Ray: the runs as queue jobs
     python3 benchmarks/device_queue.py start video.jobs --slots 5
 
@@ -330,9 +330,13 @@ def plan_jobs(names, methods, *, ablation_scenes=(), seeds: int = 1) -> list[Job
     return jobs
 
 
-def part_command(args, job: Job) -> list[str]:
-    command = [sys.executable, __file__, "--scenes", str(args.scenes), "--out", str(args.out)]
-    command += ["--only", job.scene, "--method", job.method, "--seed", str(job.seed), "--part"]
+def part_command(args, job: Job, *, launcher: tuple[str, str] | None = None) -> list[str]:
+    """The --part process of ``job``: this interpreter and script, or ``launcher`` (python,
+    script) as another machine names them; folders absolute, so any working folder does."""
+    python, script = launcher or (sys.executable, __file__)
+    command = [python, script, "--scenes", str(args.scenes.resolve())]
+    command += ["--out", str(args.out.resolve()), "--only", job.scene, "--method", job.method]
+    command += ["--seed", str(job.seed), "--part"]
     return command + [x for s in args.set for x in ("--set", s)]
 
 
@@ -344,13 +348,11 @@ def write_job_file(args, jobs: list[Job]) -> None:
     that one first."""
     if args.job_file.exists():
         raise SystemExit(f"--job-file {args.job_file}: exists; give a new file")
-    folders = ["--scenes", str(args.scenes.resolve()), "--out", str(args.out.resolve())]
-    lines = []
-    for job in jobs:
-        command = ["python3", "benchmarks/genesis_video.py", *folders, "--only", job.scene]
-        command += ["--method", job.method, "--seed", str(job.seed), "--part"]
-        command += [x for s in args.set for x in ("--set", s)]
-        lines.append(f"{job.scene}-{job.run} {shlex.join(command)}")
+    launcher = ("python3", "benchmarks/genesis_video.py")
+    lines = [
+        f"{job.scene}-{job.run} {shlex.join(part_command(args, job, launcher=launcher))}"
+        for job in jobs
+    ]
     args.job_file.write_text("\n".join(lines) + "\n")
     print(
         f"[genesis-video] {len(lines)} runs in {args.job_file}: python3 "

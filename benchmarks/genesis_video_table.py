@@ -46,8 +46,9 @@ VARIANT_LABEL = {folder: label for folder, label, *_ in VARIANTS}
 
 def scores_of(metrics: dict) -> dict:
     """What a row keeps of a run's metrics.json: the observed and future blocks, the peak
-    memory (the run's, its copied Stage I-II included) and each stage's, and, for a Gaussian Stage I, per object its worst-frame Chamfer, that as a multiple
-    of the scene's Chamfer floor, and its worst-frame mask IoU."""
+    memory (the run's, its copied Stage I-II included) and each stage's, each stage's time,
+    and, for a Gaussian Stage I, per object its worst-frame Chamfer, that as a multiple of the
+    scene's Chamfer floor, and its worst-frame mask IoU."""
     out: dict = {"peak_memory_gb": metrics.get("peak_memory_gb")}
     out["stage_times_s"] = metrics.get("stage_times_s")
     out["stage_peak_memory_gb"] = metrics.get("stage_peak_memory_gb")

@@ -201,26 +201,28 @@ class Progress:
         self.rd.mark_done(stage, self.keys[stage], self.digest, **info)
         self.record.stage_done(stage)
 
-    def stage_times(self) -> dict[str, float | None]:
-        """Seconds each finished stage before evaluation took when it ran (a resumed stage
-        keeps the time of the run that made it; None where its marker predates the timing)."""
-        times = {}
+    def _earlier_markers(self) -> dict[str, dict]:
+        """Each stage before evaluation: what its marker records ({} where it has none)."""
+        markers = {}
         for stage in STAGES[:-1]:
             marker = f"stages/{stage}.json"
             found = self.rd.path(marker).is_file()
-            times[stage] = self.rd.load_json(marker).get("time_s") if found else None
-        return times
+            markers[stage] = self.rd.load_json(marker) if found else {}
+        return markers
+
+    def stage_times(self) -> dict[str, float | None]:
+        """Seconds each finished stage before evaluation took when it ran (a resumed stage
+        keeps the time of the run that made it; None where its marker predates the timing)."""
+        return {stage: info.get("time_s") for stage, info in self._earlier_markers().items()}
 
     def stage_peaks(self) -> dict[str, dict | None]:
         """The peak memory each finished stage before evaluation recorded when it ran
         (``memory.stage_peak``; None where its marker predates the record)."""
-        peaks = {}
-        for stage in STAGES[:-1]:
-            marker = f"stages/{stage}.json"
-            found = self.rd.path(marker).is_file()
-            info = self.rd.load_json(marker) if found else {}
-            peaks[stage] = {k: info[k] for k in ("peak_memory_gb", "memory") if k in info} or None
-        return peaks
+        keys = ("peak_memory_gb", "memory")
+        return {
+            stage: {k: info[k] for k in keys if k in info} or None
+            for stage, info in self._earlier_markers().items()
+        }
 
     def carry_earlier_markers(self, plain: dict, scene_root: Path) -> None:
         """Markers written before the scene entered by its content (keys holding the scene's
