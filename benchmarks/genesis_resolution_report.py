@@ -69,8 +69,13 @@ def config_summary(rows: list[dict], scenes: list[str], params: list[str]) -> di
         "scenes_run": [r["scene"] for r in ok],
         "refused": [r["scene"] for r in rows if "refused" in r],
         "failed": [r["scene"] for r in rows if "error" in r],
+        # not run at all (no row: a part still to come, or one whose process was stopped);
+        # unlike a refusal, which says the configuration cannot run there
+        "missing": sorted(set(scenes) - {r["scene"] for r in rows}),
         "complete": sorted({r["scene"] for r in ok}) == scenes,
         "errors": {n: _spread([e for r in ok for e in _errors(r, n)]) for n in params},
+        "observed_cd": _spread([r["observed_cd_mm2"] for r in ok if r.get("observed_cd_mm2")]),
+        "future_cd": _spread([r["future_cd_mm2"] for r in ok if r.get("future_cd_mm2")]),
         "time_median_s": statistics.median(times) if times else None,
         "time_max_s": max(times) if times else None,
         "peak_memory_max_gb": max(memory) if memory else None,
@@ -83,8 +88,21 @@ def choose_defaults(
     """The grid and substeps ``RULE`` picks, with the reference it compared against."""
     rule = RULE.format(tolerance=tolerance, tolerance_deg=tolerance_deg)
     complete = [c for c in configs if c["complete"]]
-    if not complete:
-        return {"grid": None, "substeps": None, "reference": None, "rule": rule}
+    # a configuration with scenes still to run may be the finest, or may be the one the rule
+    # would pick: nothing is chosen until every part is in
+    unfinished = [
+        {"grid": c["grid"], "substeps": c["substeps_requested"], "missing": c["missing"]}
+        for c in configs
+        if c["missing"]
+    ]
+    if not complete or unfinished:
+        return {
+            "grid": None,
+            "substeps": None,
+            "reference": None,
+            "rule": rule,
+            "unfinished": unfinished,
+        }
 
     def cost(c: dict) -> tuple:
         return c["grid"], max(c["substeps_used"])
@@ -128,7 +146,31 @@ def make_study(rows: list[dict], *, tolerance: float, tolerance_deg: float) -> d
         "params": params,
         "configs": configs,
         "defaults": defaults,
+        "paired": paired_summary(rows, configs, scenes, params),
     }
+
+
+def paired_summary(rows: list[dict], configs: list[dict], scenes: list[str], params: list[str]):
+    """Each configuration's median errors over the scenes that every configuration ran, so
+    that configurations are compared on the same scenes while some have not run everywhere
+    (None when every configuration ran every scene, or no scene was run by all)."""
+    common = [s for s in scenes if all(s in c["scenes_run"] for c in configs)]
+    if not common or common == scenes:
+        return None
+    summaries = []
+    for c in configs:
+        key = (c["grid"], c["substeps_requested"])
+        mine = [
+            r
+            for r in rows
+            if (r["grid"], r["substeps_requested"]) == key and r["scene"] in common and _ok(r)
+        ]
+        errors = {n: _spread([e for r in mine for e in _errors(r, n)]) for n in params}
+        future = _spread([r["future_cd_mm2"] for r in mine if r.get("future_cd_mm2")])
+        summaries.append(
+            {"grid": key[0], "substeps_requested": key[1], "errors": errors, "future_cd": future}
+        )
+    return {"scenes": common, "configs": summaries}
 
 
 # --------------------------------------------------------------------------------------------
@@ -262,6 +304,15 @@ def _label(count: int, configs: list[dict]) -> str:
 
 def defaults_line(study: dict) -> str:
     d = study["defaults"]
+    if d.get("unfinished"):
+        waiting = "; ".join(
+            f"grid {u['grid']} with {u['substeps']} substeps has no row for {', '.join(u['missing'])}"
+            for u in d["unfinished"]
+        )
+        return (
+            f"Chosen defaults: none: the study is unfinished ({waiting}). The rule, once every "
+            f"configuration has run: {d['rule']}."
+        )
     if d["grid"] is None:
         return (
             f"Chosen defaults: none (no configuration ran on every scene; the rule: {d['rule']})."
@@ -278,6 +329,7 @@ def config_table(study: dict) -> list[str]:
     titles = [TITLES[n] for n in study["params"]]
     head = ["grid", "substeps", "scenes run / refused / failed", "median time s"]
     head += ["longest time s", "peak memory GB"] + [f"median {t}" for t in titles]
+    head += ["median future CD mm^2"]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for c in study["configs"]:
         used = [s for s in c["substeps_used"] if s != c["substeps_requested"]]
@@ -287,6 +339,24 @@ def config_table(study: dict) -> list[str]:
         cells.append(f"{len(c['scenes_run'])} / {len(c['refused'])} / {len(c['failed'])}")
         cells += [_fmt(c[k]) for k in ("time_median_s", "time_max_s", "peak_memory_max_gb")]
         cells += [_fmt(c["errors"][n]["median"]) for n in study["params"]]
+        cells.append(_fmt((c.get("future_cd") or {}).get("median")))
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def paired_table(study: dict) -> list[str]:
+    """The configurations on the scenes all of them ran (empty when there is no such subset)."""
+    paired = study.get("paired")
+    if not paired:
+        return []
+    titles = [TITLES[n] for n in study["params"]]
+    head = ["grid", "substeps"] + [f"median {t}" for t in titles] + ["median future CD mm^2"]
+    lines = ["", _fill(f"On the scenes every configuration ran ({', '.join(paired['scenes'])}):")]
+    lines += ["", "| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for c in paired["configs"]:
+        cells = [str(c["grid"]), str(c["substeps_requested"])]
+        cells += [_fmt(c["errors"][n]["median"]) for n in study["params"]]
+        cells.append(_fmt(c["future_cd"]["median"]))
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
@@ -366,6 +436,7 @@ def markdown(study: dict, *, plot_link: str) -> str:
         "|v - v_true| / |v_true| (%); median over every object of the scenes that ran."
     )
     lines += ["", _fill(legend)]
+    lines += paired_table(study)
     if notes(study):
         lines += [
             "",

@@ -212,6 +212,37 @@ def test_no_defaults_without_a_configuration_that_ran_every_scene():
     assert report.defaults_line(study).startswith("Chosen defaults: none")
 
 
+def test_a_configuration_with_scenes_still_to_run_blocks_the_choice_and_is_compared_paired():
+    """Grid 64 ran on A only (B has no row: stopped, not refused): the rule must not fall back
+    to grid 32 as if it were the finest, and the two grids are compared on A alone."""
+    _, report = _modules()
+    rows = [_row("A", 32, 100, 40, 2), _row("B", 32, 100, 60, 6), _row("A", 64, 100, 10, 1)]
+    for row, future in zip(rows, (900.0, 300.0, 500.0)):
+        row["future_cd_mm2"] = future
+    study = report.make_study(rows, tolerance=5.0, tolerance_deg=1.0)
+    configs = {c["grid"]: c for c in study["configs"]}
+    assert configs[64]["missing"] == ["B"] and configs[32]["missing"] == []
+    assert configs[32]["future_cd"]["median"] == pytest.approx(600.0)
+    d = study["defaults"]
+    assert d["grid"] is None
+    assert d["unfinished"] == [{"grid": 64, "substeps": 100, "missing": ["B"]}]
+    line = report.defaults_line(study)
+    assert line.startswith("Chosen defaults: none: the study is unfinished")
+    assert "grid 64 with 100 substeps has no row for B" in line
+    paired = {c["grid"]: c for c in study["paired"]["configs"]}
+    assert study["paired"]["scenes"] == ["A"]
+    assert paired[32]["errors"]["E"]["median"] == pytest.approx(40.0)
+    assert paired[64]["errors"]["E"]["median"] == pytest.approx(10.0)
+    assert paired[32]["future_cd"]["median"] == pytest.approx(900.0)
+    text = report.markdown(study, plot_link="convergence.png")
+    assert "On the scenes every configuration ran (A):" in text
+    assert "| 64 | 100 | 10 | 1 | 500 |" in text
+    # once every part is in there is no paired table, and the rule chooses
+    rows.append(_row("B", 64, 100, 12, 2))
+    done = report.make_study(rows, tolerance=5.0, tolerance_deg=1.0)
+    assert done["paired"] is None and done["defaults"]["grid"] == 64
+
+
 # --------------------------------------------------------------------------------------------
 # the whole study on CPU
 
