@@ -15,12 +15,15 @@ Usage (repository root, after ``source benchmarks/gpu_setup.sh``)::
     python3 benchmarks/device_queue.py start JOBFILE --slots 3 --code-version COMMIT
     bash benchmarks/device_batch.sh wait SECONDS 'GLOB' ...   # later calls: wait, pack results
     python3 benchmarks/device_queue.py stop                    # end the queue and its jobs
+    python3 benchmarks/device_queue.py stop --only A,B         # end jobs A and B only
 
 ``stop`` frees the GPU before the lease's end (for a benchmark that must run alone, say): the
 queue starts nothing more and every running job's process group is ended (``NAME.rc`` then
 reads ``stopped``); what the jobs saved stays. It finds them by the process ids the queue
 records (``JOBS/queue.pid``, ``JOBS/NAME.pid``), not by matching command lines, which would
-also match the device call that runs ``stop``.
+also match the device call that runs ``stop``. ``stop --only NAMES`` ends just those jobs,
+running or still queued, and the queue goes on with the others: when more jobs share the GPUs
+than can finish inside a lease, stopping the furthest behind lets the rest finish.
 
 JOBFILE holds one job per line, ``NAME COMMAND...`` (COMMAND in shell syntax, run by bash in
 the job's snapshot); blank lines and lines starting with # are skipped. Each job logs to
@@ -62,6 +65,9 @@ def snapshot_ignore(folder: str, names: list[str]) -> set[str]:
 
 #: how often the queue looks for finished jobs
 POLL_SECONDS = 2.0
+#: beside a job stopped on its own (``stop --only``): the queue does not start it, or records
+#: its end as "stopped" rather than as a failure
+STOPPED = ".stopped"
 
 
 @dataclass
@@ -213,18 +219,25 @@ def run_queue(
             code = process.poll()
             if code is None:
                 continue
-            (jobs_dir / f"{name}.rc").write_text(f"{code}\n")
+            stopped = (jobs_dir / f"{name}{STOPPED}").exists()
+            (jobs_dir / f"{name}.rc").write_text("stopped\n" if stopped else f"{code}\n")
             (jobs_dir / f"{name}.pid").unlink(missing_ok=True)
             on_gpu[gpu] -= 1
             shutil.rmtree(jobs_dir / f"{name}.tree", ignore_errors=True)
-            failed += code != 0
-            print(f"{time.strftime('%H:%M:%S')} end {name}: exit {code}", flush=True)
+            failed += code != 0 and not stopped
+            outcome = "stopped" if stopped else f"exit {code}"
+            print(f"{time.strftime('%H:%M:%S')} end {name}: {outcome}", flush=True)
             del running[name]
         while waiting:
             gpu = min(gpus, key=lambda g: on_gpu[g])
             if on_gpu[gpu] >= slots:
                 break
             job = waiting.pop(0)
+            if (jobs_dir / f"{job.name}{STOPPED}").exists():  # stopped before it started
+                (jobs_dir / f"{job.name}.queued").unlink(missing_ok=True)
+                (jobs_dir / f"{job.name}.rc").write_text("stopped\n")
+                print(f"{time.strftime('%H:%M:%S')} skip {job.name}: stopped", flush=True)
+                continue
             on_gpu[gpu] += 1
             process = launch(job, source, jobs_dir, gpu, threads, code_version)
             running[job.name] = (gpu, process)
@@ -241,6 +254,42 @@ def _signal(pid: int, sig: int, *, group: bool) -> bool:
     return True
 
 
+def stop_jobs(jobs_dir: Path, names: list[str], grace_seconds: float = 10.0) -> list[str]:
+    """End the named jobs only, and leave the queue running the others: a running one's
+    process group ends (SIGTERM, then SIGKILL after ``grace_seconds``), a queued one never
+    starts; each gets ``NAME.rc`` "stopped". Returns the names that were running or queued."""
+    known = {p.stem for p in jobs_dir.glob("*.log")} | {p.stem for p in jobs_dir.glob("*.queued")}
+    unknown = sorted(set(names) - known)
+    if unknown:
+        raise SystemExit(
+            f"stop --only: no job {', '.join(unknown)} in {jobs_dir} (jobs there: "
+            f"{', '.join(sorted(known)) or 'none'})"
+        )
+    running, ended = {}, []
+    for name in names:
+        if (jobs_dir / f"{name}.rc").exists():
+            continue  # ended already: its exit code stays
+        (jobs_dir / f"{name}{STOPPED}").touch()  # the queue reads it before starting the job
+        ended.append(name)
+        pid_file = jobs_dir / f"{name}.pid"
+        if pid_file.exists():
+            running[name] = int(pid_file.read_text())
+    _end_groups(running, grace_seconds)
+    return sorted(ended)
+
+
+def _end_groups(running: dict[str, int], grace_seconds: float) -> None:
+    """SIGTERM each process group of ``running`` (name -> pid), SIGKILL what is left after
+    ``grace_seconds``."""
+    alive = {name: pid for name, pid in running.items() if _signal(pid, signal.SIGTERM, group=True)}
+    deadline = time.time() + grace_seconds
+    while alive and time.time() < deadline:
+        time.sleep(0.2)
+        alive = {name: pid for name, pid in alive.items() if _signal(pid, 0, group=True)}
+    for pid in alive.values():
+        _signal(pid, signal.SIGKILL, group=True)
+
+
 def stop(jobs_dir: Path, grace_seconds: float = 10.0) -> list[str]:
     """End the queue recorded in ``jobs_dir`` and every job it started that is still running
     (SIGTERM, then SIGKILL after ``grace_seconds``); returns the names of the jobs stopped."""
@@ -254,13 +303,7 @@ def stop(jobs_dir: Path, grace_seconds: float = 10.0) -> list[str]:
         if not (jobs_dir / f"{name}.rc").exists():
             running[name] = int(pid_file.read_text())
         pid_file.unlink()
-    alive = {name: pid for name, pid in running.items() if _signal(pid, signal.SIGTERM, group=True)}
-    deadline = time.time() + grace_seconds
-    while alive and time.time() < deadline:
-        time.sleep(0.2)
-        alive = {name: pid for name, pid in alive.items() if _signal(pid, 0, group=True)}
-    for pid in alive.values():
-        _signal(pid, signal.SIGKILL, group=True)
+    _end_groups(running, grace_seconds)
     for name in running:
         (jobs_dir / f"{name}.rc").write_text("stopped\n")
         shutil.rmtree(jobs_dir / f"{name}.tree", ignore_errors=True)
@@ -280,6 +323,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=None, help="CPU threads per job")
     parser.add_argument("--jobs-dir", type=Path, default=Path.home() / "jobs")
     parser.add_argument(
+        "--only",
+        default=None,
+        help="with stop: end only these jobs (comma-separated names), running or queued, and "
+        "leave the queue running the others (to let the rest finish inside a lease, say)",
+    )
+    parser.add_argument(
         "--source", type=Path, default=None, help="the snapshot to start jobs from (default: now)"
     )
     parser.add_argument(
@@ -290,6 +339,11 @@ def main(argv: list[str] | None = None) -> int:
         "$(git rev-parse --short HEAD) from the machine that sent it)",
     )
     args = parser.parse_args(argv)
+    if args.verb == "stop" and args.only:
+        names = [n for n in args.only.split(",") if n]
+        ended = stop_jobs(args.jobs_dir, names)
+        print(f"stopped in {args.jobs_dir}: {', '.join(ended) or 'none (all had ended)'}")
+        return 0
     if args.verb == "stop":
         stopped = stop(args.jobs_dir)
         print(f"stopped the queue in {args.jobs_dir}; jobs ended: {', '.join(stopped) or 'none'}")

@@ -232,6 +232,44 @@ def test_stop_ends_the_queue_and_its_running_jobs_but_not_the_caller(tmp_path):
     assert "jobs ended: none" in again.stdout
 
 
+def test_stop_only_ends_the_named_jobs_and_the_queue_runs_the_rest(tmp_path):
+    """``stop --only`` ends a running job (its process group) and a queued one before it
+    starts, marks both "stopped", and the queue goes on to run the job not named."""
+    jobfile = tmp_path / "jobs.txt"
+    marker = tmp_path / "child.pid"
+    done = tmp_path / "third.done"
+    jobfile.write_text(
+        f"first sleep 120 & echo $! > {marker}; wait\nsecond sleep 120\nthird touch {done}\n"
+    )
+    jobs_dir = tmp_path / "jobs"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    args = [sys.executable, str(QUEUE), "start", str(jobfile), "--gpus", "1", "--slots", "1"]
+    subprocess.run([*args, "--jobs-dir", str(jobs_dir)], env=env, check=True, timeout=60)
+    assert _wait_for(lambda: marker.exists() and marker.read_text().strip(), 60)
+    job_pid = int((jobs_dir / "first.pid").read_text())
+    child_pid = int(marker.read_text())
+    queue_pid = int((jobs_dir / "queue.pid").read_text())
+
+    stop = [sys.executable, str(QUEUE), "stop", "--jobs-dir", str(jobs_dir)]
+    ended = subprocess.run(
+        [*stop, "--only", "first,second"], env=env, capture_output=True, text=True, timeout=60
+    )
+    assert ended.returncode == 0, ended.stderr
+    assert "stopped in" in ended.stdout and "first, second" in ended.stdout
+    assert _wait_for(lambda: _gone(job_pid) and _gone(child_pid), 15)
+    assert _wait_for(lambda: done.exists(), 60)  # the queue went on to the third job
+    assert _wait_for(lambda: (jobs_dir / "third.rc").exists(), 30)
+    assert (jobs_dir / "third.rc").read_text().strip() == "0"
+    for name in ("first", "second"):
+        assert (jobs_dir / f"{name}.rc").read_text().strip() == "stopped"
+    assert not (jobs_dir / "second.log").exists()  # never started
+    assert _wait_for(lambda: _gone(queue_pid), 30)  # and the queue ended with its last job
+    unknown = subprocess.run(
+        [*stop, "--only", "fourth"], env=env, capture_output=True, text=True, timeout=60
+    )
+    assert unknown.returncode != 0 and "no job fourth" in unknown.stderr
+
+
 def test_start_without_a_job_file_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit):
         device_queue.main(["start", "--jobs-dir", str(tmp_path)])
