@@ -23,6 +23,7 @@ from mosiv_framework.capture.common import (
     SourceCamera,
     camera_key,
     no_frames_message,
+    one_pose_per_camera,
 )
 from mosiv_framework.capture.lens import Distortion, Intrinsics
 from mosiv_framework.capture.options import WRITE_MODELS
@@ -70,6 +71,60 @@ def _unknown_model_name(path: Path) -> str | None:
         if tok and not tok[0].startswith("#") and len(tok) > 1 and tok[1] not in known:
             return f"{path}: line {n}: camera model {tok[1]!r} is unknown; {_supported()}"
     return None
+
+
+def _data_lines(path: Path):
+    """(line number, tokens) of a COLMAP text file's lines, comments and blank lines too."""
+    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    return [(n, line.split()) for n, line in enumerate(lines, start=1)]
+
+
+def _camera_lines_problem(path: Path) -> tuple[str | None, set[int]]:
+    """(a problem of cameras.txt: a parameter count its model does not take, or None; the
+    camera ids it defines)."""
+    ids: set[int] = set()
+    for n, tok in _data_lines(path):
+        if not tok or tok[0].startswith("#") or len(tok) < 4:
+            continue
+        model, params = tok[1], tok[4:]
+        if model in MODELS and len(params) != len(MODELS[model]):
+            return (
+                f"{path}: line {n}: {model} takes {len(MODELS[model])} parameters "
+                f"({', '.join(MODELS[model])}), got {len(params)}"
+            ), ids
+        if tok[0].isdigit():
+            ids.add(int(tok[0]))
+    return None, ids
+
+
+def _image_camera_problem(path: Path, camera_ids: set[int], cameras: Path) -> str | None:
+    """Where images.txt names a camera id that cameras.txt lacks (pycolmap calls it a missing
+    "rig" and names no file). An image takes two lines; the second (its 2-D points) may be
+    empty, so only the lines between images skip blanks and comments, as COLMAP reads."""
+    lines, i = _data_lines(path), 0
+    while i < len(lines):
+        n, tok = lines[i]
+        i += 1
+        if not tok or tok[0].startswith("#"):
+            continue
+        i += 1  # the image's points line, whatever it holds
+        if len(tok) >= 10 and tok[8].isdigit() and int(tok[8]) not in camera_ids:
+            return (
+                f"{path}: line {n}: image {tok[0]} ({' '.join(tok[9:])}) names camera_id "
+                f"{tok[8]}, which {cameras} does not define"
+            )
+    return None
+
+
+def _text_model_problem(root: Path) -> str | None:
+    """A clear message for a text model pycolmap could not read, where one is found: an
+    unknown model name, a wrong parameter count, an image of a camera that is not defined."""
+    cameras = root / "cameras.txt"
+    problem = _unknown_model_name(cameras)
+    if problem:
+        return problem
+    problem, ids = _camera_lines_problem(cameras)
+    return problem or _image_camera_problem(root / "images.txt", ids, cameras)
 
 
 def _binary_size_problem(path: Path, records) -> str | None:
@@ -140,7 +195,7 @@ def _load(root: Path) -> tuple[pycolmap.Reconstruction, str]:
     try:
         (rec.read_binary if ext == ".bin" else rec.read_text)(str(root))
     except (ValueError, IndexError, KeyError, RuntimeError, MemoryError) as exc:
-        unknown = _unknown_model_name(root / "cameras.txt") if ext == ".txt" else None
+        unknown = _text_model_problem(root) if ext == ".txt" else None
         # pycolmap prefixes its failed checks with the C++ source line: of no use here
         reason = re.sub(r"^\[[^\]]*\]\s*", "", str(exc)).strip()
         if "camera model" in reason.lower():  # e.g. a model id of a newer COLMAP in a .bin
@@ -171,28 +226,56 @@ def _intrinsics(camera: pycolmap.Camera, where: str) -> tuple[Intrinsics, Distor
     return k, Distortion.from_mapping(p)
 
 
+def _natural(name: str) -> list:
+    """Sort key that puts frame_9 before frame_10."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+def _pose(image, where: str) -> np.ndarray:
+    """The image's 4x4 world-to-camera matrix; its quaternion must be of unit length (to
+    rounding: one written with a few digits is normalised)."""
+    quat = np.asarray(image.cam_from_world().rotation.quat, dtype=np.float64)
+    norm = float(np.linalg.norm(quat))
+    if not abs(norm - 1.0) <= 1e-3:
+        raise CaptureError(
+            f"{where}: its rotation quaternion (QW QX QY QZ) has length {norm:.6g}, not 1: not "
+            "a rotation"
+        )
+    pose = np.eye(4)
+    pose[:3, :3] = pycolmap.Rotation3d(quat / norm).matrix()
+    pose[:3, 3] = np.asarray(image.cam_from_world().translation, dtype=np.float64)
+    return pose
+
+
 def read_colmap(model_dir: str | Path, known: set[str]) -> list[SourceCamera]:
     """The cameras of a COLMAP sparse model folder, one per camera id in ``known`` (the videos'
     names; see ``common.camera_key``). A camera filmed by several images (one per frame) takes
-    the pose of its first image by name: the rig is assumed static."""
+    the pose of its first registered image (by name, frame_9 before frame_10); the others that
+    are registered must agree with it up to registration noise: the rig is static
+    (``common.one_pose_per_camera``)."""
     root = Path(model_dir)
     rec, ext = _load(root)
-    out: dict[str, SourceCamera] = {}
-    for image in sorted(rec.images.values(), key=lambda im: im.name):
+    views: dict[str, list[SourceCamera]] = {}
+    unposed: dict[str, str] = {}
+    for image in sorted(rec.images.values(), key=lambda im: _natural(im.name)):
         where = f"{root / ('images' + ext)}: image {image.image_id} ({image.name})"
         key = camera_key(image.name, known)
         if key is None:
             raise CaptureError(no_frames_message(where, image.name))
-        if key in out:
-            continue
         if not image.has_pose:
-            raise CaptureError(f"{where}: has no pose (its frame is not registered in the model)")
+            unposed.setdefault(key, where)
+            continue
         camera = rec.cameras[image.camera_id]
         k, dist = _intrinsics(camera, f"{root / ('cameras' + ext)}: camera {image.camera_id}")
-        pose = np.eye(4)
-        pose[:3] = image.cam_from_world().matrix()
-        out[key] = SourceCamera(key, k, dist, pose, where, model=camera.model.name)
-    return list(out.values())
+        source = SourceCamera(key, k, dist, _pose(image, where), where, model=camera.model.name)
+        views.setdefault(key, []).append(source)
+    for key, where in unposed.items():
+        if key not in views:
+            raise CaptureError(
+                f"{where}: has no pose (its frame is not registered in the model), and no other "
+                f"image of camera {key!r} has one"
+            )
+    return one_pose_per_camera(views)
 
 
 # ---------------------------------------------------------------------------------- writing

@@ -3,7 +3,8 @@ camera model's image name finds its frames, and the refusal of a non-empty outpu
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import astuple, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -73,4 +74,57 @@ def refuse_non_empty(out: Path, what: str) -> None:
         state = "is a file" if not out.is_dir() else "is a non-empty folder"
         raise OutputError(
             f"{what} {str(out)!r} {state}; give a new or empty folder (nothing is overwritten)"
+        )
+
+
+#: how far the frames of one camera may disagree and still be one fixed camera: registered
+#: one by one (COLMAP, nerfstudio), a fixed camera's frames differ by the solver's noise
+STATIC_ROTATION_DEG = 1.0
+#: of the median distance between the cameras (from the origin, for a single camera)
+STATIC_CENTRE_FRACTION = 0.02
+#: relative, of focal lengths, principal point and size; distortion coefficients absolute
+STATIC_INTRINSICS_FRACTION, STATIC_DISTORTION_ATOL = 0.01, 1e-3
+
+
+def one_pose_per_camera(frames: dict[str, list[SourceCamera]]) -> list[SourceCamera]:
+    """Each camera's first frame, once its other frames are found to agree with it.
+
+    A capture rig's cameras are fixed and ``mosiv-scene/1`` has one pose per camera; a camera
+    whose frames turn or move it further than registration noise (``STATIC_*``) is refused,
+    naming both frames, rather than one pose silently kept."""
+    firsts = {key: views[0] for key, views in frames.items()}
+    if not firsts:
+        return []
+    centres = np.array([c.center for c in firsts.values()])
+    if len(centres) > 1:
+        gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+        scale = float(np.median(gaps[np.triu_indices(len(centres), 1)]))
+    else:
+        scale = float(np.linalg.norm(centres[0]))
+    for views in frames.values():
+        for other in views[1:]:
+            _same_camera(views[0], other, scale)
+    return list(firsts.values())
+
+
+def _same_camera(first: SourceCamera, other: SourceCamera, scale: float) -> None:
+    cos = (float(np.trace(first.rotation.T @ other.rotation)) - 1.0) / 2.0
+    angle = math.degrees(math.acos(min(1.0, max(-1.0, cos))))
+    shift = float(np.linalg.norm(first.center - other.center))
+    if angle > STATIC_ROTATION_DEG or shift > STATIC_CENTRE_FRACTION * scale:
+        raise CaptureError(
+            f"{other.origin}: camera {first.id!r} is turned {angle:.3g} deg and moved "
+            f"{shift:.3g} (the recording's units) from its pose in {first.origin}: a capture "
+            f"rig's cameras must stay fixed (at most {STATIC_ROTATION_DEG:g} deg and "
+            f"{STATIC_CENTRE_FRACTION:g} of the distance between cameras, {scale:.3g})"
+        )
+    a, b = np.array(astuple(first.intrinsics)), np.array(astuple(other.intrinsics))
+    da, db = np.array(astuple(first.distortion)), np.array(astuple(other.distortion))
+    if not np.allclose(a, b, rtol=STATIC_INTRINSICS_FRACTION, atol=0.0) or not np.allclose(
+        da, db, rtol=0.0, atol=STATIC_DISTORTION_ATOL
+    ):
+        raise CaptureError(
+            f"{other.origin}: camera {first.id!r} has other intrinsics or distortion here "
+            f"({first.intrinsics}, {first.distortion} in {first.origin}; here "
+            f"{other.intrinsics}, {other.distortion})"
         )

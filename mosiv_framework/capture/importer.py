@@ -120,12 +120,16 @@ def load_plates(folder: Path | None, cams) -> dict[str, np.ndarray] | None:
 
 
 def load_cameras(s: ImportSettings, known: set[str]) -> dict[str, SourceCamera]:
-    from mosiv_framework.capture.colmap import read_colmap
-    from mosiv_framework.capture.nerfstudio import read_nerfstudio
-
     if (s.colmap is None) == (s.transforms is None):
         raise CaptureError("give the cameras: either a COLMAP model (--colmap) or --transforms")
-    cams = read_colmap(s.colmap, known) if s.colmap else read_nerfstudio(s.transforms, known)
+    if s.colmap:  # pycolmap is imported only for a COLMAP model
+        from mosiv_framework.capture.colmap import read_colmap
+
+        cams = read_colmap(s.colmap, known)
+    else:
+        from mosiv_framework.capture.nerfstudio import read_nerfstudio
+
+        cams = read_nerfstudio(s.transforms, known)
     by_id = {c.id: c for c in cams}
     missing = sorted(known - set(by_id))
     if missing:

@@ -1,0 +1,154 @@
+"""Camera files written by hand the ways capture tools write them: nerfstudio / instant-ngp
+``transforms.json`` variants and COLMAP text models, read as ``mosiv data import`` reads them,
+and the errors that name the file and the entry when they cannot be used."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from mosiv_framework.capture.colmap import read_colmap
+from mosiv_framework.capture.common import CaptureError
+from mosiv_framework.capture.nerfstudio import read_nerfstudio
+
+KNOWN = {"cam01", "cam02"}
+W, H = 64, 48
+
+
+def gl_pose(angle_deg: float = 0.0, centre=(0.0, -2.0, 0.5)) -> np.ndarray:
+    """A camera-to-world matrix (OpenGL axes) turned ``angle_deg`` about the world z axis."""
+    a = math.radians(angle_deg)
+    c2w = np.eye(4)
+    c2w[:3, :3] = [[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]]
+    c2w[:3, 3] = centre
+    return c2w
+
+
+def write_transforms(tmp_path, frames: list[dict], **top) -> object:
+    path = tmp_path / "transforms.json"
+    path.write_text(json.dumps({**top, "frames": frames}))
+    return path
+
+
+def frame(name: str, c2w: np.ndarray, **fields) -> dict:
+    return {"file_path": name, "transform_matrix": c2w.tolist(), **fields}
+
+
+# ------------------------------------------------------------------------------ nerfstudio
+def test_field_of_view_three_by_four_pose_and_simple_radial_model(tmp_path):
+    """instant-ngp's camera_angle_x without fl_x or a principal point, a 3x4 matrix and a
+    SIMPLE_RADIAL camera read as the focal length the angle gives, the image centre and the
+    same pose as the 4x4 matrix."""
+    angle = 0.9
+    full, short = gl_pose(10.0), gl_pose(10.0)[:3]
+    frames = [frame("images/cam01.png", full), frame("images/cam02.png", short)]
+    path = write_transforms(
+        tmp_path, frames, camera_angle_x=angle, w=W, h=H, camera_model="SIMPLE_RADIAL", k1=0.02
+    )
+    cams = {c.id: c for c in read_nerfstudio(path, KNOWN)}
+    k = cams["cam02"].intrinsics
+    assert k.fx == pytest.approx(0.5 * W / math.tan(0.5 * angle), rel=1e-12) and k.fy == k.fx
+    assert (k.cx, k.cy, k.width, k.height) == (W / 2, H / 2, W, H)
+    assert cams["cam02"].distortion.k1 == 0.02
+    assert np.allclose(cams["cam01"].world_to_camera, cams["cam02"].world_to_camera, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("fields", "message"),
+    [
+        ({"k4": 0.05}, "'k4' = 0.05"),
+        ({"w": 64.5}, "'w' must be a positive whole number"),
+        ({"camera_model": "OPENCV_FISHEYE"}, "camera_model 'OPENCV_FISHEYE' is not supported"),
+        ({"fl_x": None}, "lacks 'fl_x' (or the field of view 'camera_angle_x')"),
+        ({"camera_angle_x": 4.0, "fl_x": None}, "'camera_angle_x' must lie in (0, pi)"),
+    ],
+)
+def test_lens_fields_mosiv_cannot_use_are_named(tmp_path, fields, message):
+    top = {"w": W, "h": H, "fl_x": 50.0, "fl_y": 50.0, "cx": 32.0, "cy": 24.0, **fields}
+    top = {k: v for k, v in top.items() if v is not None}
+    path = write_transforms(tmp_path, [frame("images/cam01.png", gl_pose())], **top)
+    with pytest.raises(CaptureError, match="frames\\[0\\]") as caught:
+        read_nerfstudio(path, {"cam01"})
+    assert message in str(caught.value)
+
+
+def test_frames_of_one_camera_agree_up_to_noise_or_are_refused(tmp_path):
+    """A static rig registered frame by frame: tiny differences keep the first frame; a camera
+    that turns, moves or changes focal length between its frames is refused, naming both."""
+    lens = {"w": W, "h": H, "fl_x": 50.0, "fl_y": 50.0, "cx": 32.0, "cy": 24.0}
+    other = frame("images/cam02.png", gl_pose(90.0, centre=(2.0, 0.0, 0.5)))
+    noisy = gl_pose(0.01)
+    frames = [frame("cam01/f_0001.png", gl_pose()), frame("cam01/f_0002.png", noisy), other]
+    cams = {c.id: c for c in read_nerfstudio(write_transforms(tmp_path, frames, **lens), KNOWN)}
+    assert "frames[0]" in cams["cam01"].origin  # the first by file path
+    for moved, what in (
+        (frame("cam01/f_0002.png", gl_pose(5.0)), "turned 5 deg"),
+        (frame("cam01/f_0002.png", gl_pose(0.0, centre=(0.0, -2.0, 0.7))), "moved 0.2"),
+        (frame("cam01/f_0002.png", gl_pose(), fl_x=55.0), "other intrinsics"),
+    ):
+        path = write_transforms(tmp_path, [frames[0], moved, other], **lens)
+        with pytest.raises(CaptureError, match="frames\\[1\\]") as caught:
+            read_nerfstudio(path, KNOWN)
+        assert what in str(caught.value) and "frames[0]" in str(caught.value)
+
+
+def test_a_frame_that_is_not_an_object_is_named(tmp_path):
+    path = write_transforms(tmp_path, [["images/cam01.png"]], w=W, h=H)
+    with pytest.raises(CaptureError, match=r"frames\[0\] must be an object"):
+        read_nerfstudio(path, {"cam01"})
+
+
+# ---------------------------------------------------------------------------------- COLMAP
+def write_colmap_text(folder, cameras: list[str], images: list[str]) -> object:
+    """A text model: ``cameras`` lines, ``images`` as (image line, points line) pairs."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "cameras.txt").write_text("# Camera list\n" + "\n".join(cameras) + "\n")
+    (folder / "images.txt").write_text("# Image list\n# two lines each\n" + "".join(images))
+    (folder / "points3D.txt").write_text("# 3D point list\n")
+    return folder
+
+
+CAMERA = "1 PINHOLE 64 48 50 50 32 24"
+
+
+def image(image_id: int, name: str, q=(1.0, 0.0, 0.0, 0.0), t=(0.0, 0.0, 2.0), cam=1) -> str:
+    """An image line (QW QX QY QZ TX TY TZ) and an empty points line."""
+    values = " ".join(f"{v:.9g}" for v in (*q, *t))
+    return f"{image_id} {values} {cam} {name}\n\n"
+
+
+def test_colmap_parameter_count_and_missing_camera_are_named_by_line(tmp_path):
+    few = write_colmap_text(tmp_path / "few", ["1 PINHOLE 64 48 50 50 32"], [image(1, "cam01.png")])
+    with pytest.raises(CaptureError, match=r"cameras.txt: line 2: PINHOLE takes 4 parameters"):
+        read_colmap(few, {"cam01"})
+    lost = write_colmap_text(tmp_path / "lost", [CAMERA], [image(1, "cam01.png", cam=7)])
+    with pytest.raises(CaptureError, match=r"images.txt: line 3: image 1 \(cam01.png\) names "):
+        read_colmap(lost, {"cam01"})
+
+
+def test_colmap_quaternion_of_rounded_length_is_normalised_and_a_wrong_one_refused(tmp_path):
+    rounded = (0.7071, 0.7071, 0.0, 0.0)  # length 0.99999: a pose written with few digits
+    folder = write_colmap_text(tmp_path / "ok", [CAMERA], [image(1, "cam01.png", q=rounded)])
+    (cam,) = read_colmap(folder, {"cam01"})
+    expected = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]  # +90 deg about x
+    assert np.allclose(cam.rotation, expected, atol=1e-12)
+    assert np.allclose(cam.rotation @ cam.rotation.T, np.eye(3), atol=1e-12)
+    bad = write_colmap_text(tmp_path / "bad", [CAMERA], [image(1, "cam01.png", q=(1, 2, 2, 0))])
+    with pytest.raises(CaptureError, match=r"image 1 \(cam01.png\): its rotation quaternion"):
+        read_colmap(bad, {"cam01"})
+
+
+def test_colmap_images_of_one_camera_in_frame_order_agree_or_are_refused(tmp_path):
+    """frame_9 comes before frame_10 and gives the pose; a later frame moved by noise is
+    accepted, one moved by a tenth of the distance between cameras is refused."""
+    second = image(3, "cam02/frame_1.png", t=(1.0, 0.0, 2.0))
+    lines = [image(1, "cam01/frame_10.png", t=(0.0, 0.0, 2.00001)), second]
+    lines.insert(0, image(2, "cam01/frame_9.png"))
+    cams = {c.id: c for c in read_colmap(write_colmap_text(tmp_path / "a", [CAMERA], lines), KNOWN)}
+    assert "frame_9" in cams["cam01"].origin
+    lines[1] = image(1, "cam01/frame_10.png", t=(0.0, 0.1, 2.0))
+    with pytest.raises(CaptureError, match=r"image 1 \(cam01/frame_10.png\): camera 'cam01'"):
+        read_colmap(write_colmap_text(tmp_path / "b", [CAMERA], lines), KNOWN)
