@@ -152,3 +152,17 @@ def test_colmap_images_of_one_camera_in_frame_order_agree_or_are_refused(tmp_pat
     lines[1] = image(1, "cam01/frame_10.png", t=(0.0, 0.1, 2.0))
     with pytest.raises(CaptureError, match=r"image 1 \(cam01/frame_10.png\): camera 'cam01'"):
         read_colmap(write_colmap_text(tmp_path / "b", [CAMERA], lines), KNOWN)
+
+
+# ------------------------------------------------------------------------------ frame order
+def test_image_folder_frames_numbered_without_leading_zeros_keep_their_order(tmp_path):
+    """1.png ... 12.png (as tools that number frames without padding write them) are read in
+    time order, not 1, 10, 11, 12, 2, ...: each frame's grey level is its number."""
+    import imageio.v3 as iio
+
+    from mosiv_framework.capture.video import read_image_folder
+
+    for n in range(1, 13):
+        iio.imwrite(tmp_path / f"{n}.png", np.full((4, 6, 3), 10 * n, dtype=np.uint8))
+    frames = read_image_folder(tmp_path)
+    assert [int(f[0, 0, 0]) for f in frames] == [10 * n for n in range(1, 13)]

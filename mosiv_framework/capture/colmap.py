@@ -22,6 +22,7 @@ from mosiv_framework.capture.common import (
     CaptureError,
     SourceCamera,
     camera_key,
+    natural_key,
     no_frames_message,
     one_pose_per_camera,
 )
@@ -226,11 +227,6 @@ def _intrinsics(camera: pycolmap.Camera, where: str) -> tuple[Intrinsics, Distor
     return k, Distortion.from_mapping(p)
 
 
-def _natural(name: str) -> list:
-    """Sort key that puts frame_9 before frame_10."""
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
-
-
 def _pose(image, where: str) -> np.ndarray:
     """The image's 4x4 world-to-camera matrix; its quaternion must be of unit length (to
     rounding: one written with a few digits is normalised)."""
@@ -257,7 +253,7 @@ def read_colmap(model_dir: str | Path, known: set[str]) -> list[SourceCamera]:
     rec, ext = _load(root)
     views: dict[str, list[SourceCamera]] = {}
     unposed: dict[str, str] = {}
-    for image in sorted(rec.images.values(), key=lambda im: _natural(im.name)):
+    for image in sorted(rec.images.values(), key=lambda im: natural_key(im.name)):
         where = f"{root / ('images' + ext)}: image {image.image_id} ({image.name})"
         key = camera_key(image.name, known)
         if key is None:

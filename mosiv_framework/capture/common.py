@@ -4,6 +4,7 @@ camera model's image name finds its frames, and the refusal of a non-empty outpu
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import astuple, dataclass, field
 from pathlib import Path
 
@@ -42,6 +43,13 @@ class SourceCamera:
     def center(self) -> np.ndarray:
         """Optical centre in recording coordinates: -R^T t."""
         return -self.rotation.T @ self.world_to_camera[:3, 3]
+
+
+def natural_key(name: str) -> list:
+    """Sort key that reads digit runs as numbers: frame_9 before frame_10, 2.png before
+    10.png (tools that number frames without leading zeros would otherwise be read out of
+    order); with zero-padded numbers it is the plain order."""
+    return [(0, int(t), t) if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", name)]
 
 
 def camera_key(name: str, known: set[str]) -> str | None:

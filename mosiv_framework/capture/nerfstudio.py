@@ -29,6 +29,7 @@ from mosiv_framework.capture.common import (
     CaptureError,
     SourceCamera,
     camera_key,
+    natural_key,
     no_frames_message,
     one_pose_per_camera,
 )
@@ -171,7 +172,9 @@ def read_nerfstudio(path: str | Path, known: set[str]) -> list[SourceCamera]:
         raise CaptureError(f"{path}: frames[{bad[0]}] must be an object with 'file_path' and more")
     _note_world_changes(top, path)
     views: dict[str, list[SourceCamera]] = {}
-    order = sorted(range(len(frames)), key=lambda i: str(frames[i].get("file_path", "")))
+    order = sorted(
+        range(len(frames)), key=lambda i: natural_key(str(frames[i].get("file_path", "")))
+    )
     for i in order:
         frame = frames[i]
         where = f"{path}: frames[{i}]"

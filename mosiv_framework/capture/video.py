@@ -2,8 +2,8 @@
 
 A frames folder holds, per camera, either a video (``<camera id>.mp4``, ``.mov``, ``.avi``,
 ``.mkv``, ``.m4v``, ``.webm``) or a folder ``<camera id>/`` of images (``.png``, ``.jpg``,
-``.jpeg``, ``.bmp``, ``.tif``, ``.tiff``) taken in sorted file-name order. The camera id is the
-video's file stem or the folder's name.
+``.jpeg``, ``.bmp``, ``.tif``, ``.tiff``) taken in file-name order, numbers read as numbers
+(2.png before 10.png). The camera id is the video's file stem or the folder's name.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mosiv_framework.capture.common import CaptureError
+from mosiv_framework.capture.common import CaptureError, natural_key
 from mosiv_framework.errors import OutputError, StageNotAvailable
 
 logger = logging.getLogger(__name__)
@@ -92,10 +92,14 @@ def read_video(path: Path) -> tuple[np.ndarray, float | None]:
 
 
 def read_image_folder(path: Path) -> np.ndarray:
-    """Frames uint8 [T, H, W, 3] of a folder of images, in sorted file-name order."""
+    """Frames uint8 [T, H, W, 3] of a folder of images, in file-name order with numbers read
+    as numbers (2.png before 10.png)."""
     import imageio.v3 as iio
 
-    files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    files = sorted(
+        (p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
+        key=lambda p: natural_key(p.name),
+    )
     frames = []
     for f in files:
         try:
