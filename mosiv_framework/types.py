@@ -228,8 +228,9 @@ class GeometryFrames:
 class GaussianFrames:
     """Isotropic 3D Gaussians over time, each belonging to one object.
 
-    means: [T, G, 3] m; radii: [T, G] m (standard deviation); colors: [G, 3] linear RGB in [0, 1];
-    opacities: [G] in [0, 1]; object_ids: [G] int64 in 1..K.
+    means: [T, G, 3] m; radii: [T, G] m (standard deviation); colors: [G, 3] RGB in [0, 1], in
+    the images' own (sRGB) values, blended as they are; opacities: [G] in [0, 1]; object_ids:
+    [G] int64 in 1..K.
     """
 
     means: Tensor

@@ -257,6 +257,43 @@ def test_parameters_readme_marker_and_frames(finished_run, tmp_path):
     assert [p.name for p in (out / "particles").iterdir()] == ["frame_0002.ply"]
 
 
+def test_up_axis_of_the_plys_and_the_gltf_meshes(finished_run, tmp_path):
+    """``--up -y`` turns the PLYs' world (positions and velocities) into OpenCV's y-down one by
+    a rotation; the glTF meshes are y up, as glTF requires, with linear vertex colours."""
+    from mosiv_framework.export.axes import srgb_to_linear
+    from mosiv_framework.pipeline.video import PALETTE
+
+    out = tmp_path / "export"
+    args = ["export", str(finished_run), "--out", str(out), "--frames", "1..1", "--up=-y"]
+    assert main(args) == 0
+    p = torch.load(finished_run / "rollout.pt", weights_only=False)["positions"][1].numpy()
+    ids = torch.load(finished_run / "particles.pt", weights_only=False).object_ids.numpy()
+    vertex = _vertex(out / "particles" / "frame_0001.ply")
+    xyz = np.stack([vertex[a] for a in "xyz"], 1)
+    np.testing.assert_allclose(xyz, np.stack([p[:, 0], -p[:, 2], p[:, 1]], 1), atol=1e-6)
+    # velocities turn alike: MOSIV's v0 + g t (gravity -z) is (vx, -vz, vy) here
+    identified = json.loads((finished_run / "identified.json").read_text())["objects"]
+    fps = float(np.load(finished_run / "rollout.npz")["fps"])
+    v = np.stack([identified[str(k)]["initial_velocity"] for k in ids]) + [0.0, 0.0, -9.8 / fps]
+    got = np.stack([vertex[a] for a in ("vx", "vy", "vz")], 1)
+    np.testing.assert_allclose(got, np.stack([v[:, 0], -v[:, 2], v[:, 1]], 1), atol=2e-4)
+    assert "y down" in (out / "README.md").read_text()
+    assert json.loads((out / MARKER).read_text())["up"] == "-y"
+    scene = trimesh.load(out / "meshes" / "frame_0001.glb")
+    for k in (1, 2):
+        mesh, mine = scene.geometry[f"object_{k}"], p[ids == k]
+        spacing = float(np.cbrt(mesh.volume / (ids == k).sum()))
+        # y up: the mesh's y spans the object's heights, its z the negated y coordinates
+        np.testing.assert_allclose(
+            mesh.bounds[:, 1], [mine[:, 2].min(), mine[:, 2].max()], atol=spacing
+        )
+        np.testing.assert_allclose(
+            mesh.bounds[:, 2], [-mine[:, 1].max(), -mine[:, 1].min()], atol=spacing
+        )
+        linear = np.round(srgb_to_linear(PALETTE[k - 1]) * 255)
+        np.testing.assert_array_equal(np.unique(mesh.visual.vertex_colors[:, :3], axis=0), [linear])
+
+
 def test_export_refuses_what_it_must_not_touch(finished_run, tmp_path, capsys):
     foreign = tmp_path / "foreign"
     foreign.mkdir()

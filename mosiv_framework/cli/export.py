@@ -22,6 +22,13 @@ def add_parser(sub) -> None:
         default="all",
         help="all (default), observed, or N..M (frames N to M, both included)",
     )
+    p.add_argument(
+        "--up",
+        default="z",
+        choices=["z", "y", "-y"],
+        help="the up axis of the PLY files' world: z (MOSIV's, default), y, or -y (y down, as "
+        "splat viewers made for COLMAP captures expect); glTF meshes are always y up",
+    )
     p.set_defaults(handler=run_export)
 
 
@@ -83,7 +90,7 @@ def add_capture_parser(dsub) -> None:
 def run_export(args) -> int:
     from mosiv_framework.export import export_run
 
-    out = export_run(args.run_dir, args.out, args.frames)
+    out = export_run(args.run_dir, args.out, args.frames, up=args.up)
     print(out)
     return 0
 

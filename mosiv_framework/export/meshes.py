@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mosiv_framework.export.axes import rotate, srgb_to_linear
+
 #: blur of the density as a multiple of the particle spacing
 SIGMA_PER_SPACING = 0.45
 #: grid cells per particle spacing
@@ -80,14 +82,18 @@ def object_mesh(points: np.ndarray, volumes: np.ndarray, *, spacing: float | Non
 
 def write_frame_glb(path: Path, meshes: dict[int, object], colors: dict[int, np.ndarray]) -> Path:
     """One glTF binary: a mesh node ``object_<k>`` per object id k, coloured ``colors[k]``
-    (RGB in [0, 1])."""
+    (sRGB in [0, 1]). glTF fixes +y up and linear vertex colours: MOSIV's z-up vertices are
+    turned into that world (``axes.ROTATIONS["y"]``) and the colours made linear."""
     import trimesh
 
     scene = trimesh.Scene()
     for k in sorted(meshes):
         mesh = meshes[k].copy()
+        if len(mesh.vertices):
+            mesh.vertices = rotate(mesh.vertices, "y")  # a rotation: faces keep their winding
         if len(mesh.faces):
-            rgba = np.append(np.asarray(colors[k]) * 255, 255).astype(np.uint8)
+            linear = srgb_to_linear(colors[k])
+            rgba = np.append(np.round(linear * 255), 255).astype(np.uint8)
             mesh.visual = trimesh.visual.ColorVisuals(
                 mesh, face_colors=np.tile(rgba, (len(mesh.faces), 1))
             )

@@ -3,7 +3,7 @@
 Particles: one vertex per particle with ``x y z`` (m), ``vx vy vz`` (m/s) and ``object_id``.
 
 Gaussians: the layout of the reference 3D Gaussian splatting implementation (Kerbl et al. 2023),
-which SuperSplat, the antimatter15 and gsplat web viewers, Polycam and Nerfstudio's importer read:
+which SuperSplat, the antimatter15 and gsplat web viewers and Polycam read:
 ``x y z nx ny nz f_dc_0..2 f_rest_0..44 opacity scale_0..2 rot_0..3``, all float32, where
 
 - ``f_dc`` is the degree-0 spherical-harmonic coefficient: a viewer shows the colour

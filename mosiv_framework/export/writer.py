@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from mosiv_framework.errors import ConfigError, OutputError
+from mosiv_framework.export.axes import ROTATIONS, rotate
 from mosiv_framework.export.meshes import object_mesh, particle_spacing, write_frame_glb
 from mosiv_framework.export.ply import write_gaussians_ply, write_particles_ply
 from mosiv_framework.export.run_data import RunData, load_run
@@ -80,24 +81,28 @@ def _frame(name: str, t: int, suffix: str) -> str:
     return f"{name}/frame_{t:04d}{suffix}"
 
 
-def export_particles(run: RunData, out: Path, frames: list[int]) -> int:
+def export_particles(run: RunData, out: Path, frames: list[int], up: str = "z") -> int:
     velocities = run.velocities()
     for t in frames:
         write_particles_ply(
-            out / _frame("particles", t, ".ply"), run.positions[t], velocities[t], run.object_ids
+            out / _frame("particles", t, ".ply"),
+            rotate(run.positions[t], up),
+            rotate(velocities[t], up),
+            run.object_ids,
         )
     return len(frames)
 
 
-def _write_gaussian_frames(folder: Path, gaussians, frames: list[int]) -> int:
-    """Frames of a GaussianFrames (means [T, G, 3]) that it has; returns how many."""
+def _write_gaussian_frames(folder: Path, gaussians, frames: list[int], up: str) -> int:
+    """Frames of a GaussianFrames (means [T, G, 3]) that it has, their means in the world with
+    ``up`` up (isotropic: the rotation stays the identity); returns how many."""
     written = 0
     for t in frames:
         if t >= gaussians.n_frames:
             continue
         write_gaussians_ply(
             folder / f"frame_{t:04d}.ply",
-            gaussians.means[t].detach().cpu().numpy(),
+            rotate(gaussians.means[t].detach().cpu().numpy(), up),
             gaussians.radii[t].detach().cpu().numpy(),
             gaussians.colors.detach().cpu().numpy(),
             gaussians.opacities.detach().cpu().numpy(),
@@ -108,7 +113,7 @@ def _write_gaussian_frames(folder: Path, gaussians, frames: list[int]) -> int:
     return written
 
 
-def export_gaussians(run: RunData, out: Path, frames: list[int]) -> dict[str, int]:
+def export_gaussians(run: RunData, out: Path, frames: list[int], up: str = "z") -> dict[str, int]:
     """Simulated Gaussians (bound to the particles) and reconstructed ones, where the run has
     them; returns folder -> frames written."""
     import torch
@@ -117,11 +122,11 @@ def export_gaussians(run: RunData, out: Path, frames: list[int]) -> dict[str, in
     binding = getattr(getattr(run.particles, "appearance", None), "binding", None)
     if binding is not None:
         moved = binding.gaussian_frames(torch.from_numpy(run.positions))
-        written["gaussians"] = _write_gaussian_frames(out / "gaussians", moved, frames)
+        written["gaussians"] = _write_gaussian_frames(out / "gaussians", moved, frames, up)
     recon = getattr(run.reconstruction, "gaussians", None)
     if recon is not None:
         folder = out / "reconstruction_gaussians"
-        written["reconstruction_gaussians"] = _write_gaussian_frames(folder, recon, frames)
+        written["reconstruction_gaussians"] = _write_gaussian_frames(folder, recon, frames, up)
     return written
 
 
@@ -159,18 +164,24 @@ def metrics_summary(metrics: dict | None) -> dict | None:
     return {k: metrics[k] for k in keep if k in metrics}
 
 
-def export_run(run_dir: str | Path, out: str | Path | None = None, frames: str = "all") -> Path:
-    """Export the run at ``run_dir`` into ``out`` (default RUN/export); returns ``out``."""
+def export_run(
+    run_dir: str | Path, out: str | Path | None = None, frames: str = "all", up: str = "z"
+) -> Path:
+    """Export the run at ``run_dir`` into ``out`` (default RUN/export); returns ``out``. The
+    PLY files' world has ``up`` up (``axes.ROTATIONS``: z, MOSIV's own; y; -y, OpenCV's); the
+    glTF meshes are y up whatever ``up`` is, as glTF requires."""
+    if up not in ROTATIONS:
+        raise ConfigError(f"--up {up!r}: choose one of {', '.join(ROTATIONS)}")
     from mosiv_framework.export.readme import readme_text
 
     run = load_run(run_dir)
     selected = select_frames(frames, run)
     out = Path(out) if out is not None else run.root / "export"
     prepare_out(out)
-    marker = {"format": EXPORT_FORMAT, "run": str(run.root.resolve()), "frames": frames}
+    marker = {"format": EXPORT_FORMAT, "run": str(run.root.resolve()), "frames": frames, "up": up}
     (out / MARKER).write_text(json.dumps(marker, indent=2) + "\n")
-    counts = {"particles": export_particles(run, out, selected)}
-    counts.update(export_gaussians(run, out, selected))
+    counts = {"particles": export_particles(run, out, selected, up)}
+    counts.update(export_gaussians(run, out, selected, up))
     counts["meshes"] = export_meshes(run, out, selected)
     for name, data in (
         ("identified.json", run.identified),
@@ -178,6 +189,6 @@ def export_run(run_dir: str | Path, out: str | Path | None = None, frames: str =
     ):
         if data is not None:
             (out / name).write_text(json.dumps(data, indent=2) + "\n")
-    (out / "README.md").write_text(readme_text(run, selected, counts, out))
+    (out / "README.md").write_text(readme_text(run, selected, counts, out, up))
     log.info("exported %d frames of %s into %s", len(selected), run.root, out)
     return out
