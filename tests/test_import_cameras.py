@@ -166,3 +166,57 @@ def test_image_folder_frames_numbered_without_leading_zeros_keep_their_order(tmp
         iio.imwrite(tmp_path / f"{n}.png", np.full((4, 6, 3), 10 * n, dtype=np.uint8))
     frames = read_image_folder(tmp_path)
     assert [int(f[0, 0, 0]) for f in frames] == [10 * n for n in range(1, 13)]
+
+
+def test_image_folders_as_cameras_and_other_computers_leave_them(tmp_path):
+    """Hidden files (macOS's ._ copies, .DS_Store) are not frames; a JPEG turned by its EXIF
+    orientation is read as a viewer shows it; CMYK and grey + alpha frames become RGB; a
+    folder mixing kinds of image is refused."""
+    from PIL import Image
+
+    from mosiv_framework.capture.video import read_image_folder
+
+    turned = tmp_path / "turned"
+    turned.mkdir()
+    for n in range(2):
+        image = Image.new("RGB", (6, 4), (200, 20, 20))
+        exif = image.getexif()
+        exif[0x0112] = 6  # orientation: rotate 90 deg clockwise to view
+        image.save(turned / f"{n}.jpg", exif=exif, quality=95)
+    (turned / "._0.jpg").write_bytes(b"\x00\x05\x16\x07 AppleDouble")
+    (turned / ".DS_Store").write_bytes(b"\x00\x00\x00\x01Bud1")
+    frames = read_image_folder(turned)
+    assert frames.shape == (2, 6, 4, 3)  # the viewer's 4 x 6, not the stored 6 x 4
+    assert abs(int(frames[0, 3, 2, 0]) - 200) < 8
+    modes = tmp_path / "modes"
+    modes.mkdir()
+    Image.new("CMYK", (6, 4), (0, 0, 0, 0)).save(modes / "0.jpg", quality=95)  # white
+    Image.new("CMYK", (6, 4), (0, 0, 0, 255)).save(modes / "1.jpg", quality=95)  # black
+    frames = read_image_folder(modes)
+    assert frames[0].min() > 240 and frames[1].max() < 15
+    grey = tmp_path / "grey"
+    grey.mkdir()
+    Image.new("LA", (6, 4), (90, 128)).save(grey / "0.png")
+    assert read_image_folder(grey).shape == (1, 4, 6, 3)
+    Image.new("RGB", (6, 4)).save(grey / "0.jpg")
+    with pytest.raises(CaptureError, match=r"several kinds \(.jpg, .png\)"):
+        read_image_folder(grey)
+
+
+def test_a_variable_frame_rate_video_gives_each_frame_once(tmp_path):
+    """Ten frames, each a brighter grey, the second half spaced twice as far apart: ffmpeg's
+    constant-rate output would repeat frames to fill the gaps (20 frames); each is read once,
+    in order."""
+    import subprocess
+
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    from mosiv_framework.capture.video import read_video
+
+    path = tmp_path / "vfr.mp4"
+    grey_and_timing = "geq=lum='20+20*N':cb=128:cr=128,setpts='if(lt(N,5),N/30/TB,(N*2)/30/TB)'"
+    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-f", "lavfi"]
+    command += ["-i", "color=size=32x24:rate=30", "-frames:v", "10", "-vf", grey_and_timing]
+    subprocess.run([*command, "-fps_mode", "vfr", str(path)], check=True, timeout=60)
+    frames, _ = read_video(path)
+    assert len(frames) == 10
+    assert np.all(np.diff(frames.reshape(10, -1).mean(axis=1)) > 15)

@@ -176,8 +176,12 @@ def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bo
         offsets = {c: 0 for c in videos}  # the cameras kept all started first
     if s.late_cameras == "keep":
         videos, spans = off.pad_late_cameras(videos, offsets, s.n_frames)
-        if spans:
-            logger.info("cameras that started late, kept from their first frame: %s", spans)
+        if spans:  # a camera that started late or stopped early: worth a user's look
+            logger.warning(
+                "cameras that did not record every frame, kept with the frames they recorded "
+                "(first, last): %s; --late-cameras trim or drop leave them out instead",
+                spans,
+            )
         return videos, offsets, estimated, left_out, spans
     return off.apply_offsets(videos, offsets, s.n_frames), offsets, estimated, left_out, {}
 

@@ -20,6 +20,8 @@ logger = logging.getLogger(__name__)
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+#: suffixes that name one kind of image
+SAME_KIND = {".jpeg": ".jpg", ".tiff": ".tif"}
 
 
 def find_sources(folder: str | Path) -> dict[str, Path]:
@@ -76,7 +78,11 @@ def read_video(path: Path) -> tuple[np.ndarray, float | None]:
             f"{path}: reading videos needs imageio-ffmpeg (pip install imageio-ffmpeg)"
         ) from exc
     try:
-        reader = iio2.get_reader(str(path), format="FFMPEG")
+        # passthrough: every decoded frame once; ffmpeg's default constant-rate output would
+        # repeat or drop frames of a variable-frame-rate or high-speed video
+        reader = iio2.get_reader(
+            str(path), format="FFMPEG", output_params=["-fps_mode", "passthrough"]
+        )
         try:
             fps = reader.get_meta_data().get("fps")
             frames = [_rgb8(f, str(path)) for f in reader]
@@ -94,16 +100,24 @@ def read_video(path: Path) -> tuple[np.ndarray, float | None]:
 def read_image_folder(path: Path) -> np.ndarray:
     """Frames uint8 [T, H, W, 3] of a folder of images, in file-name order with numbers read
     as numbers (2.png before 10.png)."""
-    import imageio.v3 as iio
-
     files = sorted(
-        (p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
+        (
+            p
+            for p in path.iterdir()
+            if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_SUFFIXES
+        ),
         key=lambda p: natural_key(p.name),
-    )
+    )  # hidden files (.DS_Store, macOS's ._frame.png) are not frames
+    kinds = sorted({SAME_KIND.get(p.suffix.lower(), p.suffix.lower()) for p in files})
+    if len(kinds) > 1:
+        raise CaptureError(
+            f"{path}: holds frames of several kinds ({', '.join(kinds)}); a camera's frames are "
+            "one sequence of one kind: keep one"
+        )
     frames = []
     for f in files:
         try:
-            frames.append(_rgb8(iio.imread(f), str(f)))
+            frames.append(_rgb8(_read_image(f), str(f)))
         except CaptureError:
             raise
         except Exception as exc:
@@ -114,6 +128,19 @@ def read_image_folder(path: Path) -> np.ndarray:
                 f"is {frames[0].shape[1]}x{frames[0].shape[0]}; a camera's frames share one size"
             )
     return np.stack(frames)
+
+
+def _read_image(path: Path) -> np.ndarray:
+    """One image as a viewer shows it: its EXIF orientation applied, and palette, CMYK,
+    grey + alpha and other modes converted to RGB by Pillow; grey, RGB and RGBA are kept as
+    stored (16-bit grey too) for ``_rgb8``."""
+    from PIL import Image, ImageOps
+
+    with Image.open(path) as image:
+        image = ImageOps.exif_transpose(image)
+        if image.mode not in ("L", "I;16", "I;16B", "I;16L", "RGB", "RGBA", "I", "F"):
+            image = image.convert("RGB")
+        return np.asarray(image)
 
 
 def read_frames(source: Path) -> tuple[np.ndarray, float | None]:
@@ -132,7 +159,10 @@ def common_fps(rates: dict[str, float | None], given: float | None, folder: Path
         return float(given)
     known = {cam: r for cam, r in rates.items() if r}
     if not known:
-        raise CaptureError(f"{folder}: the frames carry no frame rate (image folders); give --fps")
+        raise CaptureError(
+            f"{folder}: the frames carry no frame rate (image folders, or videos whose rate "
+            "ffmpeg does not report as a number); give --fps"
+        )
     lo, hi = min(known.values()), max(known.values())
     if hi > 1.01 * lo:
         raise CaptureError(
