@@ -146,6 +146,29 @@ def test_undistort_frames_undoes_distort_frames(scene):
     assert restored > 30 and restored > moved + 1.5, (moved, restored)
 
 
+def test_import_brought_down_to_a_resolution_scales_the_cameras(capture, imported, tmp_path):
+    """``resolution`` 48 on the 96-pixel capture: frames half the size as they are read,
+    every camera's focal lengths and principal point halved, the same frames otherwise."""
+    import json
+
+    from mosiv_framework.capture.video import shrink
+
+    out = tmp_path / "half"
+    import_recording(settings(capture, out, late_cameras="trim", resolution=SIZE // 2))
+    full, half = read_scene(imported), read_scene(out)
+    assert validate_scene(out) == [] and half.n_frames == full.n_frames
+    for cam in full.cameras:
+        mine = half.camera(cam.id)
+        assert (mine.width, mine.height) == (SIZE // 2, SIZE // 2)
+        assert (mine.fx, mine.fy, mine.cx, mine.cy) == pytest.approx(
+            (cam.fx / 2, cam.fy / 2, cam.cx / 2, cam.cy / 2), abs=1e-9
+        )
+        assert torch.allclose(mine.world_to_camera, cam.world_to_camera, atol=1e-9)
+        ref = np.stack([shrink(full.rgb(cam.id, t), (SIZE // 2,) * 2) for t in range(4)])
+        assert psnr(np.stack([half.rgb(cam.id, t) for t in range(4)]), ref) > 27, cam.id
+    assert json.loads((out / "import.json").read_text())["settings"]["resolution"] == SIZE // 2
+
+
 # ----------------------------------------------------------------------------- the import
 def test_import_recovers_cameras_frames_offsets(scene, imported):
     import json

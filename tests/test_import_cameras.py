@@ -220,3 +220,25 @@ def test_a_variable_frame_rate_video_gives_each_frame_once(tmp_path):
     frames, _ = read_video(path)
     assert len(frames) == 10
     assert np.all(np.diff(frames.reshape(10, -1).mean(axis=1)) > 15)
+
+
+def test_every_nth_frame_brought_down_as_it_is_read(tmp_path):
+    """``every`` 3 and ``longest_side`` 16 on ten 32 x 24 frames: frames 0, 3, 6, 9 at 16 x 12,
+    each still its own grey."""
+    import subprocess
+
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    from mosiv_framework.capture.video import read_frames
+
+    path = tmp_path / "grey.mp4"
+    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-f", "lavfi"]
+    command += ["-i", "color=size=32x24:rate=30", "-frames:v", "10"]
+    command += ["-vf", "geq=lum='20+20*N':cb=128:cr=128", str(path)]
+    subprocess.run(command, check=True, timeout=60)
+    frames, fps = read_frames(path, every=3, longest_side=16)
+    assert frames.shape == (4, 12, 16, 3) and fps == pytest.approx(30.0)
+    grey = frames.reshape(4, -1).mean(axis=1)
+    full, _ = read_frames(path)
+    np.testing.assert_allclose(grey, full.reshape(10, -1).mean(axis=1)[::3], atol=2.0)
+    with pytest.raises(CaptureError, match="--every 0"):
+        read_frames(path, every=0)

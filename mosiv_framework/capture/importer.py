@@ -11,7 +11,7 @@ written with ``SceneWriter``, validated with ``validate_scene``, and previewed a
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +58,10 @@ class ImportSettings:
     segmenter_options: dict[str, Any] = field(default_factory=dict)
     background: Path | None = None
     name: str | None = None
+    #: keep every N-th frame (the frame rate divided by N)
+    every: int = 1
+    #: bring the frames down to this many pixels on their longest side (None: as recorded)
+    resolution: int | None = None
     margin: float = 0.1
     hull_voxels: int = 64
     onset_k: float = 4.0
@@ -90,9 +94,12 @@ def find_inputs(recording: str | Path) -> dict[str, Path]:
     return found
 
 
-def load_plates(folder: Path | None, cams) -> dict[str, np.ndarray] | None:
+def load_plates(
+    folder: Path | None, cams, longest_side: int | None = None
+) -> dict[str, np.ndarray] | None:
     """Each camera's clean plate (``<camera id>.png`` or ``.jpg`` in ``folder``, the empty scene
-    through the same lens) undistorted like its frames; None without a folder."""
+    through the same lens) brought down to ``longest_side`` pixels and undistorted like its
+    frames; None without a folder."""
     if folder is None:
         return None
     import imageio.v3 as iio
@@ -109,6 +116,7 @@ def load_plates(folder: Path | None, cams) -> dict[str, np.ndarray] | None:
                 f"--background {folder}: no {cid}.png or {cid}.jpg for camera {cid!r}"
             )
         plate = np.asarray(iio.imread(path))[..., :3]
+        plate = video.shrink(plate, video.shrunk_size(*plate.shape[:2], longest_side))
         k = cam.intrinsics
         if plate.shape[:2] != (k.height, k.width):
             raise CaptureError(
@@ -142,18 +150,27 @@ def load_cameras(s: ImportSettings, known: set[str]) -> dict[str, SourceCamera]:
 
 
 def load_frames(s: ImportSettings, sources, cams) -> tuple[dict[str, np.ndarray], float]:
-    """Every camera's frames (checked against its intrinsics' size) and the frame rate."""
+    """Every camera's frames (checked against its intrinsics' size) and the frame rate: every
+    ``s.every``-th frame (the rate divided alike), brought down to ``s.resolution`` pixels on
+    the longest side, with each camera's intrinsics in ``cams`` scaled to match."""
     videos, rates = {}, {}
     for cid, src in sources.items():
-        frames, rates[cid] = video.read_frames(src)
         k = cams[cid].intrinsics
-        if frames.shape[1:3] != (k.height, k.width):
+        size = video.shrunk_size(k.height, k.width, s.resolution)
+        frames, rate = video.read_frames(src, every=s.every, longest_side=s.resolution)
+        rates[cid] = rate / s.every if rate else None
+        if frames.shape[1:3] != size:
+            native = (
+                "" if size == (k.height, k.width) else f" (brought down to {size[1]}x{size[0]})"
+            )
             raise CaptureError(
-                f"{src}: frames are {frames.shape[2]}x{frames.shape[1]} pixels, but "
+                f"{src}: frames are {frames.shape[2]}x{frames.shape[1]} pixels{native}, but "
                 f"{cams[cid].origin} gives camera {cid!r} {k.width}x{k.height}"
             )
+        cams[cid] = replace(cams[cid], intrinsics=k.resized(size[1], size[0]))
         videos[cid] = frames
-    return videos, video.common_fps(rates, s.fps, s.frames_dir)
+    fps = s.fps / s.every if s.fps is not None else None
+    return videos, video.common_fps(rates, fps, s.frames_dir)
 
 
 def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bool, list, dict]:
@@ -328,7 +345,7 @@ def import_recording(s: ImportSettings) -> Path:
     videos = {
         c: undistort_frames(v, cams[c].intrinsics, cams[c].distortion) for c, v in videos.items()
     }
-    plates = load_plates(s.background, cams)
+    plates = load_plates(s.background, cams, s.resolution)
     align, up, ground = _alignment(s, cams)
     origins = {cid: cam.origin for cid, cam in cams.items()}
     cameras = {cid: align.camera(cam) for cid, cam in sorted(cams.items())}

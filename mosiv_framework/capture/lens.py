@@ -88,6 +88,12 @@ class Intrinsics:
     cx: float
     cy: float
 
+    def resized(self, width: int, height: int) -> Intrinsics:
+        """The same camera for its frames resampled to ``width`` x ``height`` pixels (pixel
+        centres at integer + 0.5, so every coordinate scales by the size ratio)."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
+
 
 def _radial(r2: np.ndarray, d: Distortion) -> np.ndarray:
     return 1.0 + r2 * (d.k1 + r2 * (d.k2 + r2 * d.k3))

@@ -68,8 +68,33 @@ def _rgb8(image: np.ndarray, where: str) -> np.ndarray:
     return np.ascontiguousarray(img[..., :3])
 
 
-def read_video(path: Path) -> tuple[np.ndarray, float | None]:
-    """Frames uint8 [T, H, W, 3] and the frame rate of a video file (ffmpeg via imageio)."""
+def shrunk_size(height: int, width: int, longest_side: int | None) -> tuple[int, int]:
+    """(height, width) of a frame whose longest side is brought down to ``longest_side``
+    pixels (None, or a frame already that small: unchanged)."""
+    if longest_side is None or max(height, width) <= longest_side:
+        return height, width
+    scale = longest_side / max(height, width)
+    return max(1, round(height * scale)), max(1, round(width * scale))
+
+
+def shrink(frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``frame`` uint8 [H, W, 3] resampled to ``size`` (height, width) with Pillow's Lanczos
+    filter, which averages over the footprint when it shrinks (no aliasing)."""
+    if frame.shape[:2] == size:
+        return frame
+    from PIL import Image
+
+    image = Image.fromarray(frame).resize((size[1], size[0]), Image.Resampling.LANCZOS)
+    return np.asarray(image)
+
+
+def read_video(
+    path: Path, *, every: int = 1, longest_side: int | None = None
+) -> tuple[np.ndarray, float | None]:
+    """Frames uint8 [T, H, W, 3] and the frame rate of a video file (ffmpeg via imageio):
+    every ``every``-th frame from the first, each brought down to ``longest_side`` pixels as
+    it is decoded (so a long high-resolution clip never sits in memory at full size). The
+    rate returned is the video's own."""
     try:
         import imageio.v2 as iio2
         import imageio_ffmpeg  # noqa: F401 -- imageio's FFMPEG format needs it
@@ -85,7 +110,12 @@ def read_video(path: Path) -> tuple[np.ndarray, float | None]:
         )
         try:
             fps = reader.get_meta_data().get("fps")
-            frames = [_rgb8(f, str(path)) for f in reader]
+            frames = []
+            for i, frame in enumerate(reader):
+                if i % every == 0:
+                    frame = _rgb8(frame, str(path))
+                    size = shrunk_size(*frame.shape[:2], longest_side)
+                    frames.append(shrink(frame, size))
         finally:
             reader.close()
     except CaptureError:
@@ -97,9 +127,10 @@ def read_video(path: Path) -> tuple[np.ndarray, float | None]:
     return np.stack(frames), (float(fps) if fps else None)
 
 
-def read_image_folder(path: Path) -> np.ndarray:
+def read_image_folder(path: Path, *, every: int = 1, longest_side: int | None = None) -> np.ndarray:
     """Frames uint8 [T, H, W, 3] of a folder of images, in file-name order with numbers read
-    as numbers (2.png before 10.png)."""
+    as numbers (2.png before 10.png): every ``every``-th from the first, each brought down to
+    ``longest_side`` pixels."""
     files = sorted(
         (
             p
@@ -115,9 +146,10 @@ def read_image_folder(path: Path) -> np.ndarray:
             "one sequence of one kind: keep one"
         )
     frames = []
-    for f in files:
+    for f in files[::every]:
         try:
-            frames.append(_rgb8(_read_image(f), str(f)))
+            frame = _rgb8(_read_image(f), str(f))
+            frames.append(shrink(frame, shrunk_size(*frame.shape[:2], longest_side)))
         except CaptureError:
             raise
         except Exception as exc:
@@ -143,11 +175,18 @@ def _read_image(path: Path) -> np.ndarray:
         return np.asarray(image)
 
 
-def read_frames(source: Path) -> tuple[np.ndarray, float | None]:
-    """(frames uint8 [T, H, W, 3], fps or None) of one camera's video file or image folder."""
+def read_frames(
+    source: Path, *, every: int = 1, longest_side: int | None = None
+) -> tuple[np.ndarray, float | None]:
+    """(frames uint8 [T, H, W, 3], the source's own fps or None) of one camera's video file or
+    image folder: every ``every``-th frame, brought down to ``longest_side`` pixels."""
+    if every < 1:
+        raise CaptureError(f"--every {every}: must be a whole number >= 1")
+    if longest_side is not None and longest_side < 16:
+        raise CaptureError(f"--resolution {longest_side}: must be at least 16 pixels")
     if source.is_dir():
-        return read_image_folder(source), None
-    return read_video(source)
+        return read_image_folder(source, every=every, longest_side=longest_side), None
+    return read_video(source, every=every, longest_side=longest_side)
 
 
 def common_fps(rates: dict[str, float | None], given: float | None, folder: Path) -> float:

@@ -48,6 +48,20 @@ def add_parser(sub) -> None:
     )
     src.add_argument("--frames", type=int, help="keep the first N frames after the offsets")
     src.add_argument(
+        "--every",
+        type=int,
+        default=1,
+        help="keep every N-th frame of the videos (the frame rate divided by N; offsets and "
+        "--frames count the frames kept)",
+    )
+    src.add_argument(
+        "--resolution",
+        type=int,
+        help="bring the frames down to this many pixels on their longest side as they are "
+        "read, the cameras' intrinsics alike (default: as recorded; a long 1080p clip from "
+        "11 cameras takes tens of GB at full size)",
+    )
+    src.add_argument(
         "--background",
         help="clean plates: one image of the empty scene per camera, <camera id>.png or .jpg, "
         "through the same lens (default: the recording's background/ folder, if any; else the "
@@ -112,6 +126,8 @@ def settings_from_args(args):
         fps=args.fps,
         observed=args.observed,
         n_frames=args.frames,
+        every=args.every,
+        resolution=args.resolution,
         segmenter=args.segmenter,
         segmenter_options=options,
         background=Path(args.background) if args.background else found.get("background"),
