@@ -314,4 +314,8 @@ def test_export_refuses_what_it_must_not_touch(finished_run, tmp_path, capsys):
         main(["export", str(finished_run), "--out", str(tmp_path / "x"), "--frames", "3..99"]) == 2
     )
     assert "frames 0..5" in capsys.readouterr().err
+    assert (
+        main(["export", str(finished_run), "--out", str(tmp_path / "x"), "--frames", "4..2"]) == 2
+    )
+    assert "the first frame must not come after the last" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()

@@ -242,3 +242,30 @@ def test_every_nth_frame_brought_down_as_it_is_read(tmp_path):
     np.testing.assert_allclose(grey, full.reshape(10, -1).mean(axis=1)[::3], atol=2.0)
     with pytest.raises(CaptureError, match="--every 0"):
         read_frames(path, every=0)
+
+
+# ------------------------------------------------------------------- messages for mistakes
+def test_mistakes_a_new_user_makes_are_named(tmp_path, caplog):
+    """Both camera files given, too few frames kept, and a first frame that shows more
+    objects than the materials name (warned: the smaller ones may be stray blobs)."""
+    from mosiv_framework.capture import offsets as off
+    from mosiv_framework.capture.importer import ImportSettings, load_cameras, read_objects
+    from mosiv_framework.segment.track import first_frame_objects
+
+    both = ImportSettings(
+        out=tmp_path / "o", frames_dir=tmp_path, colmap=tmp_path, transforms=tmp_path / "t.json"
+    )
+    with pytest.raises(CaptureError, match="give only one of --colmap and --transforms"):
+        load_cameras(both, {"cam01"})
+    both.materials, both.objects_yaml = "elastic", tmp_path / "objects.yaml"
+    with pytest.raises(CaptureError, match="give only one of --materials and --objects"):
+        read_objects(both)
+    videos = {"a": np.zeros((5, 2, 2, 3), np.uint8), "b": np.zeros((5, 2, 2, 3), np.uint8)}
+    for step in (off.pad_late_cameras, off.apply_offsets):
+        with pytest.raises(CaptureError, match="--frames 1: keep at least 2 frames"):
+            step(videos, {"a": 0, "b": 0}, 1)
+    centres = np.arange(30, dtype=float)[:, None] * np.ones(3)
+    parts = [np.arange(0, 12), np.arange(12, 22), np.arange(22, 30)]
+    with caplog.at_level("WARNING"):
+        kept = first_frame_objects(parts, centres, 2)
+    assert len(kept) == 2 and "shows 3 separate objects (12, 10, 8 voxels)" in caplog.text

@@ -128,7 +128,9 @@ def load_plates(
 
 
 def load_cameras(s: ImportSettings, known: set[str]) -> dict[str, SourceCamera]:
-    if (s.colmap is None) == (s.transforms is None):
+    if s.colmap is not None and s.transforms is not None:
+        raise CaptureError("give only one of --colmap and --transforms for the cameras")
+    if s.colmap is None and s.transforms is None:
         raise CaptureError("give the cameras: either a COLMAP model (--colmap) or --transforms")
     if s.colmap:  # pycolmap is imported only for a COLMAP model
         from mosiv_framework.capture.colmap import read_colmap
@@ -204,7 +206,9 @@ def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bo
 
 
 def read_objects(s: ImportSettings):
-    if (s.materials is None) == (s.objects_yaml is None):
+    if s.materials is not None and s.objects_yaml is not None:
+        raise CaptureError("give only one of --materials and --objects for the objects")
+    if s.materials is None and s.objects_yaml is None:
         raise CaptureError("give the objects: either --materials elastic,sand or --objects FILE")
     if s.materials is not None:
         return mat.from_flag(s.materials), {}, None

@@ -126,6 +126,8 @@ def pad_late_cameras(
     length, camera id -> (first, last) recorded frames of the cameras that did not record
     every frame). CaptureError naming the cameras when fewer than two frames remain, a
     camera starts after the last frame kept, or ``n_frames`` exceeds every camera."""
+    if n_frames is not None and n_frames < 2:
+        raise CaptureError(f"--frames {n_frames}: keep at least 2 frames")
     given = [offsets.get(cam, 0) for cam in videos]
     common, first = min(given, default=0), max(given, default=0)
     starts = {cam: first - offsets.get(cam, 0) for cam in videos}
@@ -158,6 +160,8 @@ def apply_offsets(
 ) -> dict[str, np.ndarray]:
     """Drop each camera's leading frames; keep the first ``n_frames`` if given. CaptureError
     naming each camera's count when the counts then differ."""
+    if n_frames is not None and n_frames < 2:
+        raise CaptureError(f"--frames {n_frames}: keep at least 2 frames")
     out = {cam: v[offsets.get(cam, 0) :] for cam, v in videos.items()}
     if n_frames is not None:
         short = {c: len(v) for c, v in out.items() if len(v) < n_frames}

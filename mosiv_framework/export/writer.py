@@ -53,6 +53,8 @@ def select_frames(spec: str, run: RunData) -> list[int]:
         lo, hi = int(first), int(last if sep else first)
     except ValueError:
         raise ConfigError(f"--frames {spec!r}: give all, observed or N..M (e.g. 0..9)") from None
+    if lo > hi:
+        raise ConfigError(f"--frames {spec!r}: the first frame must not come after the last")
     if not 0 <= lo <= hi < n:
         raise ConfigError(f"--frames {spec!r}: the rollout has frames 0..{n - 1}")
     return list(range(lo, hi + 1))

@@ -12,9 +12,13 @@ which follows the objects' shapes and sizes where a cut halfway between centroid
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
+
+log = logging.getLogger(__name__)
 
 
 def _kmeans_split(points: np.ndarray, k: int, iterations: int = 20) -> np.ndarray:
@@ -43,6 +47,20 @@ def first_frame_objects(parts: list, centres: np.ndarray, n_objects: int | None)
             fewer are found. None keeps every component.
     """
     parts = list(parts)
+    if n_objects is not None and len(parts) > n_objects:
+        # the smaller ones may be stray blobs, or objects the materials do not name: say so
+        sizes = [int(p.size) for p in parts]
+        log.warning(
+            "the first frame shows %d separate objects (%s voxels) but the materials name %d: "
+            "the %d largest are kept; give one material per object if the others are objects",
+            len(parts), ", ".join(map(str, sizes)), n_objects, n_objects,
+        )  # fmt: skip
+    elif n_objects is not None and len(parts) < n_objects:
+        log.warning(
+            "the first frame shows %d separate object(s) but the materials name %d: the "
+            "largest are split to make up the count; check the materials if that is wrong",
+            len(parts), n_objects,
+        )  # fmt: skip
     if n_objects is not None:
         parts = parts[:n_objects]
         while parts and len(parts) < n_objects:

@@ -158,7 +158,13 @@ def simulate(plan: ScenePlan, opts: SynthOptions) -> np.ndarray:
     registered as ``opts.simulator``, with the concealed effects switched on."""
     from mosiv_framework.registry import get_registry
 
-    sim = get_registry().create("simulator", opts.simulator, simulator_options(plan, opts))
+    try:
+        sim = get_registry().create("simulator", opts.simulator, simulator_options(plan, opts))
+    except ConfigError as exc:  # name the scene's options, not the identification's simulator
+        raise ConfigError(
+            f"generating the scene with simulator {opts.simulator!r} "
+            f"(scene.source.simulator / simulator_options): {exc}"
+        ) from exc
     unsupported = sorted(set(simulated_materials(plan)[0]) - set(sim.supported_laws))
     if unsupported:
         raise ConfigError(

@@ -74,7 +74,10 @@ def resolve_device(name: str) -> str:
     if name == "auto":
         return "cuda:0" if wp.is_cuda_available() else "cpu"
     if name.startswith("cuda") and not wp.is_cuda_available():
-        raise ConfigError(f"simulator warp-mpm: device={name!r} but Warp sees no CUDA device")
+        raise ConfigError(
+            f"simulator warp-mpm: device={name!r} but Warp sees no CUDA device; use device=cpu "
+            "(or auto)"
+        )
     return "cuda:0" if name == "cuda" else name
 
 
