@@ -99,10 +99,26 @@ def test_bad_yaml_and_missing_file_name_the_file(tmp_path, registry):
     with pytest.raises(ConfigError, match="does not exist"):
         load_recipe(tmp_path / "nope.yaml", registry=registry)
     bad = write(tmp_path, "simulator: {name: toy-sim\n")
-    with pytest.raises(ConfigError, match="recipe.yaml: not valid YAML"):
+    with pytest.raises(ConfigError, match="recipe.yaml: not valid YAML") as err:
         load_recipe(bad, registry=registry)
+    assert f"in {bad}, line" in str(err.value) and "<unicode string>" not in str(err.value)
     with pytest.raises(ConfigError, match="key=value"):
         load_recipe(write(tmp_path, "{}\n"), ["simulator.name"], registry=registry)
+
+
+def test_a_typo_in_an_override_is_the_overrides_not_the_files(tmp_path, registry):
+    path = write(tmp_path, "simulator: {name: toy-sim}\nidentify: {learning_rate: 1}\n")
+    overrides = ["identfy.param_iterations=3", "identify.param_iteratons=4", "identify.seed=2"]
+    with pytest.raises(ConfigError) as err:
+        load_recipe(path, overrides, registry=registry)
+    problems = err.value.problems
+    assert any(
+        p.startswith("override 'identfy.param_iterations=3': unknown recipe section 'identfy'")
+        for p in problems
+    ), problems
+    assert any(p.startswith("override 'identify.param_iteratons=4': unknown key") for p in problems)
+    # the file's own mistake stays the file's, although an override names its section
+    assert any(p.startswith(f"{path}: unknown key identify.learning_rate") for p in problems)
 
 
 @pytest.mark.parametrize("name", sorted(p.name for p in RECIPES.glob("*.yaml")))

@@ -64,7 +64,8 @@ def _load_yaml(path: Path) -> DictConfig:
         node = yaml.compose(text, Loader=yaml.SafeLoader)
         data = OmegaConf.load(io.StringIO(text)) if isinstance(node, yaml.MappingNode) else None
     except yaml.YAMLError as exc:  # yaml errors carry the line and column
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+        where = str(exc).replace('"<unicode string>"', str(path))  # parsed from a string
+        raise ConfigError(f"{path}: not valid YAML: {where}") from exc
     except OmegaConfBaseException as exc:  # a bad interpolation, a key of an odd type
         # the YAML itself parsed: name the keys whose strings are not valid interpolations
         named = syntax_problems(yaml.safe_load(text))
@@ -145,8 +146,20 @@ def check_recipe(
     warnings: list[str] = []
     resolved, problems = validate_recipe(raw, registry or get_registry(), warnings=warnings)
     if problems:
-        raise ConfigError([f"{path}: {p}" for p in problems])
+        raise ConfigError([_where(p, path, overrides) for p in problems])
     return OmegaConf.create(resolved), warnings
+
+
+def _where(problem: str, path: str | Path, overrides: Sequence[str]) -> str:
+    """``problem`` prefixed with where it comes from: the command-line override whose key it
+    names (a typo there is not the file's), else the recipe file."""
+    for item in overrides:
+        key = item.partition("=")[0].strip()
+        section = key.split(".")[0]
+        named = (f"{key};", f"{key}=", f"unknown recipe section {section!r}")
+        if key and any(n in problem for n in named):
+            return f"override {item!r}: {problem}"
+    return f"{path}: {problem}"
 
 
 def load_recipe(
