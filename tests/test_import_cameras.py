@@ -269,3 +269,13 @@ def test_mistakes_a_new_user_makes_are_named(tmp_path, caplog):
     with caplog.at_level("WARNING"):
         kept = first_frame_objects(parts, centres, 2)
     assert len(kept) == 2 and "shows 3 separate objects (12, 10, 8 voxels)" in caplog.text
+
+
+def test_frame_rates_may_differ_by_less_than_half_a_frame_over_the_clip(tmp_path):
+    from mosiv_framework.capture.video import common_fps
+
+    rates = {"cam01": 29.97, "cam02": 30.0}
+    assert common_fps(rates, None, tmp_path, 300) == pytest.approx(29.985)
+    with pytest.raises(CaptureError, match="drift 0.6 frames apart"):
+        common_fps(rates, None, tmp_path, 600)
+    assert common_fps(rates, 30.0, tmp_path, 600) == 30.0  # --fps decides

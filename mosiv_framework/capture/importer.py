@@ -172,7 +172,8 @@ def load_frames(s: ImportSettings, sources, cams) -> tuple[dict[str, np.ndarray]
         cams[cid] = replace(cams[cid], intrinsics=k.resized(size[1], size[0]))
         videos[cid] = frames
     fps = s.fps / s.every if s.fps is not None else None
-    return videos, video.common_fps(rates, fps, s.frames_dir)
+    longest = max(len(v) for v in videos.values())
+    return videos, video.common_fps(rates, fps, s.frames_dir, longest)
 
 
 def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bool, list, dict]:

@@ -189,9 +189,13 @@ def read_frames(
     return read_video(source, every=every, longest_side=longest_side)
 
 
-def common_fps(rates: dict[str, float | None], given: float | None, folder: Path) -> float:
-    """The recording's frame rate: ``given`` (``--fps``) if set, else the videos' own rate,
-    which must agree within 1 %."""
+def common_fps(
+    rates: dict[str, float | None], given: float | None, folder: Path, n_frames: int = 1
+) -> float:
+    """The recording's frame rate: ``given`` (``--fps``) if set, else the videos' own rate.
+    The cameras' rates must agree closely enough that over the clip (``n_frames``, the
+    longest camera's) their clocks drift less than half a frame apart (29.97 and 30 fps do
+    over 300 frames, not over 600), and within 1 % in any case."""
     if given is not None:
         if not given > 0:
             raise CaptureError(f"--fps {given}: must be positive")
@@ -203,8 +207,11 @@ def common_fps(rates: dict[str, float | None], given: float | None, folder: Path
             "ffmpeg does not report as a number); give --fps"
         )
     lo, hi = min(known.values()), max(known.values())
-    if hi > 1.01 * lo:
+    drift = (hi - lo) / lo * n_frames  # frames apart at the clip's end
+    if hi > 1.01 * lo or drift >= 0.5:
         raise CaptureError(
-            f"{folder}: the videos' frame rates differ ({known}); give --fps to choose one"
+            f"{folder}: the videos' frame rates differ ({known}): over {n_frames} frames they "
+            f"drift {drift:.2g} frames apart; convert them to one rate, or give --fps to take "
+            "every frame as equally spaced at that rate"
         )
     return float(np.median(list(known.values())))
