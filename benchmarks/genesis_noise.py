@@ -35,6 +35,7 @@ import os
 import shutil
 import statistics
 import sys
+import textwrap
 from pathlib import Path
 
 from genesis_identify import _fill, _portable, command_line, find_scenes, run_scene
@@ -172,8 +173,22 @@ def merge(out: Path) -> dict:
     table = make_table(rows, record)
     (out / "table.json").write_text(json.dumps(table, indent=2) + "\n")
     (out / "table.md").write_text(markdown(table))
-    plot(plot_rows(table), out / "noise.png")
+    plot(plot_rows(table), out / "noise.png", data=plot_data(table))
     return table
+
+
+def plot_data(table: dict) -> str:
+    """The plot's data line: the scenes, where they come from, the machine and the settings."""
+    rows, record = table["rows"], table.get("study") or {}
+    one_per_scene = list({r["scene"]: r for r in sorted(rows, key=lambda r: "data" in r)}.values())
+    devices = sorted({r["device"] for r in rows if _ok(r) and r.get("device")})
+    scenes = ", ".join(sorted(r["scene"] for r in one_per_scene))
+    sets = " ".join(record.get("overrides") or []) or "no overrides"
+    text = (
+        f"Genesis scenes {scenes}: {data_description(one_per_scene)}; "
+        f"{record.get('recipe', 'unknown recipe')} with {sets}; {', '.join(devices) or '?'}"
+    )
+    return textwrap.fill(text, 120, break_long_words=False, break_on_hyphens=False)
 
 
 # --------------------------------------------------------------------------------------------

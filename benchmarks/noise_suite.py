@@ -175,8 +175,9 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot(rows: list[dict], path: Path) -> None:
-    """Future CD and the elastic-E error against alpha, one line per noise kind."""
+def plot(rows: list[dict], path: Path, data: str | None = None) -> None:
+    """Future CD and the elastic-E error against alpha, one line per noise kind; ``data``
+    (where the scenes and runs come from) goes under the title."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -198,7 +199,8 @@ def plot(rows: list[dict], path: Path) -> None:
     for ax in axes:
         ax.set_xlabel("noise level alpha (x object extent)")
         ax.legend()
-    fig.suptitle("sensitivity to reconstruction noise (oracle points perturbed)")
+    title = "sensitivity to reconstruction noise (oracle points perturbed)"
+    fig.suptitle(title if data is None else f"{title}\n{data}", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
