@@ -241,6 +241,8 @@ def run_queue(
             on_gpu[gpu] += 1
             process = launch(job, source, jobs_dir, gpu, threads, code_version)
             running[job.name] = (gpu, process)
+            if (jobs_dir / f"{job.name}{STOPPED}").exists():  # stopped while it was launched
+                _end_groups({job.name: process.pid}, grace_seconds=10.0)
         time.sleep(POLL_SECONDS)
     return failed
 
@@ -257,7 +259,8 @@ def _signal(pid: int, sig: int, *, group: bool) -> bool:
 def stop_jobs(jobs_dir: Path, names: list[str], grace_seconds: float = 10.0) -> list[str]:
     """End the named jobs only, and leave the queue running the others: a running one's
     process group ends (SIGTERM, then SIGKILL after ``grace_seconds``), a queued one never
-    starts; each gets ``NAME.rc`` "stopped". Returns the names that were running or queued."""
+    starts; the queue then writes ``NAME.rc`` "stopped". Returns the names that were running
+    or queued."""
     known = {p.stem for p in jobs_dir.glob("*.log")} | {p.stem for p in jobs_dir.glob("*.queued")}
     unknown = sorted(set(names) - known)
     if unknown:
@@ -271,9 +274,10 @@ def stop_jobs(jobs_dir: Path, names: list[str], grace_seconds: float = 10.0) -> 
             continue  # ended already: its exit code stays
         (jobs_dir / f"{name}{STOPPED}").touch()  # the queue reads it before starting the job
         ended.append(name)
-        pid_file = jobs_dir / f"{name}.pid"
-        if pid_file.exists():
-            running[name] = int(pid_file.read_text())
+        try:  # the queue unlinks it when the job ends, maybe right now
+            running[name] = int((jobs_dir / f"{name}.pid").read_text())
+        except (FileNotFoundError, ValueError):
+            pass  # not started yet: the queue reads the marker (before and after launching)
     _end_groups(running, grace_seconds)
     return sorted(ended)
 
@@ -339,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
         "$(git rev-parse --short HEAD) from the machine that sent it)",
     )
     args = parser.parse_args(argv)
-    if args.verb == "stop" and args.only:
+    if args.verb == "stop" and args.only is not None:
         names = [n for n in args.only.split(",") if n]
         ended = stop_jobs(args.jobs_dir, names)
         print(f"stopped in {args.jobs_dir}: {', '.join(ended) or 'none (all had ended)'}")
@@ -361,6 +365,9 @@ def main(argv: list[str] | None = None) -> int:
     if clash:
         parser.error(f"{args.jobs_dir} already has logs of {', '.join(clash)}: rename those jobs")
     for job in jobs:
+        # a job of that name stopped before it ever started left a marker and an exit code
+        for stale in (STOPPED, ".rc"):
+            (args.jobs_dir / f"{job.name}{stale}").unlink(missing_ok=True)
         (args.jobs_dir / f"{job.name}.queued").write_text(job.command + "\n")
     source = args.source or take_snapshot(args.jobs_dir)
     if args.verb == "run":

@@ -268,6 +268,9 @@ def test_stop_only_ends_the_named_jobs_and_the_queue_runs_the_rest(tmp_path):
         [*stop, "--only", "fourth"], env=env, capture_output=True, text=True, timeout=60
     )
     assert unknown.returncode != 0 and "no job fourth" in unknown.stderr
+    # an empty list (an unset shell variable, say) ends nothing, and never the whole queue
+    assert device_queue.main(["stop", "--only", "", "--jobs-dir", str(jobs_dir)]) == 0
+    assert (jobs_dir / "third.rc").read_text().strip() == "0"
 
 
 def test_start_without_a_job_file_is_refused(tmp_path, capsys):

@@ -279,3 +279,25 @@ def test_frame_rates_may_differ_by_less_than_half_a_frame_over_the_clip(tmp_path
     with pytest.raises(CaptureError, match="drift 0.6 frames apart"):
         common_fps(rates, None, tmp_path, 600)
     assert common_fps(rates, 30.0, tmp_path, 600) == 30.0  # --fps decides
+
+
+def test_frames_are_checked_at_their_recorded_size_and_a_folder_of_hidden_files_named(tmp_path):
+    """A 6 x 4 frame for a camera the model says is 8 x 6 is refused although both would be
+    brought down to 6 x 4 (--resolution 6); a folder holding only hidden files has no frames."""
+    from PIL import Image
+
+    from mosiv_framework.capture.video import read_frames, read_image_folder
+
+    folder = tmp_path / "cam01"
+    folder.mkdir()
+    for n in range(2):
+        Image.new("RGB", (6, 4)).save(folder / f"{n}.png")
+    expect = ((6, 8), "cameras.txt gives camera 'cam01'")
+    with pytest.raises(CaptureError, match="frames are 6x4 pixels, but cameras.txt gives"):
+        read_frames(folder, longest_side=16, expect=expect)
+    assert read_frames(folder, longest_side=16, expect=((4, 6), "ok"))[0].shape == (2, 4, 6, 3)
+    hidden = tmp_path / "hidden"
+    hidden.mkdir()
+    (hidden / "._0.png").write_bytes(b"\x00\x05\x16\x07")
+    with pytest.raises(CaptureError, match="holds no image frames"):
+        read_image_folder(hidden)

@@ -119,6 +119,12 @@ def test_a_typo_in_an_override_is_the_overrides_not_the_files(tmp_path, registry
     assert any(p.startswith("override 'identify.param_iteratons=4': unknown key") for p in problems)
     # the file's own mistake stays the file's, although an override names its section
     assert any(p.startswith(f"{path}: unknown key identify.learning_rate") for p in problems)
+    # an override's key that is the tail of the file's (learning_rate in identify.learning_rate)
+    with pytest.raises(ConfigError) as err:
+        load_recipe(path, ["learning_rate=3"], registry=registry)
+    problems = err.value.problems
+    assert any(p.startswith(f"{path}: unknown key identify.learning_rate") for p in problems)
+    assert any(p.startswith("override 'learning_rate=3': unknown recipe section") for p in problems)
 
 
 @pytest.mark.parametrize("name", sorted(p.name for p in RECIPES.glob("*.yaml")))

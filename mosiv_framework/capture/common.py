@@ -107,8 +107,8 @@ def one_pose_per_camera(frames: dict[str, list[SourceCamera]]) -> list[SourceCam
     if len(centres) > 1:
         gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
         scale = float(np.median(gaps[np.triu_indices(len(centres), 1)]))
-    else:
-        scale = float(np.linalg.norm(centres[0]))
+    else:  # one camera: no spacing to measure a move against, only its turning is checked
+        scale = math.inf
     for views in frames.values():
         for other in views[1:]:
             _same_camera(views[0], other, scale)

@@ -102,8 +102,6 @@ def load_plates(
     frames; None without a folder."""
     if folder is None:
         return None
-    import imageio.v3 as iio
-
     from mosiv_framework.segment.classical import background_image
 
     if not Path(folder).is_dir():
@@ -115,7 +113,7 @@ def load_plates(
             raise CaptureError(
                 f"--background {folder}: no {cid}.png or {cid}.jpg for camera {cid!r}"
             )
-        plate = np.asarray(iio.imread(path))[..., :3]
+        plate = video.rgb8(video.read_image(Path(path)), str(path))  # as the frames are read
         plate = video.shrink(plate, video.shrunk_size(*plate.shape[:2], longest_side))
         k = cam.intrinsics
         if plate.shape[:2] != (k.height, k.width):
@@ -159,21 +157,22 @@ def load_frames(s: ImportSettings, sources, cams) -> tuple[dict[str, np.ndarray]
     for cid, src in sources.items():
         k = cams[cid].intrinsics
         size = video.shrunk_size(k.height, k.width, s.resolution)
-        frames, rate = video.read_frames(src, every=s.every, longest_side=s.resolution)
-        rates[cid] = rate / s.every if rate else None
-        if frames.shape[1:3] != size:
-            native = (
-                "" if size == (k.height, k.width) else f" (brought down to {size[1]}x{size[0]})"
-            )
+        expect = ((k.height, k.width), f"{cams[cid].origin} gives camera {cid!r}")
+        frames, rate = video.read_frames(
+            src, every=s.every, longest_side=s.resolution, expect=expect
+        )
+        if len(frames) < 2:
             raise CaptureError(
-                f"{src}: frames are {frames.shape[2]}x{frames.shape[1]} pixels{native}, but "
-                f"{cams[cid].origin} gives camera {cid!r} {k.width}x{k.height}"
+                f"{src}: keeps {len(frames)} frame of its clip (--every {s.every}); a camera "
+                "needs at least 2"
             )
+        rates[cid] = rate / s.every if rate else None
         cams[cid] = replace(cams[cid], intrinsics=k.resized(size[1], size[0]))
         videos[cid] = frames
-    fps = s.fps / s.every if s.fps is not None else None
     longest = max(len(v) for v in videos.values())
-    return videos, video.common_fps(rates, fps, s.frames_dir, longest)
+    if s.fps is not None:  # checked as given, then divided alike
+        return videos, video.common_fps(rates, s.fps, s.frames_dir, longest) / s.every
+    return videos, video.common_fps(rates, None, s.frames_dir, longest)
 
 
 def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bool, list, dict]:

@@ -24,6 +24,13 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 SAME_KIND = {".jpeg": ".jpg", ".tiff": ".tif"}
 
 
+def _is_frame(path: Path) -> bool:
+    """An image file that is not hidden (.DS_Store, macOS's ._frame.png copies)."""
+    return (
+        path.is_file() and not path.name.startswith(".") and path.suffix.lower() in IMAGE_SUFFIXES
+    )
+
+
 def find_sources(folder: str | Path) -> dict[str, Path]:
     """Camera id -> its video file or image folder in ``folder``; CaptureError when there are
     none or when one id has both a video and a folder."""
@@ -36,7 +43,7 @@ def find_sources(folder: str | Path) -> dict[str, Path]:
             continue
         if entry.is_file() and entry.suffix.lower() in VIDEO_SUFFIXES:
             key = entry.stem
-        elif entry.is_dir() and any(p.suffix.lower() in IMAGE_SUFFIXES for p in entry.iterdir()):
+        elif entry.is_dir() and any(_is_frame(p) for p in entry.iterdir()):
             key = entry.name
         else:
             continue
@@ -54,7 +61,7 @@ def find_sources(folder: str | Path) -> dict[str, Path]:
     return sources
 
 
-def _rgb8(image: np.ndarray, where: str) -> np.ndarray:
+def rgb8(image: np.ndarray, where: str) -> np.ndarray:
     """Any decoded image -> uint8 [H, W, 3]."""
     img = np.asarray(image)
     if img.dtype == np.uint16:
@@ -88,13 +95,31 @@ def shrink(frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return np.asarray(image)
 
 
+#: what a camera's frames must measure before any shrinking: ((height, width), who says so)
+Expected = tuple[tuple[int, int], str]
+
+
+def _check_size(frame: np.ndarray, expect: Expected | None, where: str) -> None:
+    """A frame's size as recorded against the camera's (``expect``), so that a shrunk frame
+    never hides frames of another camera's size."""
+    if expect is not None and frame.shape[:2] != expect[0]:
+        (h, w), who = expect
+        raise CaptureError(
+            f"{where}: frames are {frame.shape[1]}x{frame.shape[0]} pixels, but {who} {w}x{h}"
+        )
+
+
 def read_video(
-    path: Path, *, every: int = 1, longest_side: int | None = None
+    path: Path,
+    *,
+    every: int = 1,
+    longest_side: int | None = None,
+    expect: Expected | None = None,
 ) -> tuple[np.ndarray, float | None]:
     """Frames uint8 [T, H, W, 3] and the frame rate of a video file (ffmpeg via imageio):
     every ``every``-th frame from the first, each brought down to ``longest_side`` pixels as
     it is decoded (so a long high-resolution clip never sits in memory at full size). The
-    rate returned is the video's own."""
+    rate returned is the video's own; ``expect``: the size the frames must have as recorded."""
     try:
         import imageio.v2 as iio2
         import imageio_ffmpeg  # noqa: F401 -- imageio's FFMPEG format needs it
@@ -112,8 +137,10 @@ def read_video(
             fps = reader.get_meta_data().get("fps")
             frames = []
             for i, frame in enumerate(reader):
+                if i == 0:
+                    _check_size(frame, expect, str(path))
                 if i % every == 0:
-                    frame = _rgb8(frame, str(path))
+                    frame = rgb8(frame, str(path))
                     size = shrunk_size(*frame.shape[:2], longest_side)
                     frames.append(shrink(frame, size))
         finally:
@@ -127,66 +154,77 @@ def read_video(
     return np.stack(frames), (float(fps) if fps else None)
 
 
-def read_image_folder(path: Path, *, every: int = 1, longest_side: int | None = None) -> np.ndarray:
+def read_image_folder(
+    path: Path,
+    *,
+    every: int = 1,
+    longest_side: int | None = None,
+    expect: Expected | None = None,
+) -> np.ndarray:
     """Frames uint8 [T, H, W, 3] of a folder of images, in file-name order with numbers read
     as numbers (2.png before 10.png): every ``every``-th from the first, each brought down to
-    ``longest_side`` pixels."""
-    files = sorted(
-        (
-            p
-            for p in path.iterdir()
-            if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_SUFFIXES
-        ),
-        key=lambda p: natural_key(p.name),
-    )  # hidden files (.DS_Store, macOS's ._frame.png) are not frames
+    ``longest_side`` pixels; ``expect``: the size they must have as recorded."""
+    # hidden files (.DS_Store, macOS's ._frame.png) are not frames
+    files = sorted((p for p in path.iterdir() if _is_frame(p)), key=lambda p: natural_key(p.name))
+    if not files:
+        raise CaptureError(f"{path}: holds no image frames (hidden files are not frames)")
     kinds = sorted({SAME_KIND.get(p.suffix.lower(), p.suffix.lower()) for p in files})
     if len(kinds) > 1:
         raise CaptureError(
             f"{path}: holds frames of several kinds ({', '.join(kinds)}); a camera's frames are "
             "one sequence of one kind: keep one"
         )
-    frames = []
+    frames, first = [], None
     for f in files[::every]:
         try:
-            frame = _rgb8(_read_image(f), str(f))
-            frames.append(shrink(frame, shrunk_size(*frame.shape[:2], longest_side)))
+            frame = rgb8(read_image(f), str(f))
         except CaptureError:
             raise
         except Exception as exc:
             raise OutputError(f"{f}: cannot be read as an image ({exc})") from exc
-        if frames[-1].shape != frames[0].shape:
+        if first is None:
+            _check_size(frame, expect, str(path))
+            first = frame.shape
+        elif frame.shape != first:
             raise CaptureError(
-                f"{f}: is {frames[-1].shape[1]}x{frames[-1].shape[0]} pixels, but {files[0].name} "
-                f"is {frames[0].shape[1]}x{frames[0].shape[0]}; a camera's frames share one size"
+                f"{f}: is {frame.shape[1]}x{frame.shape[0]} pixels, but {files[0].name} is "
+                f"{first[1]}x{first[0]}; a camera's frames share one size"
             )
+        frames.append(shrink(frame, shrunk_size(*frame.shape[:2], longest_side)))
     return np.stack(frames)
 
 
-def _read_image(path: Path) -> np.ndarray:
+def read_image(path: Path) -> np.ndarray:
     """One image as a viewer shows it: its EXIF orientation applied, and palette, CMYK,
     grey + alpha and other modes converted to RGB by Pillow; grey, RGB and RGBA are kept as
-    stored (16-bit grey too) for ``_rgb8``."""
+    stored (16-bit grey too) for ``rgb8``."""
     from PIL import Image, ImageOps
 
     with Image.open(path) as image:
         image = ImageOps.exif_transpose(image)
         if image.mode not in ("L", "I;16", "I;16B", "I;16L", "RGB", "RGBA", "I", "F"):
             image = image.convert("RGB")
-        return np.asarray(image)
+        return np.array(image)  # a writable copy (torch reads it later)
 
 
 def read_frames(
-    source: Path, *, every: int = 1, longest_side: int | None = None
+    source: Path,
+    *,
+    every: int = 1,
+    longest_side: int | None = None,
+    expect: Expected | None = None,
 ) -> tuple[np.ndarray, float | None]:
     """(frames uint8 [T, H, W, 3], the source's own fps or None) of one camera's video file or
-    image folder: every ``every``-th frame, brought down to ``longest_side`` pixels."""
+    image folder: every ``every``-th frame, brought down to ``longest_side`` pixels, after
+    checking their recorded size against ``expect`` ((height, width), who gives that size)."""
     if every < 1:
         raise CaptureError(f"--every {every}: must be a whole number >= 1")
     if longest_side is not None and longest_side < 16:
         raise CaptureError(f"--resolution {longest_side}: must be at least 16 pixels")
+    kw = {"every": every, "longest_side": longest_side, "expect": expect}
     if source.is_dir():
-        return read_image_folder(source, every=every, longest_side=longest_side), None
-    return read_video(source, every=every, longest_side=longest_side)
+        return read_image_folder(source, **kw), None
+    return read_video(source, **kw)
 
 
 def common_fps(

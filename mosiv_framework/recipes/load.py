@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -69,7 +70,8 @@ def _load_yaml(path: Path) -> DictConfig:
     except OmegaConfBaseException as exc:  # a bad interpolation, a key of an odd type
         # the YAML itself parsed: name the keys whose strings are not valid interpolations
         named = syntax_problems(yaml.safe_load(text))
-        raise ConfigError([f"{path}: {p}" for p in named] or f"{path}: {_first_line(exc)}") from exc
+        first = _first_line(exc).replace('"<file>"', str(path))  # parsed from a stream
+        raise ConfigError([f"{path}: {p}" for p in named] or f"{path}: {first}") from exc
     if node is None or (isinstance(node, yaml.ScalarNode) and node.tag.endswith(":null")):
         raise ConfigError(
             f"{path}: the recipe file is empty (no sections); a recipe names at least its scene "
@@ -155,9 +157,12 @@ def _where(problem: str, path: str | Path, overrides: Sequence[str]) -> str:
     names (a typo there is not the file's), else the recipe file."""
     for item in overrides:
         key = item.partition("=")[0].strip()
-        section = key.split(".")[0]
-        named = (f"{key};", f"{key}=", f"unknown recipe section {section!r}")
-        if key and any(n in problem for n in named):
+        if not key:
+            continue
+        section = re.escape(key.split(".")[0])
+        # the whole dotted key, not the tail of a longer one (dt= inside simulator.dt=)
+        named = rf"(?<![\w.]){re.escape(key)}[;=]|unknown recipe section '{section}'"
+        if re.search(named, problem):
             return f"override {item!r}: {problem}"
     return f"{path}: {problem}"
 
