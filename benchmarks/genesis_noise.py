@@ -177,11 +177,17 @@ def merge(out: Path) -> dict:
     return table
 
 
+def _sources(rows: list[dict]) -> tuple[list[dict], list[str]]:
+    """(one row per scene, preferring one that says where the scene came from (an error row
+    of a dead process does not); the devices the runs used)."""
+    one_per_scene = list({r["scene"]: r for r in sorted(rows, key=lambda r: "data" in r)}.values())
+    return one_per_scene, sorted({r["device"] for r in rows if _ok(r) and r.get("device")})
+
+
 def plot_data(table: dict) -> str:
     """The plot's data line: the scenes, where they come from, the machine and the settings."""
-    rows, record = table["rows"], table.get("study") or {}
-    one_per_scene = list({r["scene"]: r for r in sorted(rows, key=lambda r: "data" in r)}.values())
-    devices = sorted({r["device"] for r in rows if _ok(r) and r.get("device")})
+    record = table.get("study") or {}
+    one_per_scene, devices = _sources(table["rows"])
     scenes = ", ".join(sorted(r["scene"] for r in one_per_scene))
     sets = " ".join(record.get("overrides") or []) or "no overrides"
     text = (
@@ -368,9 +374,7 @@ def markdown(table: dict, *, plot_link: str | None = None) -> str:
 def section_text(table: dict, *, command: str, date: str) -> str:
     """The RESULTS.md section: what was run, on what, and the tables."""
     rows, record = table["rows"], table.get("study") or {}
-    # a scene's row that says where the scene came from (an error row of a dead process does not)
-    one_per_scene = list({r["scene"]: r for r in sorted(rows, key=lambda r: "data" in r)}.values())
-    devices = sorted({r["device"] for r in rows if _ok(r) and r.get("device")})
+    one_per_scene, devices = _sources(rows)
     codes = sorted({r["code"] for r in rows if r.get("code")})
     levels = sorted({r["alpha"] for r in rows if r["kind"] != "none"})
     kinds = [k for k in KINDS if any(r["kind"] == k for r in rows)]

@@ -192,19 +192,27 @@ def _wait_for(predicate, seconds: float) -> bool:
 
 
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads process states from /proc")
-def test_stop_ends_the_queue_and_its_running_jobs_but_not_the_caller(tmp_path):
-    """``stop`` ends the detached queue (nothing more starts) and the running job's whole
-    process group, marks the job stopped, and leaves the process that called it alone (a
-    command-line match on the jobs' command would have matched the caller too)."""
+def _start_with_a_child_job(tmp_path, more_jobs: str):
+    """A detached queue (one slot) whose first job starts a child process and writes its pid
+    to a marker, then ``more_jobs`` (job-file lines); returns (jobs folder, environment,
+    marker) once the child runs."""
     jobfile = tmp_path / "jobs.txt"
     marker = tmp_path / "child.pid"
-    # the job's own child (sleep) must end with it: the job's process group is ended
-    jobfile.write_text(f"first sleep 120 & echo $! > {marker}; wait\nsecond sleep 120\n")
+    jobfile.write_text(f"first sleep 120 & echo $! > {marker}; wait\n{more_jobs}")
     jobs_dir = tmp_path / "jobs"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     args = [sys.executable, str(QUEUE), "start", str(jobfile), "--gpus", "1", "--slots", "1"]
     subprocess.run([*args, "--jobs-dir", str(jobs_dir)], env=env, check=True, timeout=60)
     assert _wait_for(lambda: marker.exists() and marker.read_text().strip(), 60)
+    return jobs_dir, env, marker
+
+
+def test_stop_ends_the_queue_and_its_running_jobs_but_not_the_caller(tmp_path):
+    """``stop`` ends the detached queue (nothing more starts) and the running job's whole
+    process group, marks the job stopped, and leaves the process that called it alone (a
+    command-line match on the jobs' command would have matched the caller too)."""
+    # the job's own child (sleep) must end with it: the job's process group is ended
+    jobs_dir, env, marker = _start_with_a_child_job(tmp_path, "second sleep 120\n")
     queue_pid = int((jobs_dir / "queue.pid").read_text())
     job_pid = int((jobs_dir / "first.pid").read_text())
     child_pid = int(marker.read_text())
@@ -235,17 +243,10 @@ def test_stop_ends_the_queue_and_its_running_jobs_but_not_the_caller(tmp_path):
 def test_stop_only_ends_the_named_jobs_and_the_queue_runs_the_rest(tmp_path):
     """``stop --only`` ends a running job (its process group) and a queued one before it
     starts, marks both "stopped", and the queue goes on to run the job not named."""
-    jobfile = tmp_path / "jobs.txt"
-    marker = tmp_path / "child.pid"
     done = tmp_path / "third.done"
-    jobfile.write_text(
-        f"first sleep 120 & echo $! > {marker}; wait\nsecond sleep 120\nthird touch {done}\n"
+    jobs_dir, env, marker = _start_with_a_child_job(
+        tmp_path, f"second sleep 120\nthird touch {done}\n"
     )
-    jobs_dir = tmp_path / "jobs"
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    args = [sys.executable, str(QUEUE), "start", str(jobfile), "--gpus", "1", "--slots", "1"]
-    subprocess.run([*args, "--jobs-dir", str(jobs_dir)], env=env, check=True, timeout=60)
-    assert _wait_for(lambda: marker.exists() and marker.read_text().strip(), 60)
     job_pid = int((jobs_dir / "first.pid").read_text())
     child_pid = int(marker.read_text())
     queue_pid = int((jobs_dir / "queue.pid").read_text())

@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import numpy as np
 
-#: the up axis of the written files -> rotation applied to MOSIV's (x, y, z) points
-ROTATIONS = {
-    "z": np.eye(3),
-    # (x, y, z) -> (x, z, -y): glTF's convention, +y up
-    "y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
-    # (x, y, z) -> (x, -z, y): OpenCV / COLMAP's, +y down
-    "-y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
-}
+from mosiv_framework.capture.align import parse_up
+from mosiv_framework.capture.rotations import rotation_to_z
+
+#: the up axis of the written files -> rotation applied to MOSIV's (x, y, z) points: the
+#: inverse of the import's rotation of that up axis to +z (as ``align.RigFrame`` writes a
+#: capture's cameras): "y" takes (x, y, z) to (x, z, -y), glTF's convention; "-y" to
+#: (x, -z, y), OpenCV's and COLMAP's
+ROTATIONS = {up: rotation_to_z(parse_up(up)).T for up in ("z", "y", "-y")}
 #: how the README names each choice
 DESCRIPTION = {
     "z": "z up (MOSIV's world)",
