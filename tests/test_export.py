@@ -10,6 +10,7 @@ which gauss-dynamic fits) are put into a copy of the run, since the oracle has n
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 
@@ -65,6 +66,20 @@ class BallisticPlugin:
         register(Component("simulator", "ballistic", factory=Ballistic))
 
 
+@contextlib.contextmanager
+def ballistic_registry():
+    """The installed plugins, the MPM backends left out, plus the ballistic test simulator, as
+    the registry every command sees while the block runs."""
+    reg = Registry().load_entry_points(disabled=["warp-mpm", "taichi-mpm"])
+    reg.add_plugin(BallisticPlugin(), name="ballistic-test")
+    saved = manager._REGISTRY
+    manager._REGISTRY = reg
+    try:
+        yield reg
+    finally:
+        manager._REGISTRY = saved
+
+
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory):
     """A finished run folder of the example scene, made once for this module's tests (about
@@ -72,10 +87,6 @@ def finished_run(tmp_path_factory):
     pytest.importorskip("mosiv_lift")
     pytest.importorskip("mosiv_gauss")  # the renderer the gaussians lifter binds with
     tmp = tmp_path_factory.mktemp("run")
-    reg = Registry().load_entry_points(disabled=["warp-mpm", "taichi-mpm"])
-    reg.add_plugin(BallisticPlugin(), name="ballistic-test")
-    saved = manager._REGISTRY
-    manager._REGISTRY = reg
     raw = {
         "scene": {
             "path": str(tmp / "scene"),
@@ -91,12 +102,10 @@ def finished_run(tmp_path_factory):
         "evaluate": {"emd_samples": 32, "render_videos": False},
         "output": {"dir": str(tmp / "run")},
     }
-    resolved, problems = validate_recipe(raw, reg)
-    assert problems == []
-    try:
+    with ballistic_registry() as reg:
+        resolved, problems = validate_recipe(raw, reg)
+        assert problems == []
         run_pipeline(OmegaConf.create(resolved), run_dir=tmp / "run")
-    finally:
-        manager._REGISTRY = saved
     return tmp / "run"
 
 
@@ -309,7 +318,16 @@ def test_export_refuses_what_it_must_not_touch(finished_run, tmp_path, capsys):
     shutil.copy(finished_run / "recipe.yaml", half / "recipe.yaml")
     assert main(["export", str(half)]) == 2
     err = capsys.readouterr().err
-    assert "rollout.npz or rollout.pt" in err and "evaluate stage did not finish" in err
+    assert "rollout.npz or rollout.pt" in err and "the run did not finish" in err
+    # identification finished but the rollout is gone: the hint's `mosiv eval` writes it again
+    evaluated = shutil.copytree(finished_run, tmp_path / "no_rollout")
+    for name in ("rollout.npz", "rollout.pt"):
+        (evaluated / name).unlink()
+    assert main(["export", str(evaluated), "--out", str(tmp_path / "y")]) == 2
+    assert f"`mosiv eval {evaluated}` writes the rollout again" in capsys.readouterr().err
+    with ballistic_registry():
+        assert main(["eval", str(evaluated)]) == 0
+    assert main(["export", str(evaluated), "--out", str(tmp_path / "y")]) == 0
     assert (
         main(["export", str(finished_run), "--out", str(tmp_path / "x"), "--frames", "3..99"]) == 2
     )

@@ -145,11 +145,15 @@ def load_run(path: str | Path) -> RunData:
         present = [
             n for n in ("recipe.yaml", "identified.json", "metrics.json") if (root / n).is_file()
         ]
-        hint = (
-            f"it has {', '.join(present)} but its evaluate stage did not finish; rerun `mosiv run`"
-            if present
-            else "it is not a run folder (no recipe.yaml either)"
-        )
+        if "identified.json" in present:  # identification finished: evaluating writes it
+            hint = (
+                f"it has {', '.join(present)}, so `mosiv eval {root}` writes the rollout again "
+                "(the evaluate stage stopped before saving it, or the file was removed)"
+            )
+        elif present:
+            hint = f"it has {', '.join(present)}: the run did not finish; rerun `mosiv run`"
+        else:
+            hint = "it is not a run folder (no recipe.yaml either)"
         raise ConfigError(f"run folder {str(root)!r} holds no rollout.npz or rollout.pt; {hint}")
     particles = _load_torch(root / "particles.pt", "particle volumes and bound Gaussians")
     positions, ids, fps = _rollout(root, particles)
