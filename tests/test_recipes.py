@@ -127,6 +127,30 @@ def test_a_typo_in_an_override_is_the_overrides_not_the_files(tmp_path, registry
     assert any(p.startswith("override 'learning_rate=3': unknown recipe section") for p in problems)
 
 
+def test_a_bad_plugin_option_from_the_command_line_is_the_overrides(tmp_path):
+    """A plugin checks its own options and names the option, not the dotted key: the problem is
+    still the override's when the override set that option, and the file's when the file did
+    (though an override names another option of the same plugin)."""
+    pytest.importorskip("mosiv_warp_mpm")
+    quickstart = RECIPES / "quickstart.yaml"
+    for override, said in [
+        ("simulator.substeps=0", "option substeps=0"),
+        ("simulator.grid_window=5", "option grid_window='5'"),
+        ("simulator.foo=1", "has no option 'foo'"),
+    ]:
+        with pytest.raises(ConfigError) as err:
+            load_recipe(quickstart, [override])
+        (problem,) = err.value.problems
+        assert problem.startswith(f"override {override!r}: simulator: ") and said in problem
+    text = quickstart.read_text().replace("name: warp-mpm", "name: warp-mpm, foo: 1")
+    assert text != quickstart.read_text()
+    own = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_recipe(own, ["simulator.grid=32"])  # grid is among the valid options listed
+    (problem,) = err.value.problems
+    assert problem.startswith(f"{own}: simulator: ") and "no option 'foo'" in problem
+
+
 @pytest.mark.parametrize("name", sorted(p.name for p in RECIPES.glob("*.yaml")))
 def test_shipped_recipes_are_valid(name):
     recipe = load_recipe(RECIPES / name)

@@ -162,9 +162,22 @@ def _where(problem: str, path: str | Path, overrides: Sequence[str]) -> str:
         section = re.escape(key.split(".")[0])
         # the whole dotted key, not the tail of a longer one (dt= inside simulator.dt=)
         named = rf"(?<![\w.]){re.escape(key)}[;=]|unknown recipe section '{section}'"
-        if re.search(named, problem):
+        if re.search(named, problem) or _names_option(problem, key):
             return f"override {item!r}: {problem}"
     return f"{path}: {problem}"
+
+
+def _names_option(problem: str, key: str) -> bool:
+    """Whether ``problem`` is about the component option that the override ``key`` sets: a
+    plugin checks its own options and names the option, not the dotted key ("simulator:
+    simulator warp-mpm option substeps=0: ...", "lifter: lifter 'gt-points': voxel_size must
+    ..."); the override's value replaced the file's, so a problem with it is the override's."""
+    section, _, leaf = key.partition(".")
+    if not leaf or "." in leaf:
+        return False
+    word = rf"(?<![\w.]){re.escape(leaf)}(?!\w)"
+    said = re.split(r"valid (?:options|values|names)", problem)[0]  # not the list of options
+    return problem.startswith(f"{section}: ") and re.search(word, said) is not None
 
 
 def load_recipe(
