@@ -62,6 +62,22 @@ def test_step_keeps_every_step_th_frame(scene_dir):
     assert np.array_equal(_tile(sheet, 1, 1), scene.rgb(scene.camera_ids[1], 3))
 
 
+def test_tile_brings_each_frame_down_to_its_longest_side(scene_dir):
+    """``tile`` (the import's preview of a large rig): each frame averaged down to ``tile``
+    pixels on its longest side, the sheet shrunk alike; a tile above the frames' size changes
+    nothing."""
+    scene = read_scene(scene_dir)
+    half = SIZE // 2
+    sheet = data_cli.contact_sheet(scene, masks=False, tile=half)
+    assert sheet.shape[:2] == data_cli.tile_origin(N_CAMERAS, N_FRAMES, height=half, width=half)
+    y, x = data_cli.tile_origin(1, 2, height=half, width=half)
+    frame = scene.rgb(scene.camera_ids[1], 2).astype(np.float32)
+    box = frame.reshape(half, 2, half, 2, 3).mean(axis=(1, 3))  # 2 x 2 box average
+    assert np.abs(sheet[y : y + half, x : x + half].astype(np.float32) - box).max() <= 1.0
+    full = data_cli.contact_sheet(scene, masks=False)
+    assert np.array_equal(data_cli.contact_sheet(scene, masks=False, tile=4 * SIZE), full)
+
+
 def test_one_gif_per_camera_with_all_frames(scene_dir, tmp_path):
     written = data_cli.write_previews(scene_dir, tmp_path / "p", masks=True)
     gifs = sorted(p for p in written if p.suffix == ".gif")

@@ -90,6 +90,17 @@ def test_undistort_frames_undoes_distort_frames(scene):
     assert restored > 30 and restored > moved + 1.5, (moved, restored)
 
 
+def test_undistort_in_place_writes_the_same_frames_into_the_clip(scene):
+    """``in_place`` (the import holds a long clip once) gives the frames a new array gets."""
+    s = read_scene(scene)
+    cam = s.cameras[0]
+    frames = np.stack([s.rgb(cam.id, t) for t in range(20)])  # more than one block of 16
+    lensed = distort_frames(frames, intrinsics(cam), LENS)
+    expected = undistort_frames(lensed, intrinsics(cam), LENS)
+    got = undistort_frames(lensed, intrinsics(cam), LENS, in_place=True)
+    assert got is lensed and np.array_equal(got, expected)
+
+
 def test_import_brought_down_to_a_resolution_scales_the_cameras(capture, imported, tmp_path):
     """``resolution`` 48 on the 96-pixel capture: frames half the size as they are read,
     every camera's focal lengths and principal point halved, the same frames otherwise."""

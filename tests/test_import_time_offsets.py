@@ -161,6 +161,8 @@ def test_keep_pads_cameras_that_started_late_or_stopped_early():
     assert out["a"][0, 0, 0, 0] == 0 and out["b"][2, 0, 0, 0] == 100
     assert out["c"][1, 0, 0, 0] == 200 and out["c"][3, 0, 0, 0] == 202
     assert not out["b"][:2].any() and not out["c"][4:].any()
+    # a camera with nothing to pad is not copied: a long clip is held once
+    assert np.shares_memory(out["a"], videos["a"]) and not np.shares_memory(out["b"], videos["b"])
     out, spans = pad_late_cameras(videos, {"a": 2, "b": 0, "c": 1}, 3)
     assert len(out["a"]) == 3 and spans == {"b": (2, 2), "c": (1, 2)}
     with pytest.raises(CaptureError, match="--frames 9: the cameras cover 8 frames at most"):

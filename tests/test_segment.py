@@ -82,6 +82,34 @@ def test_rim_pixels_count_where_the_object_covers_at_least_half():
     np.testing.assert_array_equal(trimmed, expected)
 
 
+def test_whole_video_steps_in_blocks_give_the_one_pass_results():
+    """The background median, the colour distance and the rim trim run in blocks of frames (or
+    rows) to bound their working memory: the same values as one pass over the clip, on a clip
+    whose length is not a multiple of the block; the noise threshold leaves its input as it
+    was (its medians reorder a working copy)."""
+    rng = np.random.default_rng(3)
+    t = 3 * fgmod.BLOCK + 5
+    video = rng.integers(0, 256, size=(t, 21, 17, 3), dtype=np.uint8)
+    background = fgmod.estimate_background(video)
+    assert np.array_equal(background, np.median(video.astype(np.float32), axis=0))
+    picked = [0, 4, 9, t - 1]
+    assert np.array_equal(
+        fgmod.estimate_background(video, picked),
+        np.median(video[picked].astype(np.float32), axis=0),
+    )
+    distance = fgmod.colour_distance(video, background)
+    diff = video.astype(np.float32) - background[None]
+    assert np.array_equal(distance, np.sqrt((diff * diff).sum(axis=-1)))
+    mask = distance > 60.0
+    assert np.array_equal(
+        fgmod.trim_rim(distance, mask, 0.5), fgmod._trim_rim_block(distance, mask, 0.5)
+    )
+    for values in (distance, np.full((2, 5, 5), 7.0, dtype=np.float32)):  # the second: no far
+        kept = values.copy()
+        fgmod.noise_threshold(values)
+        assert np.array_equal(values, kept)
+
+
 def test_median_background_and_foreground_of_a_moving_square():
     rng = np.random.default_rng(1)
     background = rng.integers(0, 80, size=(24, 24, 3)).astype(np.uint8)

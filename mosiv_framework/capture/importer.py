@@ -30,6 +30,8 @@ from mosiv_framework.errors import SceneFormatError
 logger = logging.getLogger(__name__)
 
 IMPORT_FORMAT = "mosiv-import/1"
+#: longest side (pixels) of each frame in the contact sheet the import leaves in preview/
+PREVIEW_TILE = 320
 
 
 @dataclass
@@ -346,9 +348,8 @@ def import_recording(s: ImportSettings) -> Path:
     videos, fps = load_frames(s, sources, cams)
     videos, offsets, estimated, left_out, spans = synchronise(s, videos, yaml_offsets)
     cams = {c: cam for c, cam in cams.items() if c in videos}
-    videos = {
-        c: undistort_frames(v, cams[c].intrinsics, cams[c].distortion) for c, v in videos.items()
-    }
+    for c, v in videos.items():  # in place: a long clip is held once
+        undistort_frames(v, cams[c].intrinsics, cams[c].distortion, in_place=True)
     plates = load_plates(s.background, cams, s.resolution)
     align, up, ground = _alignment(s, cams)
     origins = {cid: cam.origin for cid, cam in cams.items()}
@@ -393,7 +394,8 @@ def write(
     out, name, fps, observed, objects, cameras, videos, masks, box, ground, record, spans=None
 ) -> None:
     """Write, validate and preview the scene; ``record`` goes to import.json; ``spans``: the
-    recorded frames of cameras that started late (their other frames are not written)."""
+    recorded frames of cameras that started late (their other frames are not written). Each
+    camera's frames leave ``videos`` once written, so the preview does not hold the clip too."""
     from mosiv_framework.cli.data import contact_sheet
     from mosiv_framework.scene import SceneWriter, atomic_write_json, read_scene, validate_scene
 
@@ -407,6 +409,7 @@ def write(
         first, last = (spans or {}).get(cid, (0, n - 1))
         for t in range(first, last + 1):
             writer.write_frame(cid, t, rgb=videos[cid][t], mask=masks[cid][t])
+        del videos[cid]
     atomic_write_json(out / "import.json", record)
     writer.finish()
     problems = validate_scene(out)
@@ -414,6 +417,6 @@ def write(
         raise SceneFormatError([f"{out / p}" for p in problems])
     import imageio.v3 as iio
 
-    sheet = contact_sheet(read_scene(out), masks=True, step=max(1, -(-n // 8)))
+    sheet = contact_sheet(read_scene(out), masks=True, step=max(1, -(-n // 8)), tile=PREVIEW_TILE)
     (out / "preview").mkdir(exist_ok=True)
     iio.imwrite(out / "preview" / "contact_sheet.png", sheet)

@@ -174,10 +174,19 @@ def pixel_grid(k) -> np.ndarray:
     return np.stack([uu, vv], axis=-1)
 
 
-def remap(frames: np.ndarray, uv: np.ndarray, *, outside: str = "black", chunk: int = 16):
+def remap(
+    frames: np.ndarray,
+    uv: np.ndarray,
+    *,
+    outside: str = "black",
+    chunk: int = 16,
+    out: np.ndarray | None = None,
+):
     """Sample frames uint8 [T, H, W, C] bilinearly at pixel coordinates uv [H', W', 2]
     -> uint8 [T, H', W', C]. Where uv leaves the image (or is NaN) ``outside`` decides:
-    ``"black"`` reads zeros, ``"edge"`` repeats the nearest edge pixel."""
+    ``"black"`` reads zeros, ``"edge"`` repeats the nearest edge pixel. ``out``: the array to
+    write into, which may be ``frames`` itself (each block of frames is read before it is
+    written), so that a long clip is not held twice."""
     t, h, w, c = frames.shape
     # grid_sample with align_corners=False uses the same pixel-centre convention (centre of
     # pixel i at i + 0.5 in a [0, W] span), so the mapping to [-1, 1] is a plain rescale;
@@ -188,7 +197,11 @@ def remap(frames: np.ndarray, uv: np.ndarray, *, outside: str = "black", chunk: 
     grid[..., 1] = 2.0 * uv[..., 1] / h - 1.0
     grid_t = torch.from_numpy(grid)[None]
     padding = {"black": "zeros", "edge": "border"}[outside]
-    out = np.empty((t,) + uv.shape[:2] + (c,), dtype=np.uint8)
+    shape = (t,) + uv.shape[:2] + (c,)
+    if out is None:
+        out = np.empty(shape, dtype=np.uint8)
+    elif out.shape != shape or out.dtype != np.uint8:
+        raise ValueError(f"out: uint8 {list(shape)} expected, got {out.dtype} {list(out.shape)}")
     for start in range(0, t, chunk):
         part = torch.from_numpy(np.ascontiguousarray(frames[start : start + chunk]))
         src = part.permute(0, 3, 1, 2).to(torch.float32)
@@ -201,12 +214,14 @@ def remap(frames: np.ndarray, uv: np.ndarray, *, outside: str = "black", chunk: 
     return out
 
 
-def undistort_frames(frames: np.ndarray, k, d: Distortion) -> np.ndarray:
+def undistort_frames(frames: np.ndarray, k, d: Distortion, *, in_place: bool = False) -> np.ndarray:
     """Frames [T, H, W, C] seen through lens ``d`` -> the same frames through a pinhole camera
-    with the same intrinsics ``k``; rays the lens did not record read black."""
+    with the same intrinsics ``k``; rays the lens did not record read black. ``in_place``:
+    overwrite ``frames`` (a writable uint8 array) instead of returning a new array."""
     if d.is_zero:
         return frames
-    return remap(frames, distort_pixels(pixel_grid(k), d, k), outside="black")
+    out = frames if in_place else None
+    return remap(frames, distort_pixels(pixel_grid(k), d, k), outside="black", out=out)
 
 
 def distort_frames(frames: np.ndarray, k, d: Distortion) -> np.ndarray:

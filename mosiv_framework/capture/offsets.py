@@ -143,6 +143,9 @@ def pad_late_cameras(
         raise CaptureError(f"camera(s) {', '.join(late)} start after the last kept frame {n - 1}")
     out = {}
     for cam, video in videos.items():
+        if starts[cam] == 0 and ends[cam] >= n:  # nothing to pad: a view, not a copy
+            out[cam] = video[common : common + n]
+            continue
         shape = video.shape[1:]
         before = np.zeros((starts[cam],) + shape, video.dtype)
         after = np.zeros((max(0, n - ends[cam]),) + shape, video.dtype)

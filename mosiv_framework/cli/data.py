@@ -353,26 +353,33 @@ def tile_origin(row: int, col: int, *, height: int, width: int) -> tuple[int, in
     )
 
 
-def contact_sheet(scene, *, masks: bool, step: int = 1):
+def contact_sheet(scene, *, masks: bool, step: int = 1, tile: int | None = None):
     """uint8 [H', W', 3] image: one row per camera, one column per shown frame, labelled; a
-    frame a camera did not record stays a blank (white) tile."""
+    frame a camera did not record stays a blank (white) tile. ``tile``: the frames brought
+    down to at most this many pixels on their longest side (None: as recorded; 11 cameras x
+    8 frames of 1080p make a 16,000 x 12,000 pixel sheet)."""
     import numpy as np
     from PIL import Image, ImageDraw
 
     frames = list(range(0, scene.n_frames, step))
     h = max(c.height for c in scene.cameras)
     w = max(c.width for c in scene.cameras)
+    scale = 1.0 if tile is None else min(1.0, tile / max(h, w))
+    h, w = max(1, round(h * scale)), max(1, round(w * scale))
     y_end, x_end = tile_origin(len(scene.cameras), len(frames), height=h, width=w)
     sheet = np.full((y_end, x_end, 3), 255, dtype=np.uint8)
     for r, cam in enumerate(scene.cameras):
+        size = (max(1, round(cam.width * scale)), max(1, round(cam.height * scale)))
         for c, t in enumerate(frames):
             if not scene.records(cam.id, t):
                 continue
             img = scene.rgb(cam.id, t)
             if masks:
                 img = overlay_masks(img, scene.mask(cam.id, t))
+            if scale < 1.0:
+                img = np.asarray(Image.fromarray(img).resize(size, Image.Resampling.BOX))
             y, x = tile_origin(r, c, height=h, width=w)
-            sheet[y : y + cam.height, x : x + cam.width] = img
+            sheet[y : y + size[1], x : x + size[0]] = img
     pil = Image.fromarray(sheet)
     draw = ImageDraw.Draw(pil)
     for r, cam in enumerate(scene.cameras):
