@@ -24,10 +24,12 @@ from mosiv_framework.errors import ConfigError
 from mosiv_framework.pipeline import run_pipeline
 from mosiv_framework.pipeline.contact import (
     ContactModes,
+    choose_contact,
     contact_json,
     pick,
     restore_choice,
     simulator_section,
+    tied,
 )
 from mosiv_framework.pipeline.formats import read_history
 from mosiv_framework.pipeline.novel import load_finished_run
@@ -39,9 +41,9 @@ RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "diagnose_small.yaml"
 OTHER = {"single_field": "multi_field", "multi_field": "single_field"}
 
 
-def _run(root: Path, data_mode: str) -> tuple[Path, list[str]]:
-    """Identify the scene made with ``data_mode`` from a recipe naming the other mode; returns
-    the run folder and the log lines of the contact choice."""
+def _run(root: Path, data_mode: str, *extra: str) -> tuple[Path, list[str]]:
+    """Identify the scene made with ``data_mode`` from a recipe naming the other mode (and the
+    ``extra`` overrides); returns the run folder and the log lines of the contact choice."""
     overrides = [
         f"scene.path={root / 'scene'}",
         f"output.dir={root / 'run'}",
@@ -60,6 +62,7 @@ def _run(root: Path, data_mode: str) -> tuple[Path, list[str]]:
         "identify.param_iterations=1",
         "identify.intervals=false",
         "evaluate.emd_samples=64",
+        *extra,
     ]
     lines: list[str] = []
     handler = logging.Handler()
@@ -142,6 +145,99 @@ def test_the_rule_keeps_the_recipes_mode_unless_the_other_is_better_by_the_margi
     assert pick({"multi_field": inf, "single_field": 5.0}, "multi_field", 0.05) == "single_field"
     assert pick({"multi_field": 5.0, "single_field": inf}, "multi_field", 0.05) == "multi_field"
     assert pick({"multi_field": inf, "single_field": inf}, "single_field", 0.05) == "single_field"
+
+
+def test_tied_variants_are_those_the_lowest_does_not_beat_by_the_margin():
+    assert tied({"multi_field": 1.0, "single_field": 0.96}, 0.05) == ["multi_field", "single_field"]
+    assert tied({"multi_field": 1.0, "single_field": 0.94}, 0.05) == []
+    inf = float("inf")
+    assert tied({"multi_field": inf, "single_field": 1.0}, 0.05) == []
+    three = {"multi_field": 1.0, "single_field": 0.97, "single_field + alternatives": 0.5}
+    assert tied(three, 0.05) == []
+    three["single_field + alternatives"] = 0.99
+    assert sorted(tied(three, 0.05)) == sorted(three)
+
+
+class _Descent:
+    """A fake fit with one parameter x: loss = the mode's floor + |x| (x = 0 is every mode's
+    optimum); the brief fit leaves x at half the mode's start, each continued step halves it.
+    The single-field floor is lower but its start farther, so the brief fits end within the
+    margin of each other."""
+
+    floors = {"multi_field": 1.0, "single_field": 0.7}
+    starts = {"multi_field": 0.5, "single_field": 1.0}
+
+    def __init__(self):
+        self.simulator = "multi_field"
+        self.objective = SimpleNamespace(terms={})  # no point subsampling to replay
+        self.vector = SimpleNamespace(
+            velocity={}, normalized={"x": torch.tensor(0.0)}, to_json=lambda: {}
+        )
+        self.steps = []
+
+    def window_loss(self, vector, frames):
+        return self.floors[self.simulator] + float(vector.normalized["x"].abs())
+
+    def search(self, fit):
+        self.steps.append((self.simulator, "brief"))
+        self.vector.normalized["x"].fill_(self.starts[self.simulator] / 2)
+
+    def extend(self, fit, steps):
+        self.steps.append((self.simulator, steps))
+        self.vector.normalized["x"].mul_(0.5**steps)
+
+
+@pytest.mark.parametrize("tie_iterations", [0, 2])
+def test_a_tie_continues_the_tied_fits_and_decides_on_their_losses(tie_iterations):
+    """The brief fits end 1.25 (multi-field, the recipe's) against 1.2 (single-field): within
+    the 5 % margin, so without more steps the recipe's mode is kept; two more steps each make
+    them 1.0625 against 0.825 and single-field is chosen, the brief losses recorded beside."""
+    modes = ContactModes(
+        {"multi_field": "multi_field", "single_field": "single_field"},
+        "multi_field",
+        0.05,
+        tie_iterations=tie_iterations,
+    )
+    fit = _Descent()
+    record = choose_contact(
+        modes, fit, fit.vector, frames=5, search=fit.search, history=[], extend=fit.extend
+    )
+    brief = {"multi_field": 1.25, "single_field": 1.2}
+    if tie_iterations == 0:
+        assert record["mode"] == "multi_field" and record["losses"] == brief
+        assert "brief_losses" not in record
+        assert fit.steps == [("multi_field", "brief"), ("single_field", "brief")]
+    else:
+        assert record["mode"] == "single_field" and record["brief_losses"] == brief
+        assert record["losses"] == {"multi_field": 1.0625, "single_field": 0.825}
+        assert record["tie_iterations"] == 2
+        assert fit.steps[2:] == [("multi_field", 2), ("single_field", 2)]
+    assert fit.simulator == record["mode"]  # the fit goes on in the chosen mode
+    # where the brief fits already tell the modes apart nothing is continued
+    fit = _Descent()
+    fit.floors = {"multi_field": 1.0, "single_field": 0.5}
+    record = choose_contact(
+        modes, fit, fit.vector, frames=5, search=fit.search, history=[], extend=fit.extend
+    )
+    assert record["mode"] == "single_field" and len(fit.steps) == 2
+
+
+def test_a_run_continues_tied_brief_fits(tmp_path):
+    """Through the pipeline: with a margin no brief fit beats, both modes are tied, each
+    continues by identify.contact_tie_iterations steps (history records of the contact fit,
+    tagged with the mode), and identified.json keeps the brief losses beside the new ones."""
+    require_simulator("warp-mpm")
+    tie = ["identify.contact_margin=0.999", "identify.contact_tie_iterations=2"]
+    run, lines = _run(tmp_path, "single_field", *tie)
+    contact = json.loads((run / "identified.json").read_text())["contact"]
+    assert contact["tie_iterations"] == 2
+    assert set(contact["brief_losses"]) == set(contact["losses"]) == set(OTHER)
+    assert contact["brief_losses"] != contact["losses"]
+    history = read_history(run / "identify" / "history.json")
+    fits = [r for r in history if r.get("phase") == "contact_fit"]
+    for mode in OTHER:  # 3 brief steps and 2 continued, each with its own iterate records
+        assert sum(1 for r in fits if r.get("contact") == mode) >= 5, fits
+    assert any("continued by 2 steps" in line for line in lines), lines
 
 
 def test_fixed_contact_is_recorded_and_a_resumed_run_keeps_the_choice():

@@ -24,6 +24,10 @@ data decide:
 3. The recipe's ``simulator.contact`` is kept unless the other mode's loss is lower than
    ``(1 - identify.contact_margin)`` times the kept mode's loss. Where the bodies never touch
    in the observed frames both modes roll out the same motion and the recipe decides.
+   With ``identify.contact_tie_iterations`` the variants the rule cannot tell apart (within
+   the margin of the lowest loss, ``tied``) first continue their brief fits by that many
+   steps, and the rule decides on their new losses (a tie after a few steps may be one mode
+   still converging from farther away).
 
 The same brief fits also choose the stress (``identify.law_choice: auto``): each contact mode is
 tried with the recipe's laws (``identify.laws``) and with those laws overridden by
@@ -38,7 +42,8 @@ The choice is recorded in the history (phase ``contact``; the brief fits are pha
 ``contact_fit``, the global stage's records tagged with their ``contact`` mode), in
 identified.json under ``contact`` (``choice``, ``mode``, and for ``auto`` the
 ``recipe_mode``, each variant's ``losses``, the ``margin`` and the last of the ``frames``
-scored, and with the law choice the chosen ``laws`` set and its ``law_map``, object id -> law)
+scored, after a tie the ``brief_losses`` before it was continued and the ``tie_iterations``,
+and with the law choice the chosen ``laws`` set and its ``law_map``, object id -> law)
 and in the log. With ``identify.contact: fixed`` identified.json records the recipe's mode.
 The parameter phase continues from the chosen mode's brief fit, and it, the intervals,
 evaluation and every later rollout of the run (``mosiv eval``, ``mosiv simulate``, ``mosiv
@@ -80,6 +85,9 @@ class ContactModes:
     #: the recipe's (kept unless another fits better by more than ``margin``); empty: the laws
     #: are not chosen
     law_sets: dict[str, dict[int, str]] = field(default_factory=dict)
+    #: parameter steps that continue the brief fits of variants tied within ``margin``
+    #: (``identify.contact_tie_iterations``; 0: a tie keeps the recipe's variant at once)
+    tie_iterations: int = 0
 
     @property
     def order(self) -> list[str]:
@@ -104,6 +112,7 @@ def contact_modes(
     simulator,
     *,
     margin: float,
+    tie_iterations: int = 0,
     every_mode: bool = True,
     law_sets: dict[str, dict[int, str]] | None = None,
 ) -> ContactModes:
@@ -120,7 +129,7 @@ def contact_modes(
             simulators[mode] = get_registry().create(
                 "simulator", name, {**options, "contact": mode}
             )
-    return ContactModes(simulators, default, margin, dict(law_sets or {}))
+    return ContactModes(simulators, default, margin, dict(law_sets or {}), int(tie_iterations))
 
 
 def law_sets(
@@ -146,6 +155,17 @@ def pick(losses: dict[str, float], default: str, margin: float) -> str:
     return default
 
 
+def tied(losses: dict[str, float], margin: float) -> list[str]:
+    """The variants the rule cannot tell apart: those whose loss the lowest one does not beat
+    by more than ``margin`` (a fraction of their loss); empty unless there are two or more."""
+    finite = {m: v for m, v in losses.items() if math.isfinite(v)}
+    if not finite:
+        return []
+    lowest = min(finite.values())
+    close = [m for m, v in finite.items() if not lowest < (1.0 - margin) * v]
+    return close if len(close) > 1 else []
+
+
 def choose_contact(
     modes: ContactModes,
     fit: Fit,
@@ -154,6 +174,7 @@ def choose_contact(
     frames: int,
     search: Callable[[Fit], None],
     history: list[dict],
+    extend: Callable[[Fit, int], None] | None = None,
 ) -> dict:
     """Score every mode (see the module docstring), leave ``fit.simulator`` in the chosen one
     and ``vector`` at that mode's start; returns the choice's history record (also appended).
@@ -168,6 +189,9 @@ def choose_contact(
             moves ``vector``; a SimulationDiverged from it scores the mode ``inf``).
         history: the identification history; the global stage's records of each mode are
             tagged with ``contact``.
+        extend: continues a variant's brief fit by the given number of parameter steps; with
+            ``modes.tie_iterations`` it is run on each variant of a tie (``tied``) from where
+            its brief fit left it, and the variants are scored again.
     """
     start = BestIterate.snapshot(vector)
     draws = _draw_states(fit.objective)
@@ -192,6 +216,26 @@ def choose_contact(
         leaves[label] = BestIterate.snapshot(vector)
         log.info("contact %s: loss %.6g over frames 1..%d", label, losses[label], frames)
     default = modes.label(*modes.variants()[0])
+    brief = dict(losses)
+    close = tied(losses, modes.margin) if extend is not None and modes.tie_iterations > 0 else []
+    for label in close:  # more evidence where the brief fits could not tell the variants apart
+        leaves[label].apply(vector)
+        _use_variant(modes, fit, vector, *variants[label])
+        first = len(history)
+        try:
+            extend(fit, modes.tie_iterations)
+        except SimulationDiverged as exc:
+            log.warning("contact %s, continued: %s", label, exc)
+            losses[label] = math.inf
+            continue
+        finally:
+            for record in history[first:]:
+                record["contact"] = label
+        _restore_draws(draws)
+        losses[label] = _score(fit, vector, frames)
+        leaves[label] = BestIterate.snapshot(vector)
+        log.info("contact %s, continued by %d steps: loss %.6g", label, modes.tie_iterations,
+                 losses[label])  # fmt: skip
     chosen = pick(losses, default, modes.margin)
     mode, laws = variants[chosen]
     leaves[chosen].apply(vector)
@@ -206,6 +250,9 @@ def choose_contact(
         "frames": frames,
         "values": vector.to_json(),
     }
+    if close:  # the losses above are those after the tied variants' continued fits
+        record["brief_losses"] = {m: (v if math.isfinite(v) else None) for m, v in brief.items()}
+        record["tie_iterations"] = modes.tie_iterations
     if laws is not None:
         record["laws"] = laws
         record["law_map"] = {str(k): law for k, law in modes.law_sets[laws].items()}
@@ -253,7 +300,8 @@ def contact_json(history: list[dict], simulator_section) -> dict | None:
     mode; None for a simulator without a ``contact`` option."""
     record = choice_record(history)
     if record is not None:
-        keep = ("choice", "mode", "recipe_mode", "losses", "margin", "frames", "laws", "law_map")
+        keep = ("choice", "mode", "recipe_mode", "losses", "margin", "frames", "laws", "law_map",
+                "brief_losses", "tie_iterations")  # fmt: skip
         return {k: record[k] for k in keep if k in record}
     mode = simulator_section.get("contact", None)
     return None if mode is None else {"choice": "fixed", "mode": str(mode)}

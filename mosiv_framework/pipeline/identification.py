@@ -94,6 +94,7 @@ def identify_stage(
             recipe.simulator,
             simulator,
             margin=section.contact_margin,
+            tie_iterations=section.contact_tie_iterations,
             every_mode=section.contact == "auto",
             law_sets=sets,
         )

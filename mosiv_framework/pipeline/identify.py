@@ -236,20 +236,24 @@ def _global_stage(
                 fit_in_mode, state.vector, points=polish, frames=frames, history=state.history
             )
         if contact is not None and brief > 0:
-            # the brief fit of a contact mode: the whole window from the first step, no
-            # checkpoints (a resumed run redoes the choice), the best iterate kept
-            trial = ParameterPhase(CONTACT_FIT, brief, phase.lr, phase.last, phase.last)
-            run = _PhaseRun(trial, -1, fit_in_mode, state, brief, None)
-            run.iterate(first=0, full_at=section.horizon_full_at)
-            run.polish()  # the last step's iterate competes too
-            run.best.apply(state.vector)
+            brief_fit(fit_in_mode, brief)
+
+    def brief_fit(fit_in_mode: Fit, steps: int) -> None:
+        # the brief fit of a contact mode: the whole window from the first step, no
+        # checkpoints (a resumed run redoes the choice), the best iterate kept
+        trial = ParameterPhase(CONTACT_FIT, steps, phase.lr, phase.last, phase.last)
+        run = _PhaseRun(trial, -1, fit_in_mode, state, steps, None)
+        run.iterate(first=0, full_at=section.horizon_full_at)
+        run.polish()  # the last step's iterate competes too
+        run.best.apply(state.vector)
 
     if contact is None:
         stage(fit)
     else:
         choose_contact(
-            contact, fit, state.vector, frames=phase.last, search=stage, history=state.history
-        )
+            contact, fit, state.vector, frames=phase.last, search=stage, history=state.history,
+            extend=brief_fit if search else None,
+        )  # fmt: skip
     state.global_done = True
 
 

@@ -129,6 +129,10 @@ class IdentifySection:
     contact_margin: with contact "auto", the simulator's ``contact`` is kept unless the other
     mode's loss is lower by more than this fraction of its loss (ties, e.g. bodies that never
     touch in the observed frames, keep it);
+    contact_tie_iterations: where the brief fits leave two or more variants within
+    ``contact_margin`` of the lowest loss, each of those continues its brief fit by this many
+    parameter steps and the rule is applied again to the new losses (0: the tie keeps the
+    recipe's variant at once);
     laws: the law each scene material is identified with where it is not the family's own,
     e.g. ``{elastic: elastic_corotated, plasticine: plasticine_corotated}`` (the stress of
     Genesis's Elastic and ElastoPlastic); the two laws must have the same parameters, so
@@ -190,6 +194,7 @@ class IdentifySection:
     contact: str = "fixed"
     contact_iterations: int = 20
     contact_margin: float = 0.05
+    contact_tie_iterations: int = 0
     laws: dict[str, str] = field(default_factory=dict)
     law_choice: str = "fixed"
     law_alternatives: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_LAW_ALTERNATIVES))
@@ -276,6 +281,7 @@ IDENTIFY_RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "holdout_frames": (0, None, "observed frames held out of the parameter phase (0 = off)"),
     "contact_iterations": (0, None, "parameter steps of each contact mode's brief fit"),
     "contact_margin": (0.0, 1.0, "the fraction by which the other contact mode must fit better"),
+    "contact_tie_iterations": (0, None, "parameter steps that continue tied brief fits"),
 }
 #: rates are exclusive at 0: a zero learning rate never moves
 _POSITIVE = ("velocity_lr", "param_lr")
