@@ -325,6 +325,10 @@ def test_export_refuses_what_it_must_not_touch(finished_run, tmp_path, capsys):
         (evaluated / name).unlink()
     assert main(["export", str(evaluated), "--out", str(tmp_path / "y")]) == 2
     assert f"`mosiv eval {evaluated}` writes the rollout again" in capsys.readouterr().err
+    partial = shutil.copytree(evaluated, tmp_path / "no_reconstruction")
+    (partial / "reconstruction.pt").unlink()  # `mosiv eval` could not start from this one
+    assert main(["export", str(partial), "--out", str(tmp_path / "z")]) == 2
+    assert "the run did not finish" in capsys.readouterr().err
     with ballistic_registry():
         assert main(["eval", str(evaluated)]) == 0
     assert main(["export", str(evaluated), "--out", str(tmp_path / "y")]) == 0

@@ -19,6 +19,7 @@ from mosiv_framework.capture.lens import (
     Distortion,
     distort_frames,
     distort_points,
+    remap,
     undistort_frames,
     undistort_points,
 )
@@ -99,6 +100,13 @@ def test_undistort_in_place_writes_the_same_frames_into_the_clip(scene):
     expected = undistort_frames(lensed, intrinsics(cam), LENS)
     got = undistort_frames(lensed, intrinsics(cam), LENS, in_place=True)
     assert got is lensed and np.array_equal(got, expected)
+    lensed.flags.writeable = False
+    with pytest.raises(ValueError, match="writable uint8 .* read-only"):
+        undistort_frames(lensed, intrinsics(cam), LENS, in_place=True)
+    uv = np.zeros(lensed.shape[1:3] + (2,))
+    overlapping = np.concatenate([lensed, lensed[:1]])
+    with pytest.raises(ValueError, match="overlaps the frames"):
+        remap(overlapping[1:], uv, out=overlapping[:-1])
 
 
 def test_import_brought_down_to_a_resolution_scales_the_cameras(capture, imported, tmp_path):

@@ -134,14 +134,28 @@ def test_a_bad_plugin_option_from_the_command_line_is_the_overrides(tmp_path):
     pytest.importorskip("mosiv_warp_mpm")
     quickstart = RECIPES / "quickstart.yaml"
     for override, said in [
-        ("simulator.substeps=0", "option substeps=0"),
-        ("simulator.grid_window=5", "option grid_window='5'"),
-        ("simulator.foo=1", "has no option 'foo'"),
+        ("simulator.substeps=0", "simulator: simulator warp-mpm option substeps=0"),
+        ("simulator.grid_window=5", "simulator: simulator warp-mpm option grid_window='5'"),
+        ("simulator.foo=1", "simulator: simulator 'warp-mpm' has no option 'foo'"),
+        ("simulator.name=nosuch", "simulator.name: unknown simulator 'nosuch'"),
+        ("losses.chamfer.weight=-1", "losses.chamfer: chamfer.weight must be"),
+        ("lifter.voxel_size=-1", "lifter: lifter 'gt-points': voxel_size must be"),
+        ("lifter.renderer_options.x=0", "has no option 'renderer_options'"),
     ]:
         with pytest.raises(ConfigError) as err:
             load_recipe(quickstart, [override])
         (problem,) = err.value.problems
-        assert problem.startswith(f"override {override!r}: simulator: ") and said in problem
+        assert problem.startswith(f"override {override!r}: ") and said in problem, problem
+    # a word of the message that is an option's name ("name") does not make it that option's
+    pytest.importorskip("mosiv_lift")
+    lines = quickstart.read_text().splitlines()
+    lifter = [i for i, line in enumerate(lines) if line.startswith("lifter:")]
+    lines[lifter[0]] = "lifter: {name: gaussians, renderer: ''}"
+    bad_renderer = write(tmp_path, "\n".join(lines) + "\n")
+    with pytest.raises(ConfigError) as err:
+        load_recipe(bad_renderer, ["lifter.name=gaussians"])
+    (problem,) = err.value.problems
+    assert problem.startswith(f"{bad_renderer}: lifter: ") and "renderer name" in problem
     text = quickstart.read_text().replace("name: warp-mpm", "name: warp-mpm, foo: 1")
     assert text != quickstart.read_text()
     own = write(tmp_path, text)

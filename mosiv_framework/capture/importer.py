@@ -348,8 +348,8 @@ def import_recording(s: ImportSettings) -> Path:
     videos, fps = load_frames(s, sources, cams)
     videos, offsets, estimated, left_out, spans = synchronise(s, videos, yaml_offsets)
     cams = {c: cam for c, cam in cams.items() if c in videos}
-    for c, v in videos.items():  # in place: a long clip is held once
-        undistort_frames(v, cams[c].intrinsics, cams[c].distortion, in_place=True)
+    for c in videos:  # in place: a long clip is held once (no loop variable keeps one alive)
+        undistort_frames(videos[c], cams[c].intrinsics, cams[c].distortion, in_place=True)
     plates = load_plates(s.background, cams, s.resolution)
     align, up, ground = _alignment(s, cams)
     origins = {cid: cam.origin for cid, cam in cams.items()}

@@ -200,8 +200,13 @@ def remap(
     shape = (t,) + uv.shape[:2] + (c,)
     if out is None:
         out = np.empty(shape, dtype=np.uint8)
-    elif out.shape != shape or out.dtype != np.uint8:
-        raise ValueError(f"out: uint8 {list(shape)} expected, got {out.dtype} {list(out.shape)}")
+    elif out.shape != shape or out.dtype != np.uint8 or not out.flags.writeable:
+        raise ValueError(
+            f"out: a writable uint8 {list(shape)} array expected, got {out.dtype} "
+            f"{list(out.shape)}{'' if out.flags.writeable else ', read-only'}"
+        )
+    elif out is not frames and np.shares_memory(out, frames):
+        raise ValueError("out: overlaps the frames without being them; give frames or a new array")
     for start in range(0, t, chunk):
         part = torch.from_numpy(np.ascontiguousarray(frames[start : start + chunk]))
         src = part.permute(0, 3, 1, 2).to(torch.float32)

@@ -143,8 +143,8 @@ def pad_late_cameras(
         raise CaptureError(f"camera(s) {', '.join(late)} start after the last kept frame {n - 1}")
     out = {}
     for cam, video in videos.items():
-        if starts[cam] == 0 and ends[cam] >= n:  # nothing to pad: a view, not a copy
-            out[cam] = video[common : common + n]
+        if starts[cam] == 0 and common == 0 and len(video) == n:  # all of it, unpadded:
+            out[cam] = video  # not copied (a view of part of it would hold the rest too)
             continue
         shape = video.shape[1:]
         before = np.zeros((starts[cam],) + shape, video.dtype)

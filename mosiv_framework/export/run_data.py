@@ -12,6 +12,7 @@ with dynamic Gaussians from ``gauss-dynamic``); ``identified.json``, ``metrics.j
 from __future__ import annotations
 
 import logging
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -145,10 +146,13 @@ def load_run(path: str | Path) -> RunData:
         present = [
             n for n in ("recipe.yaml", "identified.json", "metrics.json") if (root / n).is_file()
         ]
-        if "identified.json" in present:  # identification finished: evaluating writes it
+        from mosiv_framework.pipeline.novel import REQUIRED
+
+        if all((root / n).is_file() for n in REQUIRED):  # what `mosiv eval` starts from
             hint = (
-                f"it has {', '.join(present)}, so `mosiv eval {root}` writes the rollout again "
-                "(the evaluate stage stopped before saving it, or the file was removed)"
+                f"it has {', '.join(present)}, so `mosiv eval {shlex.quote(str(root))}` writes "
+                "the rollout again (the evaluate stage stopped before saving it, or the file "
+                "was removed)"
             )
         elif present:
             hint = f"it has {', '.join(present)}: the run did not finish; rerun `mosiv run`"

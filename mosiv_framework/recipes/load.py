@@ -154,30 +154,38 @@ def check_recipe(
 
 def _where(problem: str, path: str | Path, overrides: Sequence[str]) -> str:
     """``problem`` prefixed with where it comes from: the command-line override whose key it
-    names (a typo there is not the file's), else the recipe file."""
-    for item in overrides:
-        key = item.partition("=")[0].strip()
-        if not key:
-            continue
-        section = re.escape(key.split(".")[0])
-        # the whole dotted key, not the tail of a longer one (dt= inside simulator.dt=)
-        named = rf"(?<![\w.]){re.escape(key)}[;=]|unknown recipe section '{section}'"
-        if re.search(named, problem) or _names_option(problem, key):
-            return f"override {item!r}: {problem}"
+    names (a typo there is not the file's), else the recipe file. An override the problem names
+    by its whole key wins over one whose option a plugin names (``_names_option``)."""
+    keys = [(item, item.partition("=")[0].strip()) for item in overrides]
+    for names in (_names_key, _names_option):
+        for item, key in keys:
+            if key and names(problem, key):
+                return f"override {item!r}: {problem}"
     return f"{path}: {problem}"
 
 
+def _names_key(problem: str, key: str) -> bool:
+    """Whether ``problem`` names the dotted ``key`` whole (not the tail of a longer one: dt=
+    inside simulator.dt=), or the unknown section it starts with."""
+    section = re.escape(key.split(".")[0])
+    named = rf"(?<![\w.]){re.escape(key)}[;=]|unknown recipe section '{section}'"
+    return problem.startswith(f"{key}: ") or re.search(named, problem) is not None
+
+
 def _names_option(problem: str, key: str) -> bool:
-    """Whether ``problem`` is about the component option that the override ``key`` sets: a
-    plugin checks its own options and names the option, not the dotted key ("simulator:
-    simulator warp-mpm option substeps=0: ...", "lifter: lifter 'gt-points': voxel_size must
-    ..."); the override's value replaced the file's, so a problem with it is the override's."""
-    section, _, leaf = key.partition(".")
-    if not leaf or "." in leaf:
-        return False
-    word = rf"(?<![\w.]){re.escape(leaf)}(?!\w)"
-    said = re.split(r"valid (?:options|values|names)", problem)[0]  # not the list of options
-    return problem.startswith(f"{section}: ") and re.search(word, said) is not None
+    """Whether ``problem`` is about the option that the override ``key`` sets where a plugin
+    checks its options: the problem starts with a dotted prefix of the key ("scene.source: ",
+    "losses.chamfer: ") and names the key's next part the way plugins do ("option
+    substeps=0", "has no option 'foo'", "voxel_size must ..."); the override's value replaced
+    the file's, so a problem with it is the override's."""
+    parts = key.split(".")
+    for cut in range(len(parts) - 1, 0, -1):  # the longest prefix the problem starts with
+        if problem.startswith(".".join(parts[:cut]) + ": "):
+            leaf = re.escape(parts[cut])
+            said = re.split(r"valid (?:options|values|names)", problem)[0]  # not the lists
+            forms = rf"(?<!\w){leaf}(?:=| must )|option '{leaf}'"
+            return re.search(forms, said) is not None
+    return False
 
 
 def load_recipe(
