@@ -3,9 +3,9 @@
 Writes the two-sphere example scene (``--cameras``, ``--frames``, ``--size`` pixels square),
 turns it into a capture as a rig delivers it (``mosiv data capture``: H.264 videos through a
 lens, COLMAP cameras in cm with y up, clean plates), and imports it with the classical
-segmenter in a child process of its own, whose peak resident memory (``ru_maxrss``) is read
-there. A second child that loads the same modules and imports nothing gives the baseline (the
-Python, torch and MOSIV modules). The figure of merit is the import's own peak over the bytes of
+segmenter in a child process of its own, whose peak resident memory (VmHWM) is read there.
+The same import of the same rig at 16 frames of 64 pixels, in a child of its own, gives
+the baseline (the modules it loads: Python, torch, MOSIV, ffmpeg). The figure of merit is the import's own peak over the bytes of
 its frames as uint8 RGB: the frames themselves are held in memory (docs/SCENE_FORMAT.md), so 1
 is the floor and anything above it is working memory.
 
@@ -28,17 +28,23 @@ HERE = Path(__file__).resolve().parent
 
 
 def peak_rss_mb() -> float:
-    """This process's peak resident memory in MB (Linux reports ru_maxrss in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    """This process's peak resident memory in MB: Linux's VmHWM, which starts afresh with the
+    program (ru_maxrss is kept across exec, so a child would report its parent's peak when that
+    was larger); ru_maxrss where /proc is not there."""
+    status = Path("/proc/self/status")
+    if status.is_file():
+        for line in status.read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0  # kB
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
 
 
 def child(argv: list[str]) -> int:
-    """Run ``mosiv data import ARGV`` here (or, with no ARGV, only load what it loads) and print
-    the peak memory as the last line of stdout."""
+    """Run ``mosiv data import ARGV`` here and print the peak memory as the last line of
+    stdout."""
     from mosiv_framework.cli.main import main as mosiv
-    from mosiv_framework.segment import classical  # noqa: F401  (loaded by the import too)
 
-    code = mosiv(["data", "import", *argv]) if argv else 0
+    code = mosiv(["data", "import", *argv])
     print(json.dumps({"peak_rss_mb": peak_rss_mb(), "code": code}))
     return int(code or 0)
 
@@ -80,6 +86,29 @@ def code_version() -> str:
     return version + ("+modified" if dirty.stdout.strip() else "")
 
 
+def write_capture(folder: Path, cameras: int, frames: int, size: int) -> tuple[Path, str]:
+    """The example scene in ``folder``/scene and its rig capture in ``folder``/capture; returns
+    (the capture, its objects' materials as ``--materials`` takes them)."""
+    from mosiv_framework.scene.example import write_example_scene
+
+    scene, capture = folder / "scene", folder / "capture"
+    write_example_scene(scene, n_frames=frames, n_cameras=cameras, size=size)
+    rig = ["--units", "cm", "--up", "y", "--distortion=-0.05,0.01", "--background-plate"]
+    subprocess.run(
+        [sys.executable, "-m", "mosiv_framework.cli.main", "data", "capture", *rig,
+         str(scene), str(capture)],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    objects = json.loads((scene / "scene.json").read_text(encoding="utf-8"))["objects"]
+    return capture, ",".join(o["material"] for o in sorted(objects, key=lambda o: o["id"]))
+
+
+def import_args(capture: Path, out: Path, materials: str) -> list[str]:
+    """``mosiv data import`` of a capture written by ``write_capture``."""
+    return [str(out), "--recording", str(capture), "--materials", materials,
+            "--units", "cm", "--up", "y", "--offsets", "none"]  # fmt: skip
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--child"]:
@@ -92,23 +121,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.out.exists() and any(args.out.iterdir()):
         raise SystemExit(f"--out {args.out}: not empty; give a new folder")
-    from mosiv_framework.scene.example import write_example_scene
-
-    scene, capture, imported = args.out / "scene", args.out / "capture", args.out / "imported"
     print(f"[import-memory] writing the example scene {args.cameras} x {args.frames} frames")
-    write_example_scene(scene, n_frames=args.frames, n_cameras=args.cameras, size=args.size)
-    rig = ["--units", "cm", "--up", "y", "--distortion=-0.05,0.01", "--background-plate"]
-    subprocess.run(
-        [sys.executable, "-m", "mosiv_framework.cli.main", "data", "capture", *rig,
-         str(scene), str(capture)],
-        check=True, capture_output=True,
-    )  # fmt: skip
-    print("[import-memory] importing (child process)")
-    baseline = measure([])
-    objects = json.loads((scene / "scene.json").read_text(encoding="utf-8"))["objects"]
-    materials = ",".join(o["material"] for o in sorted(objects, key=lambda o: o["id"]))
-    run = measure([str(imported), "--recording", str(capture), "--materials", materials,
-                   "--units", "cm", "--up", "y", "--offsets", "none"])  # fmt: skip
+    capture, materials = write_capture(args.out / "full", args.cameras, args.frames, args.size)
+    # the baseline: the same import of the same rig at 16 frames of 64 pixels, which loads every
+    # module the full import loads and holds next to nothing
+    tiny, _ = write_capture(args.out / "tiny", args.cameras, 16, 64)
+    print("[import-memory] importing (child processes)")
+    baseline = measure(import_args(tiny, args.out / "tiny" / "imported", materials))
+    imported = args.out / "full" / "imported"
+    run = measure(import_args(capture, imported, materials))
     frames_mb = frame_bytes(imported) / 2**20
     own = run["peak_rss_mb"] - baseline["peak_rss_mb"]
     row = {
