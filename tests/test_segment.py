@@ -193,6 +193,23 @@ def _iou(true, masks, k, p):
     return inter / union
 
 
+def test_packed_foregrounds_read_back_as_the_foregrounds(two_spheres):
+    """The hull is carved from foregrounds packed eight pixels to a byte: every frame reads back
+    as the unpacked one, widths that are not a multiple of 8 included."""
+    from mosiv_framework.segment.classical import _unpacked
+
+    frames, _, plate = two_spheres
+    segmenter = get_registry().create("segmenter", "classical", {"background_dir": str(plate)})
+    plain, packed = segmenter.foregrounds(frames), segmenter.foregrounds(frames, packed=True)
+    for cam, mask in plain.items():
+        assert mask.any() and packed[cam].nbytes * 8 == mask.size
+        for t in range(len(mask)):
+            assert np.array_equal(_unpacked(packed[cam], t, mask.shape[2]), mask[t])
+    odd = np.random.default_rng(0).random((3, 5, 45)) > 0.5
+    packed_odd = np.packbits(odd, axis=-1)
+    assert all(np.array_equal(_unpacked(packed_odd, t, 45), odd[t]) for t in range(3))
+
+
 def test_classical_masks_match_the_true_masks(two_spheres):
     frames, true, plate = two_spheres
     segmenter = get_registry().create("segmenter", "classical", {"background_dir": str(plate)})

@@ -153,15 +153,17 @@ class ClassicalSegmenter(Segmenter):
             for cam, video in frames.rgb.items()
         }
 
-    def foregrounds(self, frames: Frames) -> dict[str, np.ndarray]:
+    def foregrounds(self, frames: Frames, *, packed: bool = False) -> dict[str, np.ndarray]:
         """Cleaned foreground of every camera, bool [T, H, W] (empty at a frame the camera did
-        not record: ``segment`` leaves those views out of the hull)."""
+        not record: ``segment`` leaves those views out of the hull). ``packed``: each camera's
+        as ``np.packbits`` along the rows, uint8 [T, H, ceil(W / 8)] (``_unpacked`` reads a
+        frame back), an eighth of the memory: every camera's is held while the hull is carved."""
         opts = self.options
         out = {}
         for cam, background in self.backgrounds(frames).items():
             span = _span(frames, cam)
-            out[cam] = np.zeros(frames.rgb[cam].shape[:3], dtype=bool)
-            out[cam][span], _ = fgmod.foreground(
+            mask = np.zeros(frames.rgb[cam].shape[:3], dtype=bool)
+            mask[span], _ = fgmod.foreground(
                 frames.rgb[cam][span],
                 background,
                 threshold=opts.threshold,
@@ -171,6 +173,7 @@ class ClassicalSegmenter(Segmenter):
                 auto=opts.auto_threshold,
                 edge_fraction=opts.edge_fraction,
             )
+            out[cam] = np.packbits(mask, axis=-1) if packed else mask
         return out
 
     def segment(self, frames: Frames) -> dict[str, np.ndarray]:
@@ -181,7 +184,8 @@ class ClassicalSegmenter(Segmenter):
             )
         opts = self.options
         cams = frames.camera_ids
-        fg = self.foregrounds(frames)
+        fg = self.foregrounds(frames, packed=True)
+        width = {c: frames.rgb[c].shape[2] for c in cams}
         grid = hull.VoxelGrid.over(frames.domain, opts.voxels)
         centres = grid.centres()
         tables = [hull.project_grid(grid, frames.cameras[c]) for c in cams]
@@ -190,7 +194,7 @@ class ClassicalSegmenter(Segmenter):
             views = [i for i, c in enumerate(cams) if t in frames.recorded(c)]
             occupied = hull.carve(
                 [tables[i] for i in views],
-                [fg[cams[i]][t] for i in views],
+                [_unpacked(fg[cams[i]], t, width[cams[i]]) for i in views],
                 view_tolerance=opts.view_tolerance,
             )
             parts.append(hull.components(occupied, grid.shape, opts.min_voxels))
@@ -203,7 +207,7 @@ class ClassicalSegmenter(Segmenter):
             )
         masks = {}
         for cam, table in zip(cams, tables):
-            video = np.zeros(fg[cam].shape, dtype=np.uint8)
+            video = np.zeros(frames.rgb[cam].shape[:3], dtype=np.uint8)
             for t, objects in enumerate(history):
                 if not objects:
                     continue
@@ -211,12 +215,17 @@ class ClassicalSegmenter(Segmenter):
                 labels = np.concatenate(
                     [np.full(v.size, k, dtype=np.uint8) for k, v in enumerate(objects, 1)]
                 )
-                video[t] = hull.paint(table, fg[cam][t], voxels, labels)
+                video[t] = hull.paint(table, _unpacked(fg[cam], t, width[cam]), voxels, labels)
             recorded = np.zeros(len(video), dtype=bool)
             recorded[_span(frames, cam)] = True
             video[~recorded] = 0  # no mask where the camera recorded no image
             masks[cam] = video
         return masks
+
+
+def _unpacked(packed: np.ndarray, t: int, width: int) -> np.ndarray:
+    """Frame ``t`` of a packed foreground (``foregrounds(packed=True)``), bool [H, W]."""
+    return np.unpackbits(packed[t], axis=-1, count=width).astype(bool)
 
 
 def _background_frames(frames: Frames, camera_id: str, opts: ClassicalOptions) -> list[int]:
