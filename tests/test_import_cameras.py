@@ -301,17 +301,3 @@ def test_frames_are_checked_at_their_recorded_size_and_a_folder_of_hidden_files_
     (hidden / "._0.png").write_bytes(b"\x00\x05\x16\x07")
     with pytest.raises(CaptureError, match="holds no image frames"):
         read_image_folder(hidden)
-
-
-def test_frames_are_stacked_without_holding_the_clip_twice():
-    """``stack_releasing``: the array np.stack gives, each frame let go once copied; frames of
-    different sizes refused rather than broadcast."""
-    from mosiv_framework.capture.video import stack_releasing
-
-    rng = np.random.default_rng(1)
-    frames = [rng.integers(0, 256, (6, 5, 3), dtype=np.uint8) for _ in range(4)]
-    expected = np.stack(frames)
-    assert np.array_equal(stack_releasing(frames), expected)
-    assert frames == [None] * 4
-    with pytest.raises(ValueError, match="frame 1"):
-        stack_releasing([np.zeros((6, 5, 3), np.uint8), np.zeros((1, 5, 3), np.uint8)])

@@ -109,19 +109,6 @@ def _check_size(frame: np.ndarray, expect: Expected | None, where: str) -> None:
         )
 
 
-def stack_releasing(frames: list[np.ndarray]) -> np.ndarray:
-    """``np.stack(frames)``, releasing each frame from the list as it is copied, so that a long
-    clip is not held twice (the list, then the array) while it is stacked; ``frames`` is left
-    holding None."""
-    out = np.empty((len(frames),) + frames[0].shape, dtype=frames[0].dtype)
-    for i in range(len(frames)):
-        if frames[i].shape != out.shape[1:]:  # as np.stack: no broadcasting
-            raise ValueError(f"frame {i} is {frames[i].shape}, frame 0 {out.shape[1:]}")
-        out[i] = frames[i]
-        frames[i] = None
-    return out
-
-
 def read_video(
     path: Path,
     *,
@@ -164,7 +151,7 @@ def read_video(
         raise OutputError(f"{path}: cannot be read as a video ({exc})") from exc
     if not frames:
         raise OutputError(f"{path}: cannot be read as a video (it holds no frames)")
-    return stack_releasing(frames), (float(fps) if fps else None)
+    return np.stack(frames), (float(fps) if fps else None)
 
 
 def read_image_folder(
@@ -204,7 +191,7 @@ def read_image_folder(
                 f"{first[1]}x{first[0]}; a camera's frames share one size"
             )
         frames.append(shrink(frame, shrunk_size(*frame.shape[:2], longest_side)))
-    return stack_releasing(frames)
+    return np.stack(frames)
 
 
 def read_image(path: Path) -> np.ndarray:
