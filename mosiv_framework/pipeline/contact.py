@@ -196,46 +196,38 @@ def choose_contact(
     start = BestIterate.snapshot(vector)
     draws = _draw_states(fit.objective)
     losses, leaves, variants = {}, {}, {}
-    for mode, laws in modes.variants():
-        label = modes.label(mode, laws)
-        variants[label] = (mode, laws)
-        start.apply(vector)
-        _use_variant(modes, fit, vector, mode, laws)
-        first = len(history)
-        try:
-            search(fit)
-        except SimulationDiverged as exc:  # not one rollout of this variant worked
-            log.warning("contact %s: %s", label, exc)
-            losses[label], leaves[label] = math.inf, start
-            continue
-        finally:
-            for record in history[first:]:
-                record["contact"] = label
-        _restore_draws(draws)
-        losses[label] = _score(fit, vector, frames)
-        leaves[label] = BestIterate.snapshot(vector)
-        log.info("contact %s: loss %.6g over frames 1..%d", label, losses[label], frames)
-    default = modes.label(*modes.variants()[0])
-    brief = dict(losses)
-    close = tied(losses, modes.margin) if extend is not None and modes.tie_iterations > 0 else []
-    for label in close:  # more evidence where the brief fits could not tell the variants apart
-        leaves[label].apply(vector)
+
+    def fit_and_score(label: str, run: Callable[[Fit], None], what: str) -> None:
+        """Run ``run`` in variant ``label`` from where ``vector`` is and score it; the records
+        it appends are tagged with the variant, a divergence scores it inf (leaves kept)."""
         _use_variant(modes, fit, vector, *variants[label])
         first = len(history)
         try:
-            extend(fit, modes.tie_iterations)
-        except SimulationDiverged as exc:
-            log.warning("contact %s, continued: %s", label, exc)
+            run(fit)
+        except SimulationDiverged as exc:  # not one rollout of this variant worked
+            log.warning("contact %s%s: %s", label, what, exc)
             losses[label] = math.inf
-            continue
+            return
         finally:
             for record in history[first:]:
                 record["contact"] = label
         _restore_draws(draws)
         losses[label] = _score(fit, vector, frames)
         leaves[label] = BestIterate.snapshot(vector)
-        log.info("contact %s, continued by %d steps: loss %.6g", label, modes.tie_iterations,
-                 losses[label])  # fmt: skip
+        log.info("contact %s%s: loss %.6g over frames 1..%d", label, what, losses[label], frames)
+
+    for mode, laws in modes.variants():
+        label = modes.label(mode, laws)
+        variants[label], leaves[label] = (mode, laws), start
+        start.apply(vector)
+        fit_and_score(label, search, "")
+    default = modes.label(*modes.variants()[0])
+    brief = dict(losses)
+    close = tied(losses, modes.margin) if extend is not None and modes.tie_iterations > 0 else []
+    steps = modes.tie_iterations
+    for label in close:  # more evidence where the brief fits could not tell the variants apart
+        leaves[label].apply(vector)
+        fit_and_score(label, lambda f: extend(f, steps), f", continued by {steps} steps")
     chosen = pick(losses, default, modes.margin)
     mode, laws = variants[chosen]
     leaves[chosen].apply(vector)
