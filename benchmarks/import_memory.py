@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import subprocess
 import sys
 import time
@@ -28,15 +27,10 @@ HERE = Path(__file__).resolve().parent
 
 
 def peak_rss_mb() -> float:
-    """This process's peak resident memory in MB: Linux's VmHWM, which starts afresh with the
-    program (ru_maxrss is kept across exec, so a child would report its parent's peak when that
-    was larger); ru_maxrss where /proc is not there."""
-    status = Path("/proc/self/status")
-    if status.is_file():
-        for line in status.read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0  # kB
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+    """This process's peak resident memory in MB (its own: ``peak_rss_bytes``)."""
+    from mosiv_framework.pipeline.memory import peak_rss_bytes
+
+    return peak_rss_bytes() / 2**20
 
 
 def child(argv: list[str]) -> int:

@@ -13,7 +13,6 @@ other, in the same process, so both sides of the comparison come from one run.
 from __future__ import annotations
 
 import math
-import resource
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -100,7 +99,7 @@ class BatchBenchResult:
     sequential_s: float
     peak_memory_batched_bytes: int | None
     peak_memory_sequential_bytes: int | None
-    #: the process's resident-memory high-water mark after each side (Linux ru_maxrss)
+    #: the process's resident-memory high-water mark after each side (``peak_rss_bytes``)
     max_rss_after_sequential_bytes: int
     max_rss_after_batched_bytes: int
     #: the simulator options given beside device, grid and substeps
@@ -129,7 +128,9 @@ def batch_params(
 
 
 def _max_rss_bytes() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
+    from mosiv_framework.pipeline.memory import peak_rss_bytes
+
+    return peak_rss_bytes()
 
 
 def run_batch_bench(

@@ -15,6 +15,20 @@ GPU = "GPU"
 RSS = "RSS"
 
 
+def peak_rss_bytes() -> int:
+    """This process's peak resident memory in bytes: Linux's VmHWM, which starts afresh with
+    each program (``ru_maxrss`` is kept across exec, so a child started by a larger parent
+    would report the parent's peak); ``ru_maxrss`` where /proc is not there."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024  # kB
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # KiB on Linux
+
+
 def memory_kind() -> str:
     """What ``peak_memory_gb`` measures in this process: GPU memory once CUDA was used, else
     the process's resident memory."""
@@ -31,7 +45,7 @@ def peak_memory_gb(simulator=None) -> float:
     if memory_kind() == GPU:
         backend = simulator.peak_memory_bytes() if simulator is not None else None
         return max(torch.cuda.max_memory_allocated(), backend or 0) / 2**30
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # ru_maxrss is KiB on Linux
+    return peak_rss_bytes() / 2**30
 
 
 def stage_peak(simulator=None) -> dict:
