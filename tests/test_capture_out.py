@@ -143,7 +143,14 @@ def test_with_reference_copies_gt_beside_the_capture(scene_dir, tmp_path):
     assert not (out / "gt").exists()
 
 
-LENSES = [LENS, Distortion(0.2, -0.05, 0.01, -0.02), Distortion(-0.1, 0.02, 1e-3, 2e-3, -5e-3)]
+LENSES = [
+    LENS,
+    Distortion(0.2, -0.05, 0.01, -0.02),
+    Distortion(-0.1, 0.02, 1e-3, 2e-3, -5e-3),
+    Distortion(-0.2, 0.05, 1e-3, -2e-3, 0.01, 0.1, -0.02, 0.003),  # rational (FULL_OPENCV)
+    Distortion(k1=0.04, k2=-0.01, k3=2e-3, k4=-3e-4, model="fisheye"),
+    Distortion(model="fisheye"),  # equidistant: not a pinhole
+]
 
 
 @pytest.mark.parametrize("lens", [*LENSES, Distortion()])
@@ -167,6 +174,78 @@ def test_forward_model_matches_opencv_formula_by_hand():
     yd = y * radial + 0.002 * (r2 + 2 * y * y) + 2 * -0.003 * x * y
     np.testing.assert_allclose(distort_points(np.array([x, y]), lens), [xd, yd], rtol=1e-15)
     np.testing.assert_allclose(undistort_points(np.array([xd, yd]), lens), [x, y], atol=1e-12)
+
+
+def test_rational_and_fisheye_models_match_their_formulas_by_hand():
+    """The rational radial factor at r^2 = 0.13; the fisheye's angle: a point 45 degrees off
+    the axis (r = 1, theta = pi / 4) lands at r_d = theta (1 + k1 theta^2 + ... + k4 theta^8),
+    and on the axis the lens bends nothing."""
+    lens = Distortion(0.1, 0.01, 0.0, 0.0, 0.004, 0.05, -0.002, 0.001)
+    r2 = 0.13
+    radial = (1 + 0.1 * r2 + 0.01 * r2**2 + 0.004 * r2**3) / (
+        1 + 0.05 * r2 - 0.002 * r2**2 + 0.001 * r2**3
+    )
+    np.testing.assert_allclose(
+        distort_points(np.array([0.3, -0.2]), lens), [0.3 * radial, -0.2 * radial], rtol=1e-15
+    )
+    fisheye = Distortion(k1=0.05, k2=-0.01, k3=0.002, k4=-0.0003, model="fisheye")
+    t = np.pi / 4
+    r_d = t * (1 + 0.05 * t**2 - 0.01 * t**4 + 0.002 * t**6 - 0.0003 * t**8)
+    np.testing.assert_allclose(
+        distort_points(np.array([0.6, 0.8]), fisheye), [0.6 * r_d, 0.8 * r_d]
+    )
+    np.testing.assert_allclose(distort_points(np.zeros(2), fisheye), [0.0, 0.0], atol=0)
+    assert not Distortion(model="fisheye").is_zero and Distortion().is_zero
+
+
+@pytest.mark.parametrize("lens", LENSES[2:], ids=["opencv", "rational", "fisheye", "equidistant"])
+def test_lens_jacobian_matches_finite_differences(lens):
+    """The Jacobian Newton's inverse uses, against central differences of the forward map,
+    near the axis too (where the fisheye's theta_d / r is 0 / 0 and its series takes over)."""
+    from mosiv_framework.capture.lens import _jacobian
+
+    rng = np.random.default_rng(3)
+    xy = np.concatenate([rng.uniform(-0.8, 0.8, (200, 2)), [[1e-5, -2e-5], [3e-3, 1e-3]]])
+    a, b, c, e = _jacobian(xy[:, 0], xy[:, 1], lens)
+    h = 1e-6
+    dx = (distort_points(xy + [h, 0], lens) - distort_points(xy - [h, 0], lens)) / (2 * h)
+    dy = (distort_points(xy + [0, h], lens) - distort_points(xy - [0, h], lens)) / (2 * h)
+    for got, want in ((a, dx[:, 0]), (b, dy[:, 0]), (c, dx[:, 1]), (e, dy[:, 1])):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-8)
+
+
+def test_lens_text_and_invalid_lenses_are_named():
+    assert Distortion.parse("fisheye:0.1,-0.02") == Distortion(k1=0.1, k2=-0.02, model="fisheye")
+    assert Distortion.parse("-0.1,0.02") == Distortion(-0.1, 0.02)
+    for text in ("fisheye:", "fisheye:1,2,3,4,5", "0.1"):
+        with pytest.raises(ValueError, match="fisheye:k1"):
+            Distortion.parse(text)
+    with pytest.raises(ValueError, match="a fisheye lens has only k1, k2, k3, k4; got {'p1'"):
+        Distortion(p1=0.01, model="fisheye")
+    with pytest.raises(ValueError, match="lens model 'kannala'"):
+        Distortion(model="kannala")
+
+
+def test_fisheye_capture_writes_an_opencv_fisheye_model(tmp_path):
+    """``--distortion fisheye:...`` picks COLMAP's OPENCV_FISHEYE unless told otherwise, and a
+    model that cannot hold the lens is refused before anything is written."""
+    from mosiv_framework.capture.write import write_capture
+
+    scene_dir = write_example_scene(tmp_path / "scene", n_frames=3, size=32, n_cameras=2)
+    out = tmp_path / "capture"
+    assert main(["data", "capture", str(scene_dir), str(out), "--distortion=fisheye:0.05"]) == 0
+    lines = [ln for ln in (out / "sparse/0/cameras.txt").read_text().splitlines() if ln[:1] != "#"]
+    assert all(ln.split()[1] == "OPENCV_FISHEYE" for ln in lines) and len(lines) == 2
+    meta = json.loads((out / "capture.json").read_text())
+    assert meta["distortion"]["model"] == "fisheye" and meta["distortion"]["k1"] == 0.05
+    with pytest.raises(ConfigError, match="OPENCV cannot hold a fisheye lens; use OPENCV_FISHEYE"):
+        write_capture(
+            scene_dir,
+            tmp_path / "refused",
+            distortion=Distortion(k1=0.05, model="fisheye"),
+            camera_model="OPENCV",
+        )
+    assert not (tmp_path / "refused").exists()
 
 
 def test_yuv444p_keeps_the_colour_that_yuv420p_halves(tmp_path):

@@ -61,7 +61,7 @@ def test_field_of_view_three_by_four_pose_and_simple_radial_model(tmp_path):
     [
         ({"k4": 0.05}, "'k4' = 0.05"),
         ({"w": 64.5}, "'w' must be a positive whole number"),
-        ({"camera_model": "OPENCV_FISHEYE"}, "camera_model 'OPENCV_FISHEYE' is not supported"),
+        ({"camera_model": "EQUIRECTANGULAR"}, "camera_model 'EQUIRECTANGULAR' is not supported"),
         ({"fl_x": None}, "lacks 'fl_x' (or the field of view 'camera_angle_x')"),
         ({"camera_angle_x": 4.0, "fl_x": None}, "'camera_angle_x' must lie in (0, pi)"),
     ],
@@ -73,6 +73,21 @@ def test_lens_fields_mosiv_cannot_use_are_named(tmp_path, fields, message):
     with pytest.raises(CaptureError, match="frames\\[0\\]") as caught:
         read_nerfstudio(path, {"cam01"})
     assert message in str(caught.value)
+
+
+def test_nerfstudio_fisheye_camera_reads_as_a_fisheye_lens(tmp_path):
+    """ns-process-data's fisheye cameras: camera_model OPENCV_FISHEYE with k1-k4 on the angle;
+    a frame of the same camera with another lens model is refused as other intrinsics."""
+    lens = {"w": W, "h": H, "fl_x": 40.0, "fl_y": 41.0, "cx": 32.0, "cy": 24.0}
+    fish = {"camera_model": "OPENCV_FISHEYE", "k1": 0.02, "k2": -0.004, "k3": 1e-3, "k4": -2e-4}
+    path = write_transforms(tmp_path, [frame("images/cam01.png", gl_pose())], **lens, **fish)
+    (cam,) = read_nerfstudio(path, {"cam01"})
+    assert cam.model == "OPENCV_FISHEYE" and cam.distortion.model == "fisheye"
+    assert cam.distortion.coefficients[:6] == (0.02, -0.004, 0.0, 0.0, 1e-3, -2e-4)
+    frames = [frame("cam01/f_1.png", gl_pose(), **fish), frame("cam01/f_2.png", gl_pose())]
+    path = write_transforms(tmp_path, frames, **lens)
+    with pytest.raises(CaptureError, match="other intrinsics or distortion"):
+        read_nerfstudio(path, {"cam01"})
 
 
 def test_frames_of_one_camera_agree_up_to_noise_or_are_refused(tmp_path):
@@ -127,6 +142,30 @@ def test_colmap_parameter_count_and_missing_camera_are_named_by_line(tmp_path):
     lost = write_colmap_text(tmp_path / "lost", [CAMERA], [image(1, "cam01.png", cam=7)])
     with pytest.raises(CaptureError, match=r"images.txt: line 3: image 1 \(cam01.png\) names "):
         read_colmap(lost, {"cam01"})
+
+
+@pytest.mark.parametrize(
+    ("line", "lens"),
+    [
+        ("1 FULL_OPENCV 64 48 50 51 32 24 -0.2 0.05 0.001 -0.002 0.01 0.1 -0.02 0.003",
+         {"model": "opencv", "k1": -0.2, "k2": 0.05, "p1": 0.001, "p2": -0.002, "k3": 0.01,
+          "k4": 0.1, "k5": -0.02, "k6": 0.003}),
+        ("1 OPENCV_FISHEYE 64 48 50 51 32 24 0.04 -0.01 0.002 -0.0003",
+         {"model": "fisheye", "k1": 0.04, "k2": -0.01, "k3": 0.002, "k4": -0.0003}),
+        ("1 RADIAL_FISHEYE 64 48 50 32 24 0.04 -0.01",
+         {"model": "fisheye", "k1": 0.04, "k2": -0.01}),
+        ("1 SIMPLE_RADIAL_FISHEYE 64 48 50 32 24 0.04", {"model": "fisheye", "k1": 0.04}),
+    ],
+    ids=["full_opencv", "opencv_fisheye", "radial_fisheye", "simple_radial_fisheye"],
+)  # fmt: skip
+def test_colmap_rational_and_fisheye_models_read_in_colmaps_parameter_order(tmp_path, line, lens):
+    (cam,) = read_colmap(write_colmap_text(tmp_path, [line], [image(1, "cam01.png")]), {"cam01"})
+    want = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "k3": 0.0, "k4": 0.0, "k5": 0.0}
+    want |= {"k6": 0.0, **lens}
+    got = cam.distortion.as_dict()
+    assert got.pop("model") == want.pop("model")
+    assert got == pytest.approx(want, abs=1e-12)
+    assert cam.intrinsics.fx == 50.0 and cam.intrinsics.cx == 32.0
 
 
 def test_colmap_quaternion_of_rounded_length_is_normalised_and_a_wrong_one_refused(tmp_path):

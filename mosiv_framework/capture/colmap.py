@@ -37,7 +37,13 @@ MODELS: dict[str, tuple[str, ...]] = {
     "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
     "RADIAL": ("f", "cx", "cy", "k1", "k2"),
     "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "FULL_OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+    "SIMPLE_RADIAL_FISHEYE": ("f", "cx", "cy", "k1"),
+    "RADIAL_FISHEYE": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV_FISHEYE": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
 }
+#: the models whose coefficients bend the angle from the axis (lens.Distortion "fisheye")
+FISHEYE_MODELS = ("SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE")
 #: the files of a model, each as .txt or .bin
 MODEL_FILES = ("cameras", "images", "points3D")
 
@@ -224,7 +230,8 @@ def _intrinsics(camera: pycolmap.Camera, where: str) -> tuple[Intrinsics, Distor
             f"{camera.width}x{camera.height} pixels"
         )
     k = Intrinsics(int(camera.width), int(camera.height), fx, fy, p["cx"], p["cy"])
-    return k, Distortion.from_mapping(p)
+    lens = "fisheye" if model in FISHEYE_MODELS else "opencv"
+    return k, Distortion.from_mapping(p, model=lens)
 
 
 def _pose(image, where: str) -> np.ndarray:
@@ -278,19 +285,34 @@ def read_colmap(model_dir: str | Path, known: set[str]) -> list[SourceCamera]:
 def colmap_params(camera, d: Distortion, model: str) -> list[float]:
     """The parameters of a ``scene.cameras.Camera`` behind the lens ``d`` in COLMAP's ``model``;
     ValueError when ``model`` cannot describe the camera and lens."""
-    if d.k3 != 0.0:
-        raise ValueError(f"camera {camera.id!r}: k3 = {d.k3} fits neither OPENCV nor RADIAL")
-    if model == "OPENCV":
-        params = [camera.fx, camera.fy, camera.cx, camera.cy, d.k1, d.k2, d.p1, d.p2]
-    elif model == "RADIAL":
+    if model not in WRITE_MODELS:
+        raise ValueError(f"camera model {model!r}: choose one of {WRITE_MODELS}")
+    fisheye_model = model in FISHEYE_MODELS
+    if (d.model == "fisheye") != fisheye_model:
+        fitting = "OPENCV_FISHEYE" if d.model == "fisheye" else "OPENCV, FULL_OPENCV or RADIAL"
+        raise ValueError(
+            f"camera {camera.id!r}: COLMAP's {model} cannot hold a {d.model} lens; use {fitting}"
+        )
+    pinhole = [camera.fx, camera.fy, camera.cx, camera.cy]
+    if model == "OPENCV_FISHEYE":
+        params = pinhole + [d.k1, d.k2, d.k3, d.k4]
+    elif model == "FULL_OPENCV":
+        params = pinhole + [d.k1, d.k2, d.p1, d.p2, d.k3, d.k4, d.k5, d.k6]
+    elif model == "OPENCV":
+        if not (d.polynomial and d.k3 == 0.0):
+            raise ValueError(
+                f"camera {camera.id!r}: k3..k6 = {d.k3}, {d.k4}, {d.k5}, {d.k6}: COLMAP's OPENCV "
+                "model holds only k1, k2, p1, p2; use FULL_OPENCV"
+            )
+        params = pinhole + [d.k1, d.k2, d.p1, d.p2]
+    else:  # RADIAL
         if abs(camera.fx - camera.fy) > 1e-9 * abs(camera.fx) or not d.radial_only:
             raise ValueError(
-                f"camera {camera.id!r}: COLMAP's RADIAL model needs fx = fy and no tangential "
-                f"terms (fx={camera.fx}, fy={camera.fy}, p1={d.p1}, p2={d.p2}); use OPENCV"
+                f"camera {camera.id!r}: COLMAP's RADIAL model needs fx = fy and only k1, k2 "
+                f"(fx={camera.fx}, fy={camera.fy}, lens {d.as_dict()}); use OPENCV or "
+                "FULL_OPENCV"
             )
         params = [camera.fx, camera.cx, camera.cy, d.k1, d.k2]
-    else:
-        raise ValueError(f"camera model {model!r}: choose one of {WRITE_MODELS}")
     return [float(p) for p in params]
 
 

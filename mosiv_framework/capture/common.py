@@ -127,10 +127,11 @@ def _same_camera(first: SourceCamera, other: SourceCamera, scale: float) -> None
             f"{STATIC_CENTRE_FRACTION:g} of the distance between cameras, {scale:.3g})"
         )
     a, b = np.array(astuple(first.intrinsics)), np.array(astuple(other.intrinsics))
-    da, db = np.array(astuple(first.distortion)), np.array(astuple(other.distortion))
-    if not np.allclose(a, b, rtol=STATIC_INTRINSICS_FRACTION, atol=0.0) or not np.allclose(
+    da, db = np.array(first.distortion.coefficients), np.array(other.distortion.coefficients)
+    same_lens = first.distortion.model == other.distortion.model and np.allclose(
         da, db, rtol=0.0, atol=STATIC_DISTORTION_ATOL
-    ):
+    )
+    if not np.allclose(a, b, rtol=STATIC_INTRINSICS_FRACTION, atol=0.0) or not same_lens:
         raise CaptureError(
             f"{other.origin}: camera {first.id!r} has other intrinsics or distortion here "
             f"({first.intrinsics}, {first.distortion} in {first.origin}; here "

@@ -42,10 +42,13 @@ log = logging.getLogger(__name__)
 #: OpenGL camera axes -> OpenCV camera axes (flip y and z)
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 #: camera models nerfstudio reads as a perspective camera with fl_x, fl_y, cx, cy and k1-k3,
-#: p1, p2 (the SIMPLE_* and RADIAL models are OPENCV with some coefficients zero)
-SUPPORTED = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
-#: distortion coefficients MOSIV's lens model has
+#: p1, p2 (the SIMPLE_* and RADIAL models are OPENCV with some coefficients zero), and its
+#: fisheye camera (k1-k4 on the angle from the axis: lens.Distortion "fisheye")
+SUPPORTED = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV_FISHEYE")
+#: distortion coefficients MOSIV's perspective lens takes from a transforms.json
 COEFFICIENTS = ("k1", "k2", "k3", "p1", "p2")
+#: those of a fisheye camera (nerfstudio's OPENCV_FISHEYE)
+FISHEYE_COEFFICIENTS = ("k1", "k2", "k3", "k4")
 
 
 def _number(value, key: str, where: str) -> float:
@@ -103,7 +106,10 @@ def _intrinsics(frame: dict, top: dict, where: str) -> Intrinsics:
     )
 
 
-def _distortion(frame: dict, top: dict, where: str) -> Distortion:
+def _distortion(frame: dict, top: dict, where: str, model: str) -> Distortion:
+    if model == "OPENCV_FISHEYE":
+        values = {c: _field(frame, top, c, where, required=False) for c in FISHEYE_COEFFICIENTS}
+        return Distortion.from_mapping({c: v or 0.0 for c, v in values.items()}, model="fisheye")
     k4 = _field(frame, top, "k4", where, required=False)
     if k4:
         raise CaptureError(
@@ -136,7 +142,7 @@ def _camera(frame: dict, top: dict, key: str, where: str) -> SourceCamera:
         )
     k, dist, w2c = (
         _intrinsics(frame, top, where),
-        _distortion(frame, top, where),
+        _distortion(frame, top, where, model),
         _pose(frame, where),
     )
     return SourceCamera(key, k, dist, w2c, f"{where}.transform_matrix", model=model)

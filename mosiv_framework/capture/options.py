@@ -9,8 +9,9 @@ METRES_PER_UNIT: dict[str, float] = {
 }  # fmt: skip
 #: the up axes ``--up`` accepts, by their index
 AXES = {"x": 0, "y": 1, "z": 2}
-#: COLMAP camera models the writer can write (both hold the lens; RADIAL needs fx = fy and no
-#: p1, p2)
-WRITE_MODELS = ("OPENCV", "RADIAL")
+#: COLMAP camera models the writer can write (each holds the lens it names: RADIAL needs fx = fy
+#: and only k1, k2; OPENCV k1, k2, p1, p2; FULL_OPENCV the rational model; OPENCV_FISHEYE a
+#: fisheye lens)
+WRITE_MODELS = ("OPENCV", "RADIAL", "FULL_OPENCV", "OPENCV_FISHEYE")
 #: H.264 constant rate factor: 0 lossless .. 51 worst; 18 is visually lossless for most content
 DEFAULT_CRF = 18

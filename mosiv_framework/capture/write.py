@@ -4,7 +4,7 @@ Layout of the capture folder::
 
     capture.json               fps, units, up axis, distortion, per camera: video, start offset
     videos/<camera_id>.mp4     H.264 (yuv420p, or yuv444p on request) through the lens, no masks
-    sparse/0/cameras.txt       COLMAP text model (OPENCV or RADIAL, with the distortion)
+    sparse/0/cameras.txt       COLMAP text model (options.WRITE_MODELS, with the distortion)
     sparse/0/images.txt        world-to-camera pose per camera, in the rig's units and up axis
     sparse/0/points3D.txt      empty
     sparse/0/rigs.txt          one trivial rig per camera (COLMAP 3.12 and later)
@@ -201,10 +201,7 @@ def write_capture(
         "up": rig.up,
         "colmap": "sparse/0",
         "camera_model": camera_model,
-        "distortion": {
-            "model": "opencv (k1, k2, k3 radial; p1, p2 tangential)",
-            **distortion.as_dict(),
-        },
+        "distortion": distortion.as_dict(),  # lens.py gives each model's equations
         "crf": int(crf),
         "pixel_format": pixel_format,
         "cameras": entries,

@@ -50,14 +50,17 @@ def add_capture_parser(dsub) -> None:
     p.add_argument("--up", default="z", choices=sorted(AXES), help="rig world up axis (default z)")
     p.add_argument(
         "--distortion",
-        help="lens coefficients k1,k2 or k1,k2,p1,p2 of the OpenCV model (default none); "
-        "a negative first one needs '=': --distortion=-0.2,0.05",
+        help="lens coefficients k1,k2 or k1,k2,p1,p2 of the OpenCV model, or "
+        "fisheye:k1[,k2[,k3[,k4]]] of a fisheye lens (with --camera-model OPENCV_FISHEYE; "
+        "default none); a negative first one needs '=': --distortion=-0.2,0.05",
     )
     p.add_argument(
         "--camera-model",
-        default="OPENCV",
+        default=None,
         choices=WRITE_MODELS,
-        help="COLMAP camera model of cameras.txt (RADIAL needs fx = fy and no p1, p2)",
+        help="COLMAP camera model of cameras.txt (RADIAL needs fx = fy and only k1, k2; "
+        "OPENCV_FISHEYE holds a fisheye lens; default OPENCV, or OPENCV_FISHEYE for a fisheye "
+        "--distortion)",
     )
     p.add_argument(
         "--crf", type=int, default=DEFAULT_CRF, help=f"H.264 quality 0..51 (default {DEFAULT_CRF})"
@@ -107,7 +110,8 @@ def run_capture(args) -> int:
         args.out_dir,
         rig=RigFrame(args.units, args.up),
         distortion=distortion,
-        camera_model=args.camera_model,
+        camera_model=args.camera_model
+        or ("OPENCV_FISHEYE" if distortion.model == "fisheye" else "OPENCV"),
         crf=args.crf,
         offsets=args.offsets,
         with_reference=args.with_reference,
