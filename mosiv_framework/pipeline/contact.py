@@ -232,22 +232,7 @@ def choose_contact(
     mode, laws = variants[chosen]
     leaves[chosen].apply(vector)
     _use_variant(modes, fit, vector, mode, laws)
-    record = {
-        "phase": PHASE,
-        "choice": "auto",
-        "mode": mode,
-        "recipe_mode": modes.default,
-        "losses": {m: (v if math.isfinite(v) else None) for m, v in losses.items()},
-        "margin": modes.margin,
-        "frames": frames,
-        "values": vector.to_json(),
-    }
-    if close:  # the losses above are those after the tied variants' continued fits
-        record["brief_losses"] = {m: (v if math.isfinite(v) else None) for m, v in brief.items()}
-        record["tie_iterations"] = modes.tie_iterations
-    if laws is not None:
-        record["laws"] = laws
-        record["law_map"] = {str(k): law for k, law in modes.law_sets[laws].items()}
+    record = _choice_record(modes, mode, laws, losses, brief if close else None, frames, vector)
     history.append(record)
     log.info(
         "contact between objects: %s (%s; the recipe's %s is kept unless another is more "
@@ -257,6 +242,34 @@ def choose_contact(
         default,
         100 * modes.margin,
     )
+    return record
+
+
+def _finite(losses: dict[str, float]) -> dict[str, float | None]:
+    """Losses for JSON: a variant that diverged (inf) is None."""
+    return {m: (v if math.isfinite(v) else None) for m, v in losses.items()}
+
+
+def _choice_record(modes, mode, laws, losses, brief, frames: int, vector) -> dict:
+    """The history record of the choice of ``mode`` (and the stress variant ``laws``);
+    ``brief``: the brief fits' losses where tied variants were continued (``losses`` are then
+    those after the continuation), else None."""
+    record = {
+        "phase": PHASE,
+        "choice": "auto",
+        "mode": mode,
+        "recipe_mode": modes.default,
+        "losses": _finite(losses),
+        "margin": modes.margin,
+        "frames": frames,
+        "values": vector.to_json(),
+    }
+    if brief is not None:
+        record["brief_losses"] = _finite(brief)
+        record["tie_iterations"] = modes.tie_iterations
+    if laws is not None:
+        record["laws"] = laws
+        record["law_map"] = {str(k): law for k, law in modes.law_sets[laws].items()}
     return record
 
 
