@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mosiv_framework.capture import frame_times
 from mosiv_framework.capture.common import CaptureError, natural_key
 from mosiv_framework.errors import OutputError, StageNotAvailable
 
@@ -119,7 +120,9 @@ def read_video(
     """Frames uint8 [T, H, W, 3] and the frame rate of a video file (ffmpeg via imageio):
     every ``every``-th frame from the first, each brought down to ``longest_side`` pixels as
     it is decoded (so a long high-resolution clip never sits in memory at full size). The
-    rate returned is the video's own; ``expect``: the size the frames must have as recorded."""
+    rate returned is the video's own; ``expect``: the size the frames must have as recorded.
+    A clip recorded at a variable frame rate is first resampled to even times at its median
+    interval, whose rate is returned (frame_times.py)."""
     try:
         import imageio.v2 as iio2
         import imageio_ffmpeg  # noqa: F401 -- imageio's FFMPEG format needs it
@@ -127,6 +130,7 @@ def read_video(
         raise StageNotAvailable(
             f"{path}: reading videos needs imageio-ffmpeg (pip install imageio-ffmpeg)"
         ) from exc
+    copies, even_rate = _frame_copies(path, every)
     try:
         # passthrough: every decoded frame once; ffmpeg's default constant-rate output would
         # repeat or drop frames of a variable-frame-rate or high-speed video
@@ -134,15 +138,17 @@ def read_video(
             str(path), format="FFMPEG", output_params=["-fps_mode", "passthrough"]
         )
         try:
-            fps = reader.get_meta_data().get("fps")
-            frames = []
+            fps = even_rate or reader.get_meta_data().get("fps")
+            frames, decoded = [], 0
             for i, frame in enumerate(reader):
+                decoded = i + 1
                 if i == 0:
                     _check_size(frame, expect, str(path))
-                if i % every == 0:
+                n = (i % every == 0) if copies is None else (copies[i] if i < len(copies) else 0)
+                if n:
                     frame = rgb8(frame, str(path))
                     size = shrunk_size(*frame.shape[:2], longest_side)
-                    frames.append(shrink(frame, size))
+                    frames.extend([shrink(frame, size)] * int(n))
         finally:
             reader.close()
     except CaptureError:
@@ -151,7 +157,32 @@ def read_video(
         raise OutputError(f"{path}: cannot be read as a video ({exc})") from exc
     if not frames:
         raise OutputError(f"{path}: cannot be read as a video (it holds no frames)")
+    if copies is not None and decoded != len(copies):
+        logger.warning(
+            "%s: %d frames decoded but %d timestamped: the even resampling may be off by the "
+            "difference",
+            path,
+            decoded,
+            len(copies),
+        )
     return np.stack(frames), (float(fps) if fps else None)
+
+
+def _frame_copies(path: Path, every: int) -> tuple[np.ndarray | None, float | None]:
+    """(how many times each decoded frame is kept, the even rate) of a variable-frame-rate
+    clip resampled to even times, then every ``every``-th; (None, None) for an even clip."""
+    times = frame_times.presentation_times(path)
+    uneven = frame_times.even_frames(times) if times is not None else None
+    if uneven is None:
+        return None, None
+    picks, rate = uneven
+    logger.warning(
+        "%s: recorded at a variable frame rate, %s; resampled to %.4g fps",
+        path,
+        frame_times.describe(times, picks),
+        rate,
+    )
+    return np.bincount(picks[::every], minlength=len(times)), rate
 
 
 def read_image_folder(

@@ -1,0 +1,96 @@
+"""Videos recorded at a variable frame rate (phones, action cameras): the import reads when
+each frame was shown and hands the simulator frames at even times."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mosiv_framework.capture.frame_times import (
+    even_frames,
+    parse_framecrc,
+    presentation_times,
+)
+from mosiv_framework.capture.video import read_video
+
+imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+
+FPS, N, GAP_AT, GAP = 24, 20, 10, 2  # frames from GAP_AT on are shown GAP intervals late
+#: grey level per frame: frame i is 10 i (H.264 at crf 0 keeps it to a level or two)
+LEVEL = 10
+
+
+def write_clip(path: Path) -> Path:
+    """N frames of grey level LEVEL * i at FPS, constant rate."""
+    writer = imageio_ffmpeg.write_frames(
+        str(path), (32, 32), fps=FPS, codec="libx264", output_params=["-crf", "0"],
+        macro_block_size=1,
+    )  # fmt: skip
+    writer.send(None)
+    for i in range(N):
+        writer.send(np.full((32, 32, 3), LEVEL * i, dtype=np.uint8))
+    writer.close()
+    return path
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory) -> dict[str, Path]:
+    """An even clip and the same frames with a gap: frames GAP_AT.. shown GAP frames late (as a
+    phone's encoder stretches a frame under load), their timestamps kept (passthrough)."""
+    folder = tmp_path_factory.mktemp("clips")
+    even = write_clip(folder / "even.mp4")
+    late = f"setpts='(N+{GAP}*gte(N\\,{GAP_AT}))/({FPS}*TB)'"
+    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-v", "error", "-i", str(even)]
+    command += ["-vf", late, "-fps_mode", "passthrough", "-c:v", "libx264", "-crf", "0"]
+    subprocess.run([*command, str(folder / "uneven.mp4")], check=True)
+    return {"even": even, "uneven": folder / "uneven.mp4"}
+
+
+def levels(frames: np.ndarray) -> list[int]:
+    """Which source frame each frame is (its grey level over LEVEL, rounded)."""
+    return [round(float(f.mean()) / LEVEL) for f in frames]
+
+
+def test_presentation_times_of_an_even_and_an_uneven_clip(clips):
+    even = presentation_times(clips["even"])
+    np.testing.assert_allclose(even, np.arange(N) / FPS, atol=1e-6)
+    uneven = presentation_times(clips["uneven"])
+    shown = (np.arange(N) + GAP * (np.arange(N) >= GAP_AT)) / FPS
+    np.testing.assert_allclose(uneven, shown, atol=1e-6)
+
+
+def test_an_even_clip_is_read_as_it_is(clips):
+    frames, fps = read_video(clips["even"])
+    assert levels(frames) == list(range(N)) and fps == pytest.approx(FPS)
+
+
+def test_an_uneven_clip_is_resampled_to_even_times(clips):
+    """The gap of GAP missing intervals is filled by the frame shown nearest each instant:
+    frame 9 (at 9/24 s) for 10/24, frame 10 (shown at 12/24) for 11/24 and 12/24; the rate is
+    the median interval's, not the container's average (which the gap lowers)."""
+    frames, fps = read_video(clips["uneven"])
+    expected = list(range(GAP_AT)) + [GAP_AT - 1, GAP_AT] + list(range(GAP_AT, N))
+    assert levels(frames) == expected and fps == pytest.approx(FPS)
+    every_other, _ = read_video(clips["uneven"], every=2)
+    assert levels(every_other) == expected[::2]
+
+
+def test_even_frames_by_hand():
+    """A burst (two frames 10 ms apart in a 40 ms clip) drops one; a clip within the tolerance
+    is left alone; fewer than three frames say nothing."""
+    times = np.array([0.0, 0.04, 0.05, 0.08, 0.12, 0.16])
+    picks, rate = even_frames(times)
+    assert picks.tolist() == [0, 1, 3, 4, 5] and rate == pytest.approx(25.0)
+    assert even_frames(np.array([0.0, 0.041, 0.08, 0.122])) is None
+    assert even_frames(np.array([0.0, 0.5])) is None
+
+
+def test_framecrc_without_timestamps_or_time_base_gives_none():
+    header = "#tb 0: 1/12288\n"
+    times = parse_framecrc(header + "0, 0, 0, 512, 570, 0x1\n0, 512, 512, 512, 55, 0x2\n")
+    assert times.tolist() == pytest.approx([0.0, 512 / 12288])
+    assert parse_framecrc(header + "0, 0, NOPTS, 512, 570, 0x1\n") is None
+    assert parse_framecrc("0, 0, 0, 512, 570, 0x1\n") is None
