@@ -9,6 +9,7 @@ model's inverse must undo its forward map.
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pycolmap
@@ -214,6 +215,34 @@ def test_lens_jacobian_matches_finite_differences(lens):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-8)
 
 
+def test_fisheye_radial_factor_on_both_sides_of_the_axis_series():
+    """Just below the threshold the series 1 + (k1 - 1/3) r^2 serves, just above the closed
+    form theta_d / r: both agree with the Taylor expansion to its next order, r^4 (theta =
+    r - r^3/3 + r^5/5, so theta_d / r = 1 + (k1 - 1/3) r^2 + (1/5 - k1 + k2) r^4 + ...)."""
+    from mosiv_framework.capture.lens import FISHEYE_SERIES_R2, _radial
+
+    lens = Distortion(k1=0.3, k2=-0.2, model="fisheye")
+    second, fourth = lens.k1 - 1 / 3, 1 / 5 - lens.k1 + lens.k2
+    for r2 in (0.5 * FISHEYE_SERIES_R2, 2.0 * FISHEYE_SERIES_R2, 1e-4):
+        radial, dradial = _radial(np.array([r2]), lens)
+        assert (radial[0] - 1.0) / r2 == pytest.approx(second + fourth * r2, rel=1e-6, abs=1e-7)
+        assert dradial[0] == pytest.approx(second + 2 * fourth * r2, rel=1e-4)
+
+
+def test_a_wide_fisheye_inverts_up_to_its_fold_and_not_beyond():
+    """An equidistant fisheye maps the angle theta to r_d = theta: points up to 85 degrees off
+    the axis come back (r = tan theta), and a recorded radius past 90 degrees has no pinhole
+    ray: NaN, without warnings."""
+    lens = Distortion(model="fisheye")
+    theta = np.radians([10.0, 45.0, 70.0, 85.0])
+    back = undistort_points(np.stack([theta, np.zeros(4)], -1), lens)
+    np.testing.assert_allclose(back[:, 0], np.tan(theta), rtol=1e-9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        beyond = undistort_points(np.array([[np.radians(100.0), 0.0]]), lens)
+    assert np.isnan(beyond).all()
+
+
 def test_lens_text_and_invalid_lenses_are_named():
     assert Distortion.parse("fisheye:0.1,-0.02") == Distortion(k1=0.1, k2=-0.02, model="fisheye")
     assert Distortion.parse("-0.1,0.02") == Distortion(-0.1, 0.02)
@@ -238,7 +267,8 @@ def test_fisheye_capture_writes_an_opencv_fisheye_model(tmp_path):
     assert all(ln.split()[1] == "OPENCV_FISHEYE" for ln in lines) and len(lines) == 2
     meta = json.loads((out / "capture.json").read_text())
     assert meta["distortion"]["model"] == "fisheye" and meta["distortion"]["k1"] == 0.05
-    with pytest.raises(ConfigError, match="OPENCV cannot hold a fisheye lens; use OPENCV_FISHEYE"):
+    refused = "--camera-model OPENCV with --distortion: .*cannot hold a fisheye lens; use OPENCV_F"
+    with pytest.raises(ConfigError, match=refused):
         write_capture(
             scene_dir,
             tmp_path / "refused",

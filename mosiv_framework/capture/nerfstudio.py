@@ -108,13 +108,17 @@ def _intrinsics(frame: dict, top: dict, where: str) -> Intrinsics:
 
 def _distortion(frame: dict, top: dict, where: str, model: str) -> Distortion:
     if model == "OPENCV_FISHEYE":
+        tangential = [c for c in ("p1", "p2") if _field(frame, top, c, where, required=False)]
+        if tangential:  # nerfstudio's fisheye has none either: say what is not used
+            log.warning("%s: %s of a fisheye camera are not used", where, ", ".join(tangential))
         values = {c: _field(frame, top, c, where, required=False) for c in FISHEYE_COEFFICIENTS}
         return Distortion.from_mapping({c: v or 0.0 for c, v in values.items()}, model="fisheye")
     k4 = _field(frame, top, "k4", where, required=False)
     if k4:
         raise CaptureError(
-            f"{where}: 'k4' = {k4:g} (the r^8 radial term) is not part of MOSIV's lens model "
-            f"({', '.join(COEFFICIENTS)}): undistort the images first, or refit without k4"
+            f"{where}: 'k4' = {k4:g} (the r^8 radial term) is not part of MOSIV's perspective "
+            f"lens ({', '.join(COEFFICIENTS)}): for a fisheye lens set camera_model "
+            "OPENCV_FISHEYE; else undistort the images first, or refit without k4"
         )
     values = {c: _field(frame, top, c, where, required=False) for c in COEFFICIENTS}
     return Distortion.from_mapping({c: v or 0.0 for c, v in values.items()})

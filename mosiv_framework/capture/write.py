@@ -95,7 +95,7 @@ def _check_options(scene, crf, offsets, distortion: Distortion, camera_model: st
         try:  # a camera must not leave a half-written capture behind
             colmap_params(cam, distortion, camera_model)
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+            raise ConfigError(f"--camera-model {camera_model} with --distortion: {exc}") from None
     return starts
 
 
