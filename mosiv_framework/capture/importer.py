@@ -1,7 +1,7 @@
 """``import_recording``: a capture rig's recording -> a ``mosiv-scene/1`` folder.
 
-The steps, each in its own module: frames (``video``), cameras (``colmap``, ``nerfstudio``),
-time offsets (``offsets``), lens undistortion (``lens``), the frame alignment
+The steps, each in its own module: frames (``video``, ``frame_times``), cameras (``colmap``,
+``nerfstudio``), time offsets (``offsets``, ``audio_sync``), lens undistortion (``lens``), the frame alignment
 (``align``: units, up axis, ground), masks from a registered segmenter, and the domain from the
 visual hull (``domain``). Everything is read and checked before OUT is created; the scene is
 written with ``SceneWriter``, validated with ``validate_scene``, and previewed as
@@ -18,10 +18,10 @@ from typing import Any
 import numpy as np
 
 from mosiv_framework.capture import align as al
+from mosiv_framework.capture import audio_sync, frame_times, video
 from mosiv_framework.capture import domain as dom
 from mosiv_framework.capture import materials as mat
 from mosiv_framework.capture import offsets as off
-from mosiv_framework.capture import video
 from mosiv_framework.capture.common import CaptureError, SourceCamera, refuse_non_empty
 from mosiv_framework.capture.lens import undistort_frames
 from mosiv_framework.capture.rotations import rotation_to_z
@@ -177,19 +177,41 @@ def load_frames(s: ImportSettings, sources, cams) -> tuple[dict[str, np.ndarray]
     return videos, video.common_fps(rates, None, s.frames_dir, longest)
 
 
-def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bool, list, dict]:
-    """(videos on a common time base, offsets, whether they were estimated, the cameras left
-    out because they started late: ``--late-cameras drop``, and camera id -> (first, last)
-    recorded frames of the cameras that started late: ``--late-cameras keep``)."""
+def time_offsets(s: ImportSettings, videos, yaml_offsets, sources, fps: float):
+    """(camera id -> leading frames to drop, how they were found: "given", "motion" or
+    "audio", the sub-frame remainders of audio offsets) from --offsets, the objects YAML,
+    the cameras' sound (``--offsets audio``) or the motion onsets."""
     if s.offsets is not None and yaml_offsets is not None:
         raise CaptureError(f"offsets given twice (--offsets and {s.objects_yaml}); give one")
     given, where = (s.offsets, "--offsets") if s.offsets is not None else (yaml_offsets, "")
-    cameras = sorted(videos)
-    offsets = off.parse_offsets(given, cameras, where or f"{s.objects_yaml}: offsets")
-    estimated = offsets is None
-    if estimated:
-        offsets = off.estimate_offsets(videos, k=s.onset_k)
-        logger.info("estimated time offsets (frames dropped): %s", offsets)
+    if isinstance(given, str) and given.strip().lower() == "audio":
+        first_shown = {}
+        for cam, path in sources.items():
+            times = frame_times.presentation_times(path) if path.is_file() else None
+            first_shown[cam] = float(times[0]) if times is not None else 0.0
+        found = audio_sync.estimate_audio_offsets(
+            {c: p for c, p in sources.items() if c in videos}, fps, first_shown
+        )
+        logger.info(
+            "time offsets from the cameras' sound (frames dropped): %s; sub-frame remainders "
+            "%s; peak ratios %s",
+            found.frames,
+            {c: round(r, 2) for c, r in found.remainders.items()},
+            {c: round(r, 1) for c, r in found.peak_ratios.items()},
+        )
+        return found.frames, "audio", found.remainders
+    offsets = off.parse_offsets(given, sorted(videos), where or f"{s.objects_yaml}: offsets")
+    if offsets is not None:
+        return offsets, "given", {}
+    offsets = off.estimate_offsets(videos, k=s.onset_k)
+    logger.info("estimated time offsets (frames dropped): %s", offsets)
+    return offsets, "motion", {}
+
+
+def synchronise(s: ImportSettings, videos, offsets) -> tuple[dict, dict, list, dict]:
+    """(videos on a common time base, offsets, the cameras left out because they started
+    late: ``--late-cameras drop``, and camera id -> (first, last) recorded frames of the
+    cameras that started late: ``--late-cameras keep``)."""
     left_out = off.cameras_left_out(offsets, s.late_cameras)
     if left_out:
         logger.info("cameras that started late, left out: %s", ", ".join(left_out))
@@ -203,8 +225,8 @@ def synchronise(s: ImportSettings, videos, yaml_offsets) -> tuple[dict, dict, bo
                 "(first, last): %s; --late-cameras trim or drop leave them out instead",
                 spans,
             )
-        return videos, offsets, estimated, left_out, spans
-    return off.apply_offsets(videos, offsets, s.n_frames), offsets, estimated, left_out, {}
+        return videos, offsets, left_out, spans
+    return off.apply_offsets(videos, offsets, s.n_frames), offsets, left_out, {}
 
 
 def read_objects(s: ImportSettings):
@@ -346,7 +368,8 @@ def import_recording(s: ImportSettings) -> Path:
     sources = video.find_sources(s.frames_dir)
     cams = load_cameras(s, set(sources))
     videos, fps = load_frames(s, sources, cams)
-    videos, offsets, estimated, left_out, spans = synchronise(s, videos, yaml_offsets)
+    offsets, found_by, remainders = time_offsets(s, videos, yaml_offsets, sources, fps)
+    videos, offsets, left_out, spans = synchronise(s, videos, offsets)
     cams = {c: cam for c, cam in cams.items() if c in videos}
     for c in videos:  # in place: a long clip is held once (no loop variable keeps one alive)
         undistort_frames(videos[c], cams[c].intrinsics, cams[c].distortion, in_place=True)
@@ -368,7 +391,9 @@ def import_recording(s: ImportSettings) -> Path:
         "format": IMPORT_FORMAT,
         "settings": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(s).items()},
         "offsets": offsets,
-        "offsets_estimated": estimated,
+        "offsets_estimated": found_by != "given",
+        "offsets_from": found_by,
+        "offset_remainders_frames": remainders,
         "late_cameras_left_out": left_out,
         "late_cameras_kept": {c: list(span) for c, span in spans.items()},
         "up_in_recording": up.tolist(),

@@ -34,8 +34,9 @@ def add_parser(sub) -> None:
     src.add_argument("--fps", type=float, help="frame rate (default: the videos' own)")
     src.add_argument(
         "--offsets",
-        help="leading frames each camera drops, CAM:N,... ('none': synchronised; default: "
-        "estimated from motion onset)",
+        help="leading frames each camera drops, CAM:N,... ('none': synchronised; 'audio': "
+        "from a sound every camera's audio track holds, a clap say; default: estimated from "
+        "motion onset)",
     )
     src.add_argument(
         "--late-cameras",
