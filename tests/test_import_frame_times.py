@@ -94,3 +94,55 @@ def test_framecrc_without_timestamps_or_time_base_gives_none():
     assert times.tolist() == pytest.approx([0.0, 512 / 12288])
     assert parse_framecrc(header + "0, 0, NOPTS, 512, 570, 0x1\n") is None
     assert parse_framecrc("0, 0, 0, 512, 570, 0x1\n") is None
+
+
+def test_a_camera_at_twice_the_rate_keeps_every_second_frame(tmp_path):
+    """A 48 fps camera beside a 24 fps one: rate_steps gives it 2, and read so its frames show
+    the 24 fps camera's instants (grey level 10 x the time in 24ths of a second)."""
+    from mosiv_framework.capture.video import rate_steps
+
+    fast = tmp_path / "fast.mp4"
+    writer = imageio_ffmpeg.write_frames(
+        str(fast), (32, 32), fps=2 * FPS, codec="libx264", output_params=["-crf", "0"],
+        macro_block_size=1,
+    )  # fmt: skip
+    writer.send(None)
+    for j in range(2 * N):
+        writer.send(np.full((32, 32, 3), LEVEL * j // 2, dtype=np.uint8))
+    writer.close()
+    slow = write_clip(tmp_path / "slow.mp4")
+    steps = rate_steps({"slow": slow, "fast": fast, "folder": tmp_path})
+    assert steps == {"slow": 1, "fast": 2, "folder": 1}
+    frames, fps = read_video(fast, every=steps["fast"])
+    assert levels(frames) == list(range(N)) and fps / 2 == pytest.approx(FPS)
+
+
+def test_import_of_a_rig_with_a_camera_at_twice_the_rate(tmp_path):
+    """The import tests' rig with cam_02 re-recorded at 48 fps (each frame shown twice): the
+    import keeps every second frame of it, so all cameras agree on the frames and the rate."""
+    import json
+    import sys
+
+    here = Path(__file__).resolve().parent
+    if str(here) not in sys.path:
+        sys.path.insert(0, str(here))
+    from capture_fakes import render_spheres, settings, sphere_paths, write_capture
+
+    from mosiv_framework.capture import import_recording
+    from mosiv_framework.scene import read_scene
+
+    scene = render_spheres(tmp_path / "scene", "slide", sphere_paths())
+    capture = write_capture(scene, tmp_path / "capture", late={})
+    video = capture / "videos" / "cam_02.mp4"
+    slow = video.rename(video.with_suffix(".slow"))
+    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-v", "error", "-i", str(slow)]
+    command += ["-vf", f"fps={2 * FPS}", "-c:v", "libx264", "-crf", "10", "-f", "mp4", str(video)]
+    subprocess.run(command, check=True)
+    slow.unlink()
+    out = import_recording(settings(capture, tmp_path / "s", offsets="none"))
+    got, original = read_scene(out), read_scene(scene)
+    assert got.fps == pytest.approx(FPS) and got.n_frames == original.n_frames
+    assert json.loads((out / "import.json").read_text())["offsets"]["cam_02"] == 0
+    for t in (0, original.n_frames // 2, original.n_frames - 1):  # the same instants
+        diff = np.abs(got.rgb("cam_02", t).astype(float) - original.rgb("cam_02", t)).mean()
+        assert diff < 3.0, (t, diff)

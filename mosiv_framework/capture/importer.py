@@ -153,22 +153,26 @@ def load_cameras(s: ImportSettings, known: set[str]) -> dict[str, SourceCamera]:
 
 def load_frames(s: ImportSettings, sources, cams) -> tuple[dict[str, np.ndarray], float]:
     """Every camera's frames (checked against its intrinsics' size) and the frame rate: every
-    ``s.every``-th frame (the rate divided alike), brought down to ``s.resolution`` pixels on
-    the longest side, with each camera's intrinsics in ``cams`` scaled to match."""
+    ``s.every``-th frame (the rate divided alike; of a camera at a whole multiple of the
+    slowest camera's rate, every ``s.every`` x that multiple), brought down to
+    ``s.resolution`` pixels on the longest side, with each camera's intrinsics in ``cams``
+    scaled to match."""
     videos, rates = {}, {}
+    # a camera at a whole multiple of the others' rate keeps the frames at their instants
+    # (--fps says every frame is equally spaced at that rate: nothing is skipped then)
+    steps = video.rate_steps(sources) if s.fps is None else dict.fromkeys(sources, 1)
     for cid, src in sources.items():
         k = cams[cid].intrinsics
         size = video.shrunk_size(k.height, k.width, s.resolution)
         expect = ((k.height, k.width), f"{cams[cid].origin} gives camera {cid!r}")
-        frames, rate = video.read_frames(
-            src, every=s.every, longest_side=s.resolution, expect=expect
-        )
+        every = s.every * steps[cid]
+        frames, rate = video.read_frames(src, every=every, longest_side=s.resolution, expect=expect)
         if len(frames) < 2:
             raise CaptureError(
                 f"{src}: keeps {len(frames)} frame of its clip (--every {s.every}); a camera "
                 "needs at least 2"
             )
-        rates[cid] = rate / s.every if rate else None
+        rates[cid] = rate / every if rate else None
         cams[cid] = replace(cams[cid], intrinsics=k.resized(size[1], size[0]))
         videos[cid] = frames
     longest = max(len(v) for v in videos.values())

@@ -9,6 +9,7 @@ A frames folder holds, per camera, either a video (``<camera id>.mp4``, ``.mov``
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -256,6 +257,39 @@ def read_frames(
     if source.is_dir():
         return read_image_folder(source, **kw), None
     return read_video(source, **kw)
+
+
+#: a camera's rate is a whole multiple of the slowest camera's when within this fraction of it
+WHOLE_MULTIPLE_TOLERANCE = 0.01
+
+
+def rate_steps(sources: Mapping[str, Path]) -> dict[str, int]:
+    """Camera id -> how many of its frames make one frame of the slowest video: 2 for a 60 fps
+    camera beside 30 fps ones (every second frame shows the instants the others show), 1 for
+    an image folder, a video at the slowest rate, or one whose rate is no whole multiple of it
+    (``common_fps`` then names the rates that differ). Rates from the frames' timestamps
+    (``frame_times``: the median interval)."""
+    rates = {}
+    for cam, path in sources.items():
+        times = frame_times.presentation_times(path) if path.is_file() else None
+        if times is not None and len(times) > 2 and np.median(np.diff(times)) > 0:
+            rates[cam] = 1.0 / float(np.median(np.diff(times)))
+    slowest = min(rates.values(), default=None)
+    steps = dict.fromkeys(sources, 1)
+    for cam, rate in rates.items():
+        ratio = rate / slowest
+        whole = round(ratio)
+        if whole >= 2 and abs(ratio - whole) <= WHOLE_MULTIPLE_TOLERANCE * whole:
+            steps[cam] = whole
+            logger.info(
+                "%s records at %.4g fps, %dx the slowest camera's %.4g: every %s frame kept",
+                sources[cam].name, rate, whole, slowest, _ordinal(whole),
+            )  # fmt: skip
+    return steps
+
+
+def _ordinal(n: int) -> str:
+    return {2: "second", 3: "third"}.get(n, f"{n}th")
 
 
 def common_fps(
