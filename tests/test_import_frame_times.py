@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from mosiv_framework.capture.frame_times import (
+    Timestamps,
     even_frames,
     parse_framecrc,
     presentation_times,
@@ -56,15 +57,47 @@ def levels(frames: np.ndarray) -> list[int]:
 
 def test_presentation_times_of_an_even_and_an_uneven_clip(clips):
     even = presentation_times(clips["even"])
-    np.testing.assert_allclose(even, np.arange(N) / FPS, atol=1e-6)
+    np.testing.assert_allclose(even.times, np.arange(N) / FPS, atol=1e-6)
+    assert even.regular().all() and even.rate() == pytest.approx(FPS, rel=1e-6)
     uneven = presentation_times(clips["uneven"])
     shown = (np.arange(N) + GAP * (np.arange(N) >= GAP_AT)) / FPS
-    np.testing.assert_allclose(uneven, shown, atol=1e-6)
+    np.testing.assert_allclose(uneven.times, shown, atol=1e-6)
+    assert not uneven.regular().all() and uneven.rate() == pytest.approx(FPS, rel=1e-6)
 
 
-def test_an_even_clip_is_read_as_it_is(clips):
-    frames, fps = read_video(clips["even"])
-    assert levels(frames) == list(range(N)) and fps == pytest.approx(FPS)
+def test_a_millisecond_time_base_is_not_a_variable_frame_rate(tmp_path):
+    """Matroska keeps times in milliseconds: 300 fps comes out as intervals of 3 and 4 ms,
+    30 fps as 33 and 34. Both are even clips, read frame for frame at their true rate."""
+    for fps, n in ((300, 40), (30, 12)):
+        path = tmp_path / f"clip_{fps}.mkv"
+        writer = imageio_ffmpeg.write_frames(
+            str(path), (32, 32), fps=fps, codec="libx264", output_params=["-crf", "0"],
+            macro_block_size=1,
+        )  # fmt: skip
+        writer.send(None)
+        for i in range(n):
+            writer.send(np.full((32, 32, 3), 5 * i, dtype=np.uint8))
+        writer.close()
+        stamps = presentation_times(path)
+        assert stamps.tick == pytest.approx(1e-3) and stamps.regular().all()
+        assert even_frames(stamps) is None and stamps.rate() == pytest.approx(fps, rel=0.02)
+        frames, _ = read_video(path)
+        assert len(frames) == n
+
+
+def test_frames_an_edit_list_hides_are_not_timestamps(tmp_path):
+    """A clip cut without re-encoding keeps the packets before its cut, flagged discarded:
+    the timestamps are those of the frames the decoder shows."""
+    exe = imageio_ffmpeg.get_ffmpeg_exe()
+    long = tmp_path / "long.mp4"
+    make = [exe, "-y", "-v", "error", "-f", "lavfi", "-i", "color=size=32x24:rate=30:d=4"]
+    subprocess.run([*make, "-c:v", "libx264", "-g", "60", str(long)], check=True)
+    cut = tmp_path / "cut.mp4"
+    subprocess.run([exe, "-y", "-v", "error", "-ss", "1.5", "-i", str(long), "-c", "copy", str(cut)],
+                   check=True)  # fmt: skip
+    frames, _ = read_video(cut)
+    stamps = presentation_times(cut)
+    assert len(stamps.times) == len(frames) < 120 and stamps.times[0] >= 0.0
 
 
 def test_an_uneven_clip_is_resampled_to_even_times(clips):
@@ -82,16 +115,19 @@ def test_even_frames_by_hand():
     """A burst (two frames 10 ms apart in a 40 ms clip) drops one; a clip within the tolerance
     is left alone; fewer than three frames say nothing."""
     times = np.array([0.0, 0.04, 0.05, 0.08, 0.12, 0.16])
-    picks, rate = even_frames(times)
+    picks, rate = even_frames(Timestamps(times, 1e-6))
     assert picks.tolist() == [0, 1, 3, 4, 5] and rate == pytest.approx(25.0)
-    assert even_frames(np.array([0.0, 0.041, 0.08, 0.122])) is None
-    assert even_frames(np.array([0.0, 0.5])) is None
+    assert even_frames(Timestamps(np.array([0.0, 0.041, 0.08, 0.122]), 1e-6)) is None
+    assert even_frames(Timestamps(np.array([0.0, 0.5]), 1e-6)) is None
 
 
 def test_framecrc_without_timestamps_or_time_base_gives_none():
     header = "#tb 0: 1/12288\n"
-    times = parse_framecrc(header + "0, 0, 0, 512, 570, 0x1\n0, 512, 512, 512, 55, 0x2\n")
-    assert times.tolist() == pytest.approx([0.0, 512 / 12288])
+    stamps = parse_framecrc(header + "0, 0, 0, 512, 570, 0x1\n0, 512, 512, 512, 55, 0x2, F=0x0\n")
+    assert stamps.times.tolist() == pytest.approx([0.0, 512 / 12288])
+    assert stamps.tick == pytest.approx(1 / 12288)
+    hidden = parse_framecrc(header + "0, -512, -512, 512, 9, 0x1, F=0x5\n0, 0, 0, 512, 9, 0x2\n")
+    assert hidden.times.tolist() == [0.0]  # the discarded packet (flag 0x4) is not shown
     assert parse_framecrc(header + "0, 0, NOPTS, 512, 570, 0x1\n") is None
     assert parse_framecrc("0, 0, 0, 512, 570, 0x1\n") is None
 

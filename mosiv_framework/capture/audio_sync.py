@@ -2,19 +2,26 @@
 
 Cameras of a rig without a common clock still hear the same room: a clap, a slate, the impact
 itself. Each camera's sound is decoded by ffmpeg onto its container's timeline (resampled to
-``AUDIO_RATE``, silence padded where the audio starts after the video), so that sample ``s`` is
-heard ``s / AUDIO_RATE - v0`` seconds after the camera's first video frame (shown at ``v0``).
-Each camera's envelope is cross-correlated with the first camera's; the lag of the peak is how
-much later the same sound comes in that camera's video, i.e. how much earlier it started::
+``AUDIO_RATE``, silence padded where the audio starts after the video), so that a sound at
+sample ``s`` comes ``s / AUDIO_RATE - v0`` seconds after the camera's first shown frame (shown
+at ``v0``). Each camera's onset envelope is cross-correlated with the first camera's (by name);
+the lag of the peak, corrected for the cameras' ``v0``, is how much earlier that camera
+started::
 
-    envelope = smooth(|x - x_prev|)            (transients; the microphones' gain and polarity
-                                                drop out)
-    lag_c = argmax_l sum_t env_c(t + l) env_ref(t)
-    frames to drop_c = round((lag_c - min lag) * fps)
+    amplitude = mean of |x| over 1 ms, then over the last 5 ms   (ENVELOPE_RATE a second)
+    onset = max(0, amplitude - amplitude_prev)   (a clap's attack; its reverberation decays
+                                                  and counts for nothing, and the microphones'
+                                                  gains and polarity drop out)
+    lag_c = argmax_l sum_t onset_c(t + l) onset_ref(t)
+    delay_c = lag_c - v0_c + v0_ref
+    frames to drop_c = round((delay_c - min delay) * read rate_c)
 
-A lag is kept only where its peak stands ``MIN_PEAK_RATIO`` times above the correlation's
-other peaks (further than ``PEAK_EXCLUSION_S`` from it): noise alone, or sounds that repeat
-(a metronome), give no clear peak and are refused with the camera named.
+``read rate``: the frames per second of the camera's frames as read (its container's rate
+over ``--every`` and the whole multiple of a faster camera), so offsets and their sub-frame
+remainders are in frames as read. A lag is kept only where its peak stands ``MIN_PEAK_RATIO``
+times above the correlation's next peak (peaks at least ``PEAK_EXCLUSION_S`` apart): noise
+alone, or sounds that repeat (a metronome), give no clear peak and are refused with the camera
+named.
 """
 
 from __future__ import annotations
@@ -28,12 +35,17 @@ import numpy as np
 
 from mosiv_framework.capture.common import CaptureError
 
-#: samples per second the sound is compared at (a millisecond is 8 samples: far below a frame)
+#: samples per second the sound is decoded at
 AUDIO_RATE = 8000
-#: the envelope's smoothing window (s): keeps a clap's onset, drops the waveform's phase
-SMOOTHING_S = 0.002
+#: samples per second of the onset envelope the cameras are compared by: a millisecond, far
+#: below a frame (and a 30-minute clip is 1.8 million samples)
+ENVELOPE_RATE = 1000
+#: the amplitude's smoothing before its rises are taken (s): on a clap ringing for 1 s (RT60) the
+#: peak ratio is 1.3 unsmoothed, 3.0 at 5 ms; room noise alone stays at 1.3 there (at 20 ms it
+#: reaches 3.7, and noise would pass for a clap)
+SMOOTHING_S = 0.005
 #: the correlation's peak over its highest value further than PEAK_EXCLUSION_S from it, at least
-#: (noise alone gives 1.0-1.4; a clap heard by two cameras, hundreds)
+#: (noise alone gives 1.0-1.4; a clap heard by two cameras, tens to hundreds)
 MIN_PEAK_RATIO = 2.0
 PEAK_EXCLUSION_S = 0.05
 
@@ -61,47 +73,60 @@ def read_sound(path: Path) -> np.ndarray | None:
     return np.frombuffer(done.stdout, dtype=np.float32)
 
 
-def envelope(sound: np.ndarray) -> np.ndarray:
-    """The sound's transient envelope: |first difference| smoothed over SMOOTHING_S, scaled to
-    unit mean (the microphones' gains differ)."""
-    change = np.abs(np.diff(sound.astype(np.float64), prepend=float(sound[0]) if sound.size else 0))
-    width = max(1, round(SMOOTHING_S * AUDIO_RATE))
-    smooth = np.convolve(change, np.ones(width) / width, mode="same")
-    mean = float(smooth.mean()) if smooth.size else 0.0
-    return smooth / mean if mean > 0 else smooth
+def onset_envelope(sound: np.ndarray) -> np.ndarray:
+    """The sound's onsets at ENVELOPE_RATE: the rises of its mean amplitude over each
+    1 / ENVELOPE_RATE s, scaled to unit mean (the microphones' gains differ)."""
+    block = AUDIO_RATE // ENVELOPE_RATE
+    n = len(sound) // block
+    amplitude = np.abs(sound[: n * block].astype(np.float64)).reshape(n, block).mean(axis=1)
+    # a causal mean over SMOOTHING_S: a ringing tail then decays smoothly instead of rising
+    # and falling with its noise (the same delay in every camera leaves the lag as it is)
+    width = max(1, round(SMOOTHING_S * ENVELOPE_RATE))
+    amplitude = np.convolve(amplitude, np.ones(width) / width, mode="full")[:n]
+    onset = np.maximum(np.diff(amplitude, prepend=amplitude[:1]), 0.0)
+    mean = float(onset.mean()) if onset.size else 0.0
+    return onset / mean if mean > 0 else onset
 
 
 def lag_of(sound: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
-    """(seconds by which ``sound`` hears what ``reference`` hears later, the peak ratio)."""
-    from scipy.signal import correlate, correlation_lags
+    """(seconds by which ``sound`` hears what ``reference`` hears later, the peak ratio: the
+    correlation's highest peak over its next, peaks PEAK_EXCLUSION_S apart at least)."""
+    from scipy.signal import correlate, correlation_lags, find_peaks
 
-    a, b = envelope(sound), envelope(reference)
+    a, b = onset_envelope(sound), onset_envelope(reference)
     a, b = a - a.mean(), b - b.mean()
     corr = correlate(a, b, mode="full", method="fft")
     lags = correlation_lags(len(a), len(b), mode="full")
-    best = int(np.argmax(corr))
-    away = np.abs(lags - lags[best]) > PEAK_EXCLUSION_S * AUDIO_RATE
-    other = float(corr[away].max()) if away.any() else 0.0
+    peaks, _ = find_peaks(corr, distance=max(1, round(PEAK_EXCLUSION_S * ENVELOPE_RATE)))
+    if peaks.size == 0:
+        return 0.0, 0.0
+    heights = np.sort(corr[peaks])[::-1]
+    best = peaks[int(np.argmax(corr[peaks]))]
+    other = float(heights[1]) if heights.size > 1 else 0.0
     ratio = float(corr[best]) / other if other > 0 else float("inf")
-    return float(lags[best]) / AUDIO_RATE, ratio
+    return float(lags[best]) / ENVELOPE_RATE, ratio
 
 
 def estimate_audio_offsets(
-    sources: Mapping[str, Path], fps: float, first_frame_s: Mapping[str, float] | None = None
+    sources: Mapping[str, Path],
+    read_rates: Mapping[str, float],
+    first_frame_s: Mapping[str, float] | None = None,
 ) -> AudioOffsets:
-    """Frames each camera's video drops so that its frame i shows the instant the others'
-    frame i shows, from the sound of each video in ``sources`` (camera id -> file); ``fps``:
-    the frames' rate as read; ``first_frame_s``: when each camera's first frame is shown on
-    its container's timeline (default 0). CaptureError naming a camera without sound or whose
-    sound does not match the first camera's."""
+    """Frames each camera drops so that its frame i shows the instant the others' frame i
+    shows, from the sound of each video in ``sources`` (camera id -> file); ``read_rates``:
+    camera id -> frames as read per second of its container's time; ``first_frame_s``: when
+    each camera's first frame is shown on its container's timeline (default 0). CaptureError
+    naming a camera without sound (an image folder has none) or whose sound does not match the
+    first camera's."""
     first_frame_s = first_frame_s or {}
     sounds = {}
     for cam, path in sorted(sources.items()):
         sound = read_sound(path) if path.is_file() else None
         if sound is None or not np.any(sound):
             raise CaptureError(
-                f"--offsets audio: camera {cam!r} ({path}) has no sound to synchronise by; give "
-                "--offsets CAM:N,... or let the import estimate them from motion onset"
+                f"--offsets audio: camera {cam!r} ({path}) has no sound to synchronise by (every "
+                "camera must be a video with an audio track); give --offsets CAM:N,... or let "
+                "the import estimate them from motion onset"
             )
         sounds[cam] = sound
     reference = next(iter(sounds))
@@ -122,7 +147,7 @@ def estimate_audio_offsets(
         delays[cam] = lag - first_frame_s.get(cam, 0.0) + first_frame_s.get(reference, 0.0)
         ratios[cam] = ratio
     first = min(delays.values())
-    exact = {cam: (d - first) * fps for cam, d in delays.items()}
+    exact = {cam: (d - first) * read_rates[cam] for cam, d in delays.items()}
     frames = {cam: int(round(x)) for cam, x in exact.items()}
     remainders = {cam: exact[cam] - frames[cam] for cam in exact}
     return AudioOffsets(frames, remainders, ratios)

@@ -151,12 +151,13 @@ def load_cameras(s: ImportSettings, known: set[str]) -> dict[str, SourceCamera]:
     return by_id
 
 
-def load_frames(s: ImportSettings, sources, cams) -> tuple[dict[str, np.ndarray], float]:
+def load_frames(s: ImportSettings, sources, cams) -> tuple[dict[str, np.ndarray], float, dict]:
     """Every camera's frames (checked against its intrinsics' size) and the frame rate: every
     ``s.every``-th frame (the rate divided alike; of a camera at a whole multiple of the
     slowest camera's rate, every ``s.every`` x that multiple), brought down to
     ``s.resolution`` pixels on the longest side, with each camera's intrinsics in ``cams``
-    scaled to match."""
+    scaled to match. Returns the frames, the rate and each camera's source frames per frame
+    read (``s.every`` x its multiple)."""
     videos, rates = {}, {}
     # a camera at a whole multiple of the others' rate keeps the frames at their instants
     # (--fps says every frame is equally spaced at that rate: nothing is skipped then)
@@ -176,40 +177,51 @@ def load_frames(s: ImportSettings, sources, cams) -> tuple[dict[str, np.ndarray]
         cams[cid] = replace(cams[cid], intrinsics=k.resized(size[1], size[0]))
         videos[cid] = frames
     longest = max(len(v) for v in videos.values())
+    per_read = {cid: s.every * steps[cid] for cid in videos}
     if s.fps is not None:  # checked as given, then divided alike
-        return videos, video.common_fps(rates, s.fps, s.frames_dir, longest) / s.every
-    return videos, video.common_fps(rates, None, s.frames_dir, longest)
+        return videos, video.common_fps(rates, s.fps, s.frames_dir, longest) / s.every, per_read
+    return videos, video.common_fps(rates, None, s.frames_dir, longest), per_read
 
 
-def time_offsets(s: ImportSettings, videos, yaml_offsets, sources, fps: float):
+def time_offsets(s: ImportSettings, videos, yaml_offsets, sources, per_read: dict):
     """(camera id -> leading frames to drop, how they were found: "given", "motion" or
     "audio", the sub-frame remainders of audio offsets) from --offsets, the objects YAML,
-    the cameras' sound (``--offsets audio``) or the motion onsets."""
+    the cameras' sound (``--offsets audio``) or the motion onsets; ``per_read``: each
+    camera's source frames per frame read (``load_frames``)."""
     if s.offsets is not None and yaml_offsets is not None:
         raise CaptureError(f"offsets given twice (--offsets and {s.objects_yaml}); give one")
     given, where = (s.offsets, "--offsets") if s.offsets is not None else (yaml_offsets, "")
     if isinstance(given, str) and given.strip().lower() == "audio":
-        first_shown = {}
-        for cam, path in sources.items():
-            times = frame_times.presentation_times(path) if path.is_file() else None
-            first_shown[cam] = float(times[0]) if times is not None else 0.0
-        found = audio_sync.estimate_audio_offsets(
-            {c: p for c, p in sources.items() if c in videos}, fps, first_shown
-        )
-        logger.info(
-            "time offsets from the cameras' sound (frames dropped): %s; sub-frame remainders "
-            "%s; peak ratios %s",
-            found.frames,
-            {c: round(r, 2) for c, r in found.remainders.items()},
-            {c: round(r, 1) for c, r in found.peak_ratios.items()},
-        )
-        return found.frames, "audio", found.remainders
+        return _audio_offsets({c: sources[c] for c in videos}, per_read)
     offsets = off.parse_offsets(given, sorted(videos), where or f"{s.objects_yaml}: offsets")
     if offsets is not None:
         return offsets, "given", {}
     offsets = off.estimate_offsets(videos, k=s.onset_k)
     logger.info("estimated time offsets (frames dropped): %s", offsets)
     return offsets, "motion", {}
+
+
+def _audio_offsets(sources: dict, per_read: dict):
+    """``time_offsets`` from the cameras' sound: each camera's lag in its container's time,
+    turned into frames as read by the rate of its own timestamps over ``per_read`` (not
+    --fps, which may say the frames stand for another rate)."""
+    first_shown, read_rates = {}, {}
+    for cam, path in sources.items():
+        stamps = frame_times.presentation_times(path) if path.is_file() else None
+        if stamps is None or len(stamps.times) < 2:
+            first_shown[cam], read_rates[cam] = 0.0, 0.0  # refused below: no sound
+            continue
+        first_shown[cam] = float(stamps.times[0])
+        read_rates[cam] = stamps.rate() / per_read[cam]
+    found = audio_sync.estimate_audio_offsets(sources, read_rates, first_shown)
+    logger.info(
+        "time offsets from the cameras' sound (frames dropped): %s; sub-frame remainders %s; "
+        "peak ratios %s",
+        found.frames,
+        {c: round(r, 2) for c, r in found.remainders.items()},
+        {c: round(r, 1) for c, r in found.peak_ratios.items()},
+    )
+    return found.frames, "audio", found.remainders
 
 
 def synchronise(s: ImportSettings, videos, offsets) -> tuple[dict, dict, list, dict]:
@@ -371,8 +383,8 @@ def import_recording(s: ImportSettings) -> Path:
     objects, hints, yaml_offsets = read_objects(s)
     sources = video.find_sources(s.frames_dir)
     cams = load_cameras(s, set(sources))
-    videos, fps = load_frames(s, sources, cams)
-    offsets, found_by, remainders = time_offsets(s, videos, yaml_offsets, sources, fps)
+    videos, fps, per_read = load_frames(s, sources, cams)
+    offsets, found_by, remainders = time_offsets(s, videos, yaml_offsets, sources, per_read)
     videos, offsets, left_out, spans = synchronise(s, videos, offsets)
     cams = {c: cam for c, cam in cams.items() if c in videos}
     for c in videos:  # in place: a long clip is held once (no loop variable keeps one alive)

@@ -172,18 +172,18 @@ def read_video(
 def _frame_copies(path: Path, every: int) -> tuple[np.ndarray | None, float | None]:
     """(how many times each decoded frame is kept, the even rate) of a variable-frame-rate
     clip resampled to even times, then every ``every``-th; (None, None) for an even clip."""
-    times = frame_times.presentation_times(path)
-    uneven = frame_times.even_frames(times) if times is not None else None
+    stamps = frame_times.presentation_times(path)
+    uneven = frame_times.even_frames(stamps) if stamps is not None else None
     if uneven is None:
         return None, None
     picks, rate = uneven
     logger.warning(
         "%s: recorded at a variable frame rate, %s; resampled to %.4g fps",
         path,
-        frame_times.describe(times, picks),
+        frame_times.describe(stamps, picks),
         rate,
     )
-    return np.bincount(picks[::every], minlength=len(times)), rate
+    return np.bincount(picks[::every], minlength=len(stamps.times)), rate
 
 
 def read_image_folder(
@@ -268,12 +268,12 @@ def rate_steps(sources: Mapping[str, Path]) -> dict[str, int]:
     camera beside 30 fps ones (every second frame shows the instants the others show), 1 for
     an image folder, a video at the slowest rate, or one whose rate is no whole multiple of it
     (``common_fps`` then names the rates that differ). Rates from the frames' timestamps
-    (``frame_times``: the median interval)."""
+    (``frame_times.Timestamps.rate``)."""
     rates = {}
     for cam, path in sources.items():
-        times = frame_times.presentation_times(path) if path.is_file() else None
-        if times is not None and len(times) > 2 and np.median(np.diff(times)) > 0:
-            rates[cam] = 1.0 / float(np.median(np.diff(times)))
+        stamps = frame_times.presentation_times(path) if path.is_file() else None
+        if stamps is not None and len(stamps.times) > 2 and np.median(np.diff(stamps.times)) > 0:
+            rates[cam] = stamps.rate()
     slowest = min(rates.values(), default=None)
     steps = dict.fromkeys(sources, 1)
     for cam, rate in rates.items():
