@@ -16,7 +16,9 @@ scene our own generator made at the same grid and substeps the error is 0 (the t
     python benchmarks/genesis_model_error.py --scenes runs/genesis --out runs/model_error \\
         --laws own corotated --contacts multi_field single_field --grids 48 64 --substeps 400
 
-``--laws own`` rolls each material out with its own law; ``corotated`` with Genesis's fixed-
+``--splits 1 2`` also lifts each point into 2^3 particles (the gt-points lifter's ``split``):
+Genesis samples its bodies about 1 cm apart, fewer than one particle a cell on a grid of 96
+over the 0.8 m domain. ``--laws own`` rolls each material out with its own law; ``corotated`` with Genesis's fixed-
 corotated stress for elastic and plasticine bodies (``elastic_corotated``,
 ``plasticine_corotated``). Writes ``OUT/model_error.json`` (one row per scene and
 configuration, with its wall time, machine and code version) and ``OUT/model_error.md`` (the
@@ -84,27 +86,32 @@ def true_params(scene, materials: dict[int, str]) -> SimulationParams:
     return SimulationParams(objects, v0, torch.tensor(float(ground)))
 
 
-def frame0_particles(recipe, scene):
-    """The recipe's reconstructor and lifter on ``scene``: the particles identification uses."""
+def frame0_particles(recipe, scene, split: int = 1):
+    """The recipe's reconstructor and lifter on ``scene``: the particles identification uses;
+    ``split`` > 1: the gt-points lifter's ``split`` option (each point into split^3)."""
     registry = get_registry()
     name, options = component(recipe.reconstructor)
     reconstruction = registry.create("reconstructor", name, options).fit(scene, run_dir=None)
     name, options = component(recipe.lifter)
+    if split != 1:
+        options = {**options, "split": split}
     return registry.create("lifter", name, options).lift(reconstruction, scene)
 
 
 def configurations(args) -> list[dict]:
-    """Every (laws, contact, grid, substeps) the command names, in a fixed order."""
+    """Every (laws, contact, grid, substeps, split) the command names, in a fixed order."""
     return [
-        {"laws": laws, "contact": contact, "grid": grid, "substeps": substeps}
-        for laws, contact, grid, substeps in itertools.product(
-            args.laws, args.contacts, args.grids, args.substeps
+        {"laws": laws, "contact": contact, "grid": grid, "substeps": substeps, "split": split}
+        for laws, contact, grid, substeps, split in itertools.product(
+            args.laws, args.contacts, args.grids, args.substeps, args.splits
         )
     ]
 
 
 def config_key(config: dict) -> str:
-    return f"{config['laws']}/{config['contact']}/g{config['grid']}/s{config['substeps']}"
+    key = f"{config['laws']}/{config['contact']}/g{config['grid']}/s{config['substeps']}"
+    split = config.get("split", 1)
+    return key if split == 1 else f"{key}/split{split}"
 
 
 def measure(recipe, scene, particles, config: dict, *, emd_samples: int) -> dict:
@@ -256,6 +263,10 @@ def parse_args(argv: list[str] | None):
     ap.add_argument("--grids", nargs="+", type=int, default=[64])
     ap.add_argument("--substeps", nargs="+", type=int, default=[400])
     ap.add_argument("--device", default=None, help="simulator device (default: the recipe's)")
+    ap.add_argument(
+        "--splits", nargs="+", type=int, default=[1],
+        help="gt-points lifter splits: each point into k^3 particles (default 1: as given)",
+    )  # fmt: skip
     ap.add_argument("--emd-samples", type=int, default=1024)
     ap.add_argument("--report", action="store_true", help="gather the rows under --out")
     ap.add_argument("--measured-with", default=None, help="the measuring command, for --report")
@@ -279,10 +290,11 @@ def measure_all(args) -> list[dict]:
         folder = args.scenes / name
         recipe = load_recipe(args.recipe, [f"scene.path={folder}", *overrides])
         scene = read_scene(folder)
-        particles = frame0_particles(recipe, scene)
+        lifted = {k: frame0_particles(recipe, scene, k) for k in args.splits}
         for config in configurations(args):
             if (scene.root.name, config_key(config)) in done:
                 continue
+            particles = lifted[config["split"]]
             row = measure(recipe, scene, particles, config, emd_samples=args.emd_samples)
             print(json.dumps(row), flush=True)
             data["rows"].append(row)

@@ -97,3 +97,19 @@ def test_report_refuses_a_folder_without_rows_or_with_another_table(bench, tmp_p
     (tmp_path / "model_error.json").write_text(json.dumps({"format": "other", "rows": []}))
     with pytest.raises(SystemExit, match="not a model-error table"):
         bench.main(["--out", str(tmp_path), "--report"])
+
+
+def test_split_particles_are_a_configuration_of_their_own(measured, bench):
+    """``--splits 1 2``: the generator's own particles reproduce its scene, the same bodies
+    split into 2^3 particles each are another discretisation (the key says split2)."""
+    root, argv, _ = measured
+    out = root / "split"
+    suite, recipe = argv[argv.index("--scenes") + 1], argv[argv.index("--recipe") + 1]
+    split_argv = ["--scenes", suite, "--out", str(out), "--recipe", recipe, "--laws", "own"]
+    split_argv += ["--contacts", "multi_field", *CONFIG, "--splits", "1", "2"]
+    assert bench.main(split_argv) == 0
+    rows = {r["config"]: r for r in json.loads((out / "model_error.json").read_text())["rows"]}
+    assert sorted(rows) == ["own/multi_field/g24/s30", "own/multi_field/g24/s30/split2"]
+    exact, split = rows["own/multi_field/g24/s30"], rows["own/multi_field/g24/s30/split2"]
+    assert exact["observed_cd"] < 1e-6 and split["split"] == 2
+    assert split["observed_cd"] + split["future_cd"] > 1e-2, split
