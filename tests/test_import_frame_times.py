@@ -24,15 +24,16 @@ FPS, N, GAP_AT, GAP = 24, 20, 10, 2  # frames from GAP_AT on are shown GAP inter
 LEVEL = 10
 
 
-def write_clip(path: Path) -> Path:
-    """N frames of grey level LEVEL * i at FPS, constant rate."""
+def write_clip(path: Path, levels=None, fps: float = FPS) -> Path:
+    """Grey frames of the given ``levels`` (default LEVEL * i for N frames) at ``fps``,
+    constant rate, losslessly (crf 0)."""
     writer = imageio_ffmpeg.write_frames(
-        str(path), (32, 32), fps=FPS, codec="libx264", output_params=["-crf", "0"],
+        str(path), (32, 32), fps=fps, codec="libx264", output_params=["-crf", "0"],
         macro_block_size=1,
     )  # fmt: skip
     writer.send(None)
-    for i in range(N):
-        writer.send(np.full((32, 32, 3), LEVEL * i, dtype=np.uint8))
+    for level in [LEVEL * i for i in range(N)] if levels is None else levels:
+        writer.send(np.full((32, 32, 3), level, dtype=np.uint8))
     writer.close()
     return path
 
@@ -69,15 +70,7 @@ def test_a_millisecond_time_base_is_not_a_variable_frame_rate(tmp_path):
     """Matroska keeps times in milliseconds: 300 fps comes out as intervals of 3 and 4 ms,
     30 fps as 33 and 34. Both are even clips, read frame for frame at their true rate."""
     for fps, n in ((300, 40), (30, 12)):
-        path = tmp_path / f"clip_{fps}.mkv"
-        writer = imageio_ffmpeg.write_frames(
-            str(path), (32, 32), fps=fps, codec="libx264", output_params=["-crf", "0"],
-            macro_block_size=1,
-        )  # fmt: skip
-        writer.send(None)
-        for i in range(n):
-            writer.send(np.full((32, 32, 3), 5 * i, dtype=np.uint8))
-        writer.close()
+        path = write_clip(tmp_path / f"clip_{fps}.mkv", [5 * i for i in range(n)], fps)
         stamps = presentation_times(path)
         assert stamps.tick == pytest.approx(1e-3) and stamps.regular().all()
         assert even_frames(stamps) is None and stamps.rate() == pytest.approx(fps, rel=0.02)
@@ -137,15 +130,7 @@ def test_a_camera_at_twice_the_rate_keeps_every_second_frame(tmp_path):
     the 24 fps camera's instants (grey level 10 x the time in 24ths of a second)."""
     from mosiv_framework.capture.video import rate_steps
 
-    fast = tmp_path / "fast.mp4"
-    writer = imageio_ffmpeg.write_frames(
-        str(fast), (32, 32), fps=2 * FPS, codec="libx264", output_params=["-crf", "0"],
-        macro_block_size=1,
-    )  # fmt: skip
-    writer.send(None)
-    for j in range(2 * N):
-        writer.send(np.full((32, 32, 3), LEVEL * j // 2, dtype=np.uint8))
-    writer.close()
+    fast = write_clip(tmp_path / "fast.mp4", [LEVEL * j // 2 for j in range(2 * N)], 2 * FPS)
     slow = write_clip(tmp_path / "slow.mp4")
     steps = rate_steps({"slow": slow, "fast": fast, "folder": tmp_path})
     assert steps == {"slow": 1, "fast": 2, "folder": 1}

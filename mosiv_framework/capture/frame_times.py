@@ -16,6 +16,7 @@ median (or a tick and a half of its time base) is left as it is.
 
 from __future__ import annotations
 
+import functools
 import logging
 import subprocess
 from dataclasses import dataclass
@@ -63,10 +64,22 @@ class Timestamps:
 def presentation_times(path: Path) -> Timestamps | None:
     """When the first video stream's frames are shown, in presentation order, or None where
     ffmpeg gives no timestamps (a stream without them, or a file it cannot read: decoding
-    then reports the file)."""
+    then reports the file). An import asks for each video's up to three times (its rate, its
+    frames, its sound's offset): the file is read once while it stays unchanged."""
+    try:
+        stat = Path(path).stat()
+    except OSError:  # decoding names the missing or unreadable file
+        return None
+    return _read_times(str(Path(path).resolve()), stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=64)
+def _read_times(path: str, mtime_ns: int, size: int) -> Timestamps | None:
+    """``presentation_times`` of the file as it is at (mtime_ns, size): a file rewritten in
+    place is read again."""
     import imageio_ffmpeg
 
-    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-i", str(path)]
+    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-i", path]
     command += ["-map", "0:v:0", "-c", "copy", "-f", "framecrc", "-"]
     done = subprocess.run(command, capture_output=True, text=True)
     if done.returncode != 0:

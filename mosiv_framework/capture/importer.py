@@ -1,10 +1,10 @@
 """``import_recording``: a capture rig's recording -> a ``mosiv-scene/1`` folder.
 
 The steps, each in its own module: frames (``video``, ``frame_times``), cameras (``colmap``,
-``nerfstudio``), time offsets (``offsets``, ``audio_sync``), lens undistortion (``lens``), the frame alignment
-(``align``: units, up axis, ground), masks from a registered segmenter, and the domain from the
-visual hull (``domain``). Everything is read and checked before OUT is created; the scene is
-written with ``SceneWriter``, validated with ``validate_scene``, and previewed as
+``nerfstudio``), time offsets (``offsets``, ``audio_sync``), lens undistortion (``lens``), the
+frame alignment (``align``: units, up axis, ground), masks from a registered segmenter, and the
+domain from the visual hull (``domain``). Everything is read and checked before OUT is created;
+the scene is written with ``SceneWriter``, validated with ``validate_scene``, and previewed as
 ``preview/contact_sheet.png``; ``import.json`` records what the import decided.
 """
 

@@ -122,8 +122,8 @@ def read_video(
     every ``every``-th frame from the first, each brought down to ``longest_side`` pixels as
     it is decoded (so a long high-resolution clip never sits in memory at full size). The
     rate returned is the video's own; ``expect``: the size the frames must have as recorded.
-    A clip recorded at a variable frame rate is first resampled to even times at its median
-    interval, whose rate is returned (frame_times.py)."""
+    A clip recorded at a variable frame rate is first resampled to even times at its regular
+    rate, which is returned (frame_times.py)."""
     try:
         import imageio.v2 as iio2
         import imageio_ffmpeg  # noqa: F401 -- imageio's FFMPEG format needs it
