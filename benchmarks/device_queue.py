@@ -17,6 +17,13 @@ Usage (repository root, after ``source benchmarks/gpu_setup.sh``)::
     python3 benchmarks/device_queue.py stop                    # end the queue and its jobs
     python3 benchmarks/device_queue.py stop --only A,B         # end jobs A and B only
 
+``--mps`` runs the jobs under NVIDIA's Multi-Process Service: the queue starts its control
+daemon (``nvidia-cuda-mps-control -d``, pipe and log folders in ``JOBS/mps``) and quits it when
+the queue ends or is stopped. Without it a GPU runs one process's kernels at a time, switching
+between processes; jobs at Genesis-scene size (a few thousand particles) leave most of the GPU
+idle in each kernel, so several of them then take as long as one after the other. Under MPS
+their kernels run side by side (docs/BENCHMARKS.md, "Several processes on one GPU").
+
 ``stop`` frees the GPU before the lease's end (for a benchmark that must run alone, say): the
 queue starts nothing more and every running job's process group is ended (``NAME.rc`` then
 reads ``stopped``); what the jobs saved stays. It finds them by the process ids the queue
@@ -68,6 +75,10 @@ POLL_SECONDS = 2.0
 #: beside a job stopped on its own (``stop --only``): the queue does not start it, or records
 #: its end as "stopped" rather than as a failure
 STOPPED = ".stopped"
+
+
+#: NVIDIA's MPS control program (``--mps``), installed with the driver
+MPS_CONTROL = "nvidia-cuda-mps-control"
 
 
 @dataclass
@@ -137,12 +148,67 @@ def checkout_version() -> str | None:
     return (head.stdout.strip() or None) if head.returncode == 0 else None
 
 
+def mps_environment(jobs_dir: Path) -> dict[str, str]:
+    """Where the queue's MPS daemon and its clients (the jobs) meet: the variables that name
+    its pipe and log folders, inside ``jobs_dir``."""
+    return {
+        "CUDA_MPS_PIPE_DIRECTORY": str(jobs_dir / "mps" / "pipe"),
+        "CUDA_MPS_LOG_DIRECTORY": str(jobs_dir / "mps" / "log"),
+    }
+
+
+def start_mps(jobs_dir: Path) -> dict[str, str]:
+    """Start the MPS control daemon for this queue (it detaches itself and outlives the call
+    that starts it); returns the variables every job needs to reach it.
+
+    Raises:
+        SystemExit: the control program is not on PATH or would not start.
+    """
+    program = shutil.which(MPS_CONTROL)
+    if program is None:
+        raise SystemExit(
+            f"--mps: {MPS_CONTROL} is not on PATH (it comes with the NVIDIA driver); "
+            "run the queue without --mps"
+        )
+    env = mps_environment(jobs_dir)
+    for folder in env.values():
+        Path(folder).mkdir(parents=True, exist_ok=True)
+    started = subprocess.run(
+        [program, "-d"], env={**os.environ, **env}, capture_output=True, text=True
+    )
+    if started.returncode != 0:
+        raise SystemExit(f"--mps: {MPS_CONTROL} -d failed: {started.stderr.strip()}")
+    return env
+
+
+def stop_mps(jobs_dir: Path) -> bool:
+    """Quit the MPS daemon that ``start_mps`` started for ``jobs_dir``, where its pipe folder
+    is there; returns whether one was asked to quit."""
+    env = mps_environment(jobs_dir)
+    pipe = Path(env["CUDA_MPS_PIPE_DIRECTORY"])
+    program = shutil.which(MPS_CONTROL)
+    if not pipe.exists() or program is None:
+        return False
+    subprocess.run(
+        [program], input="quit\n", text=True, env={**os.environ, **env}, capture_output=True,
+        timeout=60,
+    )  # fmt: skip
+    shutil.rmtree(pipe, ignore_errors=True)
+    return True
+
+
 def job_environment(
-    tree: Path, gpu: str, threads: int, code_version: str | None = None
+    tree: Path,
+    gpu: str,
+    threads: int,
+    code_version: str | None = None,
+    extra: dict[str, str] | None = None,
 ) -> dict[str, str]:
-    """The job's environment: its GPU, its CPU threads, import paths into its snapshot and the
-    code version its rows name (``code_version``, where known)."""
+    """The job's environment: its GPU, its CPU threads, import paths into its snapshot, the
+    code version its rows name (``code_version``, where known) and ``extra`` (the MPS
+    daemon's folders, say)."""
     env = dict(os.environ)
+    env.update(extra or {})
     if code_version:
         env["MOSIV_CODE_VERSION"] = code_version
     env["CUDA_VISIBLE_DEVICES"] = gpu
@@ -175,7 +241,13 @@ def take_snapshot(jobs_dir: Path) -> Path:
 
 
 def launch(
-    job: Job, source: Path, jobs_dir: Path, gpu: str, threads: int, code_version: str | None
+    job: Job,
+    source: Path,
+    jobs_dir: Path,
+    gpu: str,
+    threads: int,
+    code_version: str | None,
+    extra_env: dict[str, str] | None = None,
 ) -> subprocess.Popen:
     """Copy the queue's snapshot ``source`` for ``job`` and start the job in it on ``gpu``."""
     tree = jobs_dir / f"{job.name}.tree"
@@ -187,7 +259,7 @@ def launch(
     process = subprocess.Popen(
         ["bash", "-c", job.command],
         cwd=tree,
-        env=job_environment(tree, gpu, threads, code_version),
+        env=job_environment(tree, gpu, threads, code_version, extra_env),
         stdout=log,
         stderr=subprocess.STDOUT,
         stdin=subprocess.DEVNULL,
@@ -205,9 +277,11 @@ def run_queue(
     slots: int,
     threads: int,
     code_version: str | None = None,
+    extra_env: dict[str, str] | None = None,
 ) -> int:
     """Run every job in a copy of ``source``, at most ``slots`` at once per GPU, each with
-    ``MOSIV_CODE_VERSION=code_version`` where given; returns how many failed."""
+    ``MOSIV_CODE_VERSION=code_version`` where given and ``extra_env``; returns how many
+    failed."""
     gpus = gpu_ids(max(n_gpus, 1))
     (jobs_dir / "queue.pid").write_text(f"{os.getpid()}\n")
     waiting = list(jobs)
@@ -239,7 +313,7 @@ def run_queue(
                 print(f"{time.strftime('%H:%M:%S')} skip {job.name}: stopped", flush=True)
                 continue
             on_gpu[gpu] += 1
-            process = launch(job, source, jobs_dir, gpu, threads, code_version)
+            process = launch(job, source, jobs_dir, gpu, threads, code_version, extra_env)
             running[job.name] = (gpu, process)
             if (jobs_dir / f"{job.name}{STOPPED}").exists():  # stopped while it was launched
                 _end_groups({job.name: process.pid}, grace_seconds=10.0)
@@ -311,6 +385,7 @@ def stop(jobs_dir: Path, grace_seconds: float = 10.0) -> list[str]:
     for name in running:
         (jobs_dir / f"{name}.rc").write_text("stopped\n")
         shutil.rmtree(jobs_dir / f"{name}.tree", ignore_errors=True)
+    stop_mps(jobs_dir)
     return sorted(running)
 
 
@@ -332,6 +407,14 @@ def main(argv: list[str] | None = None) -> int:
         help="with stop: end only these jobs (comma-separated names), running or queued, and "
         "leave the queue running the others (to let the rest finish inside a lease, say)",
     )
+    parser.add_argument(
+        "--mps",
+        action="store_true",
+        help="run the jobs under NVIDIA MPS, so that one GPU runs several jobs' kernels at "
+        "once (the queue starts the daemon and quits it at its end)",
+    )
+    # start passes this to the detached queue: the daemon runs already
+    parser.add_argument("--mps-started", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument(
         "--source", type=Path, default=None, help="the snapshot to start jobs from (default: now)"
     )
@@ -364,6 +447,11 @@ def main(argv: list[str] | None = None) -> int:
     clash = [j.name for j in jobs if (args.jobs_dir / f"{j.name}.log").exists()]
     if clash:
         parser.error(f"{args.jobs_dir} already has logs of {', '.join(clash)}: rename those jobs")
+    mps = None  # the daemon starts before anything is queued, so a refusal leaves nothing
+    if args.mps_started:
+        mps = mps_environment(args.jobs_dir)
+    elif args.mps:
+        mps = start_mps(args.jobs_dir)
     for job in jobs:
         # a job of that name stopped before it ever started left a marker and an exit code
         for stale in (STOPPED, ".rc"):
@@ -371,7 +459,13 @@ def main(argv: list[str] | None = None) -> int:
         (args.jobs_dir / f"{job.name}.queued").write_text(job.command + "\n")
     source = args.source or take_snapshot(args.jobs_dir)
     if args.verb == "run":
-        failed = run_queue(jobs, source, args.jobs_dir, n_gpus, args.slots, threads, code_version)
+        try:
+            failed = run_queue(
+                jobs, source, args.jobs_dir, n_gpus, args.slots, threads, code_version, mps
+            )
+        finally:
+            if mps:
+                stop_mps(args.jobs_dir)
         return min(failed, 1)
     # the detached queue reads its own copy of the job file, taken while this call holds the
     # checkout still
@@ -380,6 +474,7 @@ def main(argv: list[str] | None = None) -> int:
     rest = [str(jobfile), "--slots", str(args.slots), "--gpus", str(n_gpus)]
     rest += ["--threads", str(threads), "--jobs-dir", str(args.jobs_dir), "--source", str(source)]
     rest += ["--code-version", code_version] if code_version else []
+    rest += ["--mps-started"] if mps else []
     log = open(args.jobs_dir / "queue.out", "a")  # noqa: SIM115 (the detached queue holds it)
     subprocess.Popen(
         [sys.executable, __file__, "run", *rest],
@@ -388,7 +483,11 @@ def main(argv: list[str] | None = None) -> int:
         stderr=subprocess.STDOUT,
         stdin=subprocess.DEVNULL,
     )
-    print(f"queued {len(jobs)} jobs: {n_gpus} GPU(s) x {args.slots} slots, {threads} threads each")
+    shared = " under MPS" if mps else ""
+    print(
+        f"queued {len(jobs)} jobs: {n_gpus} GPU(s) x {args.slots} slots, {threads} threads "
+        f"each{shared}"
+    )
     if not code_version:
         print(
             "warning: no code version known (no git history here): rows will name 'unknown'; "

@@ -278,3 +278,49 @@ def test_start_without_a_job_file_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit):
         device_queue.main(["start", "--jobs-dir", str(tmp_path)])
     assert "start needs a JOBFILE" in capsys.readouterr().err
+
+
+def _fake_mps_control(bin_dir: Path, log: Path) -> None:
+    """An nvidia-cuda-mps-control stand-in that records each call: its arguments, the pipe
+    folder it was given and, when called without arguments, the command read from stdin."""
+    bin_dir.mkdir()
+    program = bin_dir / device_queue.MPS_CONTROL
+    program.write_text(
+        "#!/usr/bin/env bash\n"
+        'cmd=""; if [ $# -eq 0 ]; then read -r cmd; fi\n'
+        f'echo "args=$* cmd=$cmd pipe=$CUDA_MPS_PIPE_DIRECTORY" >> {log}\n'
+    )
+    program.chmod(0o755)
+
+
+def test_mps_queue_starts_the_daemon_gives_its_folders_to_the_jobs_and_quits_it(tmp_path):
+    log, out, jobs_dir = tmp_path / "mps.log", tmp_path / "out", tmp_path / "jobs"
+    out.mkdir()
+    _fake_mps_control(tmp_path / "bin", log)
+    jobfile = tmp_path / "jobs.txt"
+    jobfile.write_text(
+        "".join(f'j{i} echo "$CUDA_MPS_PIPE_DIRECTORY" > {out}/j{i}.txt\n' for i in range(2))
+    )
+    env = dict(os.environ, PYTHONPATH=str(ROOT), PATH=f"{tmp_path / 'bin'}:{os.environ['PATH']}")
+    args = [sys.executable, str(QUEUE), "run", str(jobfile), "--gpus", "1", "--slots", "2"]
+    args += ["--jobs-dir", str(jobs_dir), "--mps"]
+    subprocess.run(args, env=env, check=True, timeout=120)
+
+    pipe = str(jobs_dir / "mps" / "pipe")
+    calls = log.read_text().splitlines()
+    assert calls == [f"args=-d cmd= pipe={pipe}", f"args= cmd=quit pipe={pipe}"]
+    for i in range(2):
+        assert (out / f"j{i}.txt").read_text().strip() == pipe
+    assert not Path(pipe).exists(), "the daemon's pipe folder outlived the queue"
+
+
+def test_mps_without_the_control_program_is_refused_before_any_job(tmp_path):
+    jobfile = tmp_path / "jobs.txt"
+    jobfile.write_text(f"j0 touch {tmp_path}/ran\n")
+    env = dict(os.environ, PYTHONPATH=str(ROOT), PATH=str(Path(sys.executable).parent))
+    args = [sys.executable, str(QUEUE), "run", str(jobfile), "--gpus", "1", "--mps"]
+    args += ["--jobs-dir", str(tmp_path / "jobs")]
+    done = subprocess.run(args, env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode != 0
+    assert device_queue.MPS_CONTROL in done.stderr and "without --mps" in done.stderr
+    assert not (tmp_path / "ran").exists()
