@@ -391,6 +391,22 @@ def gradient_check(make_simulator: MakeSimulator, family: str, *, rel_step: floa
     )
 
 
+def _collision_scene() -> tuple[World, ParticleSet, SimulationParams, torch.Tensor]:
+    """Two balls (elastic, plasticine) about to collide obliquely in mid-air, no gravity or
+    ground; with the loss weights of collision_gradient_check."""
+    world = _world((0.5, 0.5, 0.5), ground=None, gravity=(0.0, 0.0, 0.0))
+    a = sphere((0.17, 0.25, 0.24), 0.06, spacing=1.0 / 48, object_id=1, material="elastic")
+    b = sphere((0.33, 0.25, 0.26), 0.06, spacing=1.0 / 48, object_id=2, material="plasticine")
+    p = combine([a, b])
+    params = default_params(
+        p,
+        overrides={1: {"friction": 0.4}, 2: {"friction": 0.2, "yield_stress": 1e3}},
+        velocities={1: (1.5, 0.1, 0.5), 2: (-1.5, 0.0, -0.5)},
+    )
+    weights = torch.randn(len(p), 3, generator=torch.Generator().manual_seed(1))
+    return world, p, params, weights
+
+
 def collision_gradient_check(make_simulator: MakeSimulator, *, rel_step: float = 1e-2) -> dict:
     """Two balls (elastic, plasticine) collide obliquely in mid-air in multi-field mode, gravity
     and ground off: gradients of a rollout loss w.r.t. both initial velocities, both friction
@@ -402,16 +418,7 @@ def collision_gradient_check(make_simulator: MakeSimulator, *, rel_step: float =
     mass gradients, the centre-of-mass velocity and the Coulomb projection between fields.
     """
     sim = make_simulator(grid=16, substeps=30)  # same options as gradient_check: one compile
-    world = _world((0.5, 0.5, 0.5), ground=None, gravity=(0.0, 0.0, 0.0))
-    a = sphere((0.17, 0.25, 0.24), 0.06, spacing=1.0 / 48, object_id=1, material="elastic")
-    b = sphere((0.33, 0.25, 0.26), 0.06, spacing=1.0 / 48, object_id=2, material="plasticine")
-    p = combine([a, b])
-    params = default_params(
-        p,
-        overrides={1: {"friction": 0.4}, 2: {"friction": 0.2, "yield_stress": 1e3}},
-        velocities={1: (1.5, 0.1, 0.5), 2: (-1.5, 0.0, -0.5)},
-    )
-    weights = torch.randn(len(p), 3, generator=torch.Generator().manual_seed(1))
+    world, p, params, weights = _collision_scene()
     names = ["v0.obj1", "v0.obj2", "obj1.friction", "obj2.friction", "obj1.E", "obj2.yield_stress"]
     report = _compare_with_differences(
         sim,
@@ -426,4 +433,54 @@ def collision_gradient_check(make_simulator: MakeSimulator, *, rel_step: float =
         label="collision",
     )
     assert abs(report["obj1.friction"][1]) > 0, "collision scene: the balls never touched"
+    return report
+
+
+#: relative agreement (of the largest gradient) of a rollout's gradients with and without
+#: another rollout between its forward and backward: the same computation, so only the order of
+#: float32 atomic adds may differ
+INTERLEAVED_REL_TOL = 1e-4
+
+
+def interleaved_rollouts_check(make_simulator: MakeSimulator) -> dict[str, tuple[float, float]]:
+    """A rollout's gradients are its own when another differentiable rollout of the same
+    simulator, under other parameters, ran between its forward and its backward (as the
+    default ``rollout_batch`` loop does before a loss over all members is back-propagated).
+
+    On the collision scene of ``collision_gradient_check`` (same options: nothing new to
+    compile), gradients w.r.t. an initial velocity and one law parameter of each ball, alone
+    and interleaved. Returns {name[i]: (alone, interleaved)}.
+    """
+    sim = make_simulator(grid=16, substeps=30)
+    world, p, params, weights = _collision_scene()
+    names = ["v0.obj1", "obj1.E", "obj2.yield_stress"]
+    named = dict(params.named_tensors())
+    # the other rollout: stiffer, weaker and faster, and differentiable too (the same engine)
+    other = params.with_tensors(
+        {
+            "obj1.E": (named["obj1.E"].detach() * 4.0).requires_grad_(True),
+            "obj2.yield_stress": (named["obj2.yield_stress"].detach() * 0.25).requires_grad_(True),
+            "v0.obj1": (named["v0.obj1"].detach() * 1.5).requires_grad_(True),
+        }
+    )
+
+    def gradients(interleave: bool) -> torch.Tensor:
+        leaves = {n: named[n].detach().clone().requires_grad_(True) for n in names}
+        traj = sim.rollout(p, params.with_tensors(leaves), world=world, frames=2)
+        if interleave:
+            between = sim.rollout(p, other, world=world, frames=2)
+            assert between.positions.requires_grad, "the other rollout was not differentiable"
+        loss = ((traj.positions[1:] - traj.positions[:1]) * weights).sum()
+        grads = torch.autograd.grad(loss, [leaves[n] for n in names])
+        return torch.cat([g.reshape(-1) for g in grads])
+
+    alone, interleaved = gradients(False), gradients(True)
+    keys = [f"{n}[{i}]" for n in names for i in range(named[n].numel())]
+    report = {k: (a.item(), b.item()) for k, a, b in zip(keys, alone, interleaved)}
+    worst = (alone - interleaved).abs().max().item()
+    scale = alone.abs().max().item()
+    assert worst <= INTERLEAVED_REL_TOL * scale, (
+        f"gradients changed by another rollout between forward and backward (largest change "
+        f"{worst:.3g} of {scale:.3g}): {report}"
+    )
     return report

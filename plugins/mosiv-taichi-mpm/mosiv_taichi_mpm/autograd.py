@@ -11,6 +11,7 @@ and keeps no checkpoints: O(particles) besides the positions and velocities it r
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -44,6 +45,10 @@ class RolloutRun:
     positions: torch.Tensor | None = None
     velocities: torch.Tensor | None = None
     contact: torch.Tensor | None = None
+    #: loads this rollout's particles and parameters into the engine again before the
+    #: backward re-simulates: rollouts of one layout share the engine, so a rollout made
+    #: between this one's forward and backward (rollout_batch's default loop) replaced them
+    prepare: Callable[[], None] | None = None
 
     def forward(self) -> None:
         eng = self.engine
@@ -80,6 +85,8 @@ class RolloutRun:
         eng = self.engine
         S = eng.substeps
         grad_positions = grad_positions.to(self.device, torch.float32).contiguous()
+        if self.prepare is not None:
+            self.prepare()
         eng.zero_param_grads()
         carry = None
         for f in reversed(range(self.frames)):

@@ -128,18 +128,29 @@ class TaichiMPMSimulator(Simulator):
         obj = particles.object_ids.detach().cpu().numpy()
         obj_index = torch.from_numpy(np.vectorize(index_of.get)(obj).astype(np.int32)).to(dev)
         self._check_inside(particles, world)
-        engine.configure(
-            positions=particles.positions.detach().to(dev, torch.float32).contiguous(),
-            volumes=particles.volumes.detach().to(dev, torch.float32).contiguous(),
-            obj_index=obj_index.contiguous(),
-            object_ids=object_ids,
-            dt=1.0 / (world.fps * self.options.substeps),
-            ground_z=world.ground_height,
-            advice_info={k: self._advice(params, k) for k in object_ids},
-        )
-        engine.set_params(self._pack(params, object_ids, world))
+        setup = {
+            "positions": particles.positions.detach().to(dev, torch.float32).contiguous(),
+            "volumes": particles.volumes.detach().to(dev, torch.float32).contiguous(),
+            "obj_index": obj_index.contiguous(),
+            "object_ids": object_ids,
+            "dt": 1.0 / (world.fps * self.options.substeps),
+            "ground_z": world.ground_height,
+            "advice_info": {k: self._advice(params, k) for k in object_ids},
+        }
+        packed = self._pack(params, object_ids, world)
 
-        run = RolloutRun(engine, frames, len(particles), dev, keep_checkpoints=differentiable)
+        def load_rollout() -> None:
+            # the engine is this simulator's for every rollout of its layout: another rollout
+            # between this one's forward and its backward loads its own particles and
+            # parameters, so the backward loads this rollout's again (RolloutRun.prepare)
+            engine.configure(**setup)
+            engine.set_params(packed)
+
+        load_rollout()
+        run = RolloutRun(
+            engine, frames, len(particles), dev, keep_checkpoints=differentiable,
+            prepare=load_rollout,
+        )  # fmt: skip
 
         def grads_of():
             return self._unpack_grads(engine.param_grads(), names, params, object_ids)

@@ -38,6 +38,12 @@ def test_collision_gradient_check(simulator_factory):
     assert abs(report["obj2.friction"][0]) > 0, "contact friction of ball 2 has no gradient"
 
 
+def test_a_rollout_between_forward_and_backward_leaves_the_gradients_alone(simulator_factory):
+    # rollouts of one layout share the engine's parameter fields; the backward loads its own
+    report = physics_cases.interleaved_rollouts_check(simulator_factory)
+    print("interleaved", report)
+
+
 def _central_difference(loss_of, value: torch.Tensor, h: float) -> torch.Tensor:
     out = torch.zeros_like(value).reshape(-1)
     for i in range(value.numel()):
