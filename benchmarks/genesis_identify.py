@@ -35,7 +35,7 @@ rows (and with ``--write-results`` the section):
 
 On the GPU machine, ``--job-file JOBS`` writes those ``--part`` runs as jobs for
 benchmarks/device_queue.py, which runs a few at a time per GPU (each in a snapshot of the
-checkout); ``--merge`` as above once they have ended.
+checkout; with ``--mps`` side by side on the GPU); ``--merge`` as above once they have ended.
 """
 
 from __future__ import annotations
@@ -330,7 +330,8 @@ def write_job_file(args: argparse.Namespace, names: list[str]) -> None:
     args.job_file.write_text("\n".join(lines) + "\n")
     print(
         f"[genesis] {len(lines)} jobs in {args.job_file}: python3 benchmarks/device_queue.py "
-        f"start {args.job_file} --slots 3"
+        f"start {args.job_file} --mps --slots 4 (MPS lets the jobs' kernels share a GPU: "
+        "docs/BENCHMARKS.md, Several processes on one GPU)"
     )
 
 
