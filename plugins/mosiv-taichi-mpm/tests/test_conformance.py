@@ -11,10 +11,11 @@ from mosiv_framework.testing.conformance import BackendConformance
 class TestTaichiConformance(BackendConformance):
     backend = "taichi-mpm"
     reference = "warp-mpm"
-    # Gradients of every law are checked against finite differences on both backends
-    # (test_gradients.py here and in mosiv-warp-mpm), so the parity of the two adjoints, over a
-    # minute of CPU per scene, is checked on the two-body contact scene only: the path (fields,
-    # contact normals, Coulomb projection) that the single-body scenes never reach.
+    # Every law's gradients are held to warp-mpm's by the parity suite (tests/test_parity.py),
+    # and checked against finite differences law by law in mosiv-warp-mpm and on sand, newtonian
+    # and two bodies in contact here (test_gradients.py); so this suite's parity of the two
+    # adjoints, over a minute of CPU per scene, runs on the two-body contact scene only: the path
+    # (fields, contact normals, Coulomb projection) that the single-body scenes never reach.
     gradient_scenes = ("collision",)
 
     @pytest.fixture(autouse=True)
