@@ -38,7 +38,7 @@ import torch
 import warp as wp
 
 from mosiv_warp_mpm import kernels as K
-from mosiv_warp_mpm.state import Grid, NodeBox, NodeCoefficients, ParticleParams, ParticleState
+from mosiv_warp_mpm.state import Grid, NodeCoefficients, ParticleParams, ParticleState, Window
 
 
 class WarpRollout(torch.autograd.Function):
@@ -277,38 +277,38 @@ class BackwardWorkspace:
         """Everything after loading work[0]: re-simulate the frame keeping every substep's
         state, then run the substeps' adjoints in reverse, one short tape each. The phases are
         separate methods so that benchmarks/warp_profile.py can time each of them."""
-        boxes = self.resimulate(run)
+        windows = self.resimulate(run)
         self.seed()
         for s in range(run.substeps - 1, -1, -1):
-            self.prepare_substep(run, s, boxes[s])
-            self.record_substep(run, s, boxes[s]).backward()
+            self.prepare_substep(run, s, windows[s])
+            self.record_substep(run, s, windows[s]).backward()
             # no tape.reset(): it would zero every gradient, parameters included
         self.finish()
 
-    def resimulate(self, run) -> list[NodeBox]:
+    def resimulate(self, run) -> list[Window]:
         """Advance work[0] through the frame into work[1..S] (one shared grid); returns each
-        substep's node box."""
+        substep's node window (its box in the run's table, row s, until the next frame)."""
         work, grid = self.work, self.grid
         run.flag.fill_(K.NO_FLAG)
-        boxes = []
+        windows = []
         for s in range(run.substeps):
-            boxes.append(run.active_box(work[s]))
-            grid.clear(boxes[s], sums=run.centres)
-            run.substep(work[s], work[s + 1], grid, s, boxes[s])
-        return boxes
+            windows.append(run.substep_window(work[s], s))
+            grid.clear(windows[s], sums=run.centres)
+            run.substep(work[s], work[s + 1], grid, s, windows[s])
+        return windows
 
     def seed(self) -> None:
         """d(loss)/d(state at the frame's end), held by ``carry``, onto the last substep's state."""
         self.work[-1].copy_grad_from(self.carry)
 
-    def prepare_substep(self, run, s: int, box: NodeBox) -> None:
+    def prepare_substep(self, run, s: int, window: Window) -> None:
         """Zero what substep ``s``'s adjoint accumulates into (its input state's and the grid's
         gradients) and the grid values its replay accumulates into."""
         self.work[s].zero_grad()
-        self.grid.zero_grad(box, sums=run.centres)
-        self.grid.clear(box, sums=run.centres)
+        self.grid.zero_grad(window, sums=run.centres)
+        self.grid.clear(window, sums=run.centres)
 
-    def record_substep(self, run, s: int, box: NodeBox) -> wp.Tape:
+    def record_substep(self, run, s: int, window: Window) -> wp.Tape:
         """Substep ``s`` (work[s] -> work[s + 1]) on a fresh tape, ready for ``backward``: its
         grid update runs again, rebuilding the grid that later substeps overwrote; its G2P is
         only recorded, since the re-simulation already wrote G2P's result into work[s + 1].
@@ -318,7 +318,7 @@ class BackwardWorkspace:
         coefficients = self.node_coefficients if self.gather_parameters else None
         tape = wp.Tape()
         with tape:
-            run.grid_update(self.work[s], self.grid, s, box, gathered, coefficients)
+            run.grid_update(self.work[s], self.grid, s, window, gathered, coefficients)
         run.record_g2p(tape, self.work[s], self.work[s + 1], self.grid, s, gathered)
         return tape
 

@@ -23,6 +23,7 @@ import warp as wp
 
 from mosiv_framework.expression import FEATURES
 from mosiv_warp_mpm.laws import safe_norm
+from mosiv_warp_mpm.node_window import node_index, window_cell
 
 N_FEATURES = wp.constant(len(FEATURES))
 MOMENT_EPS = wp.constant(1.0e-12)  # kg: a field lighter than this has no centre
@@ -81,8 +82,9 @@ def field_moments(
     expr_switch: wp.array(dtype=float),
     origin: wp.vec3,
     dx: float,
-    box_lo: wp.vec3i,
-    box_dims: wp.vec3i,
+    boxes: wp.array(dtype=wp.vec3i),
+    row: int,
+    stride: int,
     nodes: wp.vec3i,
     fields_per_member: int,
     moment_m: wp.array(dtype=float),
@@ -96,29 +98,25 @@ def field_moments(
         expr_switch: per member (expression on, uses the other objects); only members with
             the second switch on are summed.
         origin, dx: node (0, 0, 0)'s position (m) and the node spacing (m).
-        box_lo, box_dims, nodes: the box of nodes visited (state.NodeBox) and the grid size.
+        boxes, row, stride: the nodes visited (state.Window); nodes: the grid size.
         fields_per_member: F.
 
     Returns:
         moment_m [B F] (kg), moment_mx [B F] (kg m), moment_mv [B F] (kg m/s), accumulated
         (cleared by Grid.clear).
     """
-    # thread t: the box's (field, node) pairs, field slowest, k fastest (kernels.box_node)
-    t = wp.tid()
-    count = box_dims[0] * box_dims[1] * box_dims[2]
-    field = t // count
-    b = field // fields_per_member
-    r = t % count
-    i = box_lo[0] + r // (box_dims[1] * box_dims[2])
-    j = box_lo[1] + (r // box_dims[2]) % box_dims[1]
-    k = box_lo[2] + r % box_dims[2]
-    n = ((field * nodes[0] + i) * nodes[1] + j) * nodes[2] + k
-    m = grid_m[n]
-    if expr_switch[2 * b + 1] > 0.5 and m > 0.0:
-        x = origin + dx * wp.vec3(float(i), float(j), float(k))
-        wp.atomic_add(moment_m, field, m)
-        wp.atomic_add(moment_mx, field, m * x)
-        wp.atomic_add(moment_mv, field, grid_mv[n])
+    # thread t: the window's (field, node) pairs, field slowest, k fastest (kernels.window_cell)
+    c = window_cell(wp.tid(), boxes, row, stride)
+    field = c[0]
+    if field >= 0:
+        b = field // fields_per_member
+        n = node_index(field, c[1], c[2], c[3], nodes)
+        m = grid_m[n]
+        if expr_switch[2 * b + 1] > 0.5 and m > 0.0:
+            x = origin + dx * wp.vec3(float(c[1]), float(c[2]), float(c[3]))
+            wp.atomic_add(moment_m, field, m)
+            wp.atomic_add(moment_mx, field, m * x)
+            wp.atomic_add(moment_mv, field, grid_mv[n])
 
 
 @wp.kernel

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from mosiv_framework.simulation import MPMOptions
 
 #: grid_window's values (WarpMPMOptions)
-GRID_WINDOWS = ("auto", "particles", "whole")
+GRID_WINDOWS = ("auto", "particles", "device", "whole")
 
 
 @dataclass(frozen=True)
@@ -26,9 +26,12 @@ class WarpMPMOptions(MPMOptions):
     particles on the CPU, where Warp runs a kernel's threads one after another; on CUDA the
     whole grid, so that a frame's launches are one captured graph, except for batched
     rollouts on grids of 96 cells or more (simulator.BATCH_WINDOW_GRID); "particles": the
-    box around the particles on CUDA too (found on the device each substep, launches without
-    a graph); "whole": the whole grid everywhere. Results are the same up to float rounding
-    (bit for bit on the CPU); only the time differs (docs/BENCHMARKS.md, Batched rollouts)."""
+    box around the particles on CUDA too (reduced on the device and read back each substep,
+    launches without a graph); "device": the same box kept on the device, the grid kernels
+    launched for the whole grid with the threads outside the box returning at once, so that
+    a frame stays one captured graph; "whole": the whole grid everywhere. Results are the
+    same up to float rounding (bit for bit on the CPU); only the time differs
+    (docs/BENCHMARKS.md, Batched rollouts and Grid window)."""
 
     deterministic: bool = False
     grid_window: str = "auto"

@@ -19,6 +19,7 @@ from mosiv_framework.expression import up_vector
 from mosiv_framework.types import World
 from mosiv_warp_mpm import expression_kernels as XK
 from mosiv_warp_mpm import kernels as K
+from mosiv_warp_mpm import node_window as NW
 from mosiv_warp_mpm.laws import LAW_IDS
 from mosiv_warp_mpm.state import (
     Grid,
@@ -28,7 +29,11 @@ from mosiv_warp_mpm.state import (
     ObjectTables,
     ParticleParams,
     ParticleState,
+    Window,
 )
+
+#: where the grid kernels' node box comes from (MPMRun's ``window``)
+WINDOWS = ("whole", "particles", "device")
 
 #: a stencil base beyond any grid: the bounds' start, left as it is when no particle counts
 _NO_BASE = 2**30
@@ -48,28 +53,39 @@ class MPMRun:
         families: list[str],
         obj_index: torch.Tensor,
         volumes: torch.Tensor,
-        windowed: bool | None = None,
+        window: str | None = None,
         batch: int = 1,
     ):
-        """``windowed``: whether grid kernels visit only the nodes around the particles
-        (``active_box``); default: on the CPU only. On CUDA a windowed run finds each
-        substep's box on the device and launches without a captured graph (``graphed``).
-        ``batch``: members simulated together (batched.py); then ``families`` lists every
+        """``window`` (WINDOWS): which nodes a substep's grid kernels visit. "whole": the whole
+        grid; "particles": the box around the particles, found on the host each substep (read
+        from the positions on the CPU, reduced on the device and read back on CUDA, launching
+        without a captured graph); "device": the same box, found and kept on the device, the
+        launches sized for the whole grid (state.Window), so a CUDA frame stays one captured
+        graph. Default: "particles" on the CPU, "whole" on CUDA. ``batch``: members simulated together (batched.py); then ``families`` lists every
         member's objects, member-major, and ``obj_index`` holds b K + k for a particle of
         member b (kernels.py)."""
         self.layout, self.world, self.substeps, self.device = layout, world, substeps, device
         self.is_cuda = is_cuda = wp.get_device(device).is_cuda
-        self.windowed = (not is_cuda) if windowed is None else windowed
+        if window is None:
+            window = "whole" if is_cuda else "particles"
+        if window not in WINDOWS:
+            raise ValueError(f"window={window!r}: valid values are {list(WINDOWS)}")
+        self.window = window
+        self.windowed = window != "whole"
         #: whether a frame's launches are captured once into a CUDA graph and replayed: the
-        #: graph fixes every launch's size, so only a run that sweeps the whole grid has one
-        self.graphed = is_cuda and not self.windowed
-        #: the stencil bases' bounds that a windowed CUDA run's box comes from (kernels)
+        #: graph fixes every launch's size and argument, so a box read back on the host has none
+        self.graphed = is_cuda and window != "particles"
+        #: the stencil bases' bounds that a box found on the device comes from (kernels)
         self._bounds = self._bounds_start = None
         if self.windowed:  # min, then max, per axis: start above and below every base
             start = [_NO_BASE] * 3 + [-_NO_BASE] * 3
             self._bounds_start = wp.array(start, dtype=int, device=device)
             self._bounds = wp.zeros(6, dtype=int, device=device)
         self.whole_box = NodeBox.whole(layout)
+        #: the box table the grid kernels read (state.Window): per substep, the box's first
+        #: node and node counts; every row the whole grid until a window writes it
+        rows = [(0, 0, 0), layout.nodes] * substeps
+        self.boxes = wp.array(np.asarray(rows, dtype=np.int32), dtype=wp.vec3i, device=device)
         self.object_ids, self.batch = object_ids, batch
         self.dt = 1.0 / (world.fps * substeps)
         self.n = int(obj_index.shape[0])
@@ -148,7 +164,7 @@ class MPMRun:
         expr.up, expr.ground = self.up, float(self.world.ground_height or 0.0)
         return expr
 
-    def centre_sums(self, grid: Grid, box: NodeBox, switch: wp.array | None = None) -> None:
+    def centre_sums(self, grid: Grid, window: Window, switch: wp.array | None = None) -> None:
         """The other objects' summed centres per field (expression_kernels.py), for an
         expression of the other objects' features: launched only when some member's expression
         uses them (``centres``; the kernels skip the other members). ``switch``: as in
@@ -158,12 +174,11 @@ class MPMRun:
         if switch is None:
             switch = self.tables.expr_switch
         lay = self.layout
-        box_lo, box_dims = wp.vec3i(*box.lo), wp.vec3i(*box.dims)
         wp.launch(
             XK.field_moments,
-            dim=self.batch * lay.fields * box.count,
+            dim=self.batch * lay.fields * window.stride,
             inputs=[grid.m, grid.mv, switch, wp.vec3(*lay.origin), lay.dx]
-            + [box_lo, box_dims, wp.vec3i(*lay.nodes), lay.fields],
+            + [*window.inputs(), wp.vec3i(*lay.nodes), lay.fields],
             outputs=[grid.moment_m, grid.moment_mx, grid.moment_mv],
             device=self.device,
         )
@@ -175,10 +190,35 @@ class MPMRun:
             device=self.device,
         )
 
+    def substep_window(self, state: ParticleState, s: int) -> Window:
+        """The nodes substep ``s`` from ``state`` visits (state.Window), its box in row ``s`` of
+        ``boxes``: with window "device" found there by two launches (no read-back, so a
+        captured graph holds them), else ``active_box``'s, written there from the host."""
+        whole = self.layout.nodes_per_field
+        if self.window == "device":
+            self._reduce_bounds(state)
+            wp.launch(
+                NW.box_from_bounds,
+                dim=1,
+                inputs=[self._bounds, wp.vec3i(*self.layout.nodes), self.boxes, s],
+                device=self.device,
+            )
+            return Window(self.boxes, s, whole)
+        if self.window == "whole":  # the rows hold the whole grid from the start
+            return Window(self.boxes, s, whole, whole=True)
+        box = self.active_box(state)
+        wp.launch(
+            NW.set_box_row,
+            dim=1,
+            inputs=[self.boxes, s, wp.vec3i(*box.lo), wp.vec3i(*box.dims)],
+            device=self.device,
+        )
+        return Window(self.boxes, s, box.count, whole=box.is_whole(self.layout))
+
     def active_box(self, state: ParticleState) -> NodeBox:
-        """The grid nodes this substep from ``state`` can touch (state.NodeBox): the whole grid
-        unless ``windowed``, else the box around the particles (read from the positions on the
-        CPU, from ``device_box`` on CUDA)."""
+        """The grid nodes this substep from ``state`` can touch (state.NodeBox), as the host
+        sees them: the whole grid unless ``windowed``, else the box around the particles (read
+        from the positions on the CPU, from ``device_box`` on CUDA)."""
         if not self.windowed:
             return self.whole_box
         if self.is_cuda:
@@ -190,6 +230,13 @@ class MPMRun:
         the device (kernels.stencil_base_bounds): 24 bytes cross to the host, not N positions.
         The same box as NodeBox.around up to float32 rounding at a cell's edge, which the
         box's margin of one node absorbs."""
+        self._reduce_bounds(state)
+        bounds = self._bounds.numpy()
+        return NodeBox.from_bases(bounds[:3], bounds[3:], self.layout)
+
+    def _reduce_bounds(self, state: ParticleState) -> None:
+        """The lowest and highest stencil base per axis of ``state``'s particles, into
+        ``_bounds`` on the device (kernels.stencil_base_bounds)."""
         wp.copy(self._bounds, self._bounds_start)
         lay = self.layout
         wp.launch(
@@ -199,15 +246,14 @@ class MPMRun:
             outputs=[self._bounds],
             device=self.device,
         )
-        bounds = self._bounds.numpy()
-        return NodeBox.from_bases(bounds[:3], bounds[3:], lay)
 
     def substep(
-        self, src: ParticleState, dst: ParticleState, grid: Grid, s: int, box: NodeBox
+        self, src: ParticleState, dst: ParticleState, grid: Grid, s: int, window: Window
     ) -> None:
         """P2G, grid update (contact, ground, walls, terms) and G2P from src into dst; the grid
-        kernels visit the nodes of ``box`` (``active_box(src)``), cleared beforehand."""
-        self.grid_update(src, grid, s, box)
+        kernels visit the nodes of ``window`` (``substep_window(src, s)``), cleared
+        beforehand."""
+        self.grid_update(src, grid, s, window)
         inputs, outputs = self._g2p_args(src, dst, grid, s)
         wp.launch(K.g2p, dim=self.n, inputs=inputs, outputs=outputs, device=self.device)
 
@@ -242,12 +288,12 @@ class MPMRun:
         src: ParticleState,
         grid: Grid,
         s: int,
-        box: NodeBox,
+        window: Window,
         gathered: ParticleParams | None = None,
         coefficients: NodeCoefficients | None = None,
     ) -> None:
-        """P2G from src, then the grid's free velocity and boundaries, on the nodes of ``box``
-        (cleared beforehand): the grid velocities ``grid.v`` that G2P reads.
+        """P2G from src, then the grid's free velocity and boundaries, on the nodes of
+        ``window`` (cleared beforehand): the grid velocities ``grid.v`` that G2P reads.
 
         ``gathered``: None, P2G reads the per-object tables (forward rollouts, re-simulation);
         else the particles' own copies of them (the taped replay, whose parameter adjoints then
@@ -258,7 +304,6 @@ class MPMRun:
         """
         lay, t, dev = self.layout, self.tables, self.device
         origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
-        box_lo, box_dims = wp.vec3i(*box.lo), wp.vec3i(*box.dims)
         law_inputs = [t.params, t.rho, t.damping] if gathered is None else gathered.arrays()
         wp.launch(
             K.p2g,
@@ -272,24 +317,24 @@ class MPMRun:
         )
         c = coefficients
         switch = None if c is None else c.expr_switch
-        self.centre_sums(grid, box, switch)
+        self.centre_sums(grid, window, switch)
         coef_inputs = [t.accel, t.drag, 0] if c is None else [c.accel, c.drag, 1]
         bound = t if c is None else c
         bound_inputs = [bound.friction, bound.ground_friction, bound.ground_restitution]
         wp.launch(
             K.grid_free_velocity,
-            dim=self.batch * lay.fields * box.count,
+            dim=self.batch * lay.fields * window.stride,
             inputs=[grid.m, grid.mv, *coef_inputs, self.expression_inputs(grid, s, switch)]
-            + [self.dt, box_lo, box_dims, nodes, lay.fields],
+            + [self.dt, *window.inputs(), nodes, lay.fields],
             outputs=[grid.vs],
             device=dev,
         )
         wp.launch(
             K.grid_boundaries,
-            dim=self.batch * box.count,
+            dim=self.batch * window.stride,
             inputs=[grid.m, grid.vs, grid.gm, grid.pm, lay.fields, nodes, self.ground_on]
             + [self.ground_k, self.ground_layers, *bound_inputs, int(c is not None)]
-            + [box_lo, box_dims],
+            + window.inputs(),
             outputs=[grid.v],
             device=dev,
         )
@@ -299,9 +344,9 @@ class MPMRun:
         self.flag.fill_(K.NO_FLAG)
         src, dst, sums = self.a, self.b, self.centres
         for s in range(self.substeps):
-            box = self.active_box(src)
-            self.grid.clear(box, sums=sums)
-            self.substep(src, dst, self.grid, s, box)
+            window = self.substep_window(src, s)
+            self.grid.clear(window, sums=sums)
+            self.substep(src, dst, self.grid, s, window)
             src, dst = dst, src
         if src is not self.a:  # odd substep count: the result sits in b
             self.a.copy_from(src)
@@ -311,7 +356,8 @@ class MPMRun:
         (``check``; batched runs read ``divergences`` per member instead).
 
         On CUDA the frame's launches are captured once (per value of ``centres``) into a graph
-        and replayed, so the substep loop costs no Python per substep (unless ``windowed``).
+        and replayed, so the substep loop costs no Python per substep (unless the window is
+        found on the host: ``graphed``).
         """
         self.begin_frame(frame, self.grid)
         if self.graphed:

@@ -184,24 +184,24 @@ class WarpMPMSimulator(Simulator):
             families=families,
             obj_index=obj_index,
             volumes=volumes,
-            windowed=self._windowed(batch),
+            window=self._window(batch),
             batch=batch,
         )
         if wp.get_device(self.device).is_cuda:
             run.peak_sampler = self._sample_peak
         return run
 
-    def _windowed(self, batch: int) -> bool | None:
-        """Whether a run of ``batch`` members visits only the grid nodes around its particles
-        (options.grid_window); None leaves it to MPMRun (the CPU only). On CUDA the window
-        costs each substep a read-back and the captured graph: a single rollout ran 2-6x
-        slower with it, while B members on grids of BATCH_WINDOW_GRID cells or more, whose B
-        whole grids outweigh their particles, ran 1.6-4x faster (docs/BENCHMARKS.md,
-        Batched rollouts)."""
+    def _window(self, batch: int) -> str | None:
+        """Which grid nodes a run of ``batch`` members visits (options.grid_window, run.WINDOWS);
+        None leaves it to MPMRun (the box around the particles on the CPU, the whole grid on
+        CUDA). On CUDA the box read back on the host ("particles") costs each substep a
+        read-back and the captured graph: a single rollout ran 2-6x slower with it, while B
+        members on grids of BATCH_WINDOW_GRID cells or more, whose B whole grids outweigh their
+        particles, ran 1.6-4x faster (docs/BENCHMARKS.md, Batched rollouts)."""
         if self.options.grid_window != "auto":
-            return self.options.grid_window == "particles"
+            return self.options.grid_window
         if batch > 1 and self.options.grid >= BATCH_WINDOW_GRID:
-            return True
+            return "particles"
         return None
 
     def scatter_layout(self, particles: ParticleSet, world: World) -> tuple:

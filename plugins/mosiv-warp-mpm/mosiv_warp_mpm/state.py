@@ -253,6 +253,29 @@ class NodeBox:
         return self.lo == (0, 0, 0) and self.dims == tuple(layout.nodes)
 
 
+@dataclass(frozen=True)
+class Window:
+    """The nodes a substep's grid kernels visit, as they read them (node_window.window_cell):
+    row ``row`` of the run's box table ``boxes`` (MPMRun.boxes: per substep, the box's first
+    node and node counts), launched with ``stride`` threads per field.
+
+    A box the host knows (NodeBox) is written into its row and launched with its own node
+    count; a box the device finds from the particles (MPMRun's window "device") is launched
+    with the whole grid's count, threads past the box returning at once, so that the launch
+    sizes stay the same for every box and a frame stays one captured CUDA graph. ``whole``:
+    the box is the whole grid, where clearing is a memset per array.
+    """
+
+    boxes: wp.array
+    row: int
+    stride: int
+    whole: bool = False
+
+    def inputs(self) -> list:
+        """The grid kernels' window arguments: boxes, row, stride."""
+        return [self.boxes, self.row, self.stride]
+
+
 class Grid:
     """Per-field node mass (kg), momentum (kg m/s), mass gradient (kg/m), free and final
     velocities (m/s); flat arrays of GridLayout.size per batch member, ``batch`` grids one
@@ -288,10 +311,11 @@ class Grid:
         """The per-field sums (one entry per field, not per node)."""
         return [self.moment_m, self.moment_mx, self.moment_mv, self.rel_p, self.rel_v, self.rel_n]
 
-    def clear(self, box: NodeBox, *, sums: bool) -> None:
-        """Zero what P2G accumulates into, on the nodes of ``box``, and, when this substep
+    def clear(self, window: Window, *, sums: bool) -> None:
+        """Zero what P2G accumulates into, on the nodes of ``window``, and, when this substep
         computes them (``sums``: MPMRun.centres), the per-field sums."""
-        self._zero([self.m, self.mv, self.gm, self.pm, self.vs, self.v], box, velocities=False)
+        arrays = [self.m, self.mv, self.gm, self.pm, self.vs, self.v]
+        self._zero(arrays, window, velocities=False)
         if sums:
             for a in self.field_arrays():
                 a.zero_()
@@ -303,25 +327,24 @@ class Grid:
             a.zero_()
         self.sums_written = False
 
-    def zero_grad(self, box: NodeBox, *, sums: bool) -> None:
-        """Zero the gradients of the nodes of ``box`` and, with ``sums``, of the per-field
+    def zero_grad(self, window: Window, *, sums: bool) -> None:
+        """Zero the gradients of the nodes of ``window`` and, with ``sums``, of the per-field
         sums (without, nothing reads theirs: only the sums' kernels back-propagate them)."""
         if self.m.grad is not None:
-            self._zero([a.grad for a in self.arrays()], box, velocities=True)
+            self._zero([a.grad for a in self.arrays()], window, velocities=True)
             if sums:
                 for a in self.field_arrays():
                     a.grad.zero_()
 
-    def _zero(self, arrays: list[wp.array], box: NodeBox, *, velocities: bool) -> None:
-        if box.is_whole(self.layout):  # a memset per array
+    def _zero(self, arrays: list[wp.array], window: Window, *, velocities: bool) -> None:
+        if window.whole:  # a memset per array
             for a in arrays[: None if velocities else 4]:
                 a.zero_()
             return
         wp.launch(
             clear_box,
-            dim=self.batch * self.layout.fields * box.count,
-            inputs=[wp.vec3i(*box.lo), wp.vec3i(*box.dims), wp.vec3i(*self.layout.nodes)]
-            + [*arrays, int(velocities)],
+            dim=self.batch * self.layout.fields * window.stride,
+            inputs=[*window.inputs(), wp.vec3i(*self.layout.nodes), *arrays, int(velocities)],
             device=self.device,
         )
 

@@ -60,6 +60,46 @@ def test_windowed_grid_matches_the_whole_grid_bit_for_bit(make_warp_simulator) -
     assert moved > 0.0  # the bodies did move across nodes during the rollout
 
 
+def test_the_device_window_matches_the_whole_grid_bit_for_bit(make_warp_simulator) -> None:
+    """grid_window "device": each substep's box found and kept on the device, the launches
+    sized for the whole grid, so that a CUDA frame stays one captured graph. Threads outside
+    the box do nothing, so positions and gradients are those of the whole grid (bit for bit
+    on the CPU), and the boxes it used were windows, not the whole grid."""
+    whole = make_warp_simulator(grid=16, substeps=20, grid_window="whole")
+    device = make_warp_simulator(grid=16, substeps=20, grid_window="device")
+    expected = _collide_and_land(whole)
+    got = _collide_and_land(device)
+    run = device._grad_run
+    assert run.window == "device" and run.graphed == wp.get_device(device.device).is_cuda
+    _assert_same(got, expected, cuda=wp.get_device(whole.device).is_cuda)
+    rows = run.boxes.numpy().reshape(-1, 2, 3)
+    counts = rows[:, 1].prod(axis=1)
+    assert len(rows) == 20 and (counts < run.layout.nodes_per_field).all()
+
+
+def test_the_box_found_on_the_device_is_the_hosts(make_warp_simulator) -> None:
+    """node_window.box_from_bounds makes NodeBox.from_bases's box from the same stencil-base
+    bounds: inside the grid, clipped at either side, and the whole grid when no particle was
+    counted (the bounds still at their start)."""
+    from mosiv_warp_mpm.node_window import box_from_bounds
+    from mosiv_warp_mpm.run import _NO_BASE
+
+    layout = GridLayout.for_world(WORLD, grid=16, fields=1)
+    cases = [
+        ((3, 4, 5), (7, 9, 6)),  # inside
+        ((0, -2, 5), (20, 3, 30)),  # clipped at both ends
+        ((_NO_BASE,) * 3, (-_NO_BASE,) * 3),  # nothing counted
+    ]
+    boxes = wp.zeros(2, dtype=wp.vec3i, device="cpu")
+    for low, high in cases:
+        bounds = wp.array([*low, *high], dtype=int, device="cpu")
+        wp.launch(
+            box_from_bounds, dim=1, inputs=[bounds, wp.vec3i(*layout.nodes), boxes, 0], device="cpu"
+        )
+        lo, dims = (tuple(int(v) for v in row) for row in boxes.numpy())
+        assert NodeBox(lo, dims) == NodeBox.from_bases(low, high, layout), (low, high)
+
+
 def test_node_box_covers_every_stencil_and_stays_in_the_grid() -> None:
     layout = GridLayout.for_world(WORLD, grid=16, fields=2)
     x = torch.tensor([[0.1, 0.2, 0.05], [0.31, 0.22, 0.4]]).numpy()
@@ -129,7 +169,9 @@ def test_auto_windows_batched_rollouts_on_fine_grids_only(make_warp_simulator) -
 
     fine = make_warp_simulator(grid=BATCH_WINDOW_GRID, substeps=4)
     coarse = make_warp_simulator(grid=BATCH_WINDOW_GRID - 32, substeps=4)
-    assert fine._windowed(1) is None and fine._windowed(4) is True
-    assert coarse._windowed(4) is None
+    assert fine._window(1) is None and fine._window(4) == "particles"
+    assert coarse._window(4) is None
     whole = make_warp_simulator(grid=BATCH_WINDOW_GRID, substeps=4, grid_window="whole")
-    assert whole._windowed(4) is False and whole._windowed(1) is False
+    assert whole._window(4) == "whole" and whole._window(1) == "whole"
+    device = make_warp_simulator(grid=BATCH_WINDOW_GRID, substeps=4, grid_window="device")
+    assert device._window(4) == "device" and device._window(1) == "device"
