@@ -102,9 +102,14 @@ def stencil_base_bounds(
     if not (wp.isfinite(xp[0]) and wp.isfinite(xp[1]) and wp.isfinite(xp[2])):
         return
     base = cell_base((xp - origin) / dx)
+    # an atomic only where this base would move a bound: every thread's atomics land on the
+    # same six addresses, which a million particles serialise; a plain read skips nearly all
+    # of them once the bounds near the extremes (a stale read costs only an extra atomic)
     for a in range(3):
-        wp.atomic_min(bounds, a, base[a])
-        wp.atomic_max(bounds, 3 + a, base[a])
+        if base[a] < bounds[a]:
+            wp.atomic_min(bounds, a, base[a])
+        if base[a] > bounds[3 + a]:
+            wp.atomic_max(bounds, 3 + a, base[a])
 
 
 @wp.func
