@@ -23,15 +23,14 @@ class WarpMPMOptions(MPMOptions):
     option: one process runs all its warp-mpm simulators one way or the other.
 
     grid_window: which grid nodes a substep's grid kernels visit. "auto": the box around the
-    particles on the CPU, where Warp runs a kernel's threads one after another; on CUDA the
-    whole grid, so that a frame's launches are one captured graph, except for batched
-    rollouts on grids of 96 cells or more (simulator.BATCH_WINDOW_GRID); "particles": the
-    box around the particles on CUDA too (reduced on the device and read back each substep,
-    launches without a graph); "device": the same box kept on the device, the grid kernels
-    launched for the whole grid with the threads outside the box returning at once, so that
-    a frame stays one captured graph; "whole": the whole grid everywhere. Results are the
-    same up to float rounding (bit for bit on the CPU); only the time differs
-    (docs/BENCHMARKS.md, Batched rollouts and Grid window)."""
+    particles, found on the host and launched at its own size on the CPU, where Warp runs a
+    kernel's threads one after another, and kept on the device on CUDA ("device");
+    "particles": the host's box on CUDA too (reduced on the device and read back each
+    substep, launches without a captured graph); "device": the box found and kept on the
+    device, the grid kernels launched for the whole grid with the threads outside the box
+    returning at once, so that a frame and its adjoint stay captured graphs; "whole": the
+    whole grid everywhere. Results are the same up to float rounding (bit for bit on the CPU);
+    only the time differs (docs/BENCHMARKS.md, Grid window)."""
 
     deterministic: bool = False
     grid_window: str = "auto"

@@ -61,13 +61,13 @@ class MPMRun:
         from the positions on the CPU, reduced on the device and read back on CUDA, launching
         without a captured graph); "device": the same box, found and kept on the device, the
         launches sized for the whole grid (state.Window), so a CUDA frame stays one captured
-        graph. Default: "particles" on the CPU, "whole" on CUDA. ``batch``: members simulated together (batched.py); then ``families`` lists every
+        graph. Default: "particles" on the CPU, "device" on CUDA. ``batch``: members simulated together (batched.py); then ``families`` lists every
         member's objects, member-major, and ``obj_index`` holds b K + k for a particle of
         member b (kernels.py)."""
         self.layout, self.world, self.substeps, self.device = layout, world, substeps, device
         self.is_cuda = is_cuda = wp.get_device(device).is_cuda
         if window is None:
-            window = "whole" if is_cuda else "particles"
+            window = "device" if is_cuda else "particles"
         if window not in WINDOWS:
             raise ValueError(f"window={window!r}: valid values are {list(WINDOWS)}")
         self.window = window

@@ -161,17 +161,20 @@ def test_grid_window_names_its_valid_values(make_warp_simulator) -> None:
         make_warp_simulator(grid=16, substeps=4, grid_window="box")
 
 
-def test_auto_windows_batched_rollouts_on_fine_grids_only(make_warp_simulator) -> None:
-    """grid_window auto: a single rollout leaves the choice to the device (the CPU windows,
-    CUDA keeps its captured graph); B members on a grid of BATCH_WINDOW_GRID cells or more are
-    windowed; an explicit choice holds for every run."""
-    from mosiv_warp_mpm.simulator import BATCH_WINDOW_GRID
+def test_auto_leaves_the_window_to_the_device(make_warp_simulator) -> None:
+    """grid_window auto: the run chooses (the host's box on the CPU, the device's box on
+    CUDA), for single and batched rollouts alike; an explicit choice holds for every run."""
+    auto = make_warp_simulator(grid=16, substeps=4)
+    assert auto._window(1) is None and auto._window(4) is None
+    for choice in ("whole", "particles", "device"):
+        sim = make_warp_simulator(grid=16, substeps=4, grid_window=choice)
+        assert sim._window(1) == choice and sim._window(4) == choice
 
-    fine = make_warp_simulator(grid=BATCH_WINDOW_GRID, substeps=4)
-    coarse = make_warp_simulator(grid=BATCH_WINDOW_GRID - 32, substeps=4)
-    assert fine._window(1) is None and fine._window(4) == "particles"
-    assert coarse._window(4) is None
-    whole = make_warp_simulator(grid=BATCH_WINDOW_GRID, substeps=4, grid_window="whole")
-    assert whole._window(4) == "whole" and whole._window(1) == "whole"
-    device = make_warp_simulator(grid=BATCH_WINDOW_GRID, substeps=4, grid_window="device")
-    assert device._window(4) == "device" and device._window(1) == "device"
+
+def test_a_run_without_a_choice_windows_as_its_device_does(make_warp_simulator) -> None:
+    sim = make_warp_simulator(grid=16, substeps=4)
+    p = sphere((0.25, 0.25, 0.1), 0.04, spacing=1.0 / 32, object_id=1, material="elastic")
+    sim.rollout(p, default_params(p), world=WORLD, frames=1)
+    cuda = wp.get_device(sim.device).is_cuda
+    run = sim._forward_run
+    assert run.window == ("device" if cuda else "particles") and run.graphed == cuda
