@@ -251,6 +251,7 @@ def build(args) -> Setup:
         families=[args.family],
         obj_index=torch.zeros(n, dtype=torch.int64, device=dev),
         volumes=particles.volumes.to(dev)[order],
+        window=args.grid_window,
     )
     if args.backward:
         run.backward_workspace().gather_parameters = not args.table_reads
@@ -515,6 +516,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--frame", type=int, default=1, help="which frame (1-based) to profile")
     ap.add_argument("--reps", type=int, default=3, help="real-path frames timed (backward)")
     ap.add_argument("--deterministic", action="store_true", help="Warp's deterministic atomics")
+    ap.add_argument(
+        "--grid-window",
+        choices=["whole", "particles", "device"],
+        default=None,
+        help="which grid nodes the grid kernels visit (warp-mpm's grid_window; default: the "
+        "run's own choice, the device's box on CUDA)",
+    )
     ap.add_argument(
         "--ablate-parameter-gradients",
         dest="ablate",

@@ -92,3 +92,15 @@ def test_profile_refuses_a_count_below_one(profile_module, capsys):
     with pytest.raises(SystemExit):
         profile_module.main(["--backward", "--device", "cpu", "--substeps", "0"])
     assert "--substeps must be at least 1, got 0" in capsys.readouterr().err
+
+
+def test_the_profile_runs_each_grid_window(profile_module, tmp_path):
+    """--grid-window: the profiled schedule through each window gives the real path's
+    gradients bit for bit (its own check); an unknown window is refused."""
+    for window in ("whole", "device"):
+        argv = ["--backward", "--device", "cpu", "--particles", "200", "--grid", "16"]
+        argv += ["--substeps", "4", "--grid-window", window]
+        p = profile_module.main(argv)
+        assert p.gradient_check["bit_identical"], (window, p.gradient_check)
+    with pytest.raises(SystemExit):
+        profile_module.main(["--grid-window", "box"])

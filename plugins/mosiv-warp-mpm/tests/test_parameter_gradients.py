@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+import warp as wp
 from mosiv_warp_mpm.autograd import segment_sums
 
 from mosiv_framework.testing.shapes import combine, default_params, sphere
@@ -125,7 +126,13 @@ def _copies_match_the_table_reads(sim, rtol: dict, terms=None) -> dict:
     assert _same(pos_new, pos_old)
     assert _compare(new, old, rtol) == set(rtol)
     _, again = _rollout(sim, gather=True, terms=terms)
-    assert all(_same(again[n], g) for n, g in new.items())
+    if wp.get_device(sim.device).is_cuda:
+        # float atomics sum in schedule order, so one GPU's runs differ as the copies differ
+        # from the table reads: on an H200 a contact coefficient's gradient missed rtol 1e-4
+        # between two runs in 1 of 6 trials with the whole grid, 3 of 6 with the device window
+        assert _compare(again, new, rtol) == set(rtol)
+    else:
+        assert all(_same(again[n], g) for n, g in new.items())
     return new
 
 
