@@ -23,7 +23,7 @@ import warp as wp
 
 from mosiv_framework.expression import FEATURES
 from mosiv_warp_mpm.laws import safe_norm
-from mosiv_warp_mpm.node_window import node_index, window_cell
+from mosiv_warp_mpm.node_window import node_index, window_count, window_ijk
 
 N_FEATURES = wp.constant(len(FEATURES))
 MOMENT_EPS = wp.constant(1.0e-12)  # kg: a field lighter than this has no centre
@@ -105,18 +105,39 @@ def field_moments(
         moment_m [B F] (kg), moment_mx [B F] (kg m), moment_mv [B F] (kg m/s), accumulated
         (cleared by Grid.clear).
     """
-    # thread t: the window's (field, node) pairs, field slowest, k fastest (kernels.window_cell)
-    c = window_cell(wp.tid(), boxes, row, stride)
-    field = c[0]
-    if field >= 0:
-        b = field // fields_per_member
-        n = node_index(field, c[1], c[2], c[3], nodes)
-        m = grid_m[n]
-        if expr_switch[2 * b + 1] > 0.5 and m > 0.0:
-            x = origin + dx * wp.vec3(float(c[1]), float(c[2]), float(c[3]))
-            wp.atomic_add(moment_m, field, m)
-            wp.atomic_add(moment_mx, field, m * x)
-            wp.atomic_add(moment_mv, field, grid_mv[n])
+    # the window's (field, node) pairs, field slowest, k fastest (node_window)
+    t = wp.tid()
+    for r in range(t % stride, window_count(boxes, row), stride):
+        field_moment_at(
+            t // stride, window_ijk(boxes, row, r), grid_m, grid_mv, expr_switch, origin, dx,
+            nodes, fields_per_member, moment_m, moment_mx, moment_mv,
+        )  # fmt: skip
+
+
+@wp.func
+def field_moment_at(
+    field: int,
+    c: wp.vec3i,
+    grid_m: wp.array(dtype=float),
+    grid_mv: wp.array(dtype=wp.vec3),
+    expr_switch: wp.array(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    nodes: wp.vec3i,
+    fields_per_member: int,
+    moment_m: wp.array(dtype=float),
+    moment_mx: wp.array(dtype=wp.vec3),
+    moment_mv: wp.array(dtype=wp.vec3),
+):
+    # field_moments' sums at node c of ``field``
+    b = field // fields_per_member
+    n = node_index(field, c[0], c[1], c[2], nodes)
+    m = grid_m[n]
+    if expr_switch[2 * b + 1] > 0.5 and m > 0.0:
+        x = origin + dx * wp.vec3(float(c[0]), float(c[1]), float(c[2]))
+        wp.atomic_add(moment_m, field, m)
+        wp.atomic_add(moment_mx, field, m * x)
+        wp.atomic_add(moment_mv, field, grid_mv[n])
 
 
 @wp.kernel

@@ -30,7 +30,7 @@ import warp as wp
 from mosiv_warp_mpm.expression_kernels import node_expression
 from mosiv_warp_mpm.field_sums import field_sums
 from mosiv_warp_mpm.laws import J_MIN, kirchhoff_stress, return_map, safe_norm, vec5
-from mosiv_warp_mpm.node_window import node_index, window_cell
+from mosiv_warp_mpm.node_window import node_index, window_count, window_ijk
 
 PAD = wp.constant(3)  # boundary node layers outside the scene domain (slip walls)
 MASS_EPS = wp.constant(1.0e-12)  # kg: nodes lighter than this carry no velocity
@@ -55,9 +55,10 @@ def clear_box(
     with_velocities: int,
 ):
     # zero the grid arrays (or their gradients) on the window's nodes: one launch, not six
-    c = window_cell(wp.tid(), boxes, row, stride)
-    if c[0] >= 0:
-        n = node_index(c[0], c[1], c[2], c[3], nodes)
+    t = wp.tid()
+    for r in range(t % stride, window_count(boxes, row), stride):
+        c = window_ijk(boxes, row, r)
+        n = node_index(t // stride, c[0], c[1], c[2], nodes)
         m[n] = 0.0
         mv[n] = wp.vec3()
         gm[n] = wp.vec3()
@@ -295,6 +296,43 @@ class ExpressionInputs:
     ground: float
 
 
+@wp.func
+def free_velocity_at(
+    field: int,
+    c: wp.vec3i,
+    grid_m: wp.array(dtype=float),
+    grid_mv: wp.array(dtype=wp.vec3),
+    accel: wp.array(dtype=wp.vec3),
+    drag: wp.array(dtype=float),
+    per_node: int,
+    expr: ExpressionInputs,
+    dt: float,
+    nodes: wp.vec3i,
+    fields_per_member: int,
+    grid_vs: wp.array(dtype=wp.vec3),
+):
+    # grid_free_velocity at node c of ``field``
+    n = node_index(field, c[0], c[1], c[2], nodes)
+    b = field // fields_per_member  # batch member
+    r = b
+    if per_node != 0:
+        r = n
+    m = grid_m[n]
+    vf = wp.vec3()
+    if m > MASS_EPS:
+        vs = grid_mv[n] / m
+        a = accel[r] - drag[2 * r] * vs - drag[2 * r + 1] * safe_norm(vs) * vs
+        if expr.on[2 * b] > 0.5:
+            x = expr.origin + expr.dx * wp.vec3(float(c[0]), float(c[1]), float(c[2]))
+            time = expr.clock[0] + float(expr.substep) * dt
+            a = a + node_expression(
+                expr.coef, b, field, x, vs, time, expr.up, expr.ground, expr.rel_p,
+                expr.rel_v, expr.rel_n,
+            )  # fmt: skip
+        vf = vs + dt * a
+    grid_vs[n] = vf
+
+
 @wp.kernel
 def grid_free_velocity(
     grid_m: wp.array(dtype=float),
@@ -312,34 +350,18 @@ def grid_free_velocity(
     grid_vs: wp.array(dtype=wp.vec3),
 ):
     # v = mv/m + dt (g + wind - c_lin v - c_quad |v| v + expression), on every field's nodes of
-    # the window (window_cell); the expression (a member's switch) at the node's position and
+    # the window (node_window); the expression (a member's switch) at the node's position and
     # the substep's time.
     # per_node: accel and drag from the node's copies (row n, state.NodeCoefficients), not the
     # member's table row b: Warp's adjoint of a read a[i] is atomic_add(adj_a[i]), so the tables
     # would take every node's share on a few addresses (contended float32 atomics); the copies
     # take one address per node, summed per member in float64 after each frame
-    c = window_cell(wp.tid(), boxes, row, stride)
-    field = c[0]
-    if field >= 0:
-        n = node_index(field, c[1], c[2], c[3], nodes)
-        b = field // fields_per_member  # batch member
-        r = b
-        if per_node != 0:
-            r = n
-        m = grid_m[n]
-        vf = wp.vec3()
-        if m > MASS_EPS:
-            vs = grid_mv[n] / m
-            a = accel[r] - drag[2 * r] * vs - drag[2 * r + 1] * safe_norm(vs) * vs
-            if expr.on[2 * b] > 0.5:
-                x = expr.origin + expr.dx * wp.vec3(float(c[1]), float(c[2]), float(c[3]))
-                time = expr.clock[0] + float(expr.substep) * dt
-                a = a + node_expression(
-                    expr.coef, b, field, x, vs, time, expr.up, expr.ground, expr.rel_p,
-                    expr.rel_v, expr.rel_n,
-                )  # fmt: skip
-            vf = vs + dt * a
-        grid_vs[n] = vf
+    t = wp.tid()
+    for r in range(t % stride, window_count(boxes, row), stride):
+        free_velocity_at(
+            t // stride, window_ijk(boxes, row, r), grid_m, grid_mv, accel, drag, per_node,
+            expr, dt, nodes, fields_per_member, grid_vs,
+        )  # fmt: skip
 
 
 @wp.func
@@ -384,6 +406,70 @@ def slip_walls(v: wp.vec3, i: int, j: int, k: int, nodes: wp.vec3i):
     return out
 
 
+@wp.func
+def boundaries_at(
+    b: int,
+    c: wp.vec3i,
+    grid_m: wp.array(dtype=float),
+    grid_vs: wp.array(dtype=wp.vec3),
+    grid_gm: wp.array(dtype=wp.vec3),
+    grid_pm: wp.array(dtype=wp.vec3),
+    n_fields: int,
+    nodes: wp.vec3i,
+    ground_on: int,
+    ground_k: float,
+    ground_layers: int,
+    friction: wp.array(dtype=float),
+    ground_friction: wp.array(dtype=float),
+    ground_restitution: wp.array(dtype=float),
+    per_node: int,
+    grid_v: wp.array(dtype=wp.vec3),
+):
+    # grid_boundaries at spatial node c of batch member b, every field
+    i = c[0]
+    j = c[1]
+    k = c[2]
+    per_field = nodes[0] * nodes[1] * nodes[2]
+    first = b * n_fields  # the member's first field, and its first object (multi-field)
+    s = node_index(first, i, j, k, nodes)
+    mu_first = first  # field f's friction at mu_first + f mu_stride (field_sums)
+    mu_stride = 1
+    r = b
+    if per_node != 0:
+        mu_first = s
+        mu_stride = per_field
+        r = ground_row(b, i, j, k, nodes, ground_layers)
+    # sums over fields go through field_sums: Warp cannot differentiate a local variable
+    # accumulated in a loop over the run-time field count
+    m_tot, p_tot, g_tot, mu_tot, count = field_sums(
+        grid_m, grid_vs, grid_gm, friction, mu_first, mu_stride, s, per_field, n_fields, -1,
+        MASS_EPS,
+    )  # fmt: skip
+    for f in range(n_fields):
+        n = f * per_field + s
+        m = grid_m[n]
+        v = grid_vs[n]
+        if m > MASS_EPS:
+            if count >= 2:
+                # the other fields' sums, accumulated directly: subtracting f's share from
+                # a total cancels catastrophically when f dominates the node's mass (and
+                # rounds differently under CUDA's fused multiply-adds): wild coefficients
+                m_other, p_other, g_other, mu_other, n_other = field_sums(
+                    grid_m, grid_vs, grid_gm, friction, mu_first, mu_stride, s, per_field,
+                    n_fields, f, MASS_EPS,
+                )  # fmt: skip
+                # outward normal of f against the others: normalize(gm_f - others' gm)
+                d = grid_gm[n] - g_other
+                normal = d / safe_norm(d)
+                mu = 0.5 * (friction[mu_first + f * mu_stride] + mu_other / m_other)
+                v = coulomb_contact(v, p_tot / m_tot, normal, mu)
+            if ground_on != 0 and float(k) <= ground_k:
+                v_in = grid_pm[n][2] / m
+                v = ground_contact(v, v_in, ground_friction[r], ground_restitution[r])
+            v = slip_walls(v, i, j, k, nodes)
+        grid_v[n] = v
+
+
 @wp.kernel
 def grid_boundaries(
     grid_m: wp.array(dtype=float),
@@ -404,57 +490,19 @@ def grid_boundaries(
     stride: int,
     grid_v: wp.array(dtype=wp.vec3),
 ):
-    # multi-field Coulomb contact, ground plane and slip walls at one spatial node of the
-    # window (window_cell); one thread per (batch member, node), n_fields = fields per member.
+    # multi-field Coulomb contact, ground plane and slip walls at the spatial nodes of the
+    # window (node_window), threads per batch member, n_fields = fields per member.
     # per_node: friction from the nodes' copies (row n of field f's node), the ground's from the
     # ground-layer nodes' (ground_row, ground_layers = the layers k <= ground_k), not the tables'
     # rows first + f and b: as in grid_free_velocity, the tables' adjoints would be float32
     # atomics of every node with mass onto a few addresses
-    c = window_cell(wp.tid(), boxes, row, stride)
-    b = c[0]
-    i = c[1]
-    j = c[2]
-    k = c[3]
-    if b >= 0:
-        per_field = nodes[0] * nodes[1] * nodes[2]
-        first = b * n_fields  # the member's first field, and its first object (multi-field)
-        s = node_index(first, i, j, k, nodes)
-        mu_first = first  # field f's friction at mu_first + f mu_stride (field_sums)
-        mu_stride = 1
-        r = b
-        if per_node != 0:
-            mu_first = s
-            mu_stride = per_field
-            r = ground_row(b, i, j, k, nodes, ground_layers)
-        # sums over fields go through field_sums: Warp cannot differentiate a local variable
-        # accumulated in a loop over the run-time field count
-        m_tot, p_tot, g_tot, mu_tot, count = field_sums(
-            grid_m, grid_vs, grid_gm, friction, mu_first, mu_stride, s, per_field, n_fields, -1,
-            MASS_EPS,
+    t = wp.tid()
+    for r in range(t % stride, window_count(boxes, row), stride):
+        boundaries_at(
+            t // stride, window_ijk(boxes, row, r), grid_m, grid_vs, grid_gm, grid_pm,
+            n_fields, nodes, ground_on, ground_k, ground_layers, friction, ground_friction,
+            ground_restitution, per_node, grid_v,
         )  # fmt: skip
-        for f in range(n_fields):
-            n = f * per_field + s
-            m = grid_m[n]
-            v = grid_vs[n]
-            if m > MASS_EPS:
-                if count >= 2:
-                    # the other fields' sums, accumulated directly: subtracting f's share from
-                    # a total cancels catastrophically when f dominates the node's mass (and
-                    # rounds differently under CUDA's fused multiply-adds): wild coefficients
-                    m_other, p_other, g_other, mu_other, n_other = field_sums(
-                        grid_m, grid_vs, grid_gm, friction, mu_first, mu_stride, s, per_field,
-                        n_fields, f, MASS_EPS,
-                    )  # fmt: skip
-                    # outward normal of f against the others: normalize(gm_f - others' gm)
-                    d = grid_gm[n] - g_other
-                    normal = d / safe_norm(d)
-                    mu = 0.5 * (friction[mu_first + f * mu_stride] + mu_other / m_other)
-                    v = coulomb_contact(v, p_tot / m_tot, normal, mu)
-                if ground_on != 0 and float(k) <= ground_k:
-                    v_in = grid_pm[n][2] / m
-                    v = ground_contact(v, v_in, ground_friction[r], ground_restitution[r])
-                v = slip_walls(v, i, j, k, nodes)
-            grid_v[n] = v
 
 
 @wp.kernel

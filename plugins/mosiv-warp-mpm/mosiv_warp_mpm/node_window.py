@@ -22,20 +22,23 @@ def box_ijk(r: int, lo: wp.vec3i, dims: wp.vec3i):
 
 
 @wp.func
-def window_cell(t: int, boxes: wp.array(dtype=wp.vec3i), row: int, stride: int):
-    # thread t of a launch over a node window (state.Window): (field, i, j, k) of its node, the
-    # field -1 for a thread past the box's nodes. Row ``row`` of ``boxes`` is the box (first
-    # node, then node counts per axis); each field has ``stride`` threads, at least the box's
-    # node count: the box's own count when the host knows it, the whole grid's when the box is
-    # found on the device inside a captured graph (whose launch sizes are fixed)
-    lo = boxes[2 * row]
+def window_count(boxes: wp.array(dtype=wp.vec3i), row: int):
+    # nodes per field of row ``row``'s box
     dims = boxes[2 * row + 1]
-    r = t % stride
-    out = wp.vec4i(-1, 0, 0, 0)
-    if r < dims[0] * dims[1] * dims[2]:
-        c = box_ijk(r, lo, dims)
-        out = wp.vec4i(t // stride, c[0], c[1], c[2])
-    return out
+    return dims[0] * dims[1] * dims[2]
+
+
+@wp.func
+def window_ijk(boxes: wp.array(dtype=wp.vec3i), row: int, r: int):
+    # node (i, j, k) of the r-th node of row ``row``'s box, k fastest
+    return box_ijk(r, boxes[2 * row], boxes[2 * row + 1])
+
+
+# A launch over a node window (state.Window) has ``stride`` threads per field: thread t serves
+# field t // stride and the box's nodes r = t % stride, r + stride, ... below window_count, so
+# the launch size need not be the box's. The box's own count when the host knows it (one node a
+# thread); a fixed count (state.WINDOW_THREADS) when the box is found on the device inside a
+# captured CUDA graph, whose launch sizes are fixed at capture.
 
 
 @wp.kernel

@@ -22,6 +22,7 @@ from mosiv_warp_mpm import kernels as K
 from mosiv_warp_mpm import node_window as NW
 from mosiv_warp_mpm.laws import LAW_IDS
 from mosiv_warp_mpm.state import (
+    WINDOW_THREADS,
     Grid,
     GridLayout,
     NodeBox,
@@ -60,8 +61,7 @@ class MPMRun:
         grid; "particles": the box around the particles, found on the host each substep (read
         from the positions on the CPU, reduced on the device and read back on CUDA, launching
         without a captured graph); "device": the same box, found and kept on the device, the
-        launches sized for the whole grid (state.Window), so a CUDA frame stays one captured
-        graph. Default: "particles" on the CPU, "device" on CUDA. ``batch``: members simulated together (batched.py); then ``families`` lists every
+        launches of a fixed size (state.Window), so a CUDA frame stays one captured graph. Default: "particles" on the CPU, "device" on CUDA. ``batch``: members simulated together (batched.py); then ``families`` lists every
         member's objects, member-major, and ``obj_index`` holds b K + k for a particle of
         member b (kernels.py)."""
         self.layout, self.world, self.substeps, self.device = layout, world, substeps, device
@@ -203,7 +203,7 @@ class MPMRun:
                 inputs=[self._bounds, wp.vec3i(*self.layout.nodes), self.boxes, s],
                 device=self.device,
             )
-            return Window(self.boxes, s, whole)
+            return Window(self.boxes, s, min(whole, WINDOW_THREADS))
         if self.window == "whole":  # the rows hold the whole grid from the start
             return Window(self.boxes, s, whole, whole=True)
         box = self.active_box(state)

@@ -253,17 +253,24 @@ class NodeBox:
         return self.lo == (0, 0, 0) and self.dims == tuple(layout.nodes)
 
 
+#: threads per field of a grid kernel over a box found on the device (Window): about half of
+#: an H200's resident threads, so a body's box keeps the GPU busy while a small one's launch
+#: stays short; each thread takes every WINDOW_THREADS-th node of the box
+WINDOW_THREADS = 2**17
+
+
 @dataclass(frozen=True)
 class Window:
-    """The nodes a substep's grid kernels visit, as they read them (node_window.window_cell):
-    row ``row`` of the run's box table ``boxes`` (MPMRun.boxes: per substep, the box's first
-    node and node counts), launched with ``stride`` threads per field.
+    """The nodes a substep's grid kernels visit, as they read them (node_window): row ``row``
+    of the run's box table ``boxes`` (MPMRun.boxes: per substep, the box's first node and node
+    counts), launched with ``stride`` threads per field, thread t taking the box's nodes t,
+    t + stride, ... of its field.
 
     A box the host knows (NodeBox) is written into its row and launched with its own node
-    count; a box the device finds from the particles (MPMRun's window "device") is launched
-    with the whole grid's count, threads past the box returning at once, so that the launch
-    sizes stay the same for every box and a frame stays one captured CUDA graph. ``whole``:
-    the box is the whole grid, where clearing is a memset per array.
+    count, one node a thread; a box the device finds from the particles (MPMRun's window
+    "device") is launched with min(whole grid, WINDOW_THREADS) threads per field whatever its
+    size, so that the launch sizes stay the same for every box and a frame stays one captured
+    CUDA graph. ``whole``: the box is the whole grid, where clearing is a memset per array.
     """
 
     boxes: wp.array

@@ -60,11 +60,17 @@ def test_windowed_grid_matches_the_whole_grid_bit_for_bit(make_warp_simulator) -
     assert moved > 0.0  # the bodies did move across nodes during the rollout
 
 
-def test_the_device_window_matches_the_whole_grid_bit_for_bit(make_warp_simulator) -> None:
-    """grid_window "device": each substep's box found and kept on the device, the launches
-    sized for the whole grid, so that a CUDA frame stays one captured graph. Threads outside
-    the box do nothing, so positions and gradients are those of the whole grid (bit for bit
-    on the CPU), and the boxes it used were windows, not the whole grid."""
+@pytest.mark.parametrize("threads", [None, 7])
+def test_the_device_window_matches_the_whole_grid_bit_for_bit(
+    make_warp_simulator, monkeypatch, threads
+) -> None:
+    """grid_window "device": each substep's box found and kept on the device, the launches of
+    a fixed size, so that a CUDA frame stays one captured graph. Positions and gradients are
+    those of the whole grid (bit for bit on the CPU), the boxes it used were windows, not the
+    whole grid, and with 7 threads a field (state.WINDOW_THREADS), each thread taking every
+    7th node of the box, nothing changes either."""
+    if threads is not None:
+        monkeypatch.setattr("mosiv_warp_mpm.run.WINDOW_THREADS", threads)
     whole = make_warp_simulator(grid=16, substeps=20, grid_window="whole")
     device = make_warp_simulator(grid=16, substeps=20, grid_window="device")
     expected = _collide_and_land(whole)
@@ -72,6 +78,8 @@ def test_the_device_window_matches_the_whole_grid_bit_for_bit(make_warp_simulato
     run = device._grad_run
     assert run.window == "device" and run.graphed == wp.get_device(device.device).is_cuda
     _assert_same(got, expected, cuda=wp.get_device(whole.device).is_cuda)
+    if threads is not None:
+        assert run.substep_window(run.a, 0).stride == threads
     rows = run.boxes.numpy().reshape(-1, 2, 3)
     counts = rows[:, 1].prod(axis=1)
     assert len(rows) == 20 and (counts < run.layout.nodes_per_field).all()
