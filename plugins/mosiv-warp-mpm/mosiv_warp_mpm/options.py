@@ -27,10 +27,10 @@ class WarpMPMOptions(MPMOptions):
     kernel's threads one after another, and kept on the device on CUDA ("device");
     "particles": the host's box on CUDA too (reduced on the device and read back each
     substep, launches without a captured graph); "device": the box found and kept on the
-    device, the grid kernels launched for the whole grid with the threads outside the box
-    returning at once, so that a frame and its adjoint stay captured graphs; "whole": the
-    whole grid everywhere. Results are the same up to float rounding (bit for bit on the CPU);
-    only the time differs (docs/BENCHMARKS.md, Grid window)."""
+    device, the grid kernels launched at a fixed size (state.WINDOW_THREADS), so that a frame
+    and its adjoint stay captured graphs; "whole": the whole grid everywhere. Results are the
+    same up to float rounding (bit for bit on the CPU); only the time differs
+    (docs/BENCHMARKS.md, Grid window on CUDA)."""
 
     deterministic: bool = False
     grid_window: str = "auto"
