@@ -190,7 +190,8 @@ class WarpMPMSimulator(Simulator):
         leaves it to MPMRun: the box around the particles, launched at its own size on the CPU
         (Warp runs the threads one after another) and kept on the device on CUDA, where it was
         1.1-2.7x faster than the whole grid for forward plus backward from 2,000 to 1M
-        particles and 1.6x the box read back for 16 batched members (docs/BENCHMARKS.md, Grid window)."""
+        particles, and 1.6x the box read back for 16 batched members (docs/BENCHMARKS.md, Grid
+        window on CUDA)."""
         del batch  # the same choice for single and batched rollouts
         if self.options.grid_window != "auto":
             return self.options.grid_window
