@@ -11,12 +11,13 @@ from mosiv_framework.testing.conformance import BackendConformance
 class TestTaichiConformance(BackendConformance):
     backend = "taichi-mpm"
     reference = "warp-mpm"
-    # Every law's gradients are held to warp-mpm's by the parity suite (tests/test_parity.py),
-    # and checked against finite differences law by law in mosiv-warp-mpm and on sand, newtonian
-    # and two bodies in contact here (test_gradients.py); so this suite's parity of the two
-    # adjoints, over a minute of CPU per scene, runs on the two-body contact scene only: the path
-    # (fields, contact normals, Coulomb projection) that the single-body scenes never reach.
-    gradient_scenes = ("collision",)
+    # The adjoints' parity with warp-mpm is tests/test_parity.py's
+    # test_warp_and_taichi_gradients_agree: the same check_gradients on every law's scene and
+    # the two-body collision, with the same scene options. Run here too it only compiled both
+    # backends' kernels once more (the slowest test of CI's Taichi worker, about 220 s with
+    # Taichi's cache cold), so this suite leaves it out; finite differences check taichi-mpm's
+    # gradients on sand, newtonian and two bodies in contact (test_gradients.py).
+    test_gradients_match_reference_backend = None
 
     @pytest.fixture(autouse=True)
     def _use_cached_simulators(self, simulator_factory):
