@@ -307,14 +307,14 @@ def profiled_adjoint(
         ws.work[0].copy_from(start)
         run.begin_frame(frame, ws.grid)
     with rec.phase("re-simulation"):
-        boxes = ws.resimulate(run)
+        windows = ws.resimulate(run)
     with rec.phase("seed/finish copies"):
         ws.seed()
     for s in range(run.substeps - 1, -1, -1):
         with rec.phase("zero gradients"):
-            ws.prepare_substep(run, s, boxes[s])
+            ws.prepare_substep(run, s, windows[s])
         with rec.phase("taped replay"):
-            tape = ws.record_substep(run, s, boxes[s])
+            tape = ws.record_substep(run, s, windows[s])
         run_tape_backward(rec, tape)
     with rec.phase("seed/finish copies"):
         ws.finish()

@@ -10,7 +10,7 @@ tape is consumed before the shared grid is reused, nothing a tape recorded is ov
 its adjoint runs. Memory: checkpoints grow with frames; the workspace (substeps + 1 particle
 states and one grid) is the same for every frame and does not grow with the number of frames.
 
-On CUDA one frame's adjoint (re-simulation, tapes and their reverse launches: about 30 launches
+On CUDA one frame's adjoint (re-simulation, tapes and their reverse launches: about 35 launches
 per substep) is captured once into a graph and replayed for every frame and, because the
 simulator keeps the run, for every later rollout of the same layout: launched from Python it
 cost about 2 ms per substep, far more than the kernels themselves.

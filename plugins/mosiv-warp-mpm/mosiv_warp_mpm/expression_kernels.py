@@ -107,11 +107,13 @@ def field_moments(
     """
     # the window's (field, node) pairs, field slowest, k fastest (node_window)
     t = wp.tid()
-    for r in range(t % stride, window_count(boxes, row), stride):
-        field_moment_at(
-            t // stride, window_ijk(boxes, row, r), grid_m, grid_mv, expr_switch, origin, dx,
-            nodes, fields_per_member, moment_m, moment_mx, moment_mv,
-        )  # fmt: skip
+    count = window_count(boxes, row)
+    if t % stride < count:  # as in kernels.grid_free_velocity
+        for r in range(t % stride, count, stride):
+            field_moment_at(
+                t // stride, window_ijk(boxes, row, r), grid_m, grid_mv, expr_switch, origin,
+                dx, nodes, fields_per_member, moment_m, moment_mx, moment_mv,
+            )  # fmt: skip
 
 
 @wp.func

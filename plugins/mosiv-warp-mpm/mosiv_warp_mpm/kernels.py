@@ -56,16 +56,18 @@ def clear_box(
 ):
     # zero the grid arrays (or their gradients) on the window's nodes: one launch, not six
     t = wp.tid()
-    for r in range(t % stride, window_count(boxes, row), stride):
-        c = window_ijk(boxes, row, r)
-        n = node_index(t // stride, c[0], c[1], c[2], nodes)
-        m[n] = 0.0
-        mv[n] = wp.vec3()
-        gm[n] = wp.vec3()
-        pm[n] = wp.vec3()
-        if with_velocities != 0:
-            vs[n] = wp.vec3()
-            v[n] = wp.vec3()
+    count = window_count(boxes, row)
+    if t % stride < count:
+        for r in range(t % stride, count, stride):
+            c = window_ijk(boxes, row, r)
+            n = node_index(t // stride, c[0], c[1], c[2], nodes)
+            m[n] = 0.0
+            mv[n] = wp.vec3()
+            gm[n] = wp.vec3()
+            pm[n] = wp.vec3()
+            if with_velocities != 0:
+                vs[n] = wp.vec3()
+                v[n] = wp.vec3()
 
 
 @wp.func
@@ -95,8 +97,9 @@ def stencil_base_bounds(
 ):
     """The lowest and highest stencil base (cell_base) per axis over all particles, into
     bounds[0:3] and bounds[3:6] (preset to +/- a large value): the node box a substep's grid
-    kernels must visit (state.NodeBox.from_bases), found on the device so that a CUDA run
-    reads back 24 bytes per substep instead of every position. A non-finite position (a
+    kernels must visit (state.NodeBox.from_bases), found on the device: a CUDA run then keeps
+    it there (node_window.box_from_bounds) or reads back 24 bytes per substep instead of every
+    position (grid_window "particles"). A non-finite position (a
     diverged member, reset by the next G2P) counts for nothing."""
     p = wp.tid()
     xp = x[p]
@@ -356,12 +359,16 @@ def grid_free_velocity(
     # member's table row b: Warp's adjoint of a read a[i] is atomic_add(adj_a[i]), so the tables
     # would take every node's share on a few addresses (contended float32 atomics); the copies
     # take one address per node, summed per member in float64 after each frame
+    # the guard keeps a thread without nodes out of the loop: Warp's adjoint of an empty
+    # dynamic range ran its body once at the start before warp-lang 1.19 (range.h)
     t = wp.tid()
-    for r in range(t % stride, window_count(boxes, row), stride):
-        free_velocity_at(
-            t // stride, window_ijk(boxes, row, r), grid_m, grid_mv, accel, drag, per_node,
-            expr, dt, nodes, fields_per_member, grid_vs,
-        )  # fmt: skip
+    count = window_count(boxes, row)
+    if t % stride < count:
+        for r in range(t % stride, count, stride):
+            free_velocity_at(
+                t // stride, window_ijk(boxes, row, r), grid_m, grid_mv, accel, drag,
+                per_node, expr, dt, nodes, fields_per_member, grid_vs,
+            )  # fmt: skip
 
 
 @wp.func
@@ -497,12 +504,14 @@ def grid_boundaries(
     # rows first + f and b: as in grid_free_velocity, the tables' adjoints would be float32
     # atomics of every node with mass onto a few addresses
     t = wp.tid()
-    for r in range(t % stride, window_count(boxes, row), stride):
-        boundaries_at(
-            t // stride, window_ijk(boxes, row, r), grid_m, grid_vs, grid_gm, grid_pm,
-            n_fields, nodes, ground_on, ground_k, ground_layers, friction, ground_friction,
-            ground_restitution, per_node, grid_v,
-        )  # fmt: skip
+    count = window_count(boxes, row)
+    if t % stride < count:  # as in grid_free_velocity
+        for r in range(t % stride, count, stride):
+            boundaries_at(
+                t // stride, window_ijk(boxes, row, r), grid_m, grid_vs, grid_gm, grid_pm,
+                n_fields, nodes, ground_on, ground_k, ground_layers, friction,
+                ground_friction, ground_restitution, per_node, grid_v,
+            )  # fmt: skip
 
 
 @wp.kernel

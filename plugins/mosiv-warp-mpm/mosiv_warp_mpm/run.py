@@ -55,15 +55,18 @@ class MPMRun:
         obj_index: torch.Tensor,
         volumes: torch.Tensor,
         window: str | None = None,
+        window_threads: int | None = None,
         batch: int = 1,
     ):
         """``window`` (WINDOWS): which nodes a substep's grid kernels visit. "whole": the whole
         grid; "particles": the box around the particles, found on the host each substep (read
         from the positions on the CPU, reduced on the device and read back on CUDA, launching
         without a captured graph); "device": the same box, found and kept on the device, the
-        launches of a fixed size (state.Window), so a CUDA frame stays one captured graph. Default: "particles" on the CPU, "device" on CUDA. ``batch``: members simulated together (batched.py); then ``families`` lists every
-        member's objects, member-major, and ``obj_index`` holds b K + k for a particle of
-        member b (kernels.py)."""
+        launches of a fixed size (state.Window: ``window_threads`` threads a field, default
+        WINDOW_THREADS), so a CUDA frame stays one captured graph. Default: "particles" on the
+        CPU, "device" on CUDA. ``batch``: members simulated together (batched.py); then
+        ``families`` lists every member's objects, member-major, and ``obj_index`` holds
+        b K + k for a particle of member b (kernels.py)."""
         self.layout, self.world, self.substeps, self.device = layout, world, substeps, device
         self.is_cuda = is_cuda = wp.get_device(device).is_cuda
         if window is None:
@@ -71,6 +74,7 @@ class MPMRun:
         if window not in WINDOWS:
             raise ValueError(f"window={window!r}: valid values are {list(WINDOWS)}")
         self.window = window
+        self.window_threads = window_threads
         self.windowed = window != "whole"
         #: whether a frame's launches are captured once into a CUDA graph and replayed: the
         #: graph fixes every launch's size and argument, so a box read back on the host has none
@@ -203,7 +207,8 @@ class MPMRun:
                 inputs=[self._bounds, wp.vec3i(*self.layout.nodes), self.boxes, s],
                 device=self.device,
             )
-            return Window(self.boxes, s, min(whole, WINDOW_THREADS))
+            threads = WINDOW_THREADS if self.window_threads is None else self.window_threads
+            return Window(self.boxes, s, min(whole, threads))
         if self.window == "whole":  # the rows hold the whole grid from the start
             return Window(self.boxes, s, whole, whole=True)
         box = self.active_box(state)

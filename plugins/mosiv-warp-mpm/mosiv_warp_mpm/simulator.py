@@ -179,11 +179,19 @@ class WarpMPMSimulator(Simulator):
             obj_index=obj_index,
             volumes=volumes,
             window=self._window(batch),
+            window_threads=self._window_threads(layout),
             batch=batch,
         )
         if wp.get_device(self.device).is_cuda:
             run.peak_sampler = self._sample_peak
         return run
+
+    def _window_threads(self, layout) -> int | None:
+        """Threads a field of a device window's grid kernels (state.WINDOW_THREADS when None).
+        With deterministic atomics one node a thread (the whole grid's count): Warp sizes the
+        records of a deterministic launch by one per atomic and thread, and inside a captured
+        graph drops the updates of threads that loop over several nodes without an error."""
+        return layout.nodes_per_field if self.options.deterministic else None
 
     def _window(self, batch: int) -> str | None:
         """Which grid nodes a run visits (options.grid_window, run.WINDOWS); None ("auto")

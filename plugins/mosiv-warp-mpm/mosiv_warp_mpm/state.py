@@ -209,8 +209,9 @@ class NodeBox:
     Only nodes in some particle's 3x3x3 stencil hold mass, and only those are read back. On the
     CPU, where Warp runs each kernel thread in turn, sweeping the whole grid cost 75 % of a
     rollout of 278 particles on a 48-cell grid; the box around the particles is a few percent
-    of it (docs/BENCHMARKS.md, Simulator speed, CPU). On CUDA the box is the whole grid by default,
-    so that one frame stays one captured graph (MPMRun's ``windowed`` says otherwise).
+    of it (docs/BENCHMARKS.md, Simulator speed, CPU). On CUDA the run finds the same box on
+    the device by default (MPMRun's ``window``: the table of Window), so that one frame stays
+    one captured graph.
     """
 
     lo: tuple[int, int, int]
@@ -263,8 +264,8 @@ WINDOW_THREADS = 2**17
 class Window:
     """The nodes a substep's grid kernels visit, as they read them (node_window): row ``row``
     of the run's box table ``boxes`` (MPMRun.boxes: per substep, the box's first node and node
-    counts), launched with ``stride`` threads per field, thread t taking the box's nodes t,
-    t + stride, ... of its field.
+    counts), launched with ``stride`` threads per field, thread t taking the box's nodes
+    t % stride, t % stride + stride, ... of field t // stride.
 
     A box the host knows (NodeBox) is written into its row and launched with its own node
     count, one node a thread; a box the device finds from the particles (MPMRun's window

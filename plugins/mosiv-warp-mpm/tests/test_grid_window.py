@@ -186,3 +186,17 @@ def test_a_run_without_a_choice_windows_as_its_device_does(make_warp_simulator) 
     cuda = wp.get_device(sim.device).is_cuda
     run = sim._forward_run
     assert run.window == ("device" if cuda else "particles") and run.graphed == cuda
+
+
+def test_deterministic_atomics_keep_one_node_a_thread(make_warp_simulator) -> None:
+    """Warp sizes a deterministic launch's records by one per atomic and thread, so the device
+    window then launches one thread a node (the whole grid's count), not WINDOW_THREADS
+    threads each looping over several nodes. Only the option is read: a deterministic
+    simulator is built in a child process elsewhere (test_deterministic_option.py)."""
+    from dataclasses import replace
+
+    sim = make_warp_simulator(grid=16, substeps=4)
+    layout = GridLayout.for_world(WORLD, grid=16, fields=2)
+    assert sim._window_threads(layout) is None
+    sim.options = replace(sim.options, deterministic=True)
+    assert sim._window_threads(layout) == layout.nodes_per_field
