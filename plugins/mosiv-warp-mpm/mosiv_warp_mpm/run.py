@@ -21,6 +21,7 @@ from mosiv_warp_mpm import expression_kernels as XK
 from mosiv_warp_mpm import kernels as K
 from mosiv_warp_mpm import node_window as NW
 from mosiv_warp_mpm.laws import LAW_IDS
+from mosiv_warp_mpm.options import GRID_WINDOWS
 from mosiv_warp_mpm.state import (
     WINDOW_THREADS,
     Grid,
@@ -33,8 +34,8 @@ from mosiv_warp_mpm.state import (
     Window,
 )
 
-#: where the grid kernels' node box comes from (MPMRun's ``window``)
-WINDOWS = ("whole", "particles", "device")
+#: where the grid kernels' node box comes from (MPMRun's ``window``): grid_window's choices
+WINDOWS = tuple(w for w in GRID_WINDOWS if w != "auto")
 
 #: a stencil base beyond any grid: the bounds' start, left as it is when no particle counts
 _NO_BASE = 2**30
@@ -74,7 +75,9 @@ class MPMRun:
         if window not in WINDOWS:
             raise ValueError(f"window={window!r}: valid values are {list(WINDOWS)}")
         self.window = window
-        self.window_threads = window_threads
+        #: threads a field of the device window's launches (state.Window)
+        threads = WINDOW_THREADS if window_threads is None else window_threads
+        self.device_stride = min(layout.nodes_per_field, threads)
         self.windowed = window != "whole"
         #: whether a frame's launches are captured once into a CUDA graph and replayed: the
         #: graph fixes every launch's size and argument, so a box read back on the host has none
@@ -198,7 +201,6 @@ class MPMRun:
         """The nodes substep ``s`` from ``state`` visits (state.Window), its box in row ``s`` of
         ``boxes``: with window "device" found there by two launches (no read-back, so a
         captured graph holds them), else ``active_box``'s, written there from the host."""
-        whole = self.layout.nodes_per_field
         if self.window == "device":
             self._reduce_bounds(state)
             wp.launch(
@@ -207,10 +209,9 @@ class MPMRun:
                 inputs=[self._bounds, wp.vec3i(*self.layout.nodes), self.boxes, s],
                 device=self.device,
             )
-            threads = WINDOW_THREADS if self.window_threads is None else self.window_threads
-            return Window(self.boxes, s, min(whole, threads))
+            return Window(self.boxes, s, self.device_stride)
         if self.window == "whole":  # the rows hold the whole grid from the start
-            return Window(self.boxes, s, whole, whole=True)
+            return Window(self.boxes, s, self.layout.nodes_per_field, whole=True)
         box = self.active_box(state)
         wp.launch(
             NW.set_box_row,
