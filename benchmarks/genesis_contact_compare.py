@@ -166,6 +166,7 @@ def section_text(
     runs: tuple[dict, dict],
     section: str = SECTION,
     difference: str = "the contact between objects",
+    data: str = "the Genesis scenes of the section above (wide ranges)",
 ) -> str:
     scenes = sorted({r["scene"] for r in records})
     alone = sorted((set(runs[0]) | set(runs[1])) - set(scenes))
@@ -188,7 +189,7 @@ def section_text(
             f"- Command: `{command}`",
             f"- Machine: {', '.join(machines)}. Date {datetime.date.today().isoformat()}. "
             f"Code {', '.join(codes)}.",
-            "- Data: the Genesis scenes of the section above (wide ranges)."
+            f"- Data: {data}."
             + (f" Run one way only, not compared: {', '.join(alone)}." if alone else ""),
             "",
             markdown(records, labels),
@@ -211,6 +212,11 @@ def main(argv: list[str] | None = None) -> int:
         default="the contact between objects",
         help="what the two runs differ in, as the section's first sentence names it",
     )
+    parser.add_argument(
+        "--data",
+        default="the Genesis scenes of the section above (wide ranges)",
+        help="which scenes the rows come from, as the section's Data line names them",
+    )
     args = parser.parse_args(argv)
     labels = tuple(args.labels.split(","))
     if len(labels) != 2:
@@ -230,6 +236,7 @@ def main(argv: list[str] | None = None) -> int:
             runs=runs,
             section=args.section,
             difference=args.difference,
+            data=args.data,
         )
         args.write_results.write_text(replace_section(text, body, title=args.section))
     return 0

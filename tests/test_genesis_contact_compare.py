@@ -134,3 +134,13 @@ def test_the_committed_held_out_tail_table_is_the_one_its_data_makes(compare_mod
     section = section[: section.index(compare_module.KEEP_MARKER)]
     assert compare_module.markdown(records, labels) in section
     assert " ".join(compare_module.tallies(records, labels).split()) in " ".join(section.split())
+
+
+def test_the_data_line_names_the_scenes_given(tmp_path, compare_module):
+    first = _write(tmp_path / "a", [_row("E-S", [40.0], 10.0, 100.0, 900.0)], parts=True)
+    second = _write(tmp_path / "b", [_row("E-S", [20.0], 12.0, 50.0, 1200.0)], parts=True)
+    results = tmp_path / "RESULTS.md"
+    results.write_text("# Results\n")
+    argv = [str(first), str(second), "--write-results", str(results)]
+    compare_module.main(argv + ["--data", "4 development scenes, seeds 7000-7007"])
+    assert "- Data: 4 development scenes, seeds 7000-7007." in results.read_text()
