@@ -202,3 +202,39 @@ def test_a_stiffness_5x_off_moves_to_the_truth_rather_than_staying_at_its_start(
     start_error, error = abs(e_start - e_true) / e_true, abs(e - e_true) / e_true
     assert e != pytest.approx(e_start) and error <= 0.5 * start_error
     assert error < 0.1, e
+
+
+def test_no_iterate_passes_the_stability_limit_when_the_poisson_ratio_is_high(tmp_path):
+    """The ceilings are set at the default Poisson ratio (0.25). A body identified at its E
+    ceiling with nu 0.44 has a P-wave 1.8x faster than the simulator's limit, so the phase
+    lowers E to the limit at the start and after every step (ParameterVector.keep_stable):
+    every recorded iterate stays inside it."""
+    sim, world, particles, targets, ceilings = _drop_scene(1.5e5)
+    limit = 0.5 * (1 / 16) * FPS * 20  # stiffness_cfl cells of 1/16 m per substep, m/s
+    vector = ParameterVector.create(
+        {1: "elastic"},
+        {1: torch.tensor([0.0, 0.0, -2.0])},
+        values={1: {"E": 1e7, "nu": 0.44}},  # E starts at its ceiling
+        identify=("E", "nu"),
+        ground_friction=None,
+        ceilings=ceilings,
+        wave_speed_limit=limit,
+    )
+    objective = WeightedSum({"chamfer": get_registry().create("loss", "chamfer", {})})
+    _, history = identify(
+        simulator=sim,
+        particles=particles,
+        world=world,
+        targets=targets,
+        observed_frames=8,
+        objective=objective,
+        vector=vector,
+        section=_section(param_iterations=3, global_candidates=0),
+        run_dir=RunDir(tmp_path),
+    )
+    iterates = [entry["values"]["objects"]["1"]["params"] for entry in history]
+    assert len(iterates) == 3
+    for p in [*iterates, vector.to_json()["objects"]["1"]["params"]]:
+        e, nu, rho = p["E"], p["nu"], p["rho"]
+        speed = math.sqrt(e * (1 - nu) / ((1 + nu) * (1 - 2 * nu)) / rho)
+        assert speed <= limit * (1 + 1e-4), p

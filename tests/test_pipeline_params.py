@@ -95,3 +95,36 @@ def test_ballistic_fit_of_a_simulated_fall_recovers_v0_once_given_the_time_step(
     bias = untold.double() - torch.tensor(v0, dtype=torch.float64)
     expected = 0.5 * h * torch.tensor(G, dtype=torch.float64)  # -20 mm/s in z here
     assert torch.allclose(bias, expected, atol=2e-5)
+
+
+def _p_wave_speed(values: dict) -> float:
+    e, nu, rho = values["E"], values["nu"], values["rho"]
+    return math.sqrt(e * (1 - nu) / ((1 + nu) * (1 - 2 * nu)) / rho)
+
+
+def test_keep_stable_holds_the_p_wave_limit_at_the_current_poisson_ratio_and_density():
+    dx, dt, cfl = 0.025, 1.0 / 960, 0.5
+    limit = cfl * dx / dt
+    vec = ParameterVector.create(
+        {1: "elastic", 2: "elastic", 3: "elastic"},
+        {k: torch.zeros(3) for k in (1, 2, 3)},
+        # 1: at its ceiling (computed at the default nu 0.25) but nu 0.44; 2: nu 0.44 and a
+        # soft E; 3: at the ceiling with a density half the default's
+        values={1: {"E": 1e7, "nu": 0.44}, 2: {"E": 1e4, "nu": 0.44}, 3: {"E": 1e7, "rho": 500.0}},
+        ceilings=stiffness_ceilings({k: "elastic" for k in (1, 2, 3)}, {}, dx=dx, dt=dt, cfl=cfl),
+        wave_speed_limit=limit,
+    )
+
+    def values(k):
+        return {n: float(v) for n, v in vec.physical().objects[k].values.items()}
+
+    assert _p_wave_speed(values(1)) > 1.5 * limit  # the start's ceiling does not hold at nu 0.44
+    e2 = values(2)["E"]
+    assert sorted(vec.keep_stable()) == ["obj1.E", "obj3.E"]
+    for k in (1, 3):
+        assert _p_wave_speed(values(k)) == pytest.approx(limit, rel=1e-4)
+    assert values(1)["nu"] == pytest.approx(0.44) and values(3)["rho"] == pytest.approx(500.0)
+    assert values(2)["E"] == e2  # inside the limit: untouched
+    assert vec.keep_stable() == []  # idempotent
+    vec.wave_speed_limit = None
+    assert vec.keep_stable() == []

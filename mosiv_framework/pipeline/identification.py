@@ -244,6 +244,7 @@ def start_vector(
         ceilings=ceilings,
         terms=term_tensors(physics_terms),
         identify_terms=identified_terms(physics_terms),
+        wave_speed_limit=recipe_wave_speed(recipe, scene, sim_options),
     )
     if getattr(section, "start", "defaults") == "centre":
         vector.move_to_centre()  # a data-independent start (identify.start)
@@ -260,6 +261,18 @@ def recipe_ceilings(recipe, scene, families: dict[int, str], sim_options: dict) 
     if not (cfl > 0 and dx and isinstance(substeps, int) and substeps > 0):
         return None
     return stiffness_ceilings(families, {}, dx=dx, dt=1.0 / (scene.fps * substeps), cfl=cfl)
+
+
+def recipe_wave_speed(recipe, scene, sim_options: dict) -> float | None:
+    """The P-wave speed limit (m/s) behind ``recipe_ceilings``: ``identify.stiffness_cfl``
+    cells of the recipe's grid per substep; None where the recipe sets no ceiling."""
+    grid, substeps = sim_options.get("grid"), sim_options.get("substeps")
+    cfl = recipe.identify.stiffness_cfl
+    if not (cfl > 0 and isinstance(grid, int) and grid > 0):
+        return None
+    if not (isinstance(substeps, int) and substeps > 0):
+        return None
+    return cfl * (scene.world.extent / grid) * scene.fps * substeps
 
 
 def _velocity_only(section):

@@ -353,6 +353,7 @@ class _PhaseRun:
             # (Adam's first steps are about one learning rate long whatever the gradient, which
             # can throw an already good start, e.g. free-flight velocities, far off)
             self.best = BestIterate()
+            state.vector.keep_stable()  # a start from the global stage may sit past the limit
             self.best.offer(fit.window_loss(state.vector, phase.last), state.vector)
 
     def iterate(self, *, first: int, full_at: float) -> None:
@@ -422,16 +423,23 @@ class _PhaseRun:
         )
 
     def _clamp_to_bounds(self) -> None:
-        """Keep normalised coordinates inside [0, 1], and forget Adam's momentum where a bound
-        stopped a coordinate: otherwise the first moment, built up on the way there, holds it
-        against the bound for many steps after the gradient has turned back."""
+        """Keep normalised coordinates inside [0, 1] and every stiffness inside the
+        simulator's stability limit at the current densities and Poisson ratios
+        (``ParameterVector.keep_stable``), and forget Adam's momentum where a bound stopped a
+        coordinate: otherwise the first moment, built up on the way there, holds it against
+        the bound for many steps after the gradient has turned back."""
+        vector = self.state.vector
         with torch.no_grad():
-            for u in self.state.vector.normalized.values():
+            for u in vector.normalized.values():
                 at_bound = (u <= 0.0) | (u >= 1.0)
                 u.clamp_(0.0, 1.0)
                 moment = self.optimizer.state.get(u, {}).get("exp_avg")
                 if moment is not None and bool(at_bound.any()):
                     moment[at_bound] = 0.0
+            for key in vector.keep_stable():
+                moment = self.optimizer.state.get(vector.normalized[key], {}).get("exp_avg")
+                if moment is not None:
+                    moment.zero_()
 
     def polish(self) -> None:
         """Score the last iterate and the best iterate of every shorter horizon over the whole

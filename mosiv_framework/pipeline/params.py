@@ -108,28 +108,39 @@ def stiffness_ceilings(
     """Per object, the largest stiffness an explicit MPM step of ``dt`` (s) on cells of ``dx``
     (m) can follow: the P-wave speed sqrt(M / rho) must stay below ``cfl * dx / dt``.
 
-    For E (with Poisson ratio nu): M = E (1 - nu) / ((1 + nu)(1 - 2 nu)); for a bulk modulus K:
-    M >= K; for a shear modulus G: M >= 4 G / 3. Density and nu are taken at the given values
-    (law defaults where absent). The optimiser then cannot step into stiffnesses the simulator
+    Density and nu are taken at the given values (law defaults where absent), so these are
+    bounds for the start; ``ParameterVector.keep_stable`` holds the same limit at the values
+    the optimiser reaches. The optimiser then cannot step into stiffnesses the simulator
     would diverge on, which otherwise costs a back-off per excursion.
     """
-    c_max = cfl * dx / dt
+    wave_speed = cfl * dx / dt
     out: dict[int, dict[str, float]] = {}
     for k, family in families.items():
-        law = get_law(family)
-        vals = {**law.defaults(), **values.get(k, {})}
-        m_max = vals["rho"] * c_max**2
-        caps = {}
-        for spec in law.all_params:
-            if spec.name == "E":
-                nu = vals.get("nu", 0.25)
-                caps["E"] = m_max * (1 + nu) * (1 - 2 * nu) / (1 - nu)
-            elif spec.name == "bulk_modulus":
-                caps["bulk_modulus"] = m_max
-            elif spec.name == "shear_modulus":
-                caps["shear_modulus"] = 0.75 * m_max
-        out[k] = caps
+        vals = {**get_law(family).defaults(), **values.get(k, {})}
+        out[k] = modulus_caps(family, vals, wave_speed)
     return out
+
+
+def modulus_caps(family: str, values: dict[str, float], wave_speed: float) -> dict[str, float]:
+    """The largest value of each stiffness of ``family``'s law whose P-wave speed
+    sqrt(M / rho) stays below ``wave_speed`` (m/s) at the density and Poisson ratio in
+    ``values`` (nu 0.25 where the law has none).
+
+    M = rho c^2 is the P-wave modulus: for E with Poisson ratio nu,
+    M = E (1 - nu) / ((1 + nu)(1 - 2 nu)); for a bulk modulus K, M >= K; for a shear modulus
+    G, M >= 4 G / 3. A higher nu gives a larger M for the same E, so E's cap falls with nu.
+    """
+    m_max = values["rho"] * wave_speed**2
+    caps = {}
+    for spec in get_law(family).all_params:
+        if spec.name == "E":
+            nu = values.get("nu", 0.25)
+            caps["E"] = m_max * (1 + nu) * (1 - 2 * nu) / (1 - nu)
+        elif spec.name == "bulk_modulus":
+            caps["bulk_modulus"] = m_max
+        elif spec.name == "shear_modulus":
+            caps["shear_modulus"] = 0.75 * m_max
+    return caps
 
 
 def _capped(spec: ParamSpec, cap: float | None) -> ParamSpec:
@@ -156,6 +167,9 @@ class ParameterVector:
     normalized: dict[str, torch.Tensor]
     specs: dict[str, ParamSpec] = field(default_factory=dict)
     fixed_terms: dict[str, dict[str, torch.Tensor]] = field(default_factory=dict)
+    #: the simulator's stability limit on P-wave speeds (m/s; ``cfl * dx / dt``), which
+    #: ``keep_stable`` holds at the current densities and Poisson ratios; None: no limit
+    wave_speed_limit: float | None = None
 
     @classmethod
     def create(
@@ -171,13 +185,15 @@ class ParameterVector:
         ceilings: dict[int, dict[str, float]] | None = None,
         terms: dict[str, dict[str, torch.Tensor]] | None = None,
         identify_terms: tuple[str, ...] = (),
+        wave_speed_limit: float | None = None,
     ) -> ParameterVector:
         """Leaves for every parameter of every object's law (from ``values`` or defaults).
 
         ``identify`` restricts which parameter names are optimised (default: all but the
         first object's density, see GAUGE_PARAM); the rest are kept fixed at their value.
         ``ceilings`` lowers upper bounds per object and parameter (see ``stiffness_ceilings``);
-        a start value above its ceiling starts at the ceiling.
+        a start value above its ceiling starts at the ceiling. ``wave_speed_limit`` (m/s) is
+        the limit those ceilings come from, for ``keep_stable``.
         ``terms`` switches physics terms on (term name -> parameter name -> SI value, as in
         SimulationParams.terms); those named in ``identify_terms`` get leaves in the term's
         normalised space (within its ParamSpec bounds), the others stay fixed.
@@ -234,7 +250,35 @@ class ParameterVector:
         velocity = {k: v.detach().clone().to(torch.float32) for k, v in velocities.items()}
         for leaf in [*velocity.values(), *normalized.values()]:
             leaf.requires_grad_(True)
-        return cls(dict(families), fixed, velocity, normalized, specs, fixed_terms)
+        return cls(
+            dict(families), fixed, velocity, normalized, specs, fixed_terms, wave_speed_limit
+        )
+
+    def keep_stable(self) -> list[str]:
+        """Lower every identified stiffness whose P-wave speed, at its object's current
+        density and Poisson ratio, exceeds ``wave_speed_limit``, to the limit; returns the
+        keys lowered.
+
+        The ceilings of ``create`` hold at the start's density and Poisson ratio only. As the
+        optimiser raises an elastic body's nu (or lowers its density) at a capped E, its
+        P-wave speed grows past the limit: at nu = 0.41 instead of the default 0.25 by a factor
+        1.4, which the observed frames may survive and a longer prediction does not.
+        """
+        if self.wave_speed_limit is None:
+            return []
+        lowered = []
+        with torch.no_grad():
+            for k, obj in self.physical().objects.items():
+                values = {n: float(v) for n, v in obj.values.items() if v.numel() == 1}
+                caps = modulus_caps(obj.family, values, self.wave_speed_limit)
+                for name, cap in caps.items():
+                    key = f"obj{k}.{name}"
+                    if key not in self.normalized or values[name] <= cap * (1 + 1e-5):
+                        continue
+                    u = self.specs[key].to_normalized(torch.tensor(cap * (1 - 1e-5)))
+                    self.normalized[key].copy_(u.clamp(0.0, 1.0))
+                    lowered.append(key)
+        return lowered
 
     def move_to_centre(self) -> None:
         """Move every identified object parameter and the ground friction to the centre of its
