@@ -115,3 +115,25 @@ def test_one_after_another_gives_the_same_refits_without_a_batch(monkeypatch):
     assert _summary(apart) == _summary(together)
     assert resolve_budget("full").together
     assert not resolve_budget("full", OmegaConf.create({"together": False})).together
+
+
+def test_a_refit_step_keeps_every_stiffness_inside_the_stability_limit():
+    """After each step of a refit (``keep_in_bounds``) the P-wave speed at the current Poisson
+    ratio stays below the simulator's limit, as in identification."""
+    import math
+
+    from mosiv_framework.diagnose.descent import keep_in_bounds
+    from mosiv_framework.pipeline.params import ParameterVector
+
+    limit = 15.0  # m/s
+    vector = ParameterVector.create(
+        {1: "elastic"},
+        {1: torch.zeros(3)},
+        values={1: {"E": 1e6, "nu": 0.44}},
+        ground_friction=None,
+        wave_speed_limit=limit,
+    )
+    keep_in_bounds(vector, None, torch.zeros(0), 1.0)
+    p = {n: float(v) for n, v in vector.physical().objects[1].values.items()}
+    speed = math.sqrt(p["E"] * (1 - p["nu"]) / ((1 + p["nu"]) * (1 - 2 * p["nu"])) / p["rho"])
+    assert abs(speed - limit) <= 1e-4 * limit and abs(p["nu"] - 0.44) < 1e-6

@@ -18,7 +18,7 @@ from mosiv_framework.errors import ConfigError, SimulationDiverged
 from mosiv_framework.interfaces import Simulator
 from mosiv_framework.losses import chamfer_m2
 from mosiv_framework.pipeline.contact import simulator_section
-from mosiv_framework.pipeline.params import ParameterVector
+from mosiv_framework.pipeline.params import ParameterVector, wave_speed_limit
 from mosiv_framework.pipeline.phases import batched_losses
 from mosiv_framework.pipeline.rundir import RunDir
 from mosiv_framework.recipes.terms import identified_terms
@@ -197,7 +197,9 @@ class RunContext:
         Which parameters are free follows the run's recipe (identify_friction,
         identify_ground_friction, and physics terms marked ``identify``), so a refit changes
         exactly what the run identified; the run's other physics terms stay on, fixed.
-        ``ceilings`` lowers upper bounds as identification did (``ParameterVector.create``).
+        ``ceilings`` lowers upper bounds as identification did (``ParameterVector.create``);
+        the vector holds the simulator's stability limit as identification's does
+        (``ParameterVector.keep_stable``).
         """
         params = self.identified if params is None else params
         section = self.recipe.identify
@@ -214,6 +216,12 @@ class RunContext:
             terms={n: dict(v) for n, v in params.terms.items()},
             identify_terms=tuple(n for n in self.identified_term_names if n in params.terms),
             ceilings=ceilings,
+            wave_speed_limit=wave_speed_limit(
+                float(getattr(section, "stiffness_cfl", 0.0)),  # absent: no limit
+                self.world,
+                getattr(getattr(self.simulator, "options", None), "grid", None),
+                getattr(getattr(self.simulator, "options", None), "substeps", None),
+            ),
         )
 
     @property

@@ -177,11 +177,13 @@ def _back_to_best(d: Descent) -> None:
 
 
 def keep_in_bounds(vector: ParameterVector, candidate, u: torch.Tensor, scale) -> None:
-    """After an optimizer step: the normalised parameters back into [0, 1] and the
+    """After an optimizer step: the normalised parameters back into [0, 1], every stiffness
+    inside the simulator's stability limit (``ParameterVector.keep_stable``) and the
     coefficients (theta = u * scale) into the candidate's bounds."""
     with torch.no_grad():
         for leaf in vector.normalized.values():
             leaf.clamp_(0.0, 1.0)
+        vector.keep_stable()
         if candidate is not None:
             u.copy_(candidate.clamp(u * scale) / scale)
 

@@ -22,6 +22,7 @@ from mosiv_framework.pipeline.params import (
     free_flight_frames,
     initial_velocity_from_points,
     stiffness_ceilings,
+    wave_speed_limit,
 )
 from mosiv_framework.pipeline.silhouettes import SILHOUETTE_LOSSES, SilhouetteObjective
 from mosiv_framework.pipeline.uncertainty import attach_intervals
@@ -266,13 +267,12 @@ def recipe_ceilings(recipe, scene, families: dict[int, str], sim_options: dict) 
 def recipe_wave_speed(recipe, scene, sim_options: dict) -> float | None:
     """The P-wave speed limit (m/s) behind ``recipe_ceilings``: ``identify.stiffness_cfl``
     cells of the recipe's grid per substep; None where the recipe sets no ceiling."""
-    grid, substeps = sim_options.get("grid"), sim_options.get("substeps")
-    cfl = recipe.identify.stiffness_cfl
-    if not (cfl > 0 and isinstance(grid, int) and grid > 0):
-        return None
-    if not (isinstance(substeps, int) and substeps > 0):
-        return None
-    return cfl * (scene.world.extent / grid) * scene.fps * substeps
+    return wave_speed_limit(
+        recipe.identify.stiffness_cfl,
+        scene.world,
+        sim_options.get("grid"),
+        sim_options.get("substeps"),
+    )
 
 
 def _velocity_only(section):

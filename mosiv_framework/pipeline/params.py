@@ -121,6 +121,17 @@ def stiffness_ceilings(
     return out
 
 
+def wave_speed_limit(cfl: float, world: World, grid, substeps) -> float | None:
+    """The P-wave speed (m/s) an explicit step can follow: ``cfl`` cells of ``world.extent /
+    grid`` per substep of ``1 / (world.fps * substeps)``; None without a positive cfl, grid
+    and substep count (a simulator without a grid, or no cap asked for)."""
+    if not (cfl > 0 and isinstance(grid, int) and grid > 0):
+        return None
+    if not (isinstance(substeps, int) and substeps > 0):
+        return None
+    return cfl * (world.extent / grid) * world.fps * substeps
+
+
 def modulus_caps(family: str, values: dict[str, float], wave_speed: float) -> dict[str, float]:
     """The largest value of each stiffness of ``family``'s law whose P-wave speed
     sqrt(M / rho) stays below ``wave_speed`` (m/s) at the density and Poisson ratio in
