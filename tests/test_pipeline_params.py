@@ -128,3 +128,56 @@ def test_keep_stable_holds_the_p_wave_limit_at_the_current_poisson_ratio_and_den
     assert vec.keep_stable() == []  # idempotent
     vec.wave_speed_limit = None
     assert vec.keep_stable() == []
+
+
+def _cube_along(centres: torch.Tensor) -> torch.Tensor:
+    """A spinning cube of 5x5x5 points 2.5 cm apart whose centroid follows ``centres``."""
+    g = torch.linspace(-0.05, 0.05, 5)
+    body = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    out = []
+    for f, centre in enumerate(centres):
+        a = 3.0 * f / FPS
+        rot = torch.tensor(
+            [[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]]
+        )
+        out.append(body @ rot.T + centre)
+    return torch.stack(out)
+
+
+def _path(c0, v0, frames=8, *, bounce_at=None, extra=(0.0, 0.0, 0.0)):
+    """Centroids of a ballistic flight (plus a constant ``extra`` acceleration), the y
+    velocity reversed at time ``bounce_at`` (frames)."""
+    acc = torch.tensor(G) + torch.tensor(extra)
+    c, v = torch.tensor(c0), torch.tensor(v0)
+    out = []
+    for f in range(frames):
+        t = f / FPS
+        if bounce_at is not None and f > bounce_at:
+            tb = bounce_at / FPS
+            cb, vb = c + v * tb + 0.5 * acc * tb**2, (v + acc * tb) * torch.tensor([1, -1, 1])
+            out.append(cb + vb * (t - tb) + 0.5 * acc * (t - tb) ** 2)
+        else:
+            out.append(c + v * t + 0.5 * acc * t**2)
+    return torch.stack(out)
+
+
+def test_free_flight_ends_where_a_contact_acting_at_a_distance_bends_the_centroids():
+    """Two cubes that close at 2 m/s and bounce at 4.5 frames with their surfaces still
+    2.5 cm apart (as an MPM engine's grid holds touching bodies): the gap of a fine simulator
+    grid (1.6 cm) never sees them touch; the centroids leaving their parabolas do, at frame 5."""
+    world = World((-1.0, -1.0, 0.0), (1.0, 1.0, 1.0), gravity=G, ground_height=None, fps=FPS)
+    a = _cube_along(_path([0.0, -0.25, 0.5], [0.0, 1.0, 0.0], bounce_at=4.5))
+    b = _cube_along(_path([0.0, 0.25, 0.5], [0.0, -1.0, 0.0], bounce_at=4.5))
+    assert free_flight_frames({1: a, 2: b}, world, gap=0.016) == 8
+    assert free_flight_frames({1: a, 2: b}, world, gap=0.016, ballistic_tolerance=0.1) == 5
+
+
+def test_a_body_force_far_from_everything_does_not_end_free_flight():
+    """A constant wind bends a lone body's centroid off the gravity parabola, but nothing is
+    near it to touch: free flight goes on (the diagnosis reads such forces from these frames);
+    with a second body passing close, the same bend ends it."""
+    world = World((-1.0, -1.0, 0.0), (1.0, 1.0, 1.0), gravity=G, ground_height=None, fps=FPS)
+    windy = _cube_along(_path([0.0, -0.5, 0.5], [0.0, 0.5, 0.0], extra=(3.0, 0.0, 0.0)))
+    assert free_flight_frames({1: windy}, world, gap=0.016, ballistic_tolerance=0.1) == 8
+    near = _cube_along(_path([0.18, -0.5, 0.5], [0.0, 0.5, 0.0]))  # 8 cm beside it
+    assert free_flight_frames({1: windy, 2: near}, world, gap=0.016, ballistic_tolerance=0.1) <= 3

@@ -227,7 +227,8 @@ def start_vector(
     grid, substeps = sim_options.get("grid"), sim_options.get("substeps")
     dx = world.extent / grid if isinstance(grid, int) and grid > 0 else None
     gap = section.contact_gap or (2.0 * dx if dx else 0.02)
-    free = free_flight_frames(targets, world, gap=gap)
+    tolerance = float(getattr(section, "ballistic_tolerance", 0.0))
+    free = free_flight_frames(targets, world, gap=gap, ballistic_tolerance=tolerance)
     # the simulator's step, where its options name one (substeps per frame)
     step = 1.0 / (scene.fps * substeps) if isinstance(substeps, int) and substeps > 0 else 0.0
     v0 = initial_velocity_from_points(

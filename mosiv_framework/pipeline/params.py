@@ -12,6 +12,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from mosiv_framework.laws import get_law
@@ -65,31 +66,92 @@ def initial_velocity_from_points(
     return out
 
 
-def free_flight_frames(points: dict[int, torch.Tensor], world: World, *, gap: float) -> int:
+#: how far apart (in point spacings) two bodies, or a body and the ground, may be while a
+#: departure from the gravity parabola counts as their contact: an MPM engine's contact acts
+#: across its kernel's support, about two cells of about 1.5 spacings on each side (Genesis
+#: holds touching bodies sampled 1 cm apart 1.6-3.9 cm apart)
+NEAR_SPACINGS = 5.0
+
+
+def free_flight_frames(
+    points: dict[int, torch.Tensor], world: World, *, gap: float, ballistic_tolerance: float = 0.0
+) -> int:
     """How many leading frames show every object in free flight (at least 2).
 
     An object is free at a frame while its points stay more than ``gap`` (m) from every other
     object's points and from the ground plane; the count stops at the first frame where any
-    object is not. Frames after that depend on material parameters, which the velocity phase
-    does not know yet.
+    object is not. With ``ballistic_tolerance`` > 0 an object is also not free from the frame
+    its centroid leaves the gravity parabola through its earlier centroids
+    (``ballistic_departure``) once it is within ``NEAR_SPACINGS`` point spacings of another
+    object or the ground: a recording's contact can act before its surfaces meet, farther
+    apart than the gap of a fine simulator grid, and a departure far from everything is a
+    body force (wind, drag) that the diagnosis reads from these frames, not a contact.
+    Frames after that depend on material parameters, which the velocity phase does not know
+    yet.
     """
     from scipy.spatial import cKDTree
 
     ids = sorted(points)
     n_frames = min(p.shape[0] for p in points.values())
+    near, departs = {}, {}
+    for k in ids:
+        spacing = point_spacing(points[k][0])
+        near[k] = max(gap, NEAR_SPACINGS * spacing)
+        departs[k] = (
+            ballistic_departure(points[k], world, ballistic_tolerance * spacing)
+            if ballistic_tolerance > 0
+            else n_frames
+        )
     for f in range(n_frames):
         clouds = {k: points[k][f].detach().cpu().double().numpy() for k in ids}
+        closest = {k: math.inf for k in ids}  # to another object or the ground
         for i, a in enumerate(ids):
-            if (
-                world.ground_height is not None
-                and clouds[a][:, 2].min() - world.ground_height < gap
-            ):
-                return max(2, f)
+            if world.ground_height is not None:
+                closest[a] = min(closest[a], clouds[a][:, 2].min() - world.ground_height)
             for b in ids[i + 1 :]:
                 dist, _ = cKDTree(clouds[b]).query(clouds[a], k=1)
-                if dist.min() < gap:
-                    return max(2, f)
+                closest[a] = min(closest[a], float(dist.min()))
+                closest[b] = min(closest[b], float(dist.min()))
+        if any(closest[k] < gap for k in ids):
+            return max(2, f)
+        if any(f >= departs[k] and closest[k] < near[k] for k in ids):
+            return max(2, f)
     return max(2, n_frames)
+
+
+def point_spacing(points: torch.Tensor) -> float:
+    """The median distance (m) from each of ``points`` ([N, 3]) to its nearest neighbour; 0
+    for fewer than two points."""
+    from scipy.spatial import cKDTree
+
+    cloud = points.detach().cpu().double().numpy()
+    if cloud.shape[0] < 2:
+        return 0.0
+    dist, _ = cKDTree(cloud).query(cloud, k=2)
+    return float(np.median(dist[:, 1]))
+
+
+def ballistic_departure(points: torch.Tensor, world: World, threshold: float) -> int:
+    """The first frame whose centroid of ``points`` ([F, N, 3]) leaves the gravity parabola
+    through the centroids of the frames before it by more than ``threshold`` (m), and by
+    more than four times that fit's own RMS residual (a noisy reconstruction's jitter);
+    F if none.
+
+    In free flight a body's centroid follows c(t) = c0 + v0 t + g t^2 / 2 exactly, whatever
+    the body does internally (spinning, wobbling: internal forces sum to zero); a contact
+    pushes it off, and so does a body force other than gravity.
+    """
+    centroids = points.detach().cpu().double().mean(dim=1).numpy()
+    t = np.arange(len(centroids)) / world.fps
+    falling = centroids - 0.5 * np.asarray(world.gravity, dtype=float) * t[:, None] ** 2
+    for f in range(2, len(centroids)):
+        basis = np.stack([np.ones(f), t[:f]], axis=1)  # c0 + v0 t per axis
+        coef, *_ = np.linalg.lstsq(basis, falling[:f], rcond=None)
+        fit_rms = float(np.sqrt(np.mean((basis @ coef - falling[:f]) ** 2)))
+        residual = float(np.linalg.norm(coef[0] + coef[1] * t[f] - falling[f]))
+        if residual > max(threshold, 4.0 * fit_rms):
+            return f
+    return len(centroids)
 
 
 #: parameters (Pa) that set how fast elastic waves travel, and how each enters the P-wave

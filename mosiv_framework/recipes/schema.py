@@ -88,6 +88,11 @@ class IdentifySection:
     from the targets with ``contact_gap``), "observed" on every observed frame;
     contact_gap (m): objects closer than this to each other or the ground are in contact
     (0: two cells of the simulator grid, or 2 cm when the simulator has no grid);
+    ballistic_tolerance: free flight also ends at the first frame where an object's centroid
+    leaves the gravity parabola through its earlier centroids by more than this fraction of
+    the points' spacing (0: the contact gap alone); a recording's contact can act before its
+    surfaces meet, which a gap set by a fine simulator grid misses (docs/PHYSICS.md, Free
+    flight in the data);
     stiffness_cfl: cap stiffnesses so the P-wave speed stays below this fraction of one grid
     cell per substep (0: no cap; needs the simulator's ``grid`` and ``substeps`` options);
     silhouette_size: side (pixels) of the square images the silhouette losses compare, the
@@ -171,6 +176,7 @@ class IdentifySection:
     checkpoint_every: int = 10
     velocity_window: str = "free"
     contact_gap: float = 0.0
+    ballistic_tolerance: float = 0.1
     stiffness_cfl: float = 0.5
     silhouette_size: int = 48
     #: library baseline: which prototypes are candidates, and how many coordinate sweeps over
@@ -272,6 +278,7 @@ IDENTIFY_RANGES: dict[str, tuple[float | None, float | None, str]] = {
     "seed": (0, None, "a random seed"),
     "checkpoint_every": (1, None, "iterations between checkpoints"),
     "contact_gap": (0.0, None, "a distance in m (0 = automatic)"),
+    "ballistic_tolerance": (0.0, None, "a fraction of the points' spacing (0 = off)"),
     "stiffness_cfl": (0.0, 1.0, "cells a P-wave may cross per substep; 0 = no cap"),
     "silhouette_size": (8, 1024, "the side of the compared silhouettes in pixels"),
     "library_sweeps": (0, None, "coordinate sweeps of the library baseline"),
