@@ -218,8 +218,8 @@ def test_no_iterate_passes_the_stability_limit_when_the_poisson_ratio_is_high(tm
         identify=("E", "nu"),
         ground_friction=None,
         ceilings=ceilings,
-        wave_speed_limit=limit,
     )
+    vector.wave_speed_limit = limit  # given to create, the start would already be held to it
     objective = WeightedSum({"chamfer": get_registry().create("loss", "chamfer", {})})
     _, history = identify(
         simulator=sim,

@@ -112,8 +112,8 @@ def test_keep_stable_holds_the_p_wave_limit_at_the_current_poisson_ratio_and_den
         # soft E; 3: at the ceiling with a density half the default's
         values={1: {"E": 1e7, "nu": 0.44}, 2: {"E": 1e4, "nu": 0.44}, 3: {"E": 1e7, "rho": 500.0}},
         ceilings=stiffness_ceilings({k: "elastic" for k in (1, 2, 3)}, {}, dx=dx, dt=dt, cfl=cfl),
-        wave_speed_limit=limit,
     )
+    vec.wave_speed_limit = limit  # given to create, the start would already be held to it
 
     def values(k):
         return {n: float(v) for n, v in vec.physical().objects[k].values.items()}
@@ -181,3 +181,34 @@ def test_a_body_force_far_from_everything_does_not_end_free_flight():
     assert free_flight_frames({1: windy}, world, gap=0.016, ballistic_tolerance=0.1) == 8
     near = _cube_along(_path([0.18, -0.5, 0.5], [0.0, 0.5, 0.0]))  # 8 cm beside it
     assert free_flight_frames({1: windy, 2: near}, world, gap=0.016, ballistic_tolerance=0.1) <= 3
+
+
+def test_keep_stable_scales_both_moduli_of_a_two_modulus_law_to_the_limit():
+    """non_newtonian's P-wave modulus is K + 4 G / 3: both identified moduli go down by one
+    factor until their sum is at the limit (each capped alone, the sum could reach twice it);
+    a start past the limit given to create starts at it."""
+    limit = 20.0
+    vec = ParameterVector.create(
+        {1: "elastic", 2: "non_newtonian"},
+        {1: torch.zeros(3), 2: torch.zeros(3)},
+        values={2: {"bulk_modulus": 1e6, "shear_modulus": 3e5}},
+        wave_speed_limit=limit,
+    )
+    p = {n: float(v) for n, v in vec.physical().objects[2].values.items()}
+    modulus = p["bulk_modulus"] + 4 * p["shear_modulus"] / 3
+    assert math.sqrt(modulus / p["rho"]) == pytest.approx(limit, rel=1e-4)
+    assert p["bulk_modulus"] / p["shear_modulus"] == pytest.approx(1e6 / 3e5, rel=1e-4)
+    assert vec.keep_stable() == []
+
+
+def test_a_stiffness_at_its_lower_bound_is_not_reported_as_lowered_again():
+    # density 50 and nu 0.45: even E's lower bound (1e3 Pa) runs past a 1 m/s limit
+    vec = ParameterVector.create(
+        {1: "elastic", 2: "elastic"},
+        {1: torch.zeros(3), 2: torch.zeros(3)},
+        values={2: {"E": 5e4, "nu": 0.45, "rho": 50.0}},
+    )
+    vec.wave_speed_limit = 1.0
+    assert vec.keep_stable() == ["obj1.E", "obj2.E"]
+    assert float(vec.physical().objects[2].values["E"]) == pytest.approx(1e3, rel=1e-4)
+    assert vec.keep_stable() == []

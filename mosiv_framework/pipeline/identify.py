@@ -183,6 +183,7 @@ def identify(
         if isinstance(phase, ParameterPhase) and resumed is None and not state.global_done:
             if runs or contact is not None:
                 _global_stage(section, fit, state, phase, search=runs, contact=contact)
+                vector.keep_stable()  # the stage's candidates are drawn inside the start's caps
                 state.save_checkpoint(index, 0, None)
             if holdout:  # the global stage's result competes with the descent's at the end
                 global_result = BestIterate.snapshot(vector)

@@ -93,15 +93,13 @@ def free_flight_frames(
 
     ids = sorted(points)
     n_frames = min(p.shape[0] for p in points.values())
-    near, departs = {}, {}
-    for k in ids:
-        spacing = point_spacing(points[k][0])
-        near[k] = max(gap, NEAR_SPACINGS * spacing)
-        departs[k] = (
-            ballistic_departure(points[k], world, ballistic_tolerance * spacing)
-            if ballistic_tolerance > 0
-            else n_frames
-        )
+    near = dict.fromkeys(ids, gap)
+    departs = dict.fromkeys(ids, n_frames)
+    if ballistic_tolerance > 0 and n_frames > 0:
+        for k in ids:
+            spacing = point_spacing(points[k][0])
+            near[k] = max(gap, NEAR_SPACINGS * spacing)
+            departs[k] = ballistic_departure(points[k], world, ballistic_tolerance * spacing)
     for f in range(n_frames):
         clouds = {k: points[k][f].detach().cpu().double().numpy() for k in ids}
         closest = {k: math.inf for k in ids}  # to another object or the ground
@@ -133,13 +131,13 @@ def point_spacing(points: torch.Tensor) -> float:
 
 def ballistic_departure(points: torch.Tensor, world: World, threshold: float) -> int:
     """The first frame whose centroid of ``points`` ([F, N, 3]) leaves the gravity parabola
-    through the centroids of the frames before it by more than ``threshold`` (m), and by
-    more than four times that fit's own RMS residual (a noisy reconstruction's jitter);
-    F if none.
+    through the centroids of the frames before it by more than ``threshold`` (m) and by more
+    than four times that fit's own RMS residual (a noisy reconstruction's jitter), and whose
+    next frame does too; F if none.
 
     In free flight a body's centroid follows c(t) = c0 + v0 t + g t^2 / 2 exactly, whatever
-    the body does internally (spinning, wobbling: internal forces sum to zero); a contact
-    pushes it off, and so does a body force other than gravity.
+    the body does inside (spinning, wobbling: internal forces sum to zero); a contact pushes
+    it off, and the push stays in every later frame, where a jittery centroid's does not.
     """
     centroids = points.detach().cpu().double().mean(dim=1).numpy()
     t = np.arange(len(centroids)) / world.fps
@@ -147,9 +145,11 @@ def ballistic_departure(points: torch.Tensor, world: World, threshold: float) ->
     for f in range(2, len(centroids)):
         basis = np.stack([np.ones(f), t[:f]], axis=1)  # c0 + v0 t per axis
         coef, *_ = np.linalg.lstsq(basis, falling[:f], rcond=None)
-        fit_rms = float(np.sqrt(np.mean((basis @ coef - falling[:f]) ** 2)))
-        residual = float(np.linalg.norm(coef[0] + coef[1] * t[f] - falling[f]))
-        if residual > max(threshold, 4.0 * fit_rms):
+        fit_rms = float(np.sqrt(np.mean(np.sum((basis @ coef - falling[:f]) ** 2, axis=1))))
+        bound = max(threshold, 4.0 * fit_rms)
+        ahead = range(f, min(f + 2, len(centroids)))
+        misses = [np.linalg.norm(coef[0] + coef[1] * t[g] - falling[g]) for g in ahead]
+        if all(m > bound for m in misses):
             return f
     return len(centroids)
 
@@ -214,6 +214,22 @@ def modulus_caps(family: str, values: dict[str, float], wave_speed: float) -> di
         elif spec.name == "shear_modulus":
             caps["shear_modulus"] = 0.75 * m_max
     return caps
+
+
+def p_wave_parts(family: str, values: dict[str, float]) -> dict[str, float]:
+    """Each stiffness of ``family``'s law's share (Pa) of the P-wave modulus M at ``values``:
+    E (1 - nu) / ((1 + nu)(1 - 2 nu)) for E, K for a bulk modulus, 4 G / 3 for a shear
+    modulus (nu 0.25 where the law has none); M is their sum."""
+    parts = {}
+    for spec in get_law(family).all_params:
+        if spec.name == "E":
+            nu = values.get("nu", 0.25)
+            parts["E"] = values["E"] * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
+        elif spec.name == "bulk_modulus":
+            parts["bulk_modulus"] = values["bulk_modulus"]
+        elif spec.name == "shear_modulus":
+            parts["shear_modulus"] = 4.0 * values["shear_modulus"] / 3.0
+    return parts
 
 
 def _capped(spec: ParamSpec, cap: float | None) -> ParamSpec:
@@ -323,19 +339,24 @@ class ParameterVector:
         velocity = {k: v.detach().clone().to(torch.float32) for k, v in velocities.items()}
         for leaf in [*velocity.values(), *normalized.values()]:
             leaf.requires_grad_(True)
-        return cls(
+        vector = cls(
             dict(families), fixed, velocity, normalized, specs, fixed_terms, wave_speed_limit
         )
+        vector.keep_stable()  # a start past the limit starts at it
+        return vector
 
     def keep_stable(self) -> list[str]:
-        """Lower every identified stiffness whose P-wave speed, at its object's current
-        density and Poisson ratio, exceeds ``wave_speed_limit``, to the limit; returns the
-        keys lowered.
+        """Lower the identified stiffnesses of every object whose P-wave speed, at its current
+        density and Poisson ratio, exceeds ``wave_speed_limit``, so that it runs at the limit;
+        returns the keys lowered (a stiffness already at its lower bound cannot go further
+        and is not reported).
 
-        The ceilings of ``create`` hold at the start's density and Poisson ratio only. As the
-        optimiser raises an elastic body's nu (or lowers its density) at a capped E, its
-        P-wave speed grows past the limit: at nu = 0.41 instead of the default 0.25 by a factor
-        1.4, which the observed frames may survive and a longer prediction does not.
+        The ceilings of ``create`` hold at the start's density and Poisson ratio only, and
+        each stiffness alone. As the optimiser raises an elastic body's nu (or lowers its
+        density) at a capped E, its P-wave speed grows past the limit: at nu = 0.41 instead of
+        the default 0.25 by a factor 1.4, which the observed frames may survive and a longer
+        prediction does not. A law with two moduli (bulk and shear) sums them into one P-wave
+        modulus: both identified ones are scaled by the same factor.
         """
         if self.wave_speed_limit is None:
             return []
@@ -343,14 +364,21 @@ class ParameterVector:
         with torch.no_grad():
             for k, obj in self.physical().objects.items():
                 values = {n: float(v) for n, v in obj.values.items() if v.numel() == 1}
-                caps = modulus_caps(obj.family, values, self.wave_speed_limit)
-                for name, cap in caps.items():
+                values = {**get_law(obj.family).defaults(), **values}
+                parts = p_wave_parts(obj.family, values)
+                limit = values["rho"] * self.wave_speed_limit**2
+                free = {n: m for n, m in parts.items() if f"obj{k}.{n}" in self.normalized}
+                excess = sum(parts.values()) - limit
+                if not free or excess <= 1e-5 * limit:
+                    continue
+                scale = max(0.0, 1.0 - excess / sum(free.values())) * (1 - 1e-5)
+                for name in free:
                     key = f"obj{k}.{name}"
-                    if key not in self.normalized or values[name] <= cap * (1 + 1e-5):
-                        continue
-                    u = self.specs[key].to_normalized(torch.tensor(cap * (1 - 1e-5)))
+                    u = self.specs[key].to_normalized(torch.tensor(values[name] * scale))
+                    before = self.normalized[key].clone()
                     self.normalized[key].copy_(u.clamp(0.0, 1.0))
-                    lowered.append(key)
+                    if not torch.equal(before, self.normalized[key]):
+                        lowered.append(key)
         return lowered
 
     def move_to_centre(self) -> None:
