@@ -65,8 +65,9 @@ def scene_row(folder: Path, *, grid: int, substeps: int, tolerance: float) -> di
             frames=frames,
             time_step=1.0 / (scene.fps * substeps),
         )
-        errors = {
-            str(k): 100.0 * float((fitted[k] - velocities[k]).norm() / velocities[k].norm())
+        errors = {  # relative to the true speed (at least 1 cm/s: a body thrown at rest)
+            str(k): 100.0
+            * float((fitted[k] - velocities[k]).norm() / max(float(velocities[k].norm()), 0.01))
             for k in sorted(fitted)
         }
         rules[name] = {"frames": frames, "v0_error": errors}
@@ -112,9 +113,10 @@ def summary(rows: list[dict]) -> str:
             if r["collision_frame"] is not None
         ]
         errors = [e for r in rows for e in r["rules"][name]["v0_error"].values()]
+        frames = f"{min(past)}-{max(past)} frames past the recorded collision" if past else ""
         parts.append(
-            f"with {label}: {min(past)}-{max(past)} frames past the collision, "
-            f"median v0 error {statistics.median(errors):.2g} % (worst {max(errors):.2g} %)"
+            f"with {label}: {frames or 'no collision recorded'}, median v0 error {statistics.median(errors):.2g} % "
+            f"(worst {max(errors):.2g} %)"
         )
     return "; ".join(parts) + "."
 
