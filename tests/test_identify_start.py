@@ -238,3 +238,47 @@ def test_no_iterate_passes_the_stability_limit_when_the_poisson_ratio_is_high(tm
         e, nu, rho = p["E"], p["nu"], p["rho"]
         speed = math.sqrt(e * (1 - nu) / ((1 + nu) * (1 - 2 * nu)) / rho)
         assert speed <= limit * (1 + 1e-4), p
+
+
+def test_every_point_the_global_stage_scores_is_inside_the_stability_limit():
+    """Sobol candidates draw densities down to the law's bound while E's ceiling was set at the
+    default density: each candidate is held to the limit before it is scored, and the point
+    kept is the one scored (the polish sweep likewise)."""
+    from mosiv_framework.pipeline.global_search import coordinate_polish
+
+    limit = 15.0
+    vector = ParameterVector.create(
+        {1: "elastic", 2: "elastic"},
+        {1: torch.zeros(3), 2: torch.zeros(3)},
+        values={2: {"E": 1e7}},
+        ceilings=stiffness_ceilings(
+            {1: "elastic", 2: "elastic"}, {}, dx=1 / 16, dt=1 / (FPS * 20), cfl=0.5
+        ),
+        ground_friction=None,
+    )
+    vector.wave_speed_limit = limit
+    scored = []
+
+    def speed(params, k):
+        p = {n: float(v) for n, v in params.objects[k].values.items()}
+        m = p["E"] * (1 - p["nu"]) / ((1 + p["nu"]) * (1 - 2 * p["nu"]))
+        return math.sqrt(m / p["rho"])
+
+    def losses(params_list, frames):
+        scored.extend(params_list)
+        return [-float(p.objects[2].values["E"]) for p in params_list]  # the stiffest wins
+
+    fit = SimpleNamespace(
+        window_loss=lambda vec, frames: losses([vec.physical().detached()], frames)[0],
+        window_losses=losses,
+    )
+    global_search(fit, vector, candidates=16, frames=3, seed=0, history=[])
+    coordinate_polish(fit, vector, points=6, frames=3, history=[])
+    assert len(scored) > 16
+    for params in [*scored, vector.physical().detached()]:
+        for k in (1, 2):
+            assert speed(params, k) <= limit * (1 + 1e-4)
+    kept = vector.physical().detached()
+    assert -float(kept.objects[2].values["E"]) == min(
+        -float(p.objects[2].values["E"]) for p in scored
+    )

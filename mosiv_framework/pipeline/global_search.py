@@ -90,13 +90,14 @@ def global_search(
     keys = searched_keys(vector)
     if candidates <= 0 or not keys:
         return {"best": -1, "best_loss": math.nan, "start_loss": math.nan, "losses": []}
+    vector.keep_stable()  # every point scored is one the simulator can follow
     start = torch.stack([vector.normalized[key].detach().clone().reshape(()) for key in keys])
     start_values = vector.to_json()
     start_loss = _score(fit, vector, frames)
     design = sobol_design(candidates, len(keys), seed=seed)
     # the candidates rolled out together (Fit.window_losses), 16 of them in one simulation
-    points = [start, *design]
-    values, params = _members(vector, keys, list(design))
+    values, params, scored = _members(vector, keys, list(design))
+    points = [start, *scored]
     values.insert(0, start_values)
     losses = fit.window_losses(params, frames)
     best, best_loss = -1, start_loss
@@ -143,6 +144,7 @@ def coordinate_polish(
     keys = searched_keys(vector)
     if points <= 0 or not keys:
         return {"start_loss": math.nan, "best_loss": math.nan, "changed": []}
+    vector.keep_stable()  # every point scored is one the simulator can follow
     best_loss = start_loss = _score(fit, vector, frames)
     changed = []
     for key in keys:
@@ -153,7 +155,7 @@ def coordinate_polish(
             point = here.clone()
             point[axis] = (j + 0.5) / points
             tried.append(point)
-        values, params = _members(vector, keys, tried)
+        values, params, tried = _members(vector, keys, tried)
         kept = here
         for j, loss in enumerate(fit.window_losses(params, frames)):
             history.append(
@@ -175,14 +177,16 @@ def coordinate_polish(
 
 
 def _members(vector: ParameterVector, keys: list[str], points: list[torch.Tensor]):
-    """For each point of the searched leaves: the vector's values (for the history) and its
-    detached SimulationParams (for ``Fit.window_losses``). Leaves the vector at the last."""
-    values, params = [], []
+    """For each point of the searched leaves: the vector's values (for the history), its
+    detached SimulationParams (for ``Fit.window_losses``) and the point as set (``_set``: a
+    stiffness past the simulator's stability limit lowered to it). Leaves the vector at the
+    last."""
+    values, params, scored = [], [], []
     for point in points:
-        _set(vector, keys, point)
+        scored.append(_set(vector, keys, point))
         values.append(vector.to_json())
         params.append(vector.physical().detached())
-    return values, params
+    return values, params, scored
 
 
 def _score(fit, vector: ParameterVector, frames: int) -> float:
@@ -195,10 +199,14 @@ def _score(fit, vector: ParameterVector, frames: int) -> float:
     return value if math.isfinite(value) else math.inf
 
 
-def _set(vector: ParameterVector, keys: list[str], point: torch.Tensor) -> None:
+def _set(vector: ParameterVector, keys: list[str], point: torch.Tensor) -> torch.Tensor:
+    """The searched leaves at ``point``, then every stiffness held to the simulator's
+    stability limit (``ParameterVector.keep_stable``); returns the point as set."""
     with torch.no_grad():
         for key, u in zip(keys, point):
             vector.normalized[key].copy_(u.reshape(vector.normalized[key].shape))
+    vector.keep_stable()
+    return torch.stack([vector.normalized[key].detach().clone().reshape(()) for key in keys])
 
 
 def _record(index: int, frames: int, loss: float, values: dict) -> dict:

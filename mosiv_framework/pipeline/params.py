@@ -9,6 +9,7 @@ magnitude and bounds always hold.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from dataclasses import dataclass, field
 
@@ -19,6 +20,8 @@ from mosiv_framework.laws import get_law
 from mosiv_framework.laws.base import ParamSpec
 from mosiv_framework.registry import get_registry
 from mosiv_framework.types import ObjectParams, SimulationParams, World
+
+log = logging.getLogger(__name__)
 
 GROUND_FRICTION = ParamSpec(
     "ground_friction", "1", 0.0, 2.0, 0.3, description="table Coulomb coefficient"
@@ -147,7 +150,7 @@ def ballistic_departure(points: torch.Tensor, world: World, threshold: float) ->
         coef, *_ = np.linalg.lstsq(basis, falling[:f], rcond=None)
         fit_rms = float(np.sqrt(np.mean(np.sum((basis @ coef - falling[:f]) ** 2, axis=1))))
         bound = max(threshold, 4.0 * fit_rms)
-        ahead = range(f, min(f + 2, len(centroids)))
+        ahead = range(f, min(f + 2, len(centroids)))  # the last frame: its own residual decides
         misses = [np.linalg.norm(coef[0] + coef[1] * t[g] - falling[g]) for g in ahead]
         if all(m > bound for m in misses):
             return f
@@ -371,6 +374,14 @@ class ParameterVector:
                 excess = sum(parts.values()) - limit
                 if not free or excess <= 1e-5 * limit:
                     continue
+                if excess >= sum(free.values()):  # the fixed stiffnesses alone are past it
+                    log.warning(
+                        "object %d: its fixed stiffnesses alone exceed the simulator's stability "
+                        "limit (P-wave speed %.3g m/s); raise simulator.substeps",
+                        k,
+                        self.wave_speed_limit,
+                    )
+                    continue
                 scale = max(0.0, 1.0 - excess / sum(free.values())) * (1 - 1e-5)
                 for name in free:
                     key = f"obj{k}.{name}"
@@ -399,6 +410,7 @@ class ParameterVector:
                     law_spec = get_law(self.families[int(owner[3:])]).param(name)
                 centre = centre_value(law_spec)
                 u.copy_(self.specs[key].to_normalized(torch.tensor(centre)).clamp(0.0, 1.0))
+        self.keep_stable()  # the centre's density can be below the one the ceilings assumed
 
     def physical(self) -> SimulationParams:
         """The SimulationParams these leaves stand for (differentiable w.r.t. the leaves)."""
