@@ -183,7 +183,6 @@ def identify(
         if isinstance(phase, ParameterPhase) and resumed is None and not state.global_done:
             if runs or contact is not None:
                 _global_stage(section, fit, state, phase, search=runs, contact=contact)
-                vector.keep_stable()  # the stage's candidates are drawn inside the start's caps
                 state.save_checkpoint(index, 0, None)
             if holdout:  # the global stage's result competes with the descent's at the end
                 global_result = BestIterate.snapshot(vector)
@@ -354,7 +353,7 @@ class _PhaseRun:
             # (Adam's first steps are about one learning rate long whatever the gradient, which
             # can throw an already good start, e.g. free-flight velocities, far off)
             self.best = BestIterate()
-            state.vector.keep_stable()  # a start from the global stage may sit past the limit
+            state.vector.keep_stable()  # a phase starts inside the limit, whatever set its start
             self.best.offer(fit.window_loss(state.vector, phase.last), state.vector)
 
     def iterate(self, *, first: int, full_at: float) -> None:

@@ -157,11 +157,6 @@ def ballistic_departure(points: torch.Tensor, world: World, threshold: float) ->
     return len(centroids)
 
 
-#: parameters (Pa) that set how fast elastic waves travel, and how each enters the P-wave
-#: modulus M = lambda + 2 mu (with the other parameter of the law at its current value)
-_STIFFNESS = ("E", "bulk_modulus", "shear_modulus")
-
-
 def stiffness_ceilings(
     families: dict[int, str],
     values: dict[int, dict[str, float]],
@@ -178,11 +173,12 @@ def stiffness_ceilings(
     the optimiser reaches. The optimiser then cannot step into stiffnesses the simulator
     would diverge on, which otherwise costs a back-off per excursion.
     """
-    wave_speed = cfl * dx / dt
+    m_per_rho = (cfl * dx / dt) ** 2  # the largest P-wave modulus per unit density
     out: dict[int, dict[str, float]] = {}
     for k, family in families.items():
         vals = {**get_law(family).defaults(), **values.get(k, {})}
-        out[k] = modulus_caps(family, vals, wave_speed)
+        factors = p_wave_factors(family, vals)
+        out[k] = {name: vals["rho"] * m_per_rho / f for name, f in factors.items()}
     return out
 
 
@@ -197,42 +193,21 @@ def wave_speed_limit(cfl: float, world: World, grid, substeps) -> float | None:
     return cfl * (world.extent / grid) * world.fps * substeps
 
 
-def modulus_caps(family: str, values: dict[str, float], wave_speed: float) -> dict[str, float]:
-    """The largest value of each stiffness of ``family``'s law whose P-wave speed
-    sqrt(M / rho) stays below ``wave_speed`` (m/s) at the density and Poisson ratio in
-    ``values`` (nu 0.25 where the law has none).
-
-    M = rho c^2 is the P-wave modulus: for E with Poisson ratio nu,
-    M = E (1 - nu) / ((1 + nu)(1 - 2 nu)); for a bulk modulus K, M >= K; for a shear modulus
-    G, M >= 4 G / 3. A higher nu gives a larger M for the same E, so E's cap falls with nu.
-    """
-    m_max = values["rho"] * wave_speed**2
-    caps = {}
+def p_wave_factors(family: str, values: dict[str, float]) -> dict[str, float]:
+    """How much each stiffness (Pa) of ``family``'s law adds to the P-wave modulus M = rho c^2
+    per pascal, at the Poisson ratio in ``values`` (0.25 where the law has none):
+    (1 - nu) / ((1 + nu)(1 - 2 nu)) for E, 1 for a bulk modulus K, 4/3 for a shear modulus G.
+    A higher nu gives a larger M for the same E, so E's cap falls with nu."""
+    factors = {}
     for spec in get_law(family).all_params:
         if spec.name == "E":
             nu = values.get("nu", 0.25)
-            caps["E"] = m_max * (1 + nu) * (1 - 2 * nu) / (1 - nu)
+            factors["E"] = (1 - nu) / ((1 + nu) * (1 - 2 * nu))
         elif spec.name == "bulk_modulus":
-            caps["bulk_modulus"] = m_max
+            factors["bulk_modulus"] = 1.0
         elif spec.name == "shear_modulus":
-            caps["shear_modulus"] = 0.75 * m_max
-    return caps
-
-
-def p_wave_parts(family: str, values: dict[str, float]) -> dict[str, float]:
-    """Each stiffness of ``family``'s law's share (Pa) of the P-wave modulus M at ``values``:
-    E (1 - nu) / ((1 + nu)(1 - 2 nu)) for E, K for a bulk modulus, 4 G / 3 for a shear
-    modulus (nu 0.25 where the law has none); M is their sum."""
-    parts = {}
-    for spec in get_law(family).all_params:
-        if spec.name == "E":
-            nu = values.get("nu", 0.25)
-            parts["E"] = values["E"] * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
-        elif spec.name == "bulk_modulus":
-            parts["bulk_modulus"] = values["bulk_modulus"]
-        elif spec.name == "shear_modulus":
-            parts["shear_modulus"] = 4.0 * values["shear_modulus"] / 3.0
-    return parts
+            factors["shear_modulus"] = 4.0 / 3.0
+    return factors
 
 
 def _capped(spec: ParamSpec, cap: float | None) -> ParamSpec:
@@ -368,7 +343,8 @@ class ParameterVector:
             for k, obj in self.physical().objects.items():
                 values = {n: float(v) for n, v in obj.values.items() if v.numel() == 1}
                 values = {**get_law(obj.family).defaults(), **values}
-                parts = p_wave_parts(obj.family, values)
+                factors = p_wave_factors(obj.family, values)
+                parts = {name: values[name] * f for name, f in factors.items()}
                 limit = values["rho"] * self.wave_speed_limit**2
                 free = {n: m for n, m in parts.items() if f"obj{k}.{n}" in self.normalized}
                 excess = sum(parts.values()) - limit
@@ -382,7 +358,7 @@ class ParameterVector:
                         self.wave_speed_limit,
                     )
                     continue
-                scale = max(0.0, 1.0 - excess / sum(free.values())) * (1 - 1e-5)
+                scale = (1.0 - excess / sum(free.values())) * (1 - 1e-5)
                 for name in free:
                     key = f"obj{k}.{name}"
                     u = self.specs[key].to_normalized(torch.tensor(values[name] * scale))
