@@ -8,13 +8,17 @@ contact between objects, a grid, a substep count; each material's own law), the 
 truth and gt/points.npz are both measured the same way:
 
     onset     the first frame whose centroid leaves the gravity parabola through the frames
-              before it (``ballistic_departure``, tolerance 0.1 of the points' spacing, as
-              ``identify.ballistic_tolerance``), the earliest over the objects: the collision
-    closest   the smallest distance (mm) between the points of two different objects over the
-              frames from Genesis's onset to three frames after it: how close a contact lets
-              the surfaces come (MPM acts across grid cells, so a coarser grid parts them wider)
+              before it (``ballistic_departure`` with the tolerance of
+              ``identify.ballistic_tolerance``'s default, 0.1 of the points' spacing), the
+              earliest over the objects: the first contact, with another body or the ground
+              (none: "-"; identification also asks for a neighbour nearby, this does not)
+    closest   the smallest distance (mm) between the points of any two objects over the
+              frames from Genesis's onset to three frames after it (the whole clip where
+              Genesis shows none): how close a contact lets the surfaces come (MPM acts
+              across grid cells, so a coarser grid parts them wider)
     last      that distance at the last frame: whether the bodies parted after the collision
-              or stayed together (Genesis's single grid holds touching bodies together)
+              or stayed together (Genesis's single grid holds touching bodies together); with
+              three objects, the nearest two at that frame
 
     python benchmarks/genesis_contact_geometry.py --scenes runs/genesis_dev --out runs/geometry \\
         --contacts multi_field single_field --grids 48 96 --substeps 400 600 --pairs
@@ -73,12 +77,20 @@ def pair_distances(points: dict[int, torch.Tensor]) -> np.ndarray:
     return out
 
 
-def onset(points: dict[int, torch.Tensor], world) -> int:
-    """The earliest frame at which an object's centroid leaves its free-flight parabola."""
-    return min(
+def onset(points: dict[int, torch.Tensor], world) -> int | None:
+    """The earliest frame at which an object's centroid leaves its free-flight parabola; None
+    where none does."""
+    frames = next(iter(points.values())).shape[0]
+    first = min(
         ballistic_departure(p, world, TOLERANCE_SPACINGS * point_spacing(p[0]))
         for p in points.values()
     )
+    return first if first < frames else None
+
+
+def _mm(metres: float) -> float | None:
+    """Millimetres, None for no distance (fewer than two objects: +inf)."""
+    return 1000.0 * metres if np.isfinite(metres) else None
 
 
 def geometry(points: dict[int, torch.Tensor], world, window: tuple[int, int]) -> dict:
@@ -88,8 +100,8 @@ def geometry(points: dict[int, torch.Tensor], world, window: tuple[int, int]) ->
     lo, hi = window
     return {
         "onset": onset(points, world),
-        "closest_mm": 1000.0 * float(distances[lo : hi + 1].min()),
-        "last_mm": 1000.0 * float(distances[-1]),
+        "closest_mm": _mm(float(distances[lo : hi + 1].min())),
+        "last_mm": _mm(float(distances[-1])),
     }
 
 
@@ -106,8 +118,7 @@ def measure(recipe, scene, particles, config: dict, truth: dict) -> dict:
     simulator, _ = build_simulator(section)
     mapped = with_identified_laws(particles, LAW_MAPS["own"])
     params = true_params(scene, mapped.materials)
-    key = f"{config['contact']}/g{config['grid']}/s{config['substeps']}"
-    row = {"scene": scene.root.name, "config": key, **config, "genesis": truth}
+    row = {"scene": scene.root.name, "config": config_key(config), **config, "genesis": truth}
     row.update(device=_device_name(recipe), code=code_version())
     started = time.perf_counter()
     try:
@@ -123,9 +134,13 @@ def measure(recipe, scene, particles, config: dict, truth: dict) -> dict:
 def genesis_geometry(scene) -> dict:
     """Genesis's own numbers, with the frames its closest approach is taken over."""
     points = scene.gt_points()
-    first = onset(points, scene.world)
-    window = (min(first, scene.n_frames - 1), min(first + WINDOW, scene.n_frames - 1))
+    first, last = onset(points, scene.world), scene.n_frames - 1
+    window = (0, last) if first is None else (first, min(first + WINDOW, last))
     return {**geometry(points, scene.world, window), "window": list(window)}
+
+
+def config_key(config: dict) -> str:
+    return f"{config['contact']}/g{config['grid']}/s{config['substeps']}"
 
 
 def configurations(args) -> list[dict]:
@@ -144,29 +159,42 @@ def configurations(args) -> list[dict]:
 
 
 def _cell(values: dict) -> str:
-    return f"{values['onset']} / {values['closest_mm']:.1f} / {values['last_mm']:.0f}"
+    onset = "-" if values["onset"] is None else values["onset"]
+    return f"{onset} / {_num(values['closest_mm'])} / {_num(values['last_mm'])}"
+
+
+def _shift(row: dict) -> int | None:
+    first, truth = row["rollout"]["onset"], row["genesis"]["onset"]
+    return None if first is None or truth is None else first - truth
+
+
+def _ratio(row: dict, name: str) -> float | None:
+    value, truth = row["rollout"][name], row["genesis"][name]
+    return None if value is None or not truth else value / truth
 
 
 def summary(rows: list[dict]) -> list[dict]:
     """Per configuration over the scenes that did not diverge: the median onset shift
     (frames, rollout minus Genesis) and the medians of the closest and last distances as
-    multiples of Genesis's."""
+    multiples of Genesis's (a row without an onset, or with a Genesis distance of 0, is left
+    out of that median)."""
     out = []
     for key in dict.fromkeys(r["config"] for r in rows):
         ok = [r for r in rows if r["config"] == key and "rollout" in r]
         mine = [r for r in rows if r["config"] == key]
         out.append({
             "config": key, "scenes": len(mine), "diverged": len(mine) - len(ok),
-            "onset_shift": _median(ok, lambda r: r["rollout"]["onset"] - r["genesis"]["onset"]),
-            "closest_ratio": _median(
-                ok, lambda r: r["rollout"]["closest_mm"] / r["genesis"]["closest_mm"]),
-            "last_ratio": _median(ok, lambda r: r["rollout"]["last_mm"] / r["genesis"]["last_mm"]),
+            "onset_shift": _median(ok, _shift),
+            "closest_ratio": _median(ok, lambda r: _ratio(r, "closest_mm")),
+            "last_ratio": _median(ok, lambda r: _ratio(r, "last_mm")),
         })  # fmt: skip
     return out
 
 
 def _median(rows: list[dict], value) -> float | None:
-    return statistics.median(value(r) for r in rows) if rows else None
+    """The median of ``value`` over ``rows``, leaving out rows where it is None."""
+    values = [v for v in map(value, rows) if v is not None]
+    return statistics.median(values) if values else None
 
 
 def _num(value) -> str:
@@ -261,11 +289,11 @@ def measure_all(args) -> list[dict]:
         if len(scene.object_ids) < 2:
             print(f"[geometry] {name}: one object, no contact between bodies; skipped")
             continue
+        todo = [c for c in configs if (name, config_key(c)) not in done]
+        if not todo:
+            continue
         truth, particles = genesis_geometry(scene), frame0_particles(recipe, scene)
-        for config in configs:
-            key = f"{config['contact']}/g{config['grid']}/s{config['substeps']}"
-            if (name, key) in done:
-                continue
+        for config in todo:
             row = measure(recipe, scene, particles, config, truth)
             print(json.dumps(row), flush=True)
             data["rows"].append(row)

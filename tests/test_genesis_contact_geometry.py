@@ -63,13 +63,13 @@ def test_pair_distances_are_the_gaps_between_the_nearest_points(bench):
 
 
 def test_onset_is_the_first_frame_a_centroid_leaves_its_parabola(bench):
-    """Two bodies in free fall (g = -9.8 z, 10 fps): none departs (onset = frame count); the
+    """Two bodies in free fall (g = -9.8 z, 10 fps): none departs (no onset); the
     second stopped dead from frame 5 on: onset 5."""
     world = World((-1.0, -1.0, 0.0), (2.0, 1.0, 2.0), fps=10.0)
     t = torch.arange(10, dtype=torch.float32)[:, None, None] / world.fps
     fall = torch.tensor([0.5, 0.0, 1.0]) * t + 0.5 * torch.tensor(world.gravity) * t**2
     bodies = {1: _cube([0.0, 0.0, 1.0]) + fall, 2: _cube([1.0, 0.0, 1.0]) + fall}
-    assert bench.onset(bodies, world) == 10
+    assert bench.onset(bodies, world) is None
     stopped = bodies[2].clone()
     stopped[5:] = stopped[4]
     assert bench.onset({1: bodies[1], 2: stopped}, world) == 5
@@ -127,3 +127,34 @@ def test_pairs_need_as_many_grids_as_substep_counts(bench, tmp_path):
     argv = ["--scenes", str(tmp_path), "--out", str(tmp_path / "o"), "--grids", "48", "96"]
     with pytest.raises(SystemExit, match="2 grids and 1 substep counts"):
         bench.main([*argv, "--substeps", "400", "--pairs"])
+
+
+def test_a_rollout_without_onset_or_a_zero_distance_is_left_out_of_the_medians(bench):
+    """Summary medians skip a row whose rollout shows no contact (onset None) and a ratio to a
+    Genesis distance of 0; the table shows "-" for the missing onset."""
+    truth = {"onset": 7, "closest_mm": 10.0, "last_mm": 100.0, "window": [7, 10]}
+    rows = [
+        {"scene": "A", "config": "c", "genesis": truth,
+         "rollout": {"onset": 9, "closest_mm": 20.0, "last_mm": 300.0}},
+        {"scene": "B", "config": "c", "genesis": {**truth, "last_mm": 0.0},
+         "rollout": {"onset": None, "closest_mm": 5.0, "last_mm": 50.0}},
+        {"scene": "C", "config": "c", "genesis": truth, "diverged": "object 1, frame 3"},
+    ]  # fmt: skip
+    (s,) = bench.summary(rows)
+    assert (s["scenes"], s["diverged"], s["onset_shift"]) == (3, 1, 2)
+    assert s["closest_ratio"] == pytest.approx(1.25) and s["last_ratio"] == pytest.approx(3.0)
+    table = bench.markdown(rows)
+    assert "| B | 7 / 10 / 0 | - / 5 / 50 |" in table and "| C | 7 / 10 / 100 | diverged |" in table
+
+
+def test_pairs_take_each_grid_with_its_substep_count(bench):
+    args = bench.parse_args(
+        ["--scenes", "S", "--out", "O", "--contacts", "single_field", "--grids", "48", "96",
+         "--substeps", "400", "600", "--pairs"]
+    )  # fmt: skip
+    assert [bench.config_key(c) for c in bench.configurations(args)] == [
+        "single_field/g48/s400",
+        "single_field/g96/s600",
+    ]
+    args.pairs = False
+    assert len(bench.configurations(args)) == 4
