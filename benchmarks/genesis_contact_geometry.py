@@ -55,6 +55,8 @@ from mosiv_framework.recipes import load_recipe
 from mosiv_framework.scene import read_scene
 
 SECTION = "Contact geometry on Genesis scenes"
+#: the section goes after "Model error on Genesis scenes", before this one
+SECTION_BEFORE = "Stiffness profile on Genesis scenes"
 FORMAT = "mosiv-contact-geometry/1"
 #: the departure tolerance, in point spacings (identify.ballistic_tolerance's default)
 TOLERANCE_SPACINGS = 0.1
@@ -312,7 +314,9 @@ def main(argv: list[str] | None = None) -> int:
         data = args.data or f"the scenes of {args.scenes.name}"
         body = section_text(rows, command=command, data=data)
         text = args.write_results.read_text()
-        args.write_results.write_text(replace_section(text, body, title=SECTION))
+        args.write_results.write_text(
+            replace_section(text, body, title=SECTION, before=SECTION_BEFORE)
+        )
     return 0
 
 
