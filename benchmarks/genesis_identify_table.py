@@ -176,7 +176,8 @@ def scene_row(
     contact modes), its CD and EMD over the observed and future frames, wall time and peak
     memory, and where it came from."""
     future = metrics.get("future") or {}
-    contact = (metrics.get("params") or {}).get("contact")
+    identified = metrics.get("params") or {}
+    contact = identified.get("contact")
     if contact is not None:
         keep = ("choice", "mode", "recipe_mode", "losses", "margin", "laws")
         contact = {k: contact[k] for k in keep if k in contact}
@@ -184,6 +185,7 @@ def scene_row(
         "scene": name,
         "contact": contact,
         "objects": object_entries(metrics, history_laplace(history)),
+        "identified": identified_values(identified),
         "observed_cd_mm2": metrics["observed"]["cd_mm2"],
         "observed_emd_mm": metrics["observed"]["emd_mm"],
         "future_cd_mm2": future.get("cd_mm2"),
@@ -193,6 +195,20 @@ def scene_row(
         "data": data,
         "device": device,
         "code": code,
+    }
+
+
+def identified_values(identified: dict) -> dict | None:
+    """Every identified value of a run (identified.json): each object's law parameters and
+    initial velocity, and the ground's friction, also those the truth has no value for, so
+    that a row can be rolled out again without the run folder; None without them."""
+    objects = identified.get("objects")
+    if not objects:
+        return None
+    keep = ("family", "params", "initial_velocity")
+    return {
+        "objects": {k: {n: o[n] for n in keep if n in o} for k, o in objects.items()},
+        "ground_friction": identified.get("ground_friction"),
     }
 
 

@@ -74,7 +74,11 @@ def _metrics(*, e_true, e_value, rho1, kind, future_cd, sand=None, v0_rel=0.01):
     else:
         errors["2"]["yield_stress"] = e_err(2000.0, 2400.0)
     identified = {
-        "objects": {"1": {"family": "elastic"}, "2": {"family": family2}},
+        "objects": {
+            "1": {"family": "elastic", "params": {"E": e_value[0], "friction": 0.3}},
+            "2": {"family": family2, "params": {"E": e_value[1]}, "initial_velocity": [1, 0, 0]},
+        },
+        "ground_friction": 0.45,
         "intervals": intervals,
     }
     block = {"cd_mm2": 1.0, "emd_mm": 2.0}
@@ -165,6 +169,15 @@ def test_a_missed_interval_lowers_the_coverage():
     row = bench.scene_row("A", m, time_s=1.0, data={}, device="CPU", code="c")
     s = bench.summarise([row])
     assert row["objects"]["1"]["params"]["E"]["covered"] is False  # 1.8e5..2.2e5 misses 1e5
+    # every identified value stays in the row, those without a truth too (the ground's and a
+    # contact friction), so the run can be rolled out again from the row alone
+    assert row["identified"] == {
+        "objects": {
+            "1": {"family": "elastic", "params": {"E": 2e5, "friction": 0.3}},
+            "2": {"family": "plasticine", "params": {"E": 1e5}, "initial_velocity": [1, 0, 0]},
+        },
+        "ground_friction": 0.45,
+    }
     assert s["coverage"]["count"] == 1 and s["coverage"]["n"] == 2  # the two E intervals
 
 
