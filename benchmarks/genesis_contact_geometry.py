@@ -44,13 +44,12 @@ from pathlib import Path
 import numpy as np
 import torch
 from genesis_identify import _device_name, _fill, find_scenes, replace_section
-from genesis_model_error import LAW_MAPS, frame0_particles, true_params
+from genesis_model_error import _num, frame0_particles, rollout_truth
 from identify_suite import code_version
 from scipy.spatial import cKDTree
 
 from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.pipeline.params import ballistic_departure, point_spacing
-from mosiv_framework.pipeline.run import build_simulator, with_identified_laws
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.scene import read_scene
 
@@ -113,19 +112,11 @@ def by_object(positions: torch.Tensor, object_ids: torch.Tensor) -> dict[int, to
 
 def measure(recipe, scene, particles, config: dict, truth: dict) -> dict:
     """One configuration's rollout of the truth, measured over the window of Genesis's own."""
-    section = recipe.simulator.copy()
-    section.contact, section.grid, section.substeps = (
-        config["contact"], config["grid"], config["substeps"]
-    )  # fmt: skip
-    simulator, _ = build_simulator(section)
-    mapped = with_identified_laws(particles, LAW_MAPS["own"])
-    params = true_params(scene, mapped.materials)
     row = {"scene": scene.root.name, "config": config_key(config), **config, "genesis": truth}
     row.update(device=_device_name(recipe), code=code_version())
     started = time.perf_counter()
     try:
-        with torch.no_grad():
-            traj = simulator.rollout(mapped, params, world=scene.world, frames=scene.n_frames - 1)
+        traj = rollout_truth(recipe, scene, particles, config)  # each material's own law
     except SimulationDiverged as exc:
         return {**row, "diverged": str(exc), "time_s": time.perf_counter() - started}
     window = truth["window"]
@@ -197,10 +188,6 @@ def _median(rows: list[dict], value) -> float | None:
     """The median of ``value`` over ``rows``, leaving out rows where it is None."""
     values = [v for v in map(value, rows) if v is not None]
     return statistics.median(values) if values else None
-
-
-def _num(value) -> str:
-    return "-" if value is None else f"{value:.3g}"
 
 
 def markdown(rows: list[dict]) -> str:

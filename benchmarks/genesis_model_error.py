@@ -114,21 +114,28 @@ def config_key(config: dict) -> str:
     return key if split == 1 else f"{key}/split{split}"
 
 
-def measure(recipe, scene, particles, config: dict, *, emd_samples: int) -> dict:
-    """One configuration's rollout of the truth, scored; a divergence is a row that says so."""
+def rollout_truth(recipe, scene, particles, config: dict):
+    """The scene's true parameters rolled out from ``particles`` over every frame, with the
+    recipe's simulator at ``config``'s contact, grid and substeps and the stress laws of its
+    ``laws`` (default: each material's own); raises SimulationDiverged."""
     section = recipe.simulator.copy()
     section.contact = config["contact"]
     section.grid = config["grid"]
     section.substeps = config["substeps"]
     simulator, _ = build_simulator(section)
-    mapped = with_identified_laws(particles, LAW_MAPS[config["laws"]])
+    mapped = with_identified_laws(particles, LAW_MAPS[config.get("laws", "own")])
     params = true_params(scene, mapped.materials)
+    with torch.no_grad():
+        return simulator.rollout(mapped, params, world=scene.world, frames=scene.n_frames - 1)
+
+
+def measure(recipe, scene, particles, config: dict, *, emd_samples: int) -> dict:
+    """One configuration's rollout of the truth, scored; a divergence is a row that says so."""
     started = time.perf_counter()
     row = {"scene": scene.root.name, "config": config_key(config), **config}
     row.update(device=_device_name(recipe), code=code_version())
     try:
-        with torch.no_grad():
-            traj = simulator.rollout(mapped, params, world=scene.world, frames=scene.n_frames - 1)
+        traj = rollout_truth(recipe, scene, particles, config)
     except SimulationDiverged as exc:
         return {**row, "diverged": str(exc), "time_s": time.perf_counter() - started}
     blocks = score(
