@@ -38,6 +38,7 @@ import shlex
 import statistics
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -99,25 +100,38 @@ def frame0_particles(recipe, scene, split: int = 1):
 
 
 def configurations(args) -> list[dict]:
-    """Every (laws, contact, grid, substeps, split) the command names, in a fixed order."""
+    """Every (laws, contact, grid, substeps, split, ground friction, ground offset) the command
+    names, in a fixed order."""
     return [
-        {"laws": laws, "contact": contact, "grid": grid, "substeps": substeps, "split": split}
-        for laws, contact, grid, substeps, split in itertools.product(
-            args.laws, args.contacts, args.grids, args.substeps, args.splits
+        {
+            "laws": laws, "contact": contact, "grid": grid, "substeps": substeps, "split": split,
+            "ground_friction": friction, "ground_offset_mm": offset,
+        }
+        for laws, contact, grid, substeps, split, friction, offset in itertools.product(
+            args.laws, args.contacts, args.grids, args.substeps, args.splits,
+            args.ground_frictions, args.ground_offsets_mm,
         )
-    ]
+    ]  # fmt: skip
 
 
 def config_key(config: dict) -> str:
     key = f"{config['laws']}/{config['contact']}/g{config['grid']}/s{config['substeps']}"
     split = config.get("split", 1)
-    return key if split == 1 else f"{key}/split{split}"
+    if split != 1:
+        key += f"/split{split}"
+    if config.get("ground_friction") is not None:
+        key += f"/gf{config['ground_friction']:g}"
+    if config.get("ground_offset_mm"):
+        key += f"/dz{config['ground_offset_mm']:g}"
+    return key
 
 
 def rollout_truth(recipe, scene, particles, config: dict):
     """The scene's true parameters rolled out from ``particles`` over every frame, with the
     recipe's simulator at ``config``'s contact, grid and substeps and the stress laws of its
-    ``laws`` (default: each material's own); raises SimulationDiverged."""
+    ``laws`` (default: each material's own); ``ground_friction`` (when not None) in place of
+    the truth's, the table ``ground_offset_mm`` higher (warp-mpm's ground acts on the node
+    layers at or below it, so an offset counts in whole cells); raises SimulationDiverged."""
     section = recipe.simulator.copy()
     section.contact = config["contact"]
     section.grid = config["grid"]
@@ -125,8 +139,13 @@ def rollout_truth(recipe, scene, particles, config: dict):
     simulator, _ = build_simulator(section)
     mapped = with_identified_laws(particles, LAW_MAPS[config.get("laws", "own")])
     params = true_params(scene, mapped.materials)
+    if config.get("ground_friction") is not None:
+        params = replace(params, ground_friction=torch.tensor(float(config["ground_friction"])))
+    world = scene.world
+    if config.get("ground_offset_mm") and world.ground_height is not None:
+        world = replace(world, ground_height=world.ground_height + config["ground_offset_mm"] / 1e3)
     with torch.no_grad():
-        return simulator.rollout(mapped, params, world=scene.world, frames=scene.n_frames - 1)
+        return simulator.rollout(mapped, params, world=world, frames=scene.n_frames - 1)
 
 
 def measure(recipe, scene, particles, config: dict, *, emd_samples: int) -> dict:
@@ -273,6 +292,14 @@ def parse_args(argv: list[str] | None):
     ap.add_argument(
         "--splits", nargs="+", type=int, default=[1],
         help="gt-points lifter splits: each point into k^3 particles (default 1: as given)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--ground-frictions", nargs="+", type=float, default=[None],
+        help="the ground's Coulomb coefficient in place of the truth's (default: the truth's)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--ground-offsets-mm", nargs="+", type=float, default=[0.0],
+        help="the table raised by this much (mm; warp-mpm counts it in whole cells)",
     )  # fmt: skip
     ap.add_argument("--emd-samples", type=int, default=1024)
     ap.add_argument("--report", action="store_true", help="gather the rows under --out")

@@ -113,3 +113,24 @@ def test_split_particles_are_a_configuration_of_their_own(measured, bench):
     exact, split = rows["own/multi_field/g24/s30"], rows["own/multi_field/g24/s30/split2"]
     assert exact["observed_cd"] < 1e-6 and split["split"] == 2
     assert split["observed_cd"] + split["future_cd"] > 1e-2, split
+
+
+def test_a_changed_ground_is_a_configuration_of_its_own(measured, bench):
+    """``--ground-frictions`` and ``--ground-offsets-mm``: the truth's own ground (the recorded
+    coefficient, no offset) reproduces the scene; the table raised by 300 mm, into the bodies'
+    path, is another world (the key says dz300), and a coefficient named explicitly is keyed
+    by its value (gf2)."""
+    root, argv, _ = measured
+    out = root / "ground"
+    suite, recipe = argv[argv.index("--scenes") + 1], argv[argv.index("--recipe") + 1]
+    ground_argv = ["--scenes", suite, "--out", str(out), "--recipe", recipe, "--laws", "own"]
+    ground_argv += ["--contacts", "multi_field", *CONFIG, "--ground-offsets-mm", "0", "300"]
+    assert bench.main(ground_argv) == 0
+    assert bench.main([*ground_argv, "--ground-frictions", "2"]) == 0
+    rows = {r["config"]: r for r in json.loads((out / "model_error.json").read_text())["rows"]}
+    base = "own/multi_field/g24/s30"
+    assert sorted(rows) == [base, f"{base}/dz300", f"{base}/gf2", f"{base}/gf2/dz300"]
+    assert rows[base]["observed_cd"] < 1e-6 and rows[base]["future_cd"] < 1e-6
+    raised = rows[f"{base}/dz300"]
+    assert raised["ground_offset_mm"] == 300 and raised["observed_cd"] > 1e-2, raised
+    assert rows[f"{base}/gf2/dz300"]["future_cd"] != pytest.approx(raised["future_cd"], rel=1e-3)
