@@ -403,20 +403,23 @@ def _object_table(rows: list[dict]) -> str:
 def _scene_table(rows: list[dict]) -> str:
     lines = [
         "| scene | contact | observed CD mm^2 | observed EMD mm | future CD mm^2 | future EMD mm"
-        " | time s | peak memory GB |",
-        "|---|---|---|---|---|---|---|---|",
+        " | time s | peak memory GB | ground friction |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "error" in r:
             continue
         values = " | ".join(_fmt(r[key]) for key in _SCENE_COLUMNS)
-        lines.append(f"| {r['scene']} | {_contact_cell(r)} | {values} |")
+        ground = (r.get("identified") or {}).get("ground_friction")
+        lines.append(f"| {r['scene']} | {_contact_cell(r)} | {values} | {_fmt(ground)} |")
     lines += [
         "",
         "contact: the contact between objects identification used: (recipe) the recipe's fixed"
         " simulator.contact; (auto) chosen from the observed frames, followed by each mode's"
         " loss over them after its brief fit (docs/PHYSICS.md, Choosing the contact from the"
-        " data).",
+        " data). ground friction: the table's Coulomb coefficient as identified (Genesis's is"
+        " 0.1; '-': the row does not record it); the future is sensitive to it (docs/RESULTS.md,"
+        " Future error on Genesis scenes).",
     ]
     return "\n".join(lines)
 

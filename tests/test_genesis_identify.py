@@ -179,6 +179,14 @@ def test_a_missed_interval_lowers_the_coverage():
         "ground_friction": 0.45,
     }
     assert s["coverage"]["count"] == 1 and s["coverage"]["n"] == 2  # the two E intervals
+    # the scene table ends in the identified ground friction, '-' where a row has none
+    scene_lines = [line for line in bench.markdown(bench.make_table([row])).splitlines()
+                   if line.startswith("| A | ")]  # fmt: skip
+    assert scene_lines[-1].endswith(" | 0.45 |"), scene_lines
+    old_row = {k: v for k, v in row.items() if k != "identified"}
+    old_lines = [line for line in bench.markdown(bench.make_table([old_row])).splitlines()
+                 if line.startswith("| A | ")]  # fmt: skip
+    assert old_lines[-1].endswith(" | - |"), old_lines
 
 
 def _tagged(intervals: dict, method: str) -> dict:
