@@ -68,15 +68,16 @@ SECTION_BEFORE = "Stiffness profile on Genesis scenes"
 VARIANTS = ("identified", "ground", "velocity", "material", "truth")
 
 
-def read_rows(folder: Path) -> list[dict]:
-    """The genesis_identify rows in ``folder`` (``*.json`` but table.json), each with its
-    identified values; a row without them is an error naming the file."""
+def read_rows(folder: Path, only: set[str] | None = None) -> list[dict]:
+    """The genesis_identify rows in ``folder`` (``*.json`` but table.json) of the scenes
+    ``only`` names (all by default), each with its identified values; a row without them is an
+    error naming the file."""
     rows = []
     for path in sorted(folder.glob("*.json")):
         if path.name == "table.json":
             continue
         row = json.loads(path.read_text())
-        if "scene" not in row:
+        if "scene" not in row or (only is not None and row["scene"] not in only):
             continue
         if not row.get("identified"):
             raise SystemExit(
@@ -99,9 +100,33 @@ def true_law_values(scene, materials: dict[int, str]) -> dict[int, dict[str, flo
     return values
 
 
+#: units of the parameters that the density gauge scales (densities and stresses scale alike)
+GAUGE_UNITS = ("kg/m^3", "Pa", "Pa*s")
+
+
+def in_truth_gauge(identified: SimulationParams, truth: SimulationParams) -> SimulationParams:
+    """``identified`` rescaled into the truth's density gauge: identification holds the first
+    object's density at its start value (motion cannot tell a common scale of densities and
+    stresses), so every density and stress is multiplied by the truth's / the identified first
+    density. The motion is the same; a mix of identified and true values is then consistent."""
+    first = min(identified.objects)
+    factor = truth.objects[first].values["rho"] / identified.objects[first].values["rho"]
+    objects = {}
+    for k, p in identified.objects.items():
+        units = {spec.name: spec.unit for spec in get_law(p.family).all_params}
+        objects[k] = ObjectParams(
+            p.family,
+            {n: v * factor if units.get(n) in GAUGE_UNITS else v for n, v in p.values.items()},
+        )
+    return replace(identified, objects=objects)
+
+
 def variant_params(identified: SimulationParams, truth: SimulationParams, true_values, name):
-    """``identified`` with the group ``name`` (one of VARIANTS) replaced by the truth's (the
-    physics terms, if any, stay as identified)."""
+    """``identified`` with the group ``name`` (one of VARIANTS) replaced by the truth's: the
+    physics terms, if any, stay as identified except in ``truth``, which is the truth alone.
+    ``material`` puts the identified values into the truth's density gauge first
+    (:func:`in_truth_gauge`), so that a stress the truth does not give stays consistent with
+    the true densities."""
     if name not in VARIANTS:
         raise ValueError(f"unknown variant {name!r}; valid: {', '.join(VARIANTS)}")
     terms = identified.terms
@@ -117,13 +142,13 @@ def variant_params(identified: SimulationParams, truth: SimulationParams, true_v
         return SimulationParams(
             identified.objects, truth.initial_velocity, identified.ground_friction, terms
         )
-    # the material variant
+    gauged = in_truth_gauge(identified, truth)
     objects = {
         k: ObjectParams(
             p.family,
             {**p.values, **{n: torch.tensor(v) for n, v in true_values[k].items()}},
         )
-        for k, p in identified.objects.items()
+        for k, p in gauged.objects.items()
     }
     return SimulationParams(objects, identified.initial_velocity, identified.ground_friction, terms)
 
@@ -186,11 +211,40 @@ def measure_scene(recipe, scene, row: dict, *, emd_samples: int, label: str, ski
             "last_offset_mm": last_frame_offsets(traj, reference),
             "time_s": time.perf_counter() - started,
         })  # fmt: skip
+        if name == "identified":
+            _check_reproduced(row, out[-1])
     return out
+
+
+#: how far the identified rollout's future Chamfer may be from the row's own before the
+#: settings are suspect (GPU runs are not bit-reproducible; rows here agree within 0.05 %)
+REPRODUCE_TOLERANCE = 0.02
+
+
+def _check_reproduced(row: dict, measured: dict) -> None:
+    """Warn when the identified values, rolled out again, do not give the row's own future
+    Chamfer: the rows do not record the grid and substeps, so a wrong ``--set`` shows here."""
+    recorded = row.get("future_cd_mm2")
+    if recorded is None or not recorded:
+        return
+    off = abs(measured["future_cd"] - recorded) / recorded
+    if off > REPRODUCE_TOLERANCE:
+        print(
+            f"warning: {row['scene']}: the identified rollout's future Chamfer "
+            f"{measured['future_cd']:.4g} mm^2 is {100 * off:.1f} % off the row's "
+            f"{recorded:.4g}: were the rows identified with other --set values (grid "
+            f"{measured['grid']}, substeps {measured['substeps']} here)?",
+            file=sys.stderr,
+        )
 
 
 def _label(row: dict) -> str:
     return row.get("rows", "-")
+
+
+def _run(row: dict) -> tuple[str, int, int]:
+    """What tells one attribution run from another: its rows folder, grid and substeps."""
+    return _label(row), int(row["grid"]), int(row["substeps"])
 
 
 def summary(rows: list[dict]) -> dict[str, dict]:
@@ -220,41 +274,43 @@ def _cell(row: dict | None) -> str:
 
 
 def markdown(rows: list[dict]) -> str:
-    """Per run and scene a row of observed / future Chamfer per variant, the per-variant
-    summary of each run, and the last-frame centroid offsets."""
-    runs = list(dict.fromkeys(_label(r) for r in rows))
-    by = {(_label(r), r["scene"], r["variant"]): r for r in rows}
-    keys = list(dict.fromkeys((_label(r), r["scene"]) for r in rows))
-    lines = ["| rows | scene | contact | grid / substeps | " + " | ".join(VARIANTS) + " |"]
+    """Per run (rows folder, grid, substeps) and scene a row of observed / future Chamfer per
+    variant, the per-variant summary of each run, and the last-frame centroid offsets."""
+    runs = list(dict.fromkeys(_run(r) for r in rows))
+    by = {(*_run(r), r["scene"], r["variant"]): r for r in rows}
+    keys = list(dict.fromkeys((*_run(r), r["scene"]) for r in rows))
+    lines = ["| rows | grid / substeps | scene | contact | " + " | ".join(VARIANTS) + " |"]
     lines += ["|---|---|---|---|" + "---|" * len(VARIANTS)]
-    for run, scene in keys:
-        first = next(r for r in rows if (_label(r), r["scene"]) == (run, scene))
-        cells = [_cell(by.get((run, scene, name))) for name in VARIANTS]
-        setting = f"{first['grid']} / {first['substeps']}"
+    for label, grid, substeps, scene in keys:
+        first = next(r for r in rows if (*_run(r), r["scene"]) == (label, grid, substeps, scene))
+        cells = [_cell(by.get((label, grid, substeps, scene, name))) for name in VARIANTS]
         lines.append(
-            f"| {run} | {scene} | {first['contact']} | {setting} | " + " | ".join(cells) + " |"
+            f"| {label} | {grid} / {substeps} | {scene} | {first['contact']} | "
+            + " | ".join(cells)
+            + " |"
         )
     lines += ["", "Cells: observed / future Chamfer (mm^2).", ""]
     lines += [
-        "| rows | variant | scenes | diverged | median future CD mm^2 | future CD lower than identified |"
+        "| rows | grid / substeps | variant | scenes | diverged | median future CD mm^2 "
+        "| future CD lower than identified |",
+        "|---|---|---|---|---|---|---|",
     ]
-    lines += ["|---|---|---|---|---|---|"]
     for run in runs:
-        for name, s in summary([r for r in rows if _label(r) == run]).items():
+        for name, s in summary([r for r in rows if _run(r) == run]).items():
             lower = "-" if s["lower_than_identified"] is None else str(s["lower_than_identified"])
             lines.append(
-                f"| {run} | {name} | {s['scenes']} | {s['diverged']} | "
+                f"| {run[0]} | {run[1]} / {run[2]} | {name} | {s['scenes']} | {s['diverged']} | "
                 f"{_num(s['median_future_cd'])} | {lower} |"
             )
     lines += ["", "Last-frame centroid offsets from the recording's (mm, per object):", ""]
-    lines += ["| rows | scene | " + " | ".join(VARIANTS) + " |"]
-    lines += ["|---|---|" + "---|" * len(VARIANTS)]
-    for run, scene in keys:
+    lines += ["| rows | grid / substeps | scene | " + " | ".join(VARIANTS) + " |"]
+    lines += ["|---|---|---|" + "---|" * len(VARIANTS)]
+    for label, grid, substeps, scene in keys:
         cells = []
         for name in VARIANTS:
-            offsets = (by.get((run, scene, name)) or {}).get("last_offset_mm")
+            offsets = (by.get((label, grid, substeps, scene, name)) or {}).get("last_offset_mm")
             cells.append(", ".join(f"{v:.0f}" for v in offsets.values()) if offsets else "-")
-        lines.append(f"| {run} | {scene} | " + " | ".join(cells) + " |")
+        lines.append(f"| {label} | {grid} / {substeps} | {scene} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -309,18 +365,16 @@ def measure_all(args) -> list[dict]:
     if data.get("format") != FORMAT:
         raise SystemExit(f"{path}: not a future-error attribution (format {data.get('format')!r})")
     wanted = None if not args.only else {n.strip() for n in args.only.split(",")}
-    for row in read_rows(args.rows):
+    for row in read_rows(args.rows, wanted):
         name = row["scene"]
-        if wanted is not None and name not in wanted:
-            continue
-        label = args.rows.name
-        done = {r["variant"] for r in data["rows"] if r["scene"] == name and _label(r) == label}
-        if done >= set(VARIANTS):
-            continue
         folder = args.scenes / name
         if not (folder / "scene.json").is_file():
             raise SystemExit(f"--scenes {args.scenes}: no scene {name!r} (row {name})")
         recipe = load_recipe(args.recipe, [f"scene.path={folder}", *args.sets])
+        run = (args.rows.name, int(recipe.simulator.grid), int(recipe.simulator.substeps))
+        done = {r["variant"] for r in data["rows"] if r["scene"] == name and _run(r) == run}
+        if done >= set(VARIANTS):
+            continue
         scene = read_scene(folder)
         measured_rows = measure_scene(
             recipe, scene, row, emd_samples=args.emd_samples, label=args.rows.name, skip=done

@@ -16,6 +16,9 @@ scene our own generator made at the same grid and substeps the error is 0 (the t
     python benchmarks/genesis_model_error.py --scenes runs/genesis --out runs/model_error \\
         --laws own corotated --contacts multi_field single_field --grids 48 64 --substeps 400
 
+``--ground-frictions 0.1 0.3`` rolls the truth out with those coefficients of the ground in
+place of the truth's (key suffix ``/gf0.1``), ``--ground-offsets-mm 0 9`` with the table raised
+(``/dz9``; warp-mpm's ground acts on whole node layers, so only a whole cell changes it).
 ``--splits 1 2`` also lifts each point into 2^3 particles (the gt-points lifter's ``split``):
 Genesis samples its bodies about 1 cm apart, fewer than one particle a cell on a grid of 96
 over the 0.8 m domain. ``--laws own`` rolls each material out with its own law; ``corotated`` with Genesis's fixed-
@@ -142,7 +145,9 @@ def rollout_truth(recipe, scene, particles, config: dict):
     if config.get("ground_friction") is not None:
         params = replace(params, ground_friction=torch.tensor(float(config["ground_friction"])))
     world = scene.world
-    if config.get("ground_offset_mm") and world.ground_height is not None:
+    if config.get("ground_offset_mm"):
+        if world.ground_height is None:
+            raise SystemExit(f"{scene.root}: --ground-offsets-mm on a scene without a ground")
         world = replace(world, ground_height=world.ground_height + config["ground_offset_mm"] / 1e3)
     with torch.no_grad():
         return simulator.rollout(mapped, params, world=world, frames=scene.n_frames - 1)
@@ -308,6 +313,10 @@ def parse_args(argv: list[str] | None):
     args = ap.parse_args(argv)
     if not args.report and args.scenes is None:
         ap.error("--scenes is required unless --report")
+    if any(offset < 0 for offset in args.ground_offsets_mm):
+        ap.error(
+            f"--ground-offsets-mm {args.ground_offsets_mm}: the table can only be raised (>= 0)"
+        )
     return args
 
 
