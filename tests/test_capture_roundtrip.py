@@ -25,10 +25,8 @@ bounds, and the imported future CD stays within MAX_FUTURE_CD_RATIO of the direc
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +37,7 @@ from mosiv_framework.cli.main import main
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.scene import read_scene, write_example_scene
+from mosiv_framework.testing.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "capture_roundtrip.py"
@@ -51,14 +50,8 @@ E_BOUNDS = (1e3, 1e7)
 
 
 def load_benchmark():
-    # the benchmark imports its sibling scripts, as when it runs from benchmarks/
-    if str(SCRIPT.parent) not in sys.path:
-        sys.path.insert(0, str(SCRIPT.parent))
-    spec = importlib.util.spec_from_file_location("capture_roundtrip", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["capture_roundtrip"] = module
-    spec.loader.exec_module(module)
-    return module
+    # the benchmark imports its sibling scripts when it runs, as from benchmarks/
+    return load_script(SCRIPT, register=True, keep_path=True)
 
 
 # ------------------------------------------------------------------------ honest recipes

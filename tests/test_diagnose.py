@@ -27,6 +27,7 @@ from mosiv_framework.diagnose.suite import coefficient_error
 from mosiv_framework.pipeline import run_pipeline
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.scene import read_scene
+from mosiv_framework.testing.scripts import load_script
 
 RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "diagnose_small.yaml"
 WIND = (2.5, 0.0, 0.0)
@@ -343,14 +344,11 @@ def test_the_lockstep_benchmark_diagnoses_two_copies_the_same_way(wind, tmp_path
     """benchmarks/diagnose_together.py on the wind run: a copy with the descents in lockstep
     and one with them one after another, each diagnosed in its own process; on the CPU both
     name the wind with the same coefficients, and the run itself is left as it was."""
-    import importlib.util
 
     run, _ = wind
     before = sorted(p.name for p in run.iterdir())
     script = Path(__file__).resolve().parents[1] / "benchmarks" / "diagnose_together.py"
-    spec = importlib.util.spec_from_file_location("diagnose_together", script)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_script(script)
     out = tmp_path / "out"
     assert bench.main([str(run), "--out", str(out), "--budget", "small"]) == 0
     result = json.loads((out / "diagnose_together.json").read_text())

@@ -4,10 +4,10 @@ stops there, and the ballistic initial velocity comes closer to the truth."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
+
+from mosiv_framework.testing.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "free_flight.py"
@@ -15,14 +15,7 @@ TINY = ROOT / "plugins" / "mosiv-genesis" / "tests" / "data" / "tiny_scene"
 
 
 def _bench():
-    sys.path.insert(0, str(SCRIPT.parent))  # it imports its sibling benchmarks
-    try:
-        spec = importlib.util.spec_from_file_location("free_flight", SCRIPT)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
-    return module
+    return load_script(SCRIPT)
 
 
 def test_the_centroids_end_free_flight_at_the_recorded_collision(tmp_path):

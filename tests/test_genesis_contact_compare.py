@@ -2,26 +2,19 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
+
+from mosiv_framework.testing.scripts import load_script
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "genesis_contact_compare.py"
 
 
 @pytest.fixture(scope="module")
 def compare_module():
-    sys.path.insert(0, str(SCRIPT.parent))  # it imports its sibling genesis_identify
-    try:
-        spec = importlib.util.spec_from_file_location("genesis_contact_compare", SCRIPT)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
-    return module
+    return load_script(SCRIPT)
 
 
 def _row(scene: str, e_errors: list[float], angle: float, observed: float, future: float) -> dict:

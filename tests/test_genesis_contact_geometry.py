@@ -11,9 +11,7 @@ the same rows.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
@@ -22,6 +20,7 @@ import torch
 from mosiv_framework.pipeline.run import generate_scene
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.testing.pytest_plugin import require_simulator
+from mosiv_framework.testing.scripts import load_script
 from mosiv_framework.types import World
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,14 +30,7 @@ RECIPE = ROOT / "recipes" / "diagnose_small.yaml"
 
 @pytest.fixture(scope="module")
 def bench():
-    sys.path.insert(0, str(SCRIPT.parent))  # it imports its siblings genesis_identify, ...
-    try:
-        spec = importlib.util.spec_from_file_location("genesis_contact_geometry", SCRIPT)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
-    return module
+    return load_script(SCRIPT)
 
 
 def _cube(centre, n=4, size=0.1):

@@ -3,7 +3,6 @@ and one end-to-end run on the committed tiny Genesis scene."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import statistics
 import sys
@@ -11,21 +10,15 @@ from pathlib import Path
 
 import pytest
 
+from mosiv_framework.testing.scripts import load_script
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "genesis_identify.py"
 TINY = ROOT / "plugins" / "mosiv-genesis" / "tests" / "data" / "tiny_scene"
 
 
 def _bench():
-    # the script imports its sibling identify_suite, as it does when run from benchmarks/
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        spec = importlib.util.spec_from_file_location("genesis_identify", SCRIPT)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
-    return module
+    return load_script(SCRIPT)
 
 
 def _interval(low, high, kind):

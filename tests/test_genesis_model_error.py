@@ -9,9 +9,7 @@ leaves an error. The report, the rerun and the RESULTS section are tested on the
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
@@ -19,6 +17,7 @@ import pytest
 from mosiv_framework.pipeline.run import generate_scene
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.testing.pytest_plugin import require_simulator
+from mosiv_framework.testing.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "genesis_model_error.py"
@@ -28,14 +27,7 @@ CONFIG = ["--grids", "24", "--substeps", "30", "--device", "cpu"]
 
 @pytest.fixture(scope="module")
 def bench():
-    sys.path.insert(0, str(SCRIPT.parent))  # it imports its siblings genesis_identify, ...
-    try:
-        spec = importlib.util.spec_from_file_location("genesis_model_error", SCRIPT)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
-    return module
+    return load_script(SCRIPT)
 
 
 @pytest.fixture(scope="module")

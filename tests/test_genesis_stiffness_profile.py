@@ -8,9 +8,7 @@ report gathers the rows, writes the section and the plot.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
@@ -18,6 +16,7 @@ import pytest
 from mosiv_framework.pipeline.run import generate_scene
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.testing.pytest_plugin import require_simulator
+from mosiv_framework.testing.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "genesis_stiffness_profile.py"
@@ -27,14 +26,7 @@ MODEL = ["--laws", "own", "--contact", "multi_field", "--grid", "24", "--substep
 
 @pytest.fixture(scope="module")
 def bench():
-    sys.path.insert(0, str(SCRIPT.parent))  # it imports its siblings
-    try:
-        spec = importlib.util.spec_from_file_location("genesis_stiffness_profile", SCRIPT)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
-    return module
+    return load_script(SCRIPT)
 
 
 @pytest.fixture(scope="module")

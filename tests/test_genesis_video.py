@@ -5,13 +5,13 @@ for ours and CoupNeRF*, merged into the table."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shlex
-import sys
 from pathlib import Path
 
 import pytest
+
+from mosiv_framework.testing.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "benchmarks"
@@ -63,16 +63,8 @@ COUPNERF = [
 
 
 def _load(name: str):
-    # the scripts import their siblings, as they do when run from benchmarks/
-    sys.path.insert(0, str(BENCH))
-    try:
-        spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module  # its dataclasses look their module up by name
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(BENCH))
-    return module
+    # its dataclasses look their module up by name
+    return load_script(BENCH / f"{name}.py", register=True)
 
 
 def _row(scene, method, *, psnr, cd, time_s=100.0, gb=2.0, seed=0, stage1=None, ssim=0.95):

@@ -3,25 +3,20 @@ tiny pair on CPU with the wide ranges and the centre start."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
+
+from mosiv_framework.testing.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "identify_suite.py"
 
 
 def _suite():
-    # the script imports its sibling modules, as it does when run from benchmarks/
-    if str(SCRIPT.parent) not in sys.path:
-        sys.path.insert(0, str(SCRIPT.parent))
-    spec = importlib.util.spec_from_file_location("identify_suite", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    # the script imports its sibling modules when it runs, as from benchmarks/
+    return load_script(SCRIPT, keep_path=True)
 
 
 def test_parallel_parts_replace_their_scenes_rows_and_keep_the_others():

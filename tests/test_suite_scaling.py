@@ -3,13 +3,13 @@ run-to-run spread, and the whole command on CPU worker slots through a local Ray
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import random
-import sys
 from pathlib import Path
 
 import pytest
+
+from mosiv_framework.testing.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "benchmarks"
@@ -17,15 +17,7 @@ TINY = ROOT / "plugins" / "mosiv-genesis" / "tests" / "data" / "tiny_scene"
 
 
 def _load(name: str):
-    # the scripts import their siblings, as they do when run from benchmarks/
-    sys.path.insert(0, str(BENCH))
-    try:
-        spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(BENCH))
-    return module
+    return load_script(BENCH / f"{name}.py")
 
 
 def _row(future_cd: float, e_values: list[float]) -> dict:
