@@ -15,6 +15,7 @@ from mosiv_framework.pipeline import formats
 from mosiv_framework.pipeline.contact import contact_json, contact_modes, law_sets
 from mosiv_framework.pipeline.evaluate import plot_history, plot_parameters
 from mosiv_framework.pipeline.identify import identify
+from mosiv_framework.pipeline.landing import landing_friction
 from mosiv_framework.pipeline.library import library_params, pick_prototypes
 from mosiv_framework.pipeline.params import (
     GROUND_FRICTION,
@@ -250,7 +251,24 @@ def start_vector(
     )
     if getattr(section, "start", "defaults") == "centre":
         vector.move_to_centre()  # a data-independent start (identify.start)
+    if getattr(section, "ground_friction_start", "start") == "landing":
+        start_ground_at_landings(vector, targets, world)
     return vector, free
+
+
+def start_ground_at_landings(vector, targets: dict[int, torch.Tensor], world) -> None:
+    """The ground's coefficient set to the one the recorded landings show
+    (``landing.landing_friction`` over every target frame); where none can be read, to the
+    coefficient's default (GROUND_FRICTION.default) rather than the centre of its bounds."""
+    frames = min(t.shape[0] for t in targets.values())
+    value, found = landing_friction(targets, world, frames)
+    if value is None:
+        value = GROUND_FRICTION.default
+        log.info("no landing to read the ground friction from; it starts at %.3g", value)
+    else:
+        readings = ", ".join(f"object {x.object_id} frame {x.frame}: {x.ratio:.3g}" for x in found)
+        log.info("the ground friction starts at %.3g, read off the landings (%s)", value, readings)
+    vector.set_ground_friction(value)
 
 
 def recipe_ceilings(recipe, scene, families: dict[int, str], sim_options: dict) -> dict | None:

@@ -388,6 +388,17 @@ class ParameterVector:
                 u.copy_(self.specs[key].to_normalized(torch.tensor(centre)).clamp(0.0, 1.0))
         self.keep_stable()  # the centre's density can be below the one the ceilings assumed
 
+    def set_ground_friction(self, value: float) -> None:
+        """The ground's coefficient set to ``value`` (clamped to its bounds), whether it is
+        identified or held fixed; a vector without a ground is left alone."""
+        value = min(GROUND_FRICTION.upper, max(GROUND_FRICTION.lower, float(value)))
+        with torch.no_grad():
+            if "ground_friction" in self.normalized:
+                u = GROUND_FRICTION.to_normalized(torch.tensor(value))
+                self.normalized["ground_friction"].copy_(u.clamp(0.0, 1.0))
+            elif 0 in self.fixed and "ground_friction" in self.fixed[0]:
+                self.fixed[0]["ground_friction"] = value
+
     def physical(self) -> SimulationParams:
         """The SimulationParams these leaves stand for (differentiable w.r.t. the leaves)."""
         objects = {}

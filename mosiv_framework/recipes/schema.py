@@ -63,6 +63,9 @@ VELOCITY_WINDOWS = ("free", "observed")
 LIBRARY_SCOPES = ("family", "all")
 #: where the parameters start: the law defaults, or the centre of each law's bounds
 IDENTIFY_STARTS = ("defaults", "centre")
+#: where the ground's coefficient starts: as ``start`` puts it, or read off the recorded
+#: landings (``pipeline.landing``)
+GROUND_FRICTION_STARTS = ("start", "landing")
 #: how the intervals are estimated: the loss read as a Gaussian likelihood (right when the
 #: model is), or the sandwich covariance over frame blocks (``pipeline.sandwich``)
 INTERVAL_METHODS = ("laplace", "sandwich")
@@ -100,6 +103,10 @@ class IdentifySection:
     start: where the law parameters start: "defaults" (each law's default values) or "centre"
     (the centre of each law's bounds, geometric for scale parameters such as E, 1e5 Pa for
     1e3-1e7 Pa, and at most the stiffness ceiling: a start that knows nothing of the data);
+    ground_friction_start: where the ground's Coulomb coefficient starts: "start" (as ``start``
+    puts it: the default 0.3, or 1.0, the centre of 0-2) or "landing" (the largest ratio of
+    tangential to normal impulse over the observed landings of bodies clear of the others,
+    ``mosiv_framework.pipeline.landing``; the default where no landing can be read);
     global_candidates: before the parameter phase, roll out this many scrambled Sobol
     candidates over all objects' identified parameters jointly, in log space for scale
     parameters and within the law bounds and stiffness ceilings, and start the descent from
@@ -184,6 +191,7 @@ class IdentifySection:
     library_scope: str = "family"
     library_sweeps: int = 2
     start: str = "defaults"
+    ground_friction_start: str = "start"
     #: off by default: on the quickstart scene from the centre start, the best of 16 candidates
     #: (a yield stress of 4e5 Pa that no impact reaches, so its gradient is 0) led the descent
     #: to a future Chamfer distance of 2590 mm^2 against 265 without the stage (from the law
@@ -215,6 +223,7 @@ class IdentifySection:
                 ("velocity_window", VELOCITY_WINDOWS),
                 ("library_scope", LIBRARY_SCOPES),
                 ("start", IDENTIFY_STARTS),
+                ("ground_friction_start", GROUND_FRICTION_STARTS),
                 ("interval_method", INTERVAL_METHODS),
                 ("contact", IDENTIFY_CONTACT),
                 ("law_choice", IDENTIFY_LAW_CHOICE),
