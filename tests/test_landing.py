@@ -10,9 +10,12 @@ the parameter vector's coefficient, the default where nothing can be read.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from mosiv_framework.pipeline.landing import landing_friction, landings
 from mosiv_framework.pipeline.params import GROUND_FRICTION, ParameterVector
@@ -74,12 +77,13 @@ def test_a_body_that_stops_sliding_gives_a_lower_bound_and_the_largest_ratio_win
 
 
 def test_no_ground_no_landing_or_a_neighbour_reads_nothing():
-    flying = _landing(0.3, vz=2.0, height=0.5)  # still in the air at the last frame
+    flying = _landing(0.3, vz=3.0, height=0.5)  # still in the air at the last frame
+    assert float(flying[:, :, 2].min()) > 0.1
     assert landing_friction(_points(flying), WORLD, 16) == (None, [])
     no_ground = World((-1, -1, 0), (1, 1, 1), ground_height=None, fps=FPS)
     assert landing_friction(_points(_landing(0.3)), no_ground, 16) == (None, [])
-    # a second body 5 mm beside the first: its push would count as friction
-    beside = _landing(0.3, start_x=0.045)
+    # a second body 10 mm beside the first (the clearance is 15 mm): its push would count
+    beside = _landing(0.3, start_x=0.04)
     assert landings(_points(_landing(0.3), beside), WORLD, 16) == []
     # the landing must lie inside the frames given
     landed = landings(_points(_landing(0.3)), WORLD, 16)[0].frame
@@ -114,7 +118,7 @@ def test_the_start_vector_takes_the_coefficient_whether_identified_or_fixed():
     v0 = {1: torch.zeros(3)}
     identified = ParameterVector.create({1: "elastic"}, v0, ground_friction=0.3)
     identified.set_ground_friction(0.12)
-    assert float(identified.physical().ground_friction) == pytest.approx(0.12, rel=1e-5)
+    assert float(identified.physical().ground_friction.detach()) == pytest.approx(0.12, rel=1e-5)
     fixed = ParameterVector.create(
         {1: "elastic"}, v0, ground_friction=0.3, identify_ground_friction=False
     )
@@ -130,8 +134,47 @@ def test_identification_starts_the_ground_at_the_landings_or_at_the_default():
     vector.move_to_centre()  # the data-independent start puts the coefficient at 1.0
     assert float(vector.physical().ground_friction) == pytest.approx(1.0, rel=1e-5)
     targets = {1: torch.tensor(_landing(0.2, vx=3.0), dtype=torch.float32)}
-    start_ground_at_landings(vector, targets, WORLD)
-    assert float(vector.physical().ground_friction) == pytest.approx(0.2, rel=0.03)
-    flying = {1: torch.tensor(_landing(0.2, vz=2.0, height=0.5), dtype=torch.float32)}
-    start_ground_at_landings(vector, flying, WORLD)
+    landed = landings({1: targets[1]}, WORLD, 16)[0].frame
+    start_ground_at_landings(vector, targets, WORLD, landed + 2)  # the landing not yet seen
     assert float(vector.physical().ground_friction) == pytest.approx(GROUND_FRICTION.default)
+    start_ground_at_landings(vector, targets, WORLD, 16)
+    assert float(vector.physical().ground_friction) == pytest.approx(0.2, rel=0.03)
+    flying = {1: torch.tensor(_landing(0.2, vz=3.0, height=0.5), dtype=torch.float32)}
+    start_ground_at_landings(vector, flying, WORLD, 16)
+    assert float(vector.physical().ground_friction) == pytest.approx(GROUND_FRICTION.default)
+
+
+def test_the_recipe_option_reads_only_the_frames_the_parameter_phase_fits():
+    """``start_vector`` with ``identify.ground_friction_start: landing``: the landing read when
+    it lies in the observed frames, not when only the future or a held-out tail shows it; the
+    option left at "start" keeps the stage key of runs made before it existed."""
+    from types import SimpleNamespace
+
+    from mosiv_framework.pipeline.identification import start_vector
+    from mosiv_framework.pipeline.run import stage_keys
+    from mosiv_framework.recipes import load_recipe
+
+    root = Path(__file__).resolve().parents[1]
+    targets = {1: torch.tensor(_landing(0.2, vx=3.0), dtype=torch.float32)}
+    landed = landings(targets, WORLD, 16)[0].frame
+
+    def start(observed, **identify):
+        sets = [f"identify.{k}={v}" for k, v in identify.items()]
+        recipe = load_recipe(root / "recipes" / "quickstart.yaml", ["identify.start=centre", *sets])
+        scene = SimpleNamespace(
+            world=WORLD, fps=FPS, gravity=WORLD.gravity, observed_frames=observed
+        )
+        vector, _ = start_vector(recipe, scene, {1: "elastic"}, targets, {})
+        return float(vector.physical().ground_friction)
+
+    assert start(16, ground_friction_start="landing") == pytest.approx(0.2, rel=0.03)
+    assert start(16) == pytest.approx(1.0, rel=1e-5)  # the centre start, as before
+    assert start(landed + 2, ground_friction_start="landing") == pytest.approx(0.3)
+    held = start(landed + 5, ground_friction_start="landing", holdout_frames=3)
+    assert held == pytest.approx(GROUND_FRICTION.default)
+    recipe = load_recipe(root / "recipes" / "quickstart.yaml")
+    plain = OmegaConf.to_container(recipe, resolve=True)
+    before = {k: v for k, v in plain["identify"].items() if k != "ground_friction_start"}
+    assert stage_keys(plain)["identify"] == stage_keys({**plain, "identify": before})["identify"]
+    landing = {**plain, "identify": {**plain["identify"], "ground_friction_start": "landing"}}
+    assert stage_keys(landing)["identify"] != stage_keys(plain)["identify"]

@@ -252,15 +252,17 @@ def start_vector(
     if getattr(section, "start", "defaults") == "centre":
         vector.move_to_centre()  # a data-independent start (identify.start)
     if getattr(section, "ground_friction_start", "start") == "landing":
-        start_ground_at_landings(vector, targets, world)
+        # only the frames the parameter phase fits: neither the future nor a held-out tail
+        frames = scene.observed_frames - int(getattr(section, "holdout_frames", 0) or 0)
+        start_ground_at_landings(vector, targets, world, frames)
     return vector, free
 
 
-def start_ground_at_landings(vector, targets: dict[int, torch.Tensor], world) -> None:
-    """The ground's coefficient set to the one the recorded landings show
-    (``landing.landing_friction`` over every target frame); where none can be read, to the
-    coefficient's default (GROUND_FRICTION.default) rather than the centre of its bounds."""
-    frames = min(t.shape[0] for t in targets.values())
+def start_ground_at_landings(vector, targets: dict[int, torch.Tensor], world, frames: int) -> None:
+    """The ground's coefficient set to the one the landings within the first ``frames`` target
+    frames show (``landing.landing_friction``); where none can be read, to the coefficient's
+    default (GROUND_FRICTION.default) rather than the centre of its bounds."""
+    frames = min([frames, *(t.shape[0] for t in targets.values())])
     value, found = landing_friction(targets, world, frames)
     if value is None:
         value = GROUND_FRICTION.default

@@ -7,8 +7,10 @@ happens inside it. Over a window in which a body lands on the table and touches 
     J_t = m |v_t(b) - v_t(a)|                         its tangential (friction) impulse
 
 with v the centroid's velocity. Coulomb friction gives J_t <= mu J_n, with equality while the
-body slides throughout; a body that stops sliding gives less. So J_t / J_n of each landing
-is a lower bound on mu, and the largest over the landings is the estimate. The masses cancel.
+body's contact slides throughout; a body that stops sliding, or whose contact stops while it
+rolls or tumbles, gives less. So J_t / J_n of an isolated landing is a lower bound on mu, and
+the largest over the landings is the estimate. The masses cancel. On recorded data a
+neighbour's push or the frame differences can also take a reading above mu.
 
 Identification starts the coefficient here with ``identify.ground_friction_start: landing``
 (docs/PHYSICS.md, Ground friction): the data-independent start (the centre of 0-2) is ten
@@ -48,44 +50,41 @@ class Landing:
 
 def landings(points: dict[int, torch.Tensor], world: World, frames: int) -> list[Landing]:
     """Each body's first landing within the first ``frames`` frames of ``points`` (object id
-    -> [F, N, 3] m) that is clear of the other bodies and strong enough to read.
+    -> [F, N, 3] m) that is clear of the other bodies and strong enough to read; a body that
+    starts on the table, or lands too near the first or the last frame, is not read.
 
-    The window runs from the frame before the landing frame f to the frame after it; the
-    velocities at its ends are the centroid differences over the frames just outside it
-    (f - 2 -> f - 1 and f + 1 -> f + 2), so frames f - 2 to f + 2 must be recorded.
+    The table is the plane z = ``world.ground_height``. Around the landing frame f the
+    centroid's velocities are the differences f - 2 -> f - 1 and f + 1 -> f + 2, which stand
+    for the midpoints f - 1.5 and f + 1.5, three frames apart; the table's impulse per unit
+    mass between them is the velocity change less gravity's share, split into its normal (z)
+    and tangential parts.
     """
     if world.ground_height is None:
         return []
-    up = -np.asarray(world.gravity, dtype=float)
-    g = float(np.linalg.norm(up))
-    if g == 0:
-        return []
-    up /= g
+    gravity = np.asarray(world.gravity, dtype=float)
     dt = 1.0 / world.fps
     clouds = {k: p[:frames].detach().cpu().double().numpy() for k, p in points.items()}
     out = []
     for k, cloud in clouds.items():
+        if cloud.shape[1] < 2 or not np.isfinite(cloud).all():
+            continue
         spacing = point_spacing(points[k][0])
-        heights = cloud @ up - world.ground_height
+        heights = cloud[:, :, 2] - world.ground_height
         touching = np.nonzero(heights.min(axis=1) < LANDING_SPACINGS * spacing)[0]
         if not len(touching):
             continue
         f = int(touching[0])
         if f < 2 or f + 2 >= len(cloud):
             continue
-        window = range(f - 2, f + 3)
-        if not _clear(k, clouds, window, CLEAR_SPACINGS * spacing):
+        if not _clear(k, clouds, range(f - 2, f + 3), CLEAR_SPACINGS * spacing):
             continue
         centroids = cloud.mean(axis=1)
         before = (centroids[f - 1] - centroids[f - 2]) / dt
         after = (centroids[f + 2] - centroids[f + 1]) / dt
-        change = after - before
-        # the velocities stand for the midpoints of their frame pairs, three frames apart
-        normal = float(change @ up) + g * 3 * dt
-        tangential = float(np.linalg.norm(change - (change @ up) * up))
-        if float(change @ up) < MIN_NORMAL_CHANGE:
+        impulse = after - before - gravity * 3 * dt
+        if float(after[2] - before[2]) < MIN_NORMAL_CHANGE or impulse[2] <= 0:
             continue
-        out.append(Landing(k, f, tangential / normal))
+        out.append(Landing(k, f, float(np.linalg.norm(impulse[:2])) / float(impulse[2])))
     return out
 
 

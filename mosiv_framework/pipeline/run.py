@@ -170,11 +170,13 @@ def stage_keys(plain: dict, *, earlier: bool = False) -> dict[str, str]:
 def _identify_key(section: dict) -> dict:
     """What of the identify section its stage key covers: with ``law_choice: fixed`` the law
     alternatives are never tried, so neither they nor the choice enter the key, and a
-    ``global_polish`` or ``holdout_frames`` of 0 is left out too (runs made before those
-    existed keep their keys)."""
+    ``global_polish`` or ``holdout_frames`` of 0 and a ``ground_friction_start`` of "start"
+    are left out too (runs made before those existed keep their keys)."""
     for key in ("global_polish", "holdout_frames"):
         if not section.get(key, 0):
             section = {k: v for k, v in section.items() if k != key}
+    if section.get("ground_friction_start", "start") == "start":
+        section = {k: v for k, v in section.items() if k != "ground_friction_start"}
     if section.get("law_choice", "fixed") != "fixed":
         return section
     return {k: v for k, v in section.items() if k not in ("law_choice", "law_alternatives")}
