@@ -30,9 +30,11 @@ def test_a_scene_without_a_landing_reads_nothing_and_the_section_says_so(bench, 
     notes = tmp_path / "RESULTS.md"
     notes.write_text("# Results\n\n## From video\n\nkept\n")
     argv = ["--scenes", str(tmp_path / "suite"), "--out", str(tmp_path / "out")]
+    argv += ["--clearances", "1", "2"]
     assert bench.main([*argv, "--write-results", str(notes), "--data", "one fixture"]) == 0
     rows = json.loads((tmp_path / "out" / "landing_friction.json").read_text())["rows"]
     assert len(rows) == 1 and rows[0]["estimate"] is None and rows[0]["landings"] == []
+    assert rows[0]["by_clearance"] == {"1": None, "2": None}
     assert rows[0]["truth"] == pytest.approx(0.1)
     text = notes.read_text()
     assert "## Ground friction from the landings on Genesis scenes" in text
@@ -47,8 +49,11 @@ def test_the_summary_compares_each_estimate_with_its_truth(bench):
         return {"suite": "dev", "scene": scene, "materials": ["elastic"], "estimate": estimate,
                 "truth": 0.1, "landings": landings}  # fmt: skip
 
-    text = bench.markdown(
-        [row("A", 0.05, [0.05, 0.02]), row("B", 0.09, [0.09]), row("C", None, [])]
-    )
+    rows = [row("A", 0.05, [0.05, 0.02]), row("B", 0.09, [0.09]), row("C", None, [])]
+    for r, closer in zip(rows, (0.05, 0.3, 0.12), strict=True):
+        r["by_clearance"] = {"1": closer, "2": None}
+    text = bench.markdown(rows)
+    assert "| dev | 1 | 3 of 3 | median 1.20, range 0.50-3.00 |" in text
+    assert "| dev | 2 | 0 of 3 | - |" in text
     assert "| dev | A | elastic | 1: 9, 0.050; 2: 9, 0.020 | 0.050 | 0.1 |" in text
     assert "dev: read on 2 of 3 scenes, estimate / truth median 0.70, range 0.50-0.90." in text

@@ -48,10 +48,17 @@ class Landing:
     ratio: float
 
 
-def landings(points: dict[int, torch.Tensor], world: World, frames: int) -> list[Landing]:
+def landings(
+    points: dict[int, torch.Tensor],
+    world: World,
+    frames: int,
+    *,
+    clear_spacings: float = CLEAR_SPACINGS,
+) -> list[Landing]:
     """Each body's first landing within the first ``frames`` frames of ``points`` (object id
-    -> [F, N, 3] m) that is clear of the other bodies and strong enough to read; a body that
-    starts on the table, or lands too near the first or the last frame, is not read.
+    -> [F, N, 3] m) that is clear of the other bodies (no point of another within
+    ``clear_spacings`` point spacings) and strong enough to read; a body that starts on the
+    table, or lands too near the first or the last frame, is not read.
 
     The table is the plane z = ``world.ground_height``. Around the landing frame f the
     centroid's velocities are the differences f - 2 -> f - 1 and f + 1 -> f + 2, which stand
@@ -76,7 +83,7 @@ def landings(points: dict[int, torch.Tensor], world: World, frames: int) -> list
         f = int(touching[0])
         if f < 2 or f + 2 >= len(cloud):
             continue
-        if not _clear(k, clouds, range(f - 2, f + 3), CLEAR_SPACINGS * spacing):
+        if not _clear(k, clouds, range(f - 2, f + 3), clear_spacings * spacing):
             continue
         centroids = cloud.mean(axis=1)
         before = (centroids[f - 1] - centroids[f - 2]) / dt
@@ -101,12 +108,16 @@ def _clear(k: int, clouds: dict[int, np.ndarray], window: range, distance: float
 
 
 def landing_friction(
-    points: dict[int, torch.Tensor], world: World, frames: int
+    points: dict[int, torch.Tensor],
+    world: World,
+    frames: int,
+    *,
+    clear_spacings: float = CLEAR_SPACINGS,
 ) -> tuple[float | None, list[Landing]]:
     """The ground's Coulomb coefficient estimated from the landings in the first ``frames``
     frames (the largest J_t / J_n, clamped to 0-2), or None without a readable landing; and
     the landings it read."""
-    found = landings(points, world, frames)
+    found = landings(points, world, frames, clear_spacings=clear_spacings)
     if not found:
         return None, found
     return min(2.0, max(0.0, max(x.ratio for x in found))), found
