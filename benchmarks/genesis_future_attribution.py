@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import shlex
 import statistics
 import sys
 import time
@@ -43,7 +42,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import torch
-from genesis_identify import _device_name, replace_section
+from genesis_identify import _device_name, replace_section, shown_command
 from genesis_model_error import (
     _num,
     frame0_particles,
@@ -396,12 +395,9 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "attribution.md").write_text(markdown(rows))
     print(markdown(rows))
     if args.write_results is not None:
-        shown = list(argv)
-        for flag in ("--measured-with", "--data"):
-            if flag in shown:
-                at = shown.index(flag)
-                del shown[at : at + 2]
-        command = "python benchmarks/genesis_future_attribution.py " + shlex.join(shown)
+        command = shown_command(
+            "benchmarks/genesis_future_attribution.py", argv, drop=("--measured-with", "--data")
+        )
         body = section_text(
             rows, command=args.measured_with or command, report=command, data=args.data
         )

@@ -217,6 +217,17 @@ def run_parallel(args, names: list[str], scale: dict) -> dict:
     return save_table(args.out, rows, recipe=args.recipe, sets=args.set)
 
 
+def shown_command(script: str, argv: list[str], *, drop: tuple[str, ...] = ()) -> str:
+    """``python script argv`` as a results file shows it, without the flags in ``drop`` and
+    their values (text that describes the run, such as --data, is not part of its command)."""
+    shown = list(argv)
+    for flag in drop:
+        if flag in shown:
+            at = shown.index(flag)
+            del shown[at : at + 2]
+    return f"python {script} " + shlex.join(shown)
+
+
 def command_line(argv: list[str], *, script: str = "benchmarks/genesis_identify.py") -> str:
     """The command as run (``script`` with ``argv``; genesis_resolution names its own), the
     scene and output folders named SCENES and OUT and other paths relative to the repository

@@ -19,13 +19,12 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import shlex
 import statistics
 import sys
 from pathlib import Path
 
 import torch
-from genesis_identify import find_scenes, replace_section
+from genesis_identify import find_scenes, replace_section, shown_command
 from genesis_model_error import GENESIS_GROUND_FRICTION
 from identify_suite import code_version
 
@@ -163,11 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "landing_friction.md").write_text(markdown(rows))
     print(markdown(rows))
     if args.write_results is not None:
-        shown = list(argv)
-        if "--data" in shown:
-            at = shown.index("--data")
-            del shown[at : at + 2]
-        command = "python benchmarks/genesis_landing_friction.py " + shlex.join(shown)
+        command = shown_command("benchmarks/genesis_landing_friction.py", argv, drop=("--data",))
         body = section_text(rows, command=command, data=args.data)
         text = args.write_results.read_text()
         args.write_results.write_text(

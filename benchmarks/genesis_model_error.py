@@ -37,7 +37,6 @@ import argparse
 import datetime
 import itertools
 import json
-import shlex
 import statistics
 import sys
 import time
@@ -45,7 +44,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import torch
-from genesis_identify import _device_name, _fill, find_scenes, replace_section
+from genesis_identify import _device_name, _fill, find_scenes, replace_section, shown_command
 from identify_suite import code_version
 
 from mosiv_framework.errors import SimulationDiverged
@@ -352,11 +351,10 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "model_error.md").write_text(markdown(rows))
     print(markdown(rows))
     if args.write_results is not None:
-        shown = list(argv)
-        if "--measured-with" in shown:  # the report's own command, without the quoted one
-            at = shown.index("--measured-with")
-            del shown[at : at + 2]
-        command = "python benchmarks/genesis_model_error.py " + shlex.join(shown)
+        # the report's own command, without the quoted one
+        command = shown_command(
+            "benchmarks/genesis_model_error.py", argv, drop=("--measured-with",)
+        )
         measured = args.measured_with or command
         body = section_text(rows, command=measured, report=command)
         text = args.write_results.read_text()
