@@ -185,7 +185,7 @@ def scene_row(
         "scene": name,
         "contact": contact,
         "objects": object_entries(metrics, history_laplace(history)),
-        "identified": identified_values(identified),
+        "identified": identified_values(identified, history),
         "observed_cd_mm2": metrics["observed"]["cd_mm2"],
         "observed_emd_mm": metrics["observed"]["emd_mm"],
         "future_cd_mm2": future.get("cd_mm2"),
@@ -198,18 +198,35 @@ def scene_row(
     }
 
 
-def identified_values(identified: dict) -> dict | None:
+def identified_values(identified: dict, history: list[dict] | None = None) -> dict | None:
     """Every identified value of a run (identified.json): each object's law parameters and
     initial velocity, and the ground's friction, also those the truth has no value for, so
-    that a row can be rolled out again without the run folder; None without them."""
+    that a row can be rolled out again without the run folder; None without them. With the
+    run's identify ``history``, also where the ground's friction started
+    (``ground_friction_start``, see ``ground_friction_start``)."""
     objects = identified.get("objects")
     if not objects:
         return None
     keep = ("family", "params", "initial_velocity")
-    return {
+    values = {
         "objects": {k: {n: o[n] for n in keep if n in o} for k, o in objects.items()},
         "ground_friction": identified.get("ground_friction"),
     }
+    start = ground_friction_start(history)
+    if start is not None:
+        values["ground_friction_start"] = start
+    return values
+
+
+def ground_friction_start(history: list[dict] | None) -> float | None:
+    """The ground's friction identification started from (the recipe's start, or the landings'
+    reading with ``identify.ground_friction_start: landing``): its value in the first record of
+    the velocity phase, which moves only the initial velocities; None where the history has no
+    such record or the scene no ground."""
+    for record in history or []:
+        if record.get("phase") == "velocity":
+            return (record.get("values") or {}).get("ground_friction")
+    return None
 
 
 def history_laplace(history: list[dict] | None) -> dict | None:

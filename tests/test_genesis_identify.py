@@ -172,6 +172,28 @@ def test_a_missed_interval_lowers_the_coverage():
         "ground_friction": 0.45,
     }
     assert s["coverage"]["count"] == 1 and s["coverage"]["n"] == 2  # the two E intervals
+    assert "ground_friction_start" not in row["identified"]  # no history, no start
+
+
+def test_a_row_keeps_where_the_ground_friction_started():
+    """The start is the velocity phase's value: that phase moves only the initial velocities,
+    the global stage and the parameter phase after it move the coefficient."""
+    bench = _bench()
+    m = _metrics(e_true=[1e5, 1e5], e_value=[1e5, 1e5], rho1=1000.0, kind="two-sided", future_cd=1)
+    history = [
+        {"phase": "velocity", "iteration": 0, "values": {"ground_friction": 0.094}},
+        {"phase": "velocity", "iteration": 1, "values": {"ground_friction": 0.094}},
+        {"phase": "global", "values": {"ground_friction": 0.2}},
+        {"phase": "params", "iteration": 0, "values": {"ground_friction": 0.31}},
+    ]
+    row = bench.scene_row("A", m, time_s=1.0, data={}, device="CPU", code="c", history=history)
+    assert row["identified"]["ground_friction_start"] == pytest.approx(0.094)
+    assert row["identified"]["ground_friction"] == pytest.approx(0.45)  # identified.json's
+    # a history without a velocity record (a run that skipped the phase) says nothing
+    later = bench.scene_row(
+        "A", m, time_s=1.0, data={}, device="CPU", code="c", history=history[2:]
+    )
+    assert "ground_friction_start" not in later["identified"]
     # the scene table ends in the identified ground friction, '-' where a row has none
     scene_lines = [line for line in bench.markdown(bench.make_table([row])).splitlines()
                    if line.startswith("| A | ")]  # fmt: skip
