@@ -220,9 +220,10 @@ def identified_values(identified: dict, history: list[dict] | None = None) -> di
 
 def ground_friction_start(history: list[dict] | None) -> float | None:
     """The ground's friction identification started from (the recipe's start, or the landings'
-    reading with ``identify.ground_friction_start: landing``): its value in the first record of
-    the velocity phase, which moves only the initial velocities; None where the history has no
-    such record or the scene no ground."""
+    reading with ``identify.ground_friction_start: landing``, the default 0.3 where none could
+    be read): its value in the first record of the velocity phase, which moves only the initial
+    velocities; None where the history has no such record (``identify.velocity_iterations``
+    0). A scene without a ground records the default too."""
     for record in history or []:
         if record.get("phase") == "velocity":
             return (record.get("values") or {}).get("ground_friction")

@@ -176,14 +176,14 @@ def test_a_missed_interval_lowers_the_coverage():
 
 
 def test_a_row_keeps_where_the_ground_friction_started():
-    """The start is the velocity phase's value: that phase moves only the initial velocities,
-    the global stage and the parameter phase after it move the coefficient."""
+    """The start is the velocity phase's value: that phase moves only the initial velocities;
+    the contact modes' brief fits and the parameter phase after it move the coefficient."""
     bench = _bench()
     m = _metrics(e_true=[1e5, 1e5], e_value=[1e5, 1e5], rho1=1000.0, kind="two-sided", future_cd=1)
     history = [
         {"phase": "velocity", "iteration": 0, "values": {"ground_friction": 0.094}},
         {"phase": "velocity", "iteration": 1, "values": {"ground_friction": 0.094}},
-        {"phase": "global", "values": {"ground_friction": 0.2}},
+        {"phase": "contact_fit", "values": {"ground_friction": 0.2}},
         {"phase": "params", "iteration": 0, "values": {"ground_friction": 0.31}},
     ]
     row = bench.scene_row("A", m, time_s=1.0, data={}, device="CPU", code="c", history=history)
