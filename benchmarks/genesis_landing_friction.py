@@ -96,22 +96,24 @@ def markdown(rows: list[dict]) -> str:
 
 def _clearance_cell(rows: list[dict]) -> str:
     """'3 of 4 | median 0.67, range 0.53-0.94' for the rows' estimates against their truth."""
-    read = [r["estimate"] / r["truth"] for r in rows if r["estimate"] is not None and r["truth"]]
-    if not read:
-        return f"0 of {len(rows)} | -"
-    spread = f"median {statistics.median(read):.2f}, range {min(read):.2f}-{max(read):.2f}"
-    return f"{len(read)} of {len(rows)} | {spread}"
+    ratios = _ratios(rows)
+    return f"{len(ratios)} of {len(rows)} | {_spread(ratios) if ratios else '-'}"
 
 
 def _summary(rows: list[dict]) -> str:
-    read = [r for r in rows if r["estimate"] is not None and r["truth"]]
-    if not read:
+    ratios = _ratios(rows)
+    if not ratios:
         return f"no landing read on any of the {len(rows)} scenes."
-    ratios = [r["estimate"] / r["truth"] for r in read]
-    return (
-        f"read on {len(read)} of {len(rows)} scenes, estimate / truth median "
-        f"{statistics.median(ratios):.2f}, range {min(ratios):.2f}-{max(ratios):.2f}."
-    )
+    return f"read on {len(ratios)} of {len(rows)} scenes, estimate / truth {_spread(ratios)}."
+
+
+def _ratios(rows: list[dict]) -> list[float]:
+    """estimate / truth of each row that read a landing."""
+    return [r["estimate"] / r["truth"] for r in rows if r["estimate"] is not None and r["truth"]]
+
+
+def _spread(ratios: list[float]) -> str:
+    return f"median {statistics.median(ratios):.2f}, range {min(ratios):.2f}-{max(ratios):.2f}"
 
 
 def section_text(rows: list[dict], *, command: str, data: str) -> str:
