@@ -310,16 +310,14 @@ def defaults_line(study: dict) -> str:
             for u in d["unfinished"]
         )
         return (
-            f"Chosen defaults: none: the study is unfinished ({waiting}). The rule, once every "
+            f"The study's choice: none: the study is unfinished ({waiting}). The rule, once every "
             f"configuration has run: {d['rule']}."
         )
     if d["grid"] is None:
-        return (
-            f"Chosen defaults: none (no configuration ran on every scene; the rule: {d['rule']})."
-        )
+        return f"The study's choice: none (no configuration ran on every scene; the rule: {d['rule']})."
     ref = d["reference"]
     return (
-        f"Chosen defaults: `simulator.grid={d['grid']} simulator.substeps={d['substeps']}`, "
+        f"The study's choice: `simulator.grid={d['grid']} simulator.substeps={d['substeps']}`, "
         f"{d['rule']}: grid {ref['grid']} with {ref['substeps']} substeps."
     )
 

@@ -209,7 +209,7 @@ def test_no_defaults_without_a_configuration_that_ran_every_scene():
     rows = [_row("A", 16, 100, 10, 1), _row("B", 16, 100, refused=True)]
     study = report.make_study(rows, tolerance=5.0, tolerance_deg=1.0)
     assert study["defaults"]["grid"] is None
-    assert report.defaults_line(study).startswith("Chosen defaults: none")
+    assert report.defaults_line(study).startswith("The study's choice: none")
 
 
 def test_a_configuration_with_scenes_still_to_run_blocks_the_choice_and_is_compared_paired():
@@ -227,7 +227,7 @@ def test_a_configuration_with_scenes_still_to_run_blocks_the_choice_and_is_compa
     assert d["grid"] is None
     assert d["unfinished"] == [{"grid": 64, "substeps": 100, "missing": ["B"]}]
     line = report.defaults_line(study)
-    assert line.startswith("Chosen defaults: none: the study is unfinished")
+    assert line.startswith("The study's choice: none: the study is unfinished")
     assert "grid 64 with 100 substeps has no row for B" in line
     paired = {c["grid"]: c for c in study["paired"]["configs"]}
     assert study["paired"]["scenes"] == ["A"]
