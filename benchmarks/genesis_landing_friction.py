@@ -12,6 +12,13 @@ plane's ``coup_friction``; docs/PHYSICS.md, Ground friction), or the one gt/para
 Writes ``OUT/landing_friction.json`` (one row per scene, with the machine and code version)
 and ``OUT/landing_friction.md``; ``--write-results FILE`` replaces the section "Ground friction
 from the landings on Genesis scenes" there, ``--data`` saying what the scenes are.
+
+``--noise centroid:2 points:5 --seeds 3`` reads each scene again with reconstruction noise
+added to its points, as a reconstruction from video would carry it (``perturbed``): ``points``
+moves every point by its own Gaussian offset of that many mm per coordinate and frame,
+``centroid`` moves all of a body's points together by one such offset per frame. The
+centroid's velocities are frame differences, so a body's common jitter enters the impulses
+whole, while independent offsets of its points average out.
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ import statistics
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 from genesis_identify import find_scenes, replace_section, shown_command
 from genesis_model_error import GENESIS_GROUND_FRICTION
@@ -37,16 +45,66 @@ SECTION = "Ground friction from the landings on Genesis scenes"
 SECTION_BEFORE = "Stiffness profile on Genesis scenes"
 
 
-def measure(folder: Path, clearances: tuple[float, ...] = ()) -> dict:
+#: the kinds of reconstruction noise ``perturbed`` adds
+NOISE_KINDS = ("points", "centroid")
+
+
+def perturbed(
+    points: dict[int, torch.Tensor], kind: str, sigma_mm: float, seed: int
+) -> dict[int, torch.Tensor]:
+    """A copy of ``points`` (object id -> [F, N, 3] m) with Gaussian noise of ``sigma_mm`` mm
+    per coordinate: ``points``, an offset of its own for every point and frame; ``centroid``,
+    one offset per body and frame shared by all of its points."""
+    if kind not in NOISE_KINDS:
+        raise ValueError(f"noise kind {kind!r}: use one of {', '.join(NOISE_KINDS)}")
+    rng = np.random.default_rng(seed)
+    out = {}
+    for k, cloud in sorted(points.items()):
+        frames, n, _ = cloud.shape
+        shape = (frames, n, 3) if kind == "points" else (frames, 1, 3)
+        noise = rng.normal(0.0, sigma_mm * 1e-3, size=shape)
+        out[k] = cloud + torch.as_tensor(noise, dtype=cloud.dtype)
+    return out
+
+
+def parse_noise(text: str) -> tuple[str, float]:
+    """'centroid:2' -> ('centroid', 2.0), with an error naming what is valid."""
+    kind, _, mm = text.partition(":")
+    try:
+        sigma = float(mm)
+    except ValueError:
+        sigma = -1.0
+    if kind not in NOISE_KINDS or sigma < 0:
+        raise argparse.ArgumentTypeError(
+            f"--noise {text!r}: write KIND:MM with KIND one of {', '.join(NOISE_KINDS)} and MM a "
+            "standard deviation in mm >= 0, e.g. centroid:2"
+        )
+    return kind, sigma
+
+
+def measure(
+    folder: Path,
+    clearances: tuple[float, ...] = (),
+    noise: tuple[tuple[str, float], ...] = (),
+    seeds: int = 3,
+) -> dict:
     """One scene's landings over its observed frames, the estimate and the truth; with
-    ``clearances`` (in point spacings) also the estimate at each of them."""
+    ``clearances`` (in point spacings) also the estimate at each of them, and with ``noise``
+    ((kind, mm) pairs) the estimate from ``seeds`` noisy copies of the points at each."""
     scene = read_scene(folder)
     points = {int(k): torch.as_tensor(v) for k, v in scene.gt_points().items()}
-    value, found = landing_friction(points, scene.world, scene.observed_frames)
+    frames = scene.observed_frames
+    value, found = landing_friction(points, scene.world, frames)
     other = {
-        f"{c:g}": landing_friction(points, scene.world, scene.observed_frames, clear_spacings=c)[0]
+        f"{c:g}": landing_friction(points, scene.world, frames, clear_spacings=c)[0]
         for c in clearances
     }
+    noisy = [
+        {"kind": kind, "mm": mm, "seed": seed, "estimate": landing_friction(
+            perturbed(points, kind, mm, seed), scene.world, frames)[0]}
+        for kind, mm in noise
+        for seed in range(seeds)
+    ]  # fmt: skip
     generator = scene.gt_params().get("generator_params") or {}
     truth = generator.get("ground_friction", GENESIS_GROUND_FRICTION)
     return {
@@ -58,6 +116,7 @@ def measure(folder: Path, clearances: tuple[float, ...] = ()) -> dict:
         "truth": truth,
         "landings": [{"object": x.object_id, "frame": x.frame, "ratio": x.ratio} for x in found],
         "by_clearance": other,
+        "noisy": noisy,
         "device": "CPU",
         "code": code_version(),
     }
@@ -91,7 +150,32 @@ def markdown(rows: list[dict]) -> str:
             for c in clearances:
                 at = [{**r, "estimate": (r.get("by_clearance") or {}).get(c)} for r in mine]
                 lines.append(f"| {suite} | {c} | {_clearance_cell(at)} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _noise_lines(rows)) + "\n"
+
+
+def _noise_lines(rows: list[dict]) -> list[str]:
+    """Per suite and noise level: how many (scene, seed) readings found a landing, and their
+    estimate / truth; the first line is the clean reading of the same scenes."""
+    levels = list(dict.fromkeys((n["kind"], n["mm"]) for r in rows for n in r.get("noisy") or []))
+    if not levels:
+        return []
+    lines = [
+        "",
+        "| suite | noise (mm, per coordinate) | readings with a landing | estimate / truth |",
+    ]
+    lines.append("|---|---|---|---|")
+    for suite in dict.fromkeys(r.get("suite", "-") for r in rows):
+        mine = [r for r in rows if r.get("suite", "-") == suite]
+        lines.append(f"| {suite} | none | {_clearance_cell(mine)} |")
+        for kind, mm in levels:
+            at = [
+                {"estimate": n["estimate"], "truth": r["truth"]}
+                for r in mine
+                for n in r.get("noisy") or []
+                if (n["kind"], n["mm"]) == (kind, mm)
+            ]
+            lines.append(f"| {suite} | {kind} {mm:g} | {_clearance_cell(at)} |")
+    return lines
 
 
 def _clearance_cell(rows: list[dict]) -> str:
@@ -144,6 +228,11 @@ def parse_args(argv: list[str] | None):
         "--clearances", nargs="*", type=float, default=[],
         help="also read each scene with these clearances (point spacings; the option's is 1.5)",
     )  # fmt: skip
+    ap.add_argument(
+        "--noise", nargs="*", type=parse_noise, default=[], metavar="KIND:MM",
+        help="also read each scene with this noise on its points (points:MM or centroid:MM)",
+    )  # fmt: skip
+    ap.add_argument("--seeds", type=int, default=3, help="noisy copies per --noise level")
     ap.add_argument("--data", default="the scenes of --scenes", help="what the scenes are")
     ap.add_argument("--write-results", type=Path, default=None, help="markdown file to update")
     return ap.parse_args(argv)
@@ -153,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = parse_args(argv)
     rows = [
-        measure(suite / name, tuple(args.clearances))
+        measure(suite / name, tuple(args.clearances), tuple(args.noise), args.seeds)
         for suite in args.scenes
         for name in find_scenes(suite, args.only)
     ]

@@ -57,3 +57,53 @@ def test_the_summary_compares_each_estimate_with_its_truth(bench):
     assert "| dev | 2 | 0 of 3 | - |" in text
     assert "| dev | A | elastic | 1: 9, 0.050; 2: 9, 0.020 | 0.050 | 0.1 |" in text
     assert "dev: read on 2 of 3 scenes, estimate / truth median 0.70, range 0.50-0.90." in text
+
+
+def test_centroid_noise_moves_a_body_rigidly_and_point_noise_point_by_point(bench):
+    import torch
+
+    cloud = torch.rand(6, 50, 3, dtype=torch.float64)
+    points = {1: cloud, 2: cloud + 1.0}
+    rigid = bench.perturbed(points, "centroid", 2.0, seed=0)
+    shift = rigid[1] - cloud
+    assert torch.allclose(shift, shift[:, :1].expand_as(shift))  # one offset per frame
+    assert shift[:, 0].std() > 0  # differing between frames
+    # 2 mm per coordinate: the offsets' spread over 6 frames x 3 coordinates is about 2e-3 m
+    assert 0.5e-3 < float(shift[:, 0].std()) < 4e-3
+    assert not torch.allclose(rigid[2] - points[2], shift)  # each body its own jitter
+    loose = bench.perturbed(points, "points", 2.0, seed=0)
+    offsets = loose[1] - cloud
+    assert float((offsets - offsets[:, :1]).abs().max()) > 1e-4  # points move apart
+    # the same seed gives the same copy; no noise gives the points back
+    assert torch.equal(bench.perturbed(points, "points", 2.0, seed=0)[1], loose[1])
+    assert torch.equal(bench.perturbed(points, "centroid", 0.0, seed=3)[2], points[2])
+    with pytest.raises(ValueError, match="points, centroid"):
+        bench.perturbed(points, "wind", 1.0, seed=0)
+
+
+@pytest.mark.parametrize("text", ["wind:2", "centroid:x", "centroid:-1", "centroid"])
+def test_a_bad_noise_level_names_what_is_valid(bench, text):
+    import argparse
+
+    with pytest.raises(argparse.ArgumentTypeError, match="KIND one of points, centroid"):
+        bench.parse_noise(text)
+    assert bench.parse_noise("points:2.5") == ("points", 2.5)
+
+
+def test_the_noise_table_counts_readings_per_level_against_the_clean_ones(bench):
+    def row(scene, estimate, noisy):
+        return {"suite": "dev", "scene": scene, "materials": ["elastic"], "estimate": estimate,
+                "truth": 0.1, "landings": [], "noisy": noisy}  # fmt: skip
+
+    def reading(kind, mm, seed, estimate):
+        return {"kind": kind, "mm": mm, "seed": seed, "estimate": estimate}
+
+    rows = [
+        row("A", 0.05, [reading("centroid", 2.0, 0, 0.2), reading("centroid", 2.0, 1, None)]),
+        row("B", None, [reading("centroid", 2.0, 0, 0.1), reading("centroid", 2.0, 1, 0.05)]),
+    ]
+    text = bench.markdown(rows)
+    assert "| dev | none | 1 of 2 | median 0.50, range 0.50-0.50 |" in text
+    # three of four readings found a landing: 2.0, 1.0 and 0.5 times the truth
+    assert "| dev | centroid 2 | 3 of 4 | median 1.00, range 0.50-2.00 |" in text
+    assert "noise" not in bench.markdown([{**r, "noisy": []} for r in rows])
