@@ -25,7 +25,6 @@ A run folder holds its rows as ``parts/SCENE.json`` or (as kept under benchmarks
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import shlex
 import statistics
@@ -33,6 +32,7 @@ import sys
 from pathlib import Path
 
 from genesis_identify import KEEP_MARKER, _fill, replace_section  # noqa: F401
+from genesis_identify_table import run_dates
 
 SECTION = "Contact mode on Genesis scenes"
 #: besides E, the parameter that tells each family apart (None: E only)
@@ -170,7 +170,8 @@ def section_text(
 ) -> str:
     scenes = sorted({r["scene"] for r in records})
     alone = sorted((set(runs[0]) | set(runs[1])) - set(scenes))
-    machines = sorted({row.get("device", "?") for run in runs for row in run.values()})
+    every = [row for run in runs for row in run.values()]
+    machines = sorted({row.get("device", "?") for row in every})
     codes = sorted(
         {str(row.get("code", "?")).split("+")[0] for run in runs for row in run.values()}
     )
@@ -187,8 +188,7 @@ def section_text(
             _fill(intro),
             "",
             f"- Command: `{command}`",
-            f"- Machine: {', '.join(machines)}. Date {datetime.date.today().isoformat()}. "
-            f"Code {', '.join(codes)}.",
+            f"- Machine: {', '.join(machines)}. Date {run_dates(every)}. Code {', '.join(codes)}.",
             f"- Data: {data}."
             + (f" Run one way only, not compared: {', '.join(alone)}." if alone else ""),
             "",

@@ -168,6 +168,7 @@ def scene_row(
     device: str,
     code: str,
     history: list[dict] | None = None,
+    date: str | None = None,
 ) -> dict:
     """One table row: the scene's objects (``object_entries``, with the Laplace intervals of
     ``history``, the run's identify/history.json entries), the contact the run identified
@@ -195,7 +196,16 @@ def scene_row(
         "data": data,
         "device": device,
         "code": code,
+        # the day the run ended, which the RESULTS section names (a merge can be days later)
+        "date": date or datetime.date.today().isoformat(),
     }
+
+
+def run_dates(rows: list[dict]) -> str:
+    """The days the rows' runs ended ('2026-11-30' or '2026-11-29 to 2026-11-30'); today for
+    rows written before rows kept their date."""
+    days = sorted({r.get("date") or datetime.date.today().isoformat() for r in rows})
+    return days[0] if len(days) == 1 else f"{days[0]} to {days[-1]}"
 
 
 def identified_values(identified: dict, history: list[dict] | None = None) -> dict | None:
@@ -594,6 +604,6 @@ def replace_section(
 
 
 def write_results(path: Path, table: dict, *, command: str) -> None:
-    date = datetime.date.today().isoformat()
+    date = run_dates([r for r in table["rows"] if "error" not in r])
     text = path.read_text() if path.is_file() else "# Results\n"
     path.write_text(replace_section(text, section_text(table, command=command, date=date)))

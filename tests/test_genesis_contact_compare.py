@@ -137,3 +137,16 @@ def test_the_data_line_names_the_scenes_given(tmp_path, compare_module):
     argv = [str(first), str(second), "--write-results", str(results)]
     compare_module.main(argv + ["--data", "4 development scenes, seeds 7000-7007"])
     assert "- Data: 4 development scenes, seeds 7000-7007." in results.read_text()
+
+
+def test_the_section_names_the_days_the_runs_ended(tmp_path, compare_module):
+    first = _write(
+        tmp_path / "a", [{**_row("E-S", [40.0], 10.0, 100.0, 900.0), "date": "2026-11-29"}], True
+    )
+    second = _write(
+        tmp_path / "b", [{**_row("E-S", [20.0], 12.0, 50.0, 1200.0), "date": "2026-11-30"}], True
+    )
+    results = tmp_path / "RESULTS.md"
+    results.write_text("# Results\n")
+    assert compare_module.main([str(first), str(second), "--write-results", str(results)]) == 0
+    assert "Date 2026-11-29 to 2026-11-30." in results.read_text()

@@ -3,6 +3,7 @@ and one end-to-end run on the committed tiny Genesis scene."""
 
 from __future__ import annotations
 
+import datetime
 import json
 import statistics
 import sys
@@ -531,3 +532,18 @@ def test_job_file_lists_one_part_run_per_scene_for_the_device_queue(tmp_path):
         assert words[words.index("--set") + 1] == "identify.holdout_frames=3"
     with pytest.raises(SystemExit):
         bench.main([*argv, "--job-file", str(jobs), "--merge"])
+
+
+def test_a_row_keeps_the_day_its_run_ended_and_the_section_names_the_days():
+    bench = _bench()
+    m = _metrics(e_true=[1e5, 1e5], e_value=[1e5, 1e5], rho1=1000.0, kind="two-sided", future_cd=1)
+    row = bench.scene_row("A", m, time_s=1.0, data={}, device="CPU", code="c", date="2026-11-29")
+    assert row["date"] == "2026-11-29"
+    today = bench.scene_row("B", m, time_s=1.0, data={}, device="CPU", code="c")["date"]
+    assert today == datetime.date.today().isoformat()
+    table = load_script(ROOT / "benchmarks" / "genesis_identify_table.py")
+    assert table.run_dates([row]) == "2026-11-29"
+    later = {**row, "date": "2026-12-01"}
+    assert table.run_dates([later, row, row]) == "2026-11-29 to 2026-12-01"
+    # rows written before rows kept their date count as today's
+    assert table.run_dates([{k: v for k, v in row.items() if k != "date"}]) == today
