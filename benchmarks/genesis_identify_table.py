@@ -10,10 +10,11 @@ import datetime
 import math
 import re
 import statistics
-import textwrap
 from pathlib import Path
 
+import results_sections
 from identify_suite_table import _fmt
+from results_sections import KEEP_MARKER, _fill  # noqa: F401 (re-exported)
 
 from mosiv_framework.pipeline.uncertainty import INTERVALS_PHASE
 
@@ -431,25 +432,33 @@ def _object_table(rows: list[dict]) -> str:
 def _scene_table(rows: list[dict]) -> str:
     lines = [
         "| scene | contact | observed CD mm^2 | observed EMD mm | future CD mm^2 | future EMD mm"
-        " | time s | peak memory GB | ground friction |",
+        " | time s | peak memory GB | ground friction (start) |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "error" in r:
             continue
         values = " | ".join(_fmt(r[key]) for key in _SCENE_COLUMNS)
-        ground = (r.get("identified") or {}).get("ground_friction")
-        lines.append(f"| {r['scene']} | {_contact_cell(r)} | {values} | {_fmt(ground)} |")
+        lines.append(f"| {r['scene']} | {_contact_cell(r)} | {values} | {_ground_cell(r)} |")
     lines += [
         "",
         "contact: the contact between objects identification used: (recipe) the recipe's fixed"
         " simulator.contact; (auto) chosen from the observed frames, followed by each mode's"
         " loss over them after its brief fit (docs/PHYSICS.md, Choosing the contact from the"
         " data). ground friction: the table's Coulomb coefficient as identified (Genesis's is"
-        " 0.1; '-': the row does not record it); the future is sensitive to it (docs/RESULTS.md,"
-        " Future error on Genesis scenes).",
+        " 0.1; '-': the row does not record it), in brackets where identification started it"
+        " (read off the landings, or the default 0.3 where none could be read); the future is"
+        " sensitive to it (docs/RESULTS.md, Future error on Genesis scenes).",
     ]
     return "\n".join(lines)
+
+
+def _ground_cell(row: dict) -> str:
+    """'0.151 (0.126)': the identified coefficient and, where the row records it, its start."""
+    identified = row.get("identified") or {}
+    start = identified.get("ground_friction_start")
+    cell = _fmt(identified.get("ground_friction"))
+    return cell if start is None else f"{cell} ({_fmt(start)})"
 
 
 def _contact_cell(row: dict) -> str:
@@ -569,38 +578,11 @@ def section_text(table: dict, *, command: str, date: str) -> str:
     return f"## {SECTION}\n\n{_fill(intro)}\n\n" + "\n".join(wrapped) + "\n\n" + markdown(table)
 
 
-def _fill(text: str, **indents) -> str:
-    """``text`` wrapped at 100 columns, never inside a word or a hyphenated name (E-P-S)."""
-    return textwrap.fill(text, 100, break_long_words=False, break_on_hyphens=False, **indents)
-
-
-#: a line that starts the part of a section written by hand (the reading of its numbers): a
-#: regenerated section keeps everything from this line to the section's end
-KEEP_MARKER = "<!-- written by hand below: kept when the section above is regenerated -->"
-
-
 def replace_section(
     text: str, body: str, *, title: str = SECTION, before: str = SECTION_BEFORE
 ) -> str:
-    """``text`` with its ``## title`` section (up to the next level-2 heading) replaced by
-    ``body``; a missing section goes before ``## before``, else at the end. From a
-    ``KEEP_MARKER`` line on, the old section is kept after the new body."""
-    lines = text.splitlines(keepends=True)
-    heads = [i for i, line in enumerate(lines) if line.startswith("## ")]
-    body = body.rstrip("\n") + "\n\n"
-    start = next((i for i in heads if lines[i].strip() == f"## {title}"), None)
-    if start is None:
-        at = next((i for i in heads if lines[i].strip() == f"## {before}"), None)
-        if at is None:
-            return text.rstrip("\n") + "\n\n" + body.rstrip("\n") + "\n"
-        return "".join(lines[:at]) + body + "".join(lines[at:])
-    end = next((i for i in heads if i > start), len(lines))
-    kept = next((i for i in range(start, end) if lines[i].strip() == KEEP_MARKER), None)
-    if kept is not None:  # the reading written by hand stays below the regenerated numbers
-        body += "".join(lines[kept:end]).rstrip("\n") + "\n\n"
-    if end == len(lines):
-        body = body.rstrip("\n") + "\n"
-    return "".join(lines[:start]) + body + "".join(lines[end:])
+    """``results_sections.replace_section`` with this section's title and place as defaults."""
+    return results_sections.replace_section(text, body, title=title, before=before)
 
 
 def write_results(path: Path, table: dict, *, command: str) -> None:

@@ -195,10 +195,14 @@ def test_a_row_keeps_where_the_ground_friction_started():
         "A", m, time_s=1.0, data={}, device="CPU", code="c", history=history[2:]
     )
     assert "ground_friction_start" not in later["identified"]
-    # the scene table ends in the identified ground friction, '-' where a row has none
+    # the scene table ends in the identified ground friction and its start, '-' where a row
+    # has none
     scene_lines = [line for line in bench.markdown(bench.make_table([row])).splitlines()
                    if line.startswith("| A | ")]  # fmt: skip
-    assert scene_lines[-1].endswith(" | 0.45 |"), scene_lines
+    assert scene_lines[-1].endswith(" | 0.45 (0.094) |"), scene_lines
+    later_lines = [line for line in bench.markdown(bench.make_table([later])).splitlines()
+                   if line.startswith("| A | ")]  # fmt: skip
+    assert later_lines[-1].endswith(" | 0.45 |"), later_lines
     old_row = {k: v for k, v in row.items() if k != "identified"}
     old_lines = [line for line in bench.markdown(bench.make_table([old_row])).splitlines()
                  if line.startswith("| A | ")]  # fmt: skip
