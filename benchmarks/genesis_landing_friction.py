@@ -166,7 +166,7 @@ def _noise_lines(rows: list[dict]) -> list[str]:
     lines.append("|---|---|---|---|")
     for suite in dict.fromkeys(r.get("suite", "-") for r in rows):
         mine = [r for r in rows if r.get("suite", "-") == suite]
-        lines.append(f"| {suite} | none | {_clearance_cell(mine)} |")
+        lines.append(f"| {suite} | none (one reading a scene) | {_clearance_cell(mine)} |")
         for kind, mm in levels:
             at = [
                 {"estimate": n["estimate"], "truth": r["truth"]}

@@ -103,7 +103,7 @@ def test_the_noise_table_counts_readings_per_level_against_the_clean_ones(bench)
         row("B", None, [reading("centroid", 2.0, 0, 0.1), reading("centroid", 2.0, 1, 0.05)]),
     ]
     text = bench.markdown(rows)
-    assert "| dev | none | 1 of 2 | median 0.50, range 0.50-0.50 |" in text
+    assert "| dev | none (one reading a scene) | 1 of 2 | median 0.50, range 0.50-0.50 |" in text
     # three of four readings found a landing: 2.0, 1.0 and 0.5 times the truth
     assert "| dev | centroid 2 | 3 of 4 | median 1.00, range 0.50-2.00 |" in text
     assert "noise" not in bench.markdown([{**r, "noisy": []} for r in rows])
