@@ -172,9 +172,7 @@ def section_text(
     alone = sorted((set(runs[0]) | set(runs[1])) - set(scenes))
     every = [row for run in runs for row in run.values()]
     machines = sorted({row.get("device", "?") for row in every})
-    codes = sorted(
-        {str(row.get("code", "?")).split("+")[0] for run in runs for row in run.values()}
-    )
+    codes = sorted({str(row.get("code", "?")).split("+")[0] for row in every})
     intro = (
         'Two runs of the identification of "Identification on Genesis scenes" '
         f"(`benchmarks/genesis_identify.py`) that differ only in {difference} "

@@ -176,7 +176,8 @@ def scene_row(
     with (``contact``: identified.json's ``choice``, ``mode`` and under ``auto`` the
     ``recipe_mode``, each mode's ``losses`` and the ``margin``; None for a simulator without
     contact modes), its CD and EMD over the observed and future frames, wall time and peak
-    memory, and where it came from."""
+    memory, and where it came from: the data, device and code, and ``date``, the day the run
+    ended (the day the row is made unless given)."""
     future = metrics.get("future") or {}
     identified = metrics.get("params") or {}
     contact = identified.get("contact")
@@ -203,9 +204,10 @@ def scene_row(
 
 
 def run_dates(rows: list[dict]) -> str:
-    """The days the rows' runs ended ('2026-11-30' or '2026-11-29 to 2026-11-30'); today for
-    rows written before rows kept their date."""
-    days = sorted({r.get("date") or datetime.date.today().isoformat() for r in rows})
+    """The days the rows' runs ended ('2026-11-30' or '2026-11-29 to 2026-11-30'); a row
+    without a date (an older row file), or no row at all, counts as today."""
+    today = datetime.date.today().isoformat()
+    days = sorted({r.get("date") or today for r in rows}) or [today]
     return days[0] if len(days) == 1 else f"{days[0]} to {days[-1]}"
 
 
@@ -447,8 +449,9 @@ def _scene_table(rows: list[dict]) -> str:
         " loss over them after its brief fit (docs/PHYSICS.md, Choosing the contact from the"
         " data). ground friction: the table's Coulomb coefficient as identified (Genesis's is"
         " 0.1; '-': the row does not record it), in brackets where identification started it"
-        " (read off the landings, or the default 0.3 where none could be read); the future is"
-        " sensitive to it (docs/RESULTS.md, Future error on Genesis scenes).",
+        " (the recipe's start; with identify.ground_friction_start: landing the landings'"
+        " reading, or the default 0.3 where none could be read); the future is sensitive to it"
+        " (docs/RESULTS.md, Future error on Genesis scenes).",
     ]
     return "\n".join(lines)
 

@@ -18,7 +18,10 @@ added to its points, as a reconstruction from video would carry it (``perturbed`
 moves every point by its own Gaussian offset of that many mm per coordinate and frame,
 ``centroid`` moves all of a body's points together by one such offset per frame. The
 centroid's velocities are frame differences, so a body's common jitter enters the impulses
-whole, while independent offsets of its points average out.
+whole; independent offsets of its points mostly cancel in the centroid, but they move the
+lowest point (which dates the landing), the point spacing and the clearance to the other
+bodies. Each scene and seed draws its own noise (seeded by the suite folder's and the scene's
+names and the seed), the same pattern at every level of a kind, so levels differ in size only.
 """
 
 from __future__ import annotations
@@ -26,8 +29,10 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import statistics
 import sys
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -50,11 +55,12 @@ NOISE_KINDS = ("points", "centroid")
 
 
 def perturbed(
-    points: dict[int, torch.Tensor], kind: str, sigma_mm: float, seed: int
+    points: dict[int, torch.Tensor], kind: str, sigma_mm: float, seed: int | list[int]
 ) -> dict[int, torch.Tensor]:
     """A copy of ``points`` (object id -> [F, N, 3] m) with Gaussian noise of ``sigma_mm`` mm
     per coordinate: ``points``, an offset of its own for every point and frame; ``centroid``,
-    one offset per body and frame shared by all of its points."""
+    one offset per body and frame shared by all of its points. ``seed`` seeds numpy's
+    generator (an int or a list of ints)."""
     if kind not in NOISE_KINDS:
         raise ValueError(f"noise kind {kind!r}: use one of {', '.join(NOISE_KINDS)}")
     rng = np.random.default_rng(seed)
@@ -74,12 +80,29 @@ def parse_noise(text: str) -> tuple[str, float]:
         sigma = float(mm)
     except ValueError:
         sigma = -1.0
-    if kind not in NOISE_KINDS or sigma < 0:
+    if kind not in NOISE_KINDS or not math.isfinite(sigma) or sigma < 0:
         raise argparse.ArgumentTypeError(
             f"--noise {text!r}: write KIND:MM with KIND one of {', '.join(NOISE_KINDS)} and MM a "
             "standard deviation in mm >= 0, e.g. centroid:2"
         )
     return kind, sigma
+
+
+def positive_count(text: str) -> int:
+    """``--seeds``: a whole number of at least 1."""
+    try:
+        count = int(text)
+    except ValueError:
+        count = 0
+    if count < 1:
+        raise argparse.ArgumentTypeError(f"--seeds {text!r}: give a whole number >= 1")
+    return count
+
+
+def scene_seed(folder: Path, seed: int) -> list[int]:
+    """The noise seed of one scene's ``seed``-th noisy copy: its own for every scene of every
+    suite folder, the same on every run."""
+    return [seed, zlib.crc32(f"{folder.parent.name}/{folder.name}".encode())]
 
 
 def measure(
@@ -101,7 +124,7 @@ def measure(
     }
     noisy = [
         {"kind": kind, "mm": mm, "seed": seed, "estimate": landing_friction(
-            perturbed(points, kind, mm, seed), scene.world, frames)[0]}
+            perturbed(points, kind, mm, scene_seed(folder, seed)), scene.world, frames)[0]}
         for kind, mm in noise
         for seed in range(seeds)
     ]  # fmt: skip
@@ -149,7 +172,7 @@ def markdown(rows: list[dict]) -> str:
             mine = [r for r in rows if r.get("suite", "-") == suite]
             for c in clearances:
                 at = [{**r, "estimate": (r.get("by_clearance") or {}).get(c)} for r in mine]
-                lines.append(f"| {suite} | {c} | {_clearance_cell(at)} |")
+                lines.append(f"| {suite} | {c} | {_ratio_cell(at)} |")
     return "\n".join(lines + _noise_lines(rows)) + "\n"
 
 
@@ -166,7 +189,7 @@ def _noise_lines(rows: list[dict]) -> list[str]:
     lines.append("|---|---|---|---|")
     for suite in dict.fromkeys(r.get("suite", "-") for r in rows):
         mine = [r for r in rows if r.get("suite", "-") == suite]
-        lines.append(f"| {suite} | none (one reading a scene) | {_clearance_cell(mine)} |")
+        lines.append(f"| {suite} | none (one reading a scene) | {_ratio_cell(mine)} |")
         for kind, mm in levels:
             at = [
                 {"estimate": n["estimate"], "truth": r["truth"]}
@@ -174,11 +197,18 @@ def _noise_lines(rows: list[dict]) -> list[str]:
                 for n in r.get("noisy") or []
                 if (n["kind"], n["mm"]) == (kind, mm)
             ]
-            lines.append(f"| {suite} | {kind} {mm:g} | {_clearance_cell(at)} |")
+            lines.append(f"| {suite} | {kind} {mm:g} | {_ratio_cell(at)} |")
+    seeds = max(len({n["seed"] for n in r.get("noisy") or []}) for r in rows)
+    lines += [
+        "",
+        f"Noise: Gaussian, per coordinate, {seeds} noisy copies of each scene's points per level;"
+        " points: an offset of its own for every point and frame; centroid: one offset per body"
+        " and frame, shared by its points. A reading without a landing starts at the default 0.3.",
+    ]
     return lines
 
 
-def _clearance_cell(rows: list[dict]) -> str:
+def _ratio_cell(rows: list[dict]) -> str:
     """'3 of 4 | median 0.67, range 0.53-0.94' for the rows' estimates against their truth."""
     ratios = _ratios(rows)
     return f"{len(ratios)} of {len(rows)} | {_spread(ratios) if ratios else '-'}"
@@ -232,7 +262,9 @@ def parse_args(argv: list[str] | None):
         "--noise", nargs="*", type=parse_noise, default=[], metavar="KIND:MM",
         help="also read each scene with this noise on its points (points:MM or centroid:MM)",
     )  # fmt: skip
-    ap.add_argument("--seeds", type=int, default=3, help="noisy copies per --noise level")
+    ap.add_argument(
+        "--seeds", type=positive_count, default=3, help="noisy copies per --noise level"
+    )
     ap.add_argument("--data", default="the scenes of --scenes", help="what the scenes are")
     ap.add_argument("--write-results", type=Path, default=None, help="markdown file to update")
     return ap.parse_args(argv)
@@ -242,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = parse_args(argv)
     rows = [
-        measure(suite / name, tuple(args.clearances), tuple(args.noise), args.seeds)
+        measure(suite / name, tuple(args.clearances), tuple(dict.fromkeys(args.noise)), args.seeds)
         for suite in args.scenes
         for name in find_scenes(suite, args.only)
     ]

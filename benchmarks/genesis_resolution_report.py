@@ -314,7 +314,8 @@ def defaults_line(study: dict) -> str:
             f"configuration has run: {d['rule']}."
         )
     if d["grid"] is None:
-        return f"The study's choice: none (no configuration ran on every scene; the rule: {d['rule']})."
+        rule = d["rule"]
+        return f"The study's choice: none (no configuration ran on every scene; the rule: {rule})."
     ref = d["reference"]
     return (
         f"The study's choice: `simulator.grid={d['grid']} simulator.substeps={d['substeps']}`, "

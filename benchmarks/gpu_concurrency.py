@@ -5,9 +5,10 @@ Usage (GPU machine, after ``source benchmarks/gpu_setup.sh``)::
     python3 benchmarks/gpu_concurrency.py --processes 1 4 8 [--json OUT.json]
 
 Each trial starts K copies of ``mosiv -q bench sim --backend warp-mpm --device cuda`` at once
-(default: 2,000 particles, grid 96, 600 substeps, as a Genesis scene's identification ran
-them before recipes/genesis_oracle.yaml moved to grid 64 / 400) and reads each copy's forward and forward + backward rates (particle-substeps/s, timed
-by the bench after its warm-up). The aggregate is their sum: every copy starts at the same
+(default: 2,000 particles, grid 96, 600 substeps: a Genesis scene's identification at its
+finest grid, where a process's kernels leave most of the GPU idle) and reads each copy's
+forward and forward + backward rates (particle-substeps/s, timed by the bench after its
+warm-up). The aggregate is their sum: every copy starts at the same
 moment and spends the same seconds in imports and warm-up, so their timed parts overlap. Each
 K runs twice, first as plain processes (the GPU switches between them), then under the MPS
 daemon that ``device_queue.py --mps`` starts (their kernels run side by side). The gain is

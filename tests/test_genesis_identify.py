@@ -549,5 +549,23 @@ def test_a_row_keeps_the_day_its_run_ended_and_the_section_names_the_days():
     assert table.run_dates([row]) == "2026-11-29"
     later = {**row, "date": "2026-12-01"}
     assert table.run_dates([later, row, row]) == "2026-11-29 to 2026-12-01"
-    # rows written before rows kept their date count as today's
+    # a row without a date counts as today's, and so does no row at all
     assert table.run_dates([{k: v for k, v in row.items() if k != "date"}]) == today
+    assert table.run_dates([]) == today
+
+
+def test_the_section_dates_the_runs_and_skips_failed_rows(tmp_path):
+    bench = _bench()
+    m = _metrics(e_true=[1e5, 1e5], e_value=[1e5, 1e5], rho1=1000.0, kind="two-sided", future_cd=1)
+    rows = [
+        bench.scene_row("A", m, time_s=1.0, data={}, device="CPU", code="c", date="2026-11-29"),
+        bench.scene_row("B", m, time_s=1.0, data={}, device="CPU", code="c", date="2026-11-30"),
+        {"scene": "C", "error": "SimulationDiverged: boom", "data": {}},
+    ]
+    notes = tmp_path / "RESULTS.md"
+    bench.write_results(notes, bench.make_table(rows), command="cmd")
+    assert "Date 2026-11-29 to 2026-11-30." in " ".join(notes.read_text().split())
+    # a table whose every scene failed still gets a section, dated today
+    bench.write_results(notes, bench.make_table(rows[2:]), command="cmd")
+    today = datetime.date.today().isoformat()
+    assert f"Date {today}." in " ".join(notes.read_text().split())

@@ -30,17 +30,23 @@ def test_a_scene_without_a_landing_reads_nothing_and_the_section_says_so(bench, 
     notes = tmp_path / "RESULTS.md"
     notes.write_text("# Results\n\n## From video\n\nkept\n")
     argv = ["--scenes", str(tmp_path / "suite"), "--out", str(tmp_path / "out")]
-    argv += ["--clearances", "1", "2"]
+    argv += ["--clearances", "1", "2", "--noise", "centroid:2", "centroid:2", "--seeds", "2"]
     assert bench.main([*argv, "--write-results", str(notes), "--data", "one fixture"]) == 0
     rows = json.loads((tmp_path / "out" / "landing_friction.json").read_text())["rows"]
     assert len(rows) == 1 and rows[0]["estimate"] is None and rows[0]["landings"] == []
     assert rows[0]["by_clearance"] == {"1": None, "2": None}
+    # a level given twice is read once, two seeds each
+    assert [(n["kind"], n["mm"], n["seed"]) for n in rows[0]["noisy"]] == [
+        ("centroid", 2.0, 0), ("centroid", 2.0, 1)
+    ]  # fmt: skip
     assert rows[0]["truth"] == pytest.approx(0.1)
     text = notes.read_text()
     assert "## Ground friction from the landings on Genesis scenes" in text
     assert "## From video" in text and "- Data: one fixture." in text
     assert "| suite | P-P | plasticine, plasticine | - | - | 0.1 |" in text
     assert "suite: no landing read on any of the 1 scenes." in text
+    assert "| suite | centroid 2 | 0 of 2 | - |" in text
+    assert "2 noisy copies of each scene's points per level" in text
 
 
 def test_the_summary_compares_each_estimate_with_its_truth(bench):
@@ -74,6 +80,7 @@ def test_centroid_noise_moves_a_body_rigidly_and_point_noise_point_by_point(benc
     loose = bench.perturbed(points, "points", 2.0, seed=0)
     offsets = loose[1] - cloud
     assert float((offsets - offsets[:, :1]).abs().max()) > 1e-4  # points move apart
+    assert 1.5e-3 < float(offsets.std()) < 2.5e-3  # 2 mm over 900 draws
     # the same seed gives the same copy; no noise gives the points back
     assert torch.equal(bench.perturbed(points, "points", 2.0, seed=0)[1], loose[1])
     assert torch.equal(bench.perturbed(points, "centroid", 0.0, seed=3)[2], points[2])
@@ -81,7 +88,26 @@ def test_centroid_noise_moves_a_body_rigidly_and_point_noise_point_by_point(benc
         bench.perturbed(points, "wind", 1.0, seed=0)
 
 
-@pytest.mark.parametrize("text", ["wind:2", "centroid:x", "centroid:-1", "centroid"])
+def test_each_scene_draws_its_own_noise(bench, tmp_path):
+    first = bench.scene_seed(tmp_path / "dev" / "E-P", 0)
+    assert first == bench.scene_seed(tmp_path / "dev" / "E-P", 0)  # the same on every run
+    assert first != bench.scene_seed(tmp_path / "test" / "E-P", 0)
+    assert first != bench.scene_seed(tmp_path / "dev" / "E-S", 0)
+    assert first != bench.scene_seed(tmp_path / "dev" / "E-P", 1)
+
+
+def test_a_seed_count_below_one_is_refused(bench):
+    import argparse
+
+    assert bench.positive_count("3") == 3
+    for text in ("0", "-2", "two"):
+        with pytest.raises(argparse.ArgumentTypeError, match="whole number >= 1"):
+            bench.positive_count(text)
+
+
+@pytest.mark.parametrize(
+    "text", ["wind:2", "centroid:x", "centroid:-1", "centroid", "centroid:nan", "points:inf"]
+)
 def test_a_bad_noise_level_names_what_is_valid(bench, text):
     import argparse
 
