@@ -35,13 +35,13 @@ import sys
 import zlib
 from pathlib import Path
 
-import numpy as np
 import torch
 from genesis_identify import find_scenes, replace_section, shown_command
 from genesis_model_error import GENESIS_GROUND_FRICTION
 from identify_suite import code_version
 
 from mosiv_framework.pipeline.landing import landing_friction
+from mosiv_framework.registry import get_registry
 from mosiv_framework.scene import read_scene
 
 FORMAT = "mosiv-genesis-landing-friction/1"
@@ -55,22 +55,29 @@ NOISE_KINDS = ("points", "centroid")
 
 
 def perturbed(
-    points: dict[int, torch.Tensor], kind: str, sigma_mm: float, seed: int | list[int]
+    points: dict[int, torch.Tensor], kind: str, sigma_mm: float, seed: int
 ) -> dict[int, torch.Tensor]:
     """A copy of ``points`` (object id -> [F, N, 3] m) with Gaussian noise of ``sigma_mm`` mm
-    per coordinate: ``points``, an offset of its own for every point and frame; ``centroid``,
-    one offset per body and frame shared by all of its points. ``seed`` seeds numpy's
-    generator (an int or a list of ints)."""
+    per coordinate, drawn by the oracle reconstructor (the noise of the sensitivity studies,
+    every point kept): ``points``, an offset of its own for every point and frame
+    (``noise_iid``); ``centroid``, one offset per body and frame shared by all of its points
+    (``noise_shared``)."""
     if kind not in NOISE_KINDS:
         raise ValueError(f"noise kind {kind!r}: use one of {', '.join(NOISE_KINDS)}")
-    rng = np.random.default_rng(seed)
-    out = {}
-    for k, cloud in sorted(points.items()):
-        frames, n, _ = cloud.shape
-        shape = (frames, n, 3) if kind == "points" else (frames, 1, 3)
-        noise = rng.normal(0.0, sigma_mm * 1e-3, size=shape)
-        out[k] = cloud + torch.as_tensor(noise, dtype=cloud.dtype)
-    return out
+    option = "noise_iid" if kind == "points" else "noise_shared"
+    options = {option: sigma_mm * 1e-3, "max_points": 0, "seed": seed}
+    oracle = get_registry().create("reconstructor", "oracle", options)
+    return oracle.fit(_TrackedPoints(points)).points
+
+
+class _TrackedPoints:
+    """Points standing in for a scene where the oracle reads them (its ``gt_points``)."""
+
+    def __init__(self, points: dict[int, torch.Tensor]):
+        self.points = points
+
+    def gt_points(self) -> dict[int, torch.Tensor]:
+        return self.points
 
 
 def parse_noise(text: str) -> tuple[str, float]:
@@ -99,10 +106,10 @@ def positive_count(text: str) -> int:
     return count
 
 
-def scene_seed(folder: Path, seed: int) -> list[int]:
+def scene_seed(folder: Path, seed: int) -> int:
     """The noise seed of one scene's ``seed``-th noisy copy: its own for every scene of every
     suite folder, the same on every run."""
-    return [seed, zlib.crc32(f"{folder.parent.name}/{folder.name}".encode())]
+    return (zlib.crc32(f"{folder.parent.name}/{folder.name}".encode()) << 16) + seed
 
 
 def measure(
