@@ -455,10 +455,12 @@ def test_end_to_end_on_the_tiny_genesis_scene(tmp_path, capfd):
     assert sand["E"]["kind"] in bench.KINDS and sand["E"]["gauge_free"] is not None
     assert row["device"] == "CPU" and row["data"]["seed"] == truth["generator_params"]["seed"]
     assert table["summary"]["initial_velocity"]["n"] == 2
-    # the recipe chooses the contact from the data and asks for sandwich intervals, whose
-    # history keeps the Laplace intervals of the same probes
-    assert row["contact"]["choice"] == "auto" and row["contact"]["mode"] in row["contact"]["losses"]
-    assert set(row["contact"]["losses"]) == {"multi_field", "single_field"}
+    # the recipe chooses the contact and the elastic body's stress from the data and asks for
+    # sandwich intervals, whose history keeps the Laplace intervals of the same probes
+    assert row["contact"]["choice"] == "auto"
+    modes = {"multi_field", "single_field"}
+    assert set(row["contact"]["losses"]) == modes | {f"{m} + alternatives" for m in modes}
+    assert row["contact"]["mode"] in modes and row["contact"]["laws"] in ("recipe", "alternatives")
     assert sand["E"]["method"] == "sandwich" and sand["E"]["laplace"]["kind"] in bench.KINDS
     laplace = table["summary"]["coverage_laplace"]
     assert laplace["n"] + laplace["unconstrained"] == sum(
