@@ -33,8 +33,10 @@ The same brief fits also choose the stress (``identify.law_choice: auto``): each
 tried with the recipe's laws (``identify.laws``) and with those laws overridden by
 ``identify.law_alternatives`` (by default the fixed-corotated stress, which Genesis's Elastic
 and ElastoPlastic use, for elastic and plasticine bodies). The alternative laws have the same
-parameters, so starts, bounds and errors mean the same; the recipe's laws are kept unless the
-alternative fits better by the same margin. A scene whose materials have no alternative tries
+parameters, so starts, bounds and errors mean the same. The rule is the one above over every
+variant: the lowest loss wins where it beats the recipe's variant (its contact mode with its
+laws) by the margin, so an alternative can win although, in the same contact mode, it fits
+only a little better than the recipe's laws. A scene whose materials have no alternative tries
 only its own laws. Each combination is a "variant", named by its mode, followed by
 `` + alternatives`` where it uses the alternative laws.
 
