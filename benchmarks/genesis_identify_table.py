@@ -568,8 +568,9 @@ def section_text(table: dict, *, command: str, date: str) -> str:
     intro = (
         "`benchmarks/genesis_identify.py` runs `recipes/genesis_oracle.yaml` (oracle "
         "reconstructor, gt-points lifter, warp-mpm, the paper's loss and iterations, a start at "
-        "the centre of each law's bounds, the ground's friction read off the landings, and a "
-        "global search before gradient descent) on scenes "
+        "the centre of each law's bounds, the ground's friction read off the landings, a "
+        "global search before gradient descent, and the contact between the bodies and each "
+        "material's stress chosen from the observed frames) on scenes "
         "that another engine simulated, so the model no longer matches the data exactly."
     )
     items = [
