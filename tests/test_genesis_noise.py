@@ -23,6 +23,7 @@ SMALL = [
     "identify.param_iterations=1",
     "identify.global_candidates=0",
     "identify.contact_iterations=1",
+    "identify.law_choice=fixed",
     "identify.intervals=false",
     "losses.chamfer.max_points=256",
     "evaluate.emd_samples=128",

@@ -27,8 +27,10 @@ SMALL = [
     "identify.velocity_iterations=0",
     "identify.param_iterations=1",
     "identify.global_candidates=0",
-    # the contact choice is the identification's business, not the study's (20 steps a mode)
+    # the contact and stress choices are the identification's business, not the study's (20
+    # steps a variant)
     "identify.contact=fixed",
+    "identify.law_choice=fixed",
     "identify.intervals=false",
     "losses.chamfer.max_points=256",
     "evaluate.emd_samples=128",

@@ -57,6 +57,7 @@ def test_identification_with_the_corotated_law_on_a_genesis_scene(tmp_path):
         f"scene.path={TINY}",
         f"output.dir={tmp_path}",
         "identify.laws.elastic=elastic_corotated",
+        "identify.law_choice=fixed",  # the law named above, not chosen
         "simulator.device=cpu",
         "simulator.grid=16",
         "simulator.substeps=20",

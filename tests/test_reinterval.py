@@ -31,6 +31,7 @@ SETTINGS = [
     "identify.global_candidates=2",
     "identify.global_polish=2",
     "identify.contact=fixed",
+    "identify.law_choice=fixed",
     "losses.chamfer.max_points=100000",  # every point: no subset differs between runs
     "evaluate.emd_samples=64",
     "evaluate.render_videos=false",
