@@ -4,6 +4,7 @@ Usage (GPU machine):
     python benchmarks/warp_profile.py [--particles 1000000] [--grid 128] [--substeps 50]
     python benchmarks/warp_profile.py --backward [--ablate-parameter-gradients] [--json OUT]
     python benchmarks/warp_profile.py --backward --table-reads   # the adjoint before the copies
+    python benchmarks/warp_profile.py --backward --unrolled-scatter-adjoint   # p2g's own adjoint
     python benchmarks/warp_profile.py --backward --family plasticine   # a law with an SVD
 
 Forward: the summed CUDA time of each kernel over one frame (no graph capture, so Warp can
@@ -111,15 +112,23 @@ from mosiv_warp_mpm.packing import pack_theta
 from mosiv_warp_mpm.run import MPMRun
 from mosiv_warp_mpm.simulator import init_warp, use_deterministic_atomics
 from mosiv_warp_mpm.state import GridLayout, ParticleState
-from warp_profile_report import ablation_report, kernel_table, report  # noqa: F401 (tests)
+from warp_profile_report import TAPED_AS, ablation_report, kernel_table, report  # noqa: F401
 
 from mosiv_framework.bench import bench_params, bench_particles, bench_world
 from mosiv_framework.laws import FAMILIES, get_law
 from mosiv_framework.types import ObjectParams, SimulationParams
 
-#: the adjoint kernels of every substep (the expression term's field sums join them with
-#: several fields on CUDA)
-ADJOINT_KERNELS = ("p2g", "grid_free_velocity", "grid_boundaries", "g2p")
+#: the adjoint kernels of every substep of the default (elastic) workload: the stress and
+#: deformation kernels are made per law, the scatter is taped as p2g_looped (the expression
+#: term's field sums join them with several fields on CUDA)
+ADJOINT_KERNELS = (
+    "particle_stress_elastic",
+    "p2g_looped",
+    "grid_free_velocity",
+    "grid_boundaries",
+    "g2p",
+    "update_deformation_elastic",
+)
 
 _HASH = re.compile(r"_[0-9a-f]{8}$")  # Warp's module-hash suffix of a kernel's name
 
@@ -147,6 +156,7 @@ class Profile:
     family: str
     order: str
     parameter_reads: str  # the taped kernels read the particles' "copies" or the "tables"
+    scatter_adjoint: str  # the replay's scatter taped "looped" (p2g_looped) or "unrolled"
     rows: list[Row]
     total_ms: float  # sum of the rows
     wall_ms: float  # wall of the timed phases (uncaptured launches, each phase synchronised)
@@ -254,7 +264,9 @@ def build(args) -> Setup:
         window=args.grid_window,
     )
     if args.backward:
-        run.backward_workspace().gather_parameters = not args.table_reads
+        ws = run.backward_workspace()
+        ws.gather_parameters = not args.table_reads
+        ws.looped_scatter_adjoint = not args.unrolled_scatter_adjoint
     params = family_params(args.family, dev)
     theta = pack_theta(params, [1], world.gravity, dev)
     v0 = params.initial_velocity[1].expand(n, 3).contiguous()
@@ -473,6 +485,7 @@ def _workload(run, args, cuda: bool) -> dict:
         "family": args.family,
         "order": args.order,
         "parameter_reads": "tables" if args.table_reads else "copies",
+        "scatter_adjoint": "unrolled" if args.unrolled_scatter_adjoint else "looped",
     }
 
 
@@ -537,11 +550,19 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "and the nodes' parameter copies (BackwardWorkspace.gather_parameters off), for "
         "comparison",
     )
+    ap.add_argument(
+        "--unrolled-scatter-adjoint",
+        dest="unrolled_scatter_adjoint",
+        action="store_true",
+        help="backward: tape the replay's scatter as the unrolled p2g, not p2g_looped "
+        "(BackwardWorkspace.looped_scatter_adjoint off), for comparison",
+    )
     ap.add_argument("--target", type=float, default=3e8, help="particle-substeps/s to compare")
     ap.add_argument("--json", default=None, help="also write the profile to this JSON file")
     args = ap.parse_args(argv)
-    if args.table_reads and not args.backward:
-        ap.error("--table-reads profiles the backward: add --backward")
+    for flag in ("table_reads", "unrolled_scatter_adjoint"):
+        if getattr(args, flag) and not args.backward:
+            ap.error(f"--{flag.replace('_', '-')} profiles the backward: add --backward")
     for name in ("particles", "grid", "substeps", "frame", "reps"):
         if getattr(args, name) < 1:
             ap.error(f"--{name} must be at least 1, got {getattr(args, name)}")

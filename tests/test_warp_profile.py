@@ -70,12 +70,11 @@ def test_backward_profile_reports_each_adjoint_kernel(profile_module, tmp_path, 
     # the forward is one wall-timed group, so give it per-kernel rows as CUDA timing would
     assert "per kernel (ms)" in text
     Row = profile_module.Row
-    forward = [
-        Row("forward", f"forward kernel {k}", 1, 0.5) for k in profile_module.ADJOINT_KERNELS
-    ]
+    ran = {k: profile_module.TAPED_AS.get(k, k) for k in profile_module.ADJOINT_KERNELS}
+    forward = [Row("forward", f"forward kernel {k}", 1, 0.5) for k in ran.values()]
     table = profile_module.kernel_table(replace(p, forward_rows=forward)).splitlines()
     for kernel in profile_module.ADJOINT_KERNELS:
-        line = next(ln for ln in table if f" {kernel} " in ln)
+        line = next(ln for ln in table if f" {ran[kernel]} " in ln)
         adjoint = rows[("adjoint", f"backward kernel {kernel}")].ms
         assert line.split()[-1] == f"{adjoint / 0.5:.1f}", line
     ablated = {(r["phase"], r["name"]): r for r in p.ablation["rows"]}

@@ -125,6 +125,9 @@ class BackwardWorkspace:
         self.work = [ParticleState(n, dev, requires_grad=True) for _ in range(run.substeps + 1)]
         self.grid = Grid(run.layout, dev, requires_grad=True, batch=run.batch)
         self.carry = ParticleState(n, dev, requires_grad=True)
+        #: the taped replay's stress impulses (transfer_kernels.particle_stress), one substep's
+        #: at a time: each tape is consumed before the next substep's replay rewrites them
+        self.stress = wp.zeros(n, dtype=wp.mat33, device=dev, requires_grad=True)
         #: each particle's copy of its object's parameters, read by the taped P2G and G2P
         self.gathered = ParticleParams(n, dev)
         #: each grid node's copy of its member's body acceleration and drag, its object's
@@ -136,6 +139,9 @@ class BackwardWorkspace:
         #: entries each substep (the accumulation before the copies; tests and warp_profile.py
         #: compare)
         self.gather_parameters = True
+        #: True: the replay's scatter goes on the tape as transfer_kernels.p2g_looped, whose
+        #: adjoint replays one node at a time; False: as the unrolled p2g that ran
+        self.looped_scatter_adjoint = True
         #: float64 [B K, 7] per-object sums of the law parameters', density's and viscosity's
         #: gradients over the frames back-propagated so far, [B, 7] per-member sums of the body
         #: acceleration's, drag's, ground friction's and restitution's, and [B F] per-field
@@ -144,15 +150,16 @@ class BackwardWorkspace:
         self._coefficient_sums: torch.Tensor | None = None
         self._friction_sums: torch.Tensor | None = None
         self._obj: torch.Tensor | None = None
-        #: the captured adjoint, per value of MPMRun.centres and gather_parameters (the
-        #: launches differ: a graph captured with the copies would replay them after the
-        #: switch to the tables, and leave the tables' gradients at zero)
-        self._graphs: dict[tuple[bool, bool], wp.Graph] = {}
+        #: the captured adjoint, per value of MPMRun.centres, gather_parameters and
+        #: looped_scatter_adjoint (the launches differ: a graph captured with the copies would
+        #: replay them after the switch to the tables, and leave the tables' gradients at zero)
+        self._graphs: dict[tuple[bool, bool, bool], wp.Graph] = {}
 
     def nbytes(self) -> int:
         grid = sum(a.capacity * 2 for a in self.grid.arrays())
         copies = self.gathered.nbytes() + self.node_coefficients.nbytes()
-        return sum(w.nbytes() for w in self.work) + grid + copies
+        stress = self.stress.capacity * 2
+        return sum(w.nbytes() for w in self.work) + grid + copies + stress
 
     def parameter_copies(self) -> list[wp.array]:
         """The particles' and the nodes' parameter copies that have gradients."""
@@ -262,7 +269,7 @@ class BackwardWorkspace:
         self.work[0].copy_from(start)
         run.begin_frame(frame, self.grid)
         if run.graphed:
-            key = (run.centres, self.gather_parameters)
+            key = (run.centres, self.gather_parameters, self.looped_scatter_adjoint)
             graph = self._graphs.get(key)
             if graph is None:
                 with wp.ScopedCapture(device=run.device, force_module_load=True) as capture:
@@ -302,23 +309,28 @@ class BackwardWorkspace:
         self.work[-1].copy_grad_from(self.carry)
 
     def prepare_substep(self, run, s: int, window: Window) -> None:
-        """Zero what substep ``s``'s adjoint accumulates into (its input state's and the grid's
-        gradients) and the grid values its replay accumulates into."""
+        """Zero what substep ``s``'s adjoint accumulates into (its input state's, the stress
+        impulses' and the grid's gradients) and the grid values its replay accumulates into."""
         self.work[s].zero_grad()
+        self.stress.grad.zero_()
         self.grid.zero_grad(window, sums=run.centres)
         self.grid.clear(window, sums=run.centres)
 
     def record_substep(self, run, s: int, window: Window) -> wp.Tape:
         """Substep ``s`` (work[s] -> work[s + 1]) on a fresh tape, ready for ``backward``: its
-        grid update runs again, rebuilding the grid that later substeps overwrote; its G2P is
-        only recorded, since the re-simulation already wrote G2P's result into work[s + 1].
+        grid update runs again, rebuilding the grid that later substeps overwrote (the scatter
+        recorded as its looped form with ``looped_scatter_adjoint``); its G2P is only recorded,
+        since the re-simulation already wrote G2P's result into work[s + 1].
         Both read the particles' parameter copies (``gathered``) and the grid the nodes' copies
         (``node_coefficients``) unless ``gather_parameters`` is off."""
         gathered = self.gathered if self.gather_parameters else None
         coefficients = self.node_coefficients if self.gather_parameters else None
         tape = wp.Tape()
+        looped_on = tape if self.looped_scatter_adjoint else None
         with tape:
-            run.grid_update(self.work[s], self.grid, s, window, gathered, coefficients)
+            run.grid_update(
+                self.work[s], self.grid, s, window, gathered, coefficients, self.stress, looped_on
+            )
         run.record_g2p(tape, self.work[s], self.work[s + 1], self.grid, s, gathered)
         return tape
 

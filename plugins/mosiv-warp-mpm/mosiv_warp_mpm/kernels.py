@@ -1,4 +1,5 @@
-"""MLS-MPM kernels (Hu et al. 2018, APIC, quadratic B-splines) for several objects at once.
+"""MLS-MPM grid kernels (Hu et al. 2018, APIC, quadratic B-splines) for several objects at once,
+and the helpers the particle-grid transfers share (transfer_kernels.py holds the transfers).
 
 Grid arrays are flat: field f, node (i, j, k) lives at ((f * NX + i) * NY + j) * NZ + k, with
 NX, NY, NZ node counts. In multi-field mode field f is object index f; in single-field mode every
@@ -17,10 +18,11 @@ grid_free_velocity reads the body acceleration and drag, and grid_boundaries the
 friction and the ground's friction and restitution, from the per-member and per-object tables
 or, taped, from each node's copy (``per_node``, state.NodeCoefficients).
 
-P2G and G2P read each particle array once per thread, into a local used from then on: Warp's
+The transfers read each particle array once per thread, into a local used from then on: Warp's
 adjoint of a read a[p] is an atomic add into a's gradient at p, one per read in the code (P2G
-read C[p] three times and once more in each of the 27 unrolled nodes), while a local's adjoint
-sums its uses in registers and adds once. The forward is the same arithmetic on the same values.
+once read C[p] three times and once more in each of the 27 unrolled nodes), while a local's
+adjoint sums its uses in registers and adds once. The forward is the same arithmetic on the
+same values.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import warp as wp
 
 from mosiv_warp_mpm.expression_kernels import node_expression
 from mosiv_warp_mpm.field_sums import field_sums
-from mosiv_warp_mpm.laws import J_MIN, kirchhoff_stress, return_map, safe_norm, vec5
+from mosiv_warp_mpm.laws import J_MIN, safe_norm, vec5
 from mosiv_warp_mpm.node_window import node_index, window_count, window_ijk
 
 PAD = wp.constant(3)  # boundary node layers outside the scene domain (slip walls)
@@ -203,79 +205,6 @@ def gather_ground_coefficients(
     b = g // member_rows
     node_friction[g] = ground_friction[b]
     node_restitution[g] = ground_restitution[b]
-
-
-@wp.kernel
-def p2g(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    plastic_J: wp.array(dtype=float),
-    volume: wp.array(dtype=float),
-    obj: wp.array(dtype=int),
-    law_of: wp.array(dtype=int),
-    field_of: wp.array(dtype=int),
-    params: wp.array(dtype=vec5),
-    rho: wp.array(dtype=float),
-    damping: wp.array(dtype=float),
-    origin: wp.vec3,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    with_normals: int,
-    ground_k: float,
-    objects_per_member: int,
-    per_particle: int,
-    grid_m: wp.array(dtype=float),
-    grid_mv: wp.array(dtype=wp.vec3),
-    grid_gm: wp.array(dtype=wp.vec3),
-    grid_pm: wp.array(dtype=wp.vec3),
-):
-    # per_particle: read the particle's parameter copies, not the tables (parameter_rows).
-    # MLS-MPM P2G: m w, w (m v + (-dt 4/dx^2 V0 tau + m C) dpos), m grad w (contact normals);
-    # tau = the law's Kirchhoff stress + the material_damping viscous stress. On ground-layer
-    # nodes also w (m v + m C dpos): the arriving momentum, before this substep's stress impulse
-    p = wp.tid()
-    o = obj[p]
-    f = field_of[o]
-    q, b = parameter_rows(p, o, objects_per_member, per_particle)
-    # each particle array read once (module docstring): C is used three times and once per
-    # ground-layer node, F and the volume twice
-    xp = x[p]
-    vp = v[p]
-    Cp = C[p]
-    Fp = F[p]
-    Jp = plastic_J[p]
-    vol = volume[p]
-    m = rho[q] * vol
-    inv_dx = 1.0 / dx
-    tau = kirchhoff_stress(law_of[o], params[q], Fp, Cp, Jp)
-    tau = tau + kelvin_voigt_tau(damping[b], Fp, Cp)
-    affine = (-dt * 4.0 * inv_dx * inv_dx * vol) * tau + m * Cp
-    xl = (xp - origin) * inv_dx
-    base = cell_base(xl)
-    fx = xl - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    W = bspline_weights(fx)
-    D = bspline_slopes(fx)
-    mom = m * vp
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                w = W[i, 0] * W[j, 1] * W[k, 2]
-                grad_w = inv_dx * wp.vec3(
-                    D[i, 0] * W[j, 1] * W[k, 2],
-                    W[i, 0] * D[j, 1] * W[k, 2],
-                    W[i, 0] * W[j, 1] * D[k, 2],
-                )
-                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                n = node_index(f, base[0] + i, base[1] + j, base[2] + k, nodes)
-                wp.atomic_add(grid_m, n, w * m)
-                wp.atomic_add(grid_mv, n, w * (mom + affine * dpos))
-                if float(base[2] + k) <= ground_k:  # for ground_restitution (ground_contact)
-                    wp.atomic_add(grid_pm, n, w * (mom + m * (Cp * dpos)))
-                if with_normals != 0:  # contact normals matter only with several fields
-                    wp.atomic_add(grid_gm, n, m * grad_w)
 
 
 @wp.struct
@@ -512,76 +441,3 @@ def grid_boundaries(
                 n_fields, nodes, ground_on, ground_k, ground_layers, friction,
                 ground_friction, ground_restitution, per_node, grid_v,
             )  # fmt: skip
-
-
-@wp.kernel
-def g2p(
-    x: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    plastic_J: wp.array(dtype=float),
-    obj: wp.array(dtype=int),
-    law_of: wp.array(dtype=int),
-    field_of: wp.array(dtype=int),
-    params: wp.array(dtype=vec5),
-    per_particle: int,
-    grid_v: wp.array(dtype=wp.vec3),
-    origin: wp.vec3,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    substep: int,
-    flag: wp.array(dtype=int),
-    x_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-    C_out: wp.array(dtype=wp.mat33),
-    F_out: wp.array(dtype=wp.mat33),
-    plastic_J_out: wp.array(dtype=float),
-):
-    # MLS-MPM G2P: v = sum w v_i, C = 4/dx^2 sum w v_i dpos^T, F <- return_map((I + dt C) F), x += dt v;
-    # the law's parameters from the object's table row or, per_particle, the particle's copy
-    p = wp.tid()
-    o = obj[p]
-    f = field_of[o]
-    xp = x[p]  # read once (module docstring): the position is used two or three times
-    inv_dx = 1.0 / dx
-    xl = (xp - origin) * inv_dx
-    base = cell_base(xl)
-    fx = xl - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    W = bspline_weights(fx)
-    vn = wp.vec3()
-    Cn = wp.mat33()
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                w = W[i, 0] * W[j, 1] * W[k, 2]
-                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                gv = grid_v[node_index(f, base[0] + i, base[1] + j, base[2] + k, nodes)]
-                vn += w * gv
-                Cn += (4.0 * inv_dx * inv_dx * w) * wp.outer(gv, dpos)
-    F_trial = (wp.identity(n=3, dtype=float) + dt * Cn) * F[p]
-    q, b = parameter_rows(p, o, 1, per_particle)
-    Fn, pj = return_map(law_of[o], params[q], F_trial, plastic_J[p], dt)
-    xn = xp + dt * vn
-    finite = wp.isfinite(xn) and wp.isfinite(vn) and wp.isfinite(Fn) and wp.isfinite(Cn)
-    finite = finite and wp.isfinite(pj)
-    if not finite:
-        # keep the state usable (no out-of-grid index next substep); the host raises at frame end
-        wp.atomic_min(flag, o, substep * 4 + REASON_NONFINITE)
-        xn = xp
-        vn = wp.vec3()
-        Cn = wp.mat33()
-        Fn = wp.identity(n=3, dtype=float)
-        pj = 1.0
-    elif wp.length(dt * vn) > dx:
-        # moving more than one cell per substep breaks the CFL condition of explicit MPM
-        wp.atomic_min(flag, o, substep * 4 + REASON_CFL)
-    # particles stay in the padded interior, so the 3x3x3 stencil never leaves the grid
-    lo = origin + wp.vec3(2.0 * dx)
-    hi = origin + dx * wp.vec3(float(nodes[0] - 3), float(nodes[1] - 3), float(nodes[2] - 3))
-    x_out[p] = wp.vec3(
-        wp.clamp(xn[0], lo[0], hi[0]), wp.clamp(xn[1], lo[1], hi[1]), wp.clamp(xn[2], lo[2], hi[2])
-    )
-    v_out[p] = vn
-    C_out[p] = Cn
-    F_out[p] = Fn
-    plastic_J_out[p] = pj

@@ -2,8 +2,10 @@
 Constitutive laws).
 
 Every law reads its parameters from one ``vec5`` per object, in the order of
-``LAW_PARAM_NAMES`` (unused slots are 0). ``kirchhoff_stress`` and ``return_map`` dispatch on the
-law id so that a single P2G/G2P kernel serves every material of a multi-object scene. Every SVD
+``LAW_PARAM_NAMES`` (unused slots are 0). Each law has a stress function and a return map of
+one signature (``STRESS_OF``, ``RETURN_MAP_OF``), from which transfer_kernels.py makes one
+kernel per law; ``kirchhoff_stress`` and ``return_map`` dispatch on the law id to the same
+functions, for kernels that serve every law (the parity tests' ``evaluate_laws``). Every SVD
 goes through ``svd.proper_svd``, whose adjoint stays finite at repeated singular values.
 """
 
@@ -123,23 +125,61 @@ def snow_tau(F: wp.mat33, p: vec5, plastic_J: float):
 
 
 @wp.func
+def stress_elastic(p: vec5, F: wp.mat33, L: wp.mat33, plastic_J: float):
+    return neo_hookean_tau(F, lame_mu(p[0], p[1]), lame_lam(p[0], p[1]))
+
+
+@wp.func
+def stress_plasticine(p: vec5, F: wp.mat33, L: wp.mat33, plastic_J: float):
+    return hencky_tau(F, lame_mu(p[0], p[1]), lame_lam(p[0], p[1]))
+
+
+@wp.func
+def stress_sand(p: vec5, F: wp.mat33, L: wp.mat33, plastic_J: float):
+    # (friction angle, E, nu)
+    return hencky_tau(F, lame_mu(p[1], p[2]), lame_lam(p[1], p[2]))
+
+
+@wp.func
+def stress_newtonian(p: vec5, F: wp.mat33, L: wp.mat33, plastic_J: float):
+    return newtonian_tau(F, L, p[0], p[1])
+
+
+@wp.func
+def stress_non_newtonian(p: vec5, F: wp.mat33, L: wp.mat33, plastic_J: float):
+    # (mu, kappa, yield stress, viscosity): Lame's lambda = kappa - 2 mu / 3
+    return hencky_tau(F, p[0], p[1] - 2.0 * p[0] / 3.0)
+
+
+@wp.func
+def stress_snow(p: vec5, F: wp.mat33, L: wp.mat33, plastic_J: float):
+    return snow_tau(F, p, plastic_J)
+
+
+@wp.func
+def stress_corotated(p: vec5, F: wp.mat33, L: wp.mat33, plastic_J: float):
+    # elastic_corotated and plasticine_corotated: (E, nu[, yield_stress])
+    return corotated_tau(F, lame_mu(p[0], p[1]), lame_lam(p[0], p[1]))
+
+
+@wp.func
 def kirchhoff_stress(law: int, p: vec5, F: wp.mat33, L: wp.mat33, plastic_J: float):
-    # Kirchhoff stress tau = J sigma (Pa) of the object's law
+    # Kirchhoff stress tau = J sigma (Pa) of the object's law (STRESS_OF, by law id)
     tau = wp.mat33()
     if law == 0:
-        tau = neo_hookean_tau(F, lame_mu(p[0], p[1]), lame_lam(p[0], p[1]))
+        tau = stress_elastic(p, F, L, plastic_J)
     elif law == 1:
-        tau = hencky_tau(F, lame_mu(p[0], p[1]), lame_lam(p[0], p[1]))
+        tau = stress_plasticine(p, F, L, plastic_J)
     elif law == 2:
-        tau = hencky_tau(F, lame_mu(p[1], p[2]), lame_lam(p[1], p[2]))
+        tau = stress_sand(p, F, L, plastic_J)
     elif law == 3:
-        tau = newtonian_tau(F, L, p[0], p[1])
+        tau = stress_newtonian(p, F, L, plastic_J)
     elif law == 4:
-        tau = hencky_tau(F, p[0], p[1] - 2.0 * p[0] / 3.0)
+        tau = stress_non_newtonian(p, F, L, plastic_J)
     elif law == 5:
-        tau = snow_tau(F, p, plastic_J)
-    else:  # 6 elastic_corotated, 7 plasticine_corotated: (E, nu[, yield_stress])
-        tau = corotated_tau(F, lame_mu(p[0], p[1]), lame_lam(p[0], p[1]))
+        tau = stress_snow(p, F, L, plastic_J)
+    else:  # 6 elastic_corotated, 7 plasticine_corotated
+        tau = stress_corotated(p, F, L, plastic_J)
     return tau
 
 
@@ -200,22 +240,82 @@ def snow_map(F: wp.mat33, p: vec5, plastic_J: float):
 
 
 @wp.func
+def map_none(p: vec5, F: wp.mat33, plastic_J: float, dt: float):
+    # elastic laws: the trial F is the new F
+    return F, plastic_J
+
+
+@wp.func
+def map_von_mises(p: vec5, F: wp.mat33, plastic_J: float, dt: float):
+    # plasticine and plasticine_corotated: (E, nu, yield stress)
+    return von_mises_map(F, lame_mu(p[0], p[1]), p[2], 1.0), plastic_J
+
+
+@wp.func
+def map_sand(p: vec5, F: wp.mat33, plastic_J: float, dt: float):
+    return drucker_prager_map(F, p), plastic_J
+
+
+@wp.func
+def map_newtonian(p: vec5, F: wp.mat33, plastic_J: float, dt: float):
+    # a fluid keeps only its volume change: F = J^(1/3) I
+    J = wp.max(wp.determinant(F), J_MIN)
+    return wp.pow(J, 1.0 / 3.0) * wp.identity(n=3, dtype=float), plastic_J
+
+
+@wp.func
+def map_non_newtonian(p: vec5, F: wp.mat33, plastic_J: float, dt: float):
+    # viscoplastic von Mises: the flow relaxed by 1 + viscosity / (2 mu dt)
+    return von_mises_map(F, p[0], p[2], 1.0 + p[3] / (2.0 * p[0] * dt)), plastic_J
+
+
+@wp.func
+def map_snow(p: vec5, F: wp.mat33, plastic_J: float, dt: float):
+    return snow_map(F, p, plastic_J)
+
+
+@wp.func
 def return_map(law: int, p: vec5, F: wp.mat33, plastic_J: float, dt: float):
-    # plastic projection of the trial F; returns (F_new, plastic_J_new)
+    # plastic projection of the trial F (RETURN_MAP_OF, by law id); returns (F_new, plastic_J_new)
     out = F
     pj = plastic_J
-    if law == 1 or law == 7:  # plasticine and plasticine_corotated share the return map
-        out = von_mises_map(F, lame_mu(p[0], p[1]), p[2], 1.0)
+    if law == 1 or law == 7:
+        out, pj = map_von_mises(p, F, plastic_J, dt)
     elif law == 2:
-        out = drucker_prager_map(F, p)
+        out, pj = map_sand(p, F, plastic_J, dt)
     elif law == 3:
-        J = wp.max(wp.determinant(F), J_MIN)
-        out = wp.pow(J, 1.0 / 3.0) * wp.identity(n=3, dtype=float)
+        out, pj = map_newtonian(p, F, plastic_J, dt)
     elif law == 4:
-        out = von_mises_map(F, p[0], p[2], 1.0 + p[3] / (2.0 * p[0] * dt))
+        out, pj = map_non_newtonian(p, F, plastic_J, dt)
     elif law == 5:
-        out, pj = snow_map(F, p, plastic_J)
+        out, pj = map_snow(p, F, plastic_J, dt)
     return out, pj
+
+
+#: law id -> the law's stress function (p, F, L, plastic_J) -> tau, for kernels made per law
+#: (transfer_kernels.py): one law's code, none of the others' branches
+STRESS_OF = {
+    LAW_IDS["elastic"]: stress_elastic,
+    LAW_IDS["plasticine"]: stress_plasticine,
+    LAW_IDS["sand"]: stress_sand,
+    LAW_IDS["newtonian"]: stress_newtonian,
+    LAW_IDS["non_newtonian"]: stress_non_newtonian,
+    LAW_IDS["snow"]: stress_snow,
+    LAW_IDS["elastic_corotated"]: stress_corotated,
+    LAW_IDS["plasticine_corotated"]: stress_corotated,
+}
+
+#: law id -> the law's return map (p, F_trial, plastic_J, dt) -> (F, plastic_J)
+RETURN_MAP_OF = {
+    LAW_IDS["elastic"]: map_none,
+    LAW_IDS["plasticine"]: map_von_mises,
+    LAW_IDS["sand"]: map_sand,
+    LAW_IDS["newtonian"]: map_newtonian,
+    LAW_IDS["non_newtonian"]: map_non_newtonian,
+    LAW_IDS["snow"]: map_snow,
+    LAW_IDS["elastic_corotated"]: map_none,
+    LAW_IDS["plasticine_corotated"]: map_von_mises,
+}
 
 
 @wp.kernel

@@ -20,6 +20,7 @@ from mosiv_framework.types import World
 from mosiv_warp_mpm import expression_kernels as XK
 from mosiv_warp_mpm import kernels as K
 from mosiv_warp_mpm import node_window as NW
+from mosiv_warp_mpm import transfer_kernels as T
 from mosiv_warp_mpm.laws import LAW_IDS
 from mosiv_warp_mpm.options import GRID_WINDOWS
 from mosiv_warp_mpm.state import (
@@ -101,6 +102,8 @@ class MPMRun:
         fields = [b * layout.fields + f for b in range(batch) for f in fields]
         law_ids = [LAW_IDS[f] for f in families]
         self.tables = ObjectTables(law_ids, fields, device, batch=batch)
+        #: the laws present: the per-law stress and deformation kernels launched each substep
+        self.laws = sorted(set(law_ids))
         self.obj = wp.from_torch(obj_index.to(torch.int32).contiguous(), dtype=wp.int32)
         self.obj = wp.clone(self.obj, device=device)
         self.volume = wp.clone(wp.from_torch(volumes.float().contiguous()), device=device)
@@ -108,6 +111,8 @@ class MPMRun:
         self.grid = Grid(layout, device, batch=batch)
         self.a = ParticleState(self.n, device)
         self.b = ParticleState(self.n, device)
+        #: each particle's stress impulse, from transfer_kernels.particle_stress to its p2g
+        self.stress = wp.zeros(self.n, dtype=wp.mat33, device=device)
         self.checkpoints: list[ParticleState] = []
         self._checkpoint_pool: list[ParticleState] = []  # reused between rollouts
         self._backward = None  # autograd.BackwardWorkspace, made on the first backward
@@ -260,8 +265,8 @@ class MPMRun:
         kernels visit the nodes of ``window`` (``substep_window(src, s)``), cleared
         beforehand."""
         self.grid_update(src, grid, s, window)
-        inputs, outputs = self._g2p_args(src, dst, grid, s)
-        wp.launch(K.g2p, dim=self.n, inputs=inputs, outputs=outputs, device=self.device)
+        for kernel, inputs, outputs in self._g2p_launches(src, dst, grid, s):
+            wp.launch(kernel, dim=self.n, inputs=inputs, outputs=outputs, device=self.device)
 
     def record_g2p(
         self,
@@ -272,22 +277,65 @@ class MPMRun:
         s: int,
         gathered: ParticleParams | None = None,
     ) -> None:
-        """Put substep ``s``'s G2P on ``tape`` without running it, for a replay whose ``dst``
-        already holds G2P's result (the backward's re-simulation wrote it): G2P's adjoint reads
-        only its inputs and its outputs' gradients, so running it again would only rewrite
-        ``dst`` with the same values. ``gathered``: see ``grid_update``."""
-        inputs, outputs = self._g2p_args(src, dst, grid, s, gathered)
-        tape.record_launch(K.g2p, self.n, 0, inputs, outputs, self.device)
+        """Put substep ``s``'s G2P (the gather, then the deformation update) on ``tape`` without
+        running it, for a replay whose ``dst`` already holds G2P's result (the backward's
+        re-simulation wrote it): their adjoints read only their inputs and their outputs'
+        gradients, so running them again would only rewrite ``dst`` with the same values (the
+        update's input C is the gather's output, already in ``dst``). ``gathered``: see
+        ``grid_update``."""
+        for kernel, inputs, outputs in self._g2p_launches(src, dst, grid, s, gathered):
+            tape.record_launch(kernel, self.n, 0, inputs, outputs, self.device)
 
-    def _g2p_args(
+    def _g2p_launches(
         self, src: ParticleState, dst: ParticleState, grid: Grid, s: int, gathered=None
-    ) -> tuple:
+    ) -> list[tuple]:
+        """(kernel, inputs, outputs) of G2P's launches (transfer_kernels.py): the gather, then
+        each law's deformation update."""
         lay, t = self.layout, self.tables
         origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
         law_params = t.params if gathered is None else gathered.params
-        inputs = [src.x, src.F, src.plastic_J, self.obj, t.law_of, t.field_of, law_params]
-        inputs += [int(gathered is not None), grid.v, origin, lay.dx, self.dt, nodes, s, self.flag]
-        return inputs, [dst.x, dst.v, dst.C, dst.F, dst.plastic_J]
+        gather = [src.x, self.obj, t.field_of, grid.v, origin, lay.dx, self.dt, nodes, s]
+        update = [dst.C, src.F, src.plastic_J, self.obj, t.law_of, law_params]
+        update += [int(gathered is not None), self.dt, s, self.flag]
+        launches = [(T.g2p, gather + [self.flag], [dst.x, dst.v, dst.C])]
+        for law in self.laws:
+            launches.append((T.UPDATE_DEFORMATION[law], update, [dst.F, dst.plastic_J]))
+        return launches
+
+    def p2g(
+        self,
+        src: ParticleState,
+        grid: Grid,
+        gathered: ParticleParams | None = None,
+        stress: wp.array | None = None,
+        looped_on: wp.Tape | None = None,
+    ) -> None:
+        """P2G from src onto ``grid``: each particle's stress impulse into ``stress`` (default
+        the run's own buffer; one launch per law present), then the scatter
+        (transfer_kernels.py). ``gathered``: see ``grid_update``. ``looped_on``: the tape
+        being recorded, on which the scatter goes as ``p2g_looped`` (for its adjoint), while
+        the unrolled ``p2g`` computes the grid: the same inputs and outputs, the same values."""
+        lay, t, dev = self.layout, self.tables, self.device
+        origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
+        if stress is None:
+            stress = self.stress
+        params, rho, damping = (
+            [t.params, t.rho, t.damping] if gathered is None else gathered.arrays()
+        )
+        per_particle = int(gathered is not None)
+        inputs = [src.C, src.F, src.plastic_J, self.volume, self.obj, t.law_of, params]
+        inputs += [damping, lay.dx, self.dt, t.k, per_particle]
+        for law in self.laws:
+            kernel = T.PARTICLE_STRESS[law]
+            wp.launch(kernel, dim=self.n, inputs=inputs, outputs=[stress], device=dev)
+        inputs = [src.x, src.v, src.C, stress, self.volume, self.obj, t.field_of, rho]
+        inputs += [origin, lay.dx, nodes, int(lay.fields > 1)]
+        inputs += [self.ground_k if self.ground_on else -1.0, t.k, per_particle]
+        outputs = [grid.m, grid.mv, grid.gm, grid.pm]
+        recorded = looped_on is None
+        wp.launch(T.p2g, self.n, inputs, outputs, device=dev, record_tape=recorded)
+        if not recorded:
+            looped_on.record_launch(T.p2g_looped, self.n, 0, inputs, outputs, dev)
 
     def grid_update(
         self,
@@ -297,30 +345,24 @@ class MPMRun:
         window: Window,
         gathered: ParticleParams | None = None,
         coefficients: NodeCoefficients | None = None,
+        stress: wp.array | None = None,
+        looped_on: wp.Tape | None = None,
     ) -> None:
-        """P2G from src, then the grid's free velocity and boundaries, on the nodes of
-        ``window`` (cleared beforehand): the grid velocities ``grid.v`` that G2P reads.
+        """P2G from src (the particles' stress impulses into ``stress``, default the run's
+        own buffer, then the scatter), then the grid's free velocity and boundaries, on the
+        nodes of ``window`` (cleared beforehand): the grid velocities ``grid.v`` that G2P reads.
 
         ``gathered``: None, P2G reads the per-object tables (forward rollouts, re-simulation);
         else the particles' own copies of them (the taped replay, whose parameter adjoints then
         land on one address per particle: kernels.parameter_rows). ``coefficients``: likewise
         for grid_free_velocity's body acceleration and drag and grid_boundaries' friction and
         ground coefficients (the nodes' copies, ``per_node``) and the expression switches (a
-        copy without a gradient). Same values, same results.
+        copy without a gradient). Same values, same results. ``stress``, ``looped_on``: see
+        ``p2g``.
         """
         lay, t, dev = self.layout, self.tables, self.device
-        origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
-        law_inputs = [t.params, t.rho, t.damping] if gathered is None else gathered.arrays()
-        wp.launch(
-            K.p2g,
-            dim=self.n,
-            inputs=[src.x, src.v, src.C, src.F, src.plastic_J, self.volume, self.obj]
-            + [t.law_of, t.field_of, *law_inputs, origin, lay.dx, self.dt, nodes]
-            + [int(lay.fields > 1), self.ground_k if self.ground_on else -1.0, t.k]
-            + [int(gathered is not None)],
-            outputs=[grid.m, grid.mv, grid.gm, grid.pm],
-            device=dev,
-        )
+        nodes = wp.vec3i(*lay.nodes)
+        self.p2g(src, grid, gathered, stress, looped_on)
         c = coefficients
         switch = None if c is None else c.expr_switch
         self.centre_sums(grid, window, switch)

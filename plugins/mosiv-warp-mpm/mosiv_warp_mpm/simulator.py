@@ -17,6 +17,7 @@ from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, Wor
 from mosiv_warp_mpm import expression_kernels as XK
 from mosiv_warp_mpm import kernels as K
 from mosiv_warp_mpm import laws as laws_module
+from mosiv_warp_mpm import transfer_kernels as T
 from mosiv_warp_mpm.laws import LAW_IDS
 from mosiv_warp_mpm.options import WarpMPMOptions
 from mosiv_warp_mpm.packing import TERMS, check_inputs, initial_velocities, pack_theta
@@ -64,7 +65,7 @@ def use_deterministic_atomics(on: bool) -> None:
         )
     if _DETERMINISTIC is None:
         mode = wp.DeterministicMode.RUN_TO_RUN if on else wp.DeterministicMode.NOT_GUARANTEED
-        for module in (K, XK, laws_module):
+        for module in (K, T, XK, laws_module, T.p2g_looped.module):
             wp.set_module_options({"deterministic": mode}, module=module)
         _DETERMINISTIC = on
 

@@ -1,5 +1,6 @@
-"""The P2G and G2P kernels as they were before they read each particle array once per thread
-(kernels.py, module docstring): kept verbatim so that test_transfer_reads.py can compare the
+"""The P2G and G2P kernels as they were before each was split in two (transfer_kernels.py,
+module docstring: the laws' stress and return map moved into kernels of their own), kept
+verbatim with the launches that drove them, so that test_transfer_reads.py can compare the
 rollouts and gradients of both. Not used by the simulator."""
 
 from __future__ import annotations
@@ -53,17 +54,25 @@ def p2g(
     o = obj[p]
     f = field_of[o]
     q, b = parameter_rows(p, o, objects_per_member, per_particle)
-    m = rho[q] * volume[p]
+    # each particle array read once (module docstring): C is used three times and once per
+    # ground-layer node, F and the volume twice
+    xp = x[p]
+    vp = v[p]
+    Cp = C[p]
+    Fp = F[p]
+    Jp = plastic_J[p]
+    vol = volume[p]
+    m = rho[q] * vol
     inv_dx = 1.0 / dx
-    tau = kirchhoff_stress(law_of[o], params[q], F[p], C[p], plastic_J[p])
-    tau = tau + kelvin_voigt_tau(damping[b], F[p], C[p])
-    affine = (-dt * 4.0 * inv_dx * inv_dx * volume[p]) * tau + m * C[p]
-    xl = (x[p] - origin) * inv_dx
+    tau = kirchhoff_stress(law_of[o], params[q], Fp, Cp, Jp)
+    tau = tau + kelvin_voigt_tau(damping[b], Fp, Cp)
+    affine = (-dt * 4.0 * inv_dx * inv_dx * vol) * tau + m * Cp
+    xl = (xp - origin) * inv_dx
     base = cell_base(xl)
     fx = xl - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     W = bspline_weights(fx)
     D = bspline_slopes(fx)
-    mom = m * v[p]
+    mom = m * vp
     for i in range(3):
         for j in range(3):
             for k in range(3):
@@ -78,7 +87,7 @@ def p2g(
                 wp.atomic_add(grid_m, n, w * m)
                 wp.atomic_add(grid_mv, n, w * (mom + affine * dpos))
                 if float(base[2] + k) <= ground_k:  # for ground_restitution (ground_contact)
-                    wp.atomic_add(grid_pm, n, w * (mom + m * (C[p] * dpos)))
+                    wp.atomic_add(grid_pm, n, w * (mom + m * (Cp * dpos)))
                 if with_normals != 0:  # contact normals matter only with several fields
                     wp.atomic_add(grid_gm, n, m * grad_w)
 
@@ -111,8 +120,9 @@ def g2p(
     p = wp.tid()
     o = obj[p]
     f = field_of[o]
+    xp = x[p]  # read once (module docstring): the position is used two or three times
     inv_dx = 1.0 / dx
-    xl = (x[p] - origin) * inv_dx
+    xl = (xp - origin) * inv_dx
     base = cell_base(xl)
     fx = xl - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     W = bspline_weights(fx)
@@ -129,13 +139,13 @@ def g2p(
     F_trial = (wp.identity(n=3, dtype=float) + dt * Cn) * F[p]
     q, b = parameter_rows(p, o, 1, per_particle)
     Fn, pj = return_map(law_of[o], params[q], F_trial, plastic_J[p], dt)
-    xn = x[p] + dt * vn
+    xn = xp + dt * vn
     finite = wp.isfinite(xn) and wp.isfinite(vn) and wp.isfinite(Fn) and wp.isfinite(Cn)
     finite = finite and wp.isfinite(pj)
     if not finite:
         # keep the state usable (no out-of-grid index next substep); the host raises at frame end
         wp.atomic_min(flag, o, substep * 4 + REASON_NONFINITE)
-        xn = x[p]
+        xn = xp
         vn = wp.vec3()
         Cn = wp.mat33()
         Fn = wp.identity(n=3, dtype=float)
@@ -153,3 +163,31 @@ def g2p(
     C_out[p] = Cn
     F_out[p] = Fn
     plastic_J_out[p] = pj
+
+
+def fused_p2g(run, src, grid, gathered=None, stress=None, looped_on=None) -> None:
+    """MPMRun.p2g as it was: one launch, the stress inside the scatter (``stress`` and
+    ``looped_on`` unused: the launch goes on the tape being recorded, if any)."""
+    lay, t = run.layout, run.tables
+    origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
+    law_inputs = [t.params, t.rho, t.damping] if gathered is None else gathered.arrays()
+    wp.launch(
+        p2g,
+        dim=run.n,
+        inputs=[src.x, src.v, src.C, src.F, src.plastic_J, run.volume, run.obj]
+        + [t.law_of, t.field_of, *law_inputs, origin, lay.dx, run.dt, nodes]
+        + [int(lay.fields > 1), run.ground_k if run.ground_on else -1.0, t.k]
+        + [int(gathered is not None)],
+        outputs=[grid.m, grid.mv, grid.gm, grid.pm],
+        device=run.device,
+    )
+
+
+def fused_g2p_launches(run, src, dst, grid, s, gathered=None) -> list[tuple]:
+    """MPMRun._g2p_launches as it was: one launch, the return map inside the gather."""
+    lay, t = run.layout, run.tables
+    origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
+    law_params = t.params if gathered is None else gathered.params
+    inputs = [src.x, src.F, src.plastic_J, run.obj, t.law_of, t.field_of, law_params]
+    inputs += [int(gathered is not None), grid.v, origin, lay.dx, run.dt, nodes, s, run.flag]
+    return [(g2p, inputs, [dst.x, dst.v, dst.C, dst.F, dst.plastic_J])]
