@@ -80,8 +80,9 @@ TAPED_AS = {"p2g_looped": "p2g"}
 
 def kernel_table(p: Profile) -> str:
     """Per kernel, ms in the forward frame, the re-simulation, the taped replay and the adjoint,
-    and the adjoint over one forward pass of it ("-": not timed per kernel, as on the CPU); a
-    kernel taped in another's place (TAPED_AS) gives its adjoint to that one's row."""
+    and the adjoint over one forward pass of it (the forward frame's, else the replay's; "-": not
+    timed per kernel, as on the CPU); a kernel taped in another's place (TAPED_AS) gives its
+    adjoint to that one's row."""
     cols = {"forward": {}, "re-simulation": {}, "taped replay": {}, "adjoint": {}}
     for r in [*p.forward_rows, *p.rows]:
         for prefix in ("forward kernel ", "backward kernel "):
@@ -98,7 +99,9 @@ def kernel_table(p: Profile) -> str:
         return f"{cols[phase][name]:>9.2f}" if name in cols[phase] else f"{'-':>9}"
 
     for name in names:
-        fwd, adj = cols["forward"].get(name), cols["adjoint"].get(name)
+        # the split transfers run only in the taped replay (the forward runs the fused ones)
+        fwd = cols["forward"].get(name) or cols["taped replay"].get(name)
+        adj = cols["adjoint"].get(name)
         ratio = f"{adj / fwd:>8.1f}" if fwd and adj is not None else f"{'-':>8}"
         row = " ".join(cell(ph, name) for ph in cols)
         lines.append(f"  {'':<17}{name:<24} {row} {ratio}")

@@ -111,8 +111,6 @@ class MPMRun:
         self.grid = Grid(layout, device, batch=batch)
         self.a = ParticleState(self.n, device)
         self.b = ParticleState(self.n, device)
-        #: each particle's stress impulse, from transfer_kernels.particle_stress to its p2g
-        self.stress = wp.zeros(self.n, dtype=wp.mat33, device=device)
         self.checkpoints: list[ParticleState] = []
         self._checkpoint_pool: list[ParticleState] = []  # reused between rollouts
         self._backward = None  # autograd.BackwardWorkspace, made on the first backward
@@ -259,13 +257,22 @@ class MPMRun:
         )
 
     def substep(
-        self, src: ParticleState, dst: ParticleState, grid: Grid, s: int, window: Window
+        self,
+        src: ParticleState,
+        dst: ParticleState,
+        grid: Grid,
+        s: int,
+        window: Window,
+        stress: wp.array | None = None,
     ) -> None:
         """P2G, grid update (contact, ground, walls, terms) and G2P from src into dst; the grid
         kernels visit the nodes of ``window`` (``substep_window(src, s)``), cleared
-        beforehand."""
-        self.grid_update(src, grid, s, window)
-        for kernel, inputs, outputs in self._g2p_launches(src, dst, grid, s):
+        beforehand. ``stress``: None, the fused transfers (transfer_kernels.py: the laws inside
+        the scatter and the gather); else the split ones that the backward's replay tapes, the
+        particles' stress impulses passing through this buffer. The same values either way."""
+        self.grid_update(src, grid, s, window, stress=stress)
+        split = stress is not None
+        for kernel, inputs, outputs in self._g2p_launches(src, dst, grid, s, split=split):
             wp.launch(kernel, dim=self.n, inputs=inputs, outputs=outputs, device=self.device)
 
     def record_g2p(
@@ -283,23 +290,37 @@ class MPMRun:
         gradients, so running them again would only rewrite ``dst`` with the same values (the
         update's input C is the gather's output, already in ``dst``). ``gathered``: see
         ``grid_update``."""
-        for kernel, inputs, outputs in self._g2p_launches(src, dst, grid, s, gathered):
+        launches = self._g2p_launches(src, dst, grid, s, gathered, split=True)
+        for kernel, inputs, outputs in launches:
             tape.record_launch(kernel, self.n, 0, inputs, outputs, self.device)
 
     def _g2p_launches(
-        self, src: ParticleState, dst: ParticleState, grid: Grid, s: int, gathered=None
+        self,
+        src: ParticleState,
+        dst: ParticleState,
+        grid: Grid,
+        s: int,
+        gathered: ParticleParams | None = None,
+        *,
+        split: bool = False,
     ) -> list[tuple]:
-        """(kernel, inputs, outputs) of G2P's launches (transfer_kernels.py): the gather, then
-        each law's deformation update."""
+        """(kernel, inputs, outputs) of G2P's launches (transfer_kernels.py): the fused gather
+        and return map, or, ``split``, the gather, then each law's deformation update."""
         lay, t = self.layout, self.tables
         origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
         law_params = t.params if gathered is None else gathered.params
+        per_particle = int(gathered is not None)
+        outputs = [dst.x, dst.v, dst.C, dst.F, dst.plastic_J]
+        if not split:
+            inputs = [src.x, src.F, src.plastic_J, self.obj, t.law_of, t.field_of, law_params]
+            inputs += [per_particle, grid.v, origin, lay.dx, self.dt, nodes, s, self.flag]
+            return [(T.g2p_fused, inputs, outputs)]
         gather = [src.x, self.obj, t.field_of, grid.v, origin, lay.dx, self.dt, nodes, s]
+        launches = [(T.g2p, gather + [self.flag], outputs[:3])]
         update = [dst.C, src.F, src.plastic_J, self.obj, t.law_of, law_params]
-        update += [int(gathered is not None), self.dt, s, self.flag]
-        launches = [(T.g2p, gather + [self.flag], [dst.x, dst.v, dst.C])]
+        update += [per_particle, self.dt, s, self.flag]
         for law in self.laws:
-            launches.append((T.UPDATE_DEFORMATION[law], update, [dst.F, dst.plastic_J]))
+            launches.append((T.UPDATE_DEFORMATION[law], update, outputs[3:]))
         return launches
 
     def p2g(
@@ -310,28 +331,33 @@ class MPMRun:
         stress: wp.array | None = None,
         looped_on: wp.Tape | None = None,
     ) -> None:
-        """P2G from src onto ``grid``: each particle's stress impulse into ``stress`` (default
-        the run's own buffer; one launch per law present), then the scatter
-        (transfer_kernels.py). ``gathered``: see ``grid_update``. ``looped_on``: the tape
-        being recorded, on which the scatter goes as ``p2g_looped`` (for its adjoint), while
-        the unrolled ``p2g`` computes the grid: the same inputs and outputs, the same values."""
+        """P2G from src onto ``grid`` (transfer_kernels.py). ``stress``: None, the fused
+        scatter with each particle's stress inside; else the split form: each law's particles'
+        stress impulses into ``stress`` (one launch per law present), then the scatter.
+        ``gathered``: see ``grid_update``. ``looped_on``: the tape being recorded, on which the
+        split scatter goes as ``p2g_looped`` (for its adjoint), while the unrolled ``p2g``
+        computes the grid: the same inputs and outputs, the same values."""
         lay, t, dev = self.layout, self.tables, self.device
         origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
-        if stress is None:
-            stress = self.stress
         params, rho, damping = (
             [t.params, t.rho, t.damping] if gathered is None else gathered.arrays()
         )
         per_particle = int(gathered is not None)
+        ground_k = self.ground_k if self.ground_on else -1.0
+        outputs = [grid.m, grid.mv, grid.gm, grid.pm]
+        if stress is None:
+            inputs = [src.x, src.v, src.C, src.F, src.plastic_J, self.volume, self.obj]
+            inputs += [t.law_of, t.field_of, params, rho, damping, origin, lay.dx, self.dt]
+            inputs += [nodes, int(lay.fields > 1), ground_k, t.k, per_particle]
+            wp.launch(T.p2g_fused, self.n, inputs, outputs, device=dev)
+            return
         inputs = [src.C, src.F, src.plastic_J, self.volume, self.obj, t.law_of, params]
         inputs += [damping, lay.dx, self.dt, t.k, per_particle]
         for law in self.laws:
             kernel = T.PARTICLE_STRESS[law]
             wp.launch(kernel, dim=self.n, inputs=inputs, outputs=[stress], device=dev)
         inputs = [src.x, src.v, src.C, stress, self.volume, self.obj, t.field_of, rho]
-        inputs += [origin, lay.dx, nodes, int(lay.fields > 1)]
-        inputs += [self.ground_k if self.ground_on else -1.0, t.k, per_particle]
-        outputs = [grid.m, grid.mv, grid.gm, grid.pm]
+        inputs += [origin, lay.dx, nodes, int(lay.fields > 1), ground_k, t.k, per_particle]
         recorded = looped_on is None
         wp.launch(T.p2g, self.n, inputs, outputs, device=dev, record_tape=recorded)
         if not recorded:
@@ -348,9 +374,8 @@ class MPMRun:
         stress: wp.array | None = None,
         looped_on: wp.Tape | None = None,
     ) -> None:
-        """P2G from src (the particles' stress impulses into ``stress``, default the run's
-        own buffer, then the scatter), then the grid's free velocity and boundaries, on the
-        nodes of ``window`` (cleared beforehand): the grid velocities ``grid.v`` that G2P reads.
+        """P2G from src (``p2g``), then the grid's free velocity and boundaries, on the nodes of
+        ``window`` (cleared beforehand): the grid velocities ``grid.v`` that G2P reads.
 
         ``gathered``: None, P2G reads the per-object tables (forward rollouts, re-simulation);
         else the particles' own copies of them (the taped replay, whose parameter adjoints then

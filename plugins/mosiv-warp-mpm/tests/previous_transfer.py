@@ -183,8 +183,9 @@ def fused_p2g(run, src, grid, gathered=None, stress=None, looped_on=None) -> Non
     )
 
 
-def fused_g2p_launches(run, src, dst, grid, s, gathered=None) -> list[tuple]:
-    """MPMRun._g2p_launches as it was: one launch, the return map inside the gather."""
+def fused_g2p_launches(run, src, dst, grid, s, gathered=None, *, split=False) -> list[tuple]:
+    """MPMRun._g2p_launches as it was: one launch, the return map inside the gather (also
+    where the taped replay asks for the ``split`` form)."""
     lay, t = run.layout, run.tables
     origin, nodes = wp.vec3(*lay.origin), wp.vec3i(*lay.nodes)
     law_params = t.params if gathered is None else gathered.params
