@@ -92,9 +92,14 @@ re-simulation and the taped replay), zeroes gradients, and launches four adjoint
    arrays (2.46 M nodes at grid 128): about 0.35 GB in all, some 0.15 ms of the 24 at H100
    bandwidth: the memset and memcpy rows. The 51 saved states (values and gradients, about 10 GB
    at 1M particles) cost memory, not time.
-7. Occupancy of the adjoint kernels (register pressure of the reversed 27-node loops): what is
-   left of adjoint p2g/g2p after 1 and 3 are accounted for points here; Nsight Compute on those
-   two kernels would be the next measurement.
+7. Register pressure of the adjoint kernels. P2G carried the law's stress and G2P its return
+   map, switches over every law with SVD adjoints in several branches, and Warp's adjoint of
+   the unrolled 27-node loops holds every node's values at once. Confirmed on an H200: the
+   taped replay now runs the transfers split (transfer_kernels.py: a stress kernel and a
+   deformation update per law beside a lean scatter and gather) and tapes the scatter as a
+   loop (p2g_looped, whose adjoint replays one node at a time); the adjoint scatter went from
+   73 to 21 ms a frame at 1M particles, the gather's from 34 to 21 (docs/BENCHMARKS.md).
+   --unrolled-scatter-adjoint tapes the unrolled scatter instead, for comparison.
 """
 
 from __future__ import annotations
