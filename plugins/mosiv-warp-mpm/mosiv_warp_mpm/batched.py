@@ -9,8 +9,9 @@ single rollout of its parameters, to float32 round-off (on the CPU, where Warp r
 in order, bit for bit; on a GPU the atomic sums of P2G run in another order).
 
 A member that diverges keeps being simulated (the kernels reset its non-finite particles, see
-kernels.g2p, so its state stays on its own grid) but its result is the SimulationDiverged of its
-first flagged frame; the rollout stops early when every member has diverged.
+transfer_kernels.g2p_fused, so its state stays on its own grid) but its result is the
+SimulationDiverged of its first flagged frame; the rollout stops early when every member has
+diverged.
 
 Under autograd, with a parameter or the positions requiring gradients, the batch runs through
 the same torch.autograd.Function as a single rollout (autograd.WarpRollout): its backward
