@@ -3,15 +3,17 @@
 Forward keeps one particle state per frame boundary (no tape). Backward walks the frames from
 last to first; for each frame it re-simulates the frame from its checkpoint into per-substep
 state buffers, then replays the substeps in reverse, each under its own short Warp tape, carrying
-the adjoint of the particle state. The replay reruns only the grid update (the grid is shared,
-so later substeps overwrote it); G2P goes on the tape without running, its output already in
-the next state buffer. Because each substep writes a fresh state buffer and each
-tape is consumed before the shared grid is reused, nothing a tape recorded is overwritten before
-its adjoint runs. Memory: checkpoints grow with frames; the workspace (substeps + 1 particle
-states and one grid) is the same for every frame and does not grow with the number of frames.
+the adjoint of the particle state. The replay reruns only the grid update (the particles' stress
+impulses and the scatter, in the split form of transfer_kernels.py: the grid and the impulses
+are shared, so later substeps overwrote them); G2P goes on the tape without running, its output
+already in the next state buffer. Because each substep writes a fresh state buffer and each
+tape is consumed before the shared grid and stress buffer are reused, nothing a tape recorded
+is overwritten before its adjoint runs. Memory: checkpoints grow with frames; the workspace
+(substeps + 1 particle states, one grid and one stress buffer) is the same for every frame and
+does not grow with the number of frames.
 
-On CUDA one frame's adjoint (re-simulation, tapes and their reverse launches: about 35 launches
-per substep) is captured once into a graph and replayed for every frame and, because the
+On CUDA one frame's adjoint (re-simulation, tapes and their reverse launches: some 40 launches
+per substep, more with several laws) is captured once into a graph and replayed for every frame and, because the
 simulator keeps the run, for every later rollout of the same layout: launched from Python it
 cost about 2 ms per substep, far more than the kernels themselves.
 
@@ -117,8 +119,9 @@ def segment_sums(values: torch.Tensor, index: torch.Tensor, count: int) -> torch
 
 class BackwardWorkspace:
     """Buffers of one frame's adjoint: a particle state per substep boundary (values and
-    gradients), one grid and ``carry``, whose gradient holds d(loss)/d(state) at a frame
-    boundary. Kept by the run so the captured graph stays valid between rollouts."""
+    gradients), one grid, one buffer of stress impulses and ``carry``, whose gradient holds
+    d(loss)/d(state) at a frame boundary. Kept by the run so the captured graph stays valid
+    between rollouts."""
 
     def __init__(self, run):
         n, dev = run.n, run.device

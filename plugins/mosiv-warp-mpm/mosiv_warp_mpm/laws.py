@@ -4,8 +4,10 @@ Constitutive laws).
 Every law reads its parameters from one ``vec5`` per object, in the order of
 ``LAW_PARAM_NAMES`` (unused slots are 0). Each law has a stress function and a return map of
 one signature (``STRESS_OF``, ``RETURN_MAP_OF``), from which transfer_kernels.py makes one
-kernel per law; ``kirchhoff_stress`` and ``return_map`` dispatch on the law id to the same
-functions, for kernels that serve every law (the parity tests' ``evaluate_laws``). Every SVD
+kernel per law for the backward's taped replay; ``kirchhoff_stress`` and ``return_map`` dispatch
+on the law id to the same functions, for kernels that serve every law (the fused transfers of
+forward rollouts, transfer_kernels.p2g_fused and g2p_fused, and the parity tests'
+``evaluate_laws``). Every SVD
 goes through ``svd.proper_svd``, whose adjoint stays finite at repeated singular values.
 """
 

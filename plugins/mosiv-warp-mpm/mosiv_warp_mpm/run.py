@@ -42,6 +42,16 @@ WINDOWS = tuple(w for w in GRID_WINDOWS if w != "auto")
 _NO_BASE = 2**30
 
 
+def _ground(world: World, layout: GridLayout) -> tuple[int, float, int]:
+    """(whether there is a ground, its height in grid coordinates ground_k, the node layers
+    k <= ground_k where the ground contact acts); the kernels compare in float32, so the layer
+    count comes from ground_k rounded as they see it."""
+    on = int(world.ground_height is not None)
+    ground_k = ((world.ground_height or 0.0) - layout.origin[2]) / layout.dx + 1e-4
+    top = math.floor(float(np.float32(ground_k))) if on else -1
+    return on, ground_k, min(max(top + 1, 0), layout.nodes[2])
+
+
 class MPMRun:
     """Buffers and loops of one rollout (fixed particles, objects, grid and substeps)."""
 
@@ -116,13 +126,7 @@ class MPMRun:
         self._backward = None  # autograd.BackwardWorkspace, made on the first backward
         #: the frame's captured CUDA graph, per value of ``centres`` (the launches differ)
         self._graphs: dict[bool, wp.Graph] = {}
-        self.ground_on = int(world.ground_height is not None)
-        z0 = layout.origin[2]
-        self.ground_k = ((world.ground_height or 0.0) - z0) / layout.dx + 1e-4
-        #: node layers k <= ground_k, where the ground contact acts: the kernels compare in
-        #: float32, so the count comes from ground_k rounded as they see it
-        top = math.floor(float(np.float32(self.ground_k))) if self.ground_on else -1
-        self.ground_layers = min(max(top + 1, 0), layout.nodes[2])
+        self.ground_on, self.ground_k, self.ground_layers = _ground(world, layout)
         #: the current frame's start time (s), read by the expression term (``set_clock``)
         self.clock = wp.zeros(1, dtype=float, device=device)
         self.up = wp.vec3(*up_vector(world.gravity).tolist())
@@ -269,7 +273,8 @@ class MPMRun:
         kernels visit the nodes of ``window`` (``substep_window(src, s)``), cleared
         beforehand. ``stress``: None, the fused transfers (transfer_kernels.py: the laws inside
         the scatter and the gather); else the split ones that the backward's replay tapes, the
-        particles' stress impulses passing through this buffer. The same values either way."""
+        particles' stress impulses passing through this buffer. The same values either way,
+        but for a diverged particle's reset (transfer_kernels.py)."""
         self.grid_update(src, grid, s, window, stress=stress)
         split = stress is not None
         for kernel, inputs, outputs in self._g2p_launches(src, dst, grid, s, split=split):
@@ -358,9 +363,9 @@ class MPMRun:
             wp.launch(kernel, dim=self.n, inputs=inputs, outputs=[stress], device=dev)
         inputs = [src.x, src.v, src.C, stress, self.volume, self.obj, t.field_of, rho]
         inputs += [origin, lay.dx, nodes, int(lay.fields > 1), ground_k, t.k, per_particle]
-        recorded = looped_on is None
-        wp.launch(T.p2g, self.n, inputs, outputs, device=dev, record_tape=recorded)
-        if not recorded:
+        tape_unrolled = looped_on is None  # else the looped twin goes on the tape instead
+        wp.launch(T.p2g, self.n, inputs, outputs, device=dev, record_tape=tape_unrolled)
+        if not tape_unrolled:
             looped_on.record_launch(T.p2g_looped, self.n, 0, inputs, outputs, dev)
 
     def grid_update(

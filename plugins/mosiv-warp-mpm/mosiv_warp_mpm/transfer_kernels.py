@@ -1,6 +1,6 @@
 """Particle-grid transfers of MLS-MPM (Hu et al. 2018): each of P2G and G2P split in two kernels.
 
-A substep launches, in order:
+The backward's taped replay launches, in a substep, in order:
 
 1. ``particle_stress`` of each law present: each particle's stress impulse -dt (4 / dx^2) V0 tau
    (tau the law's Kirchhoff stress plus the material_damping viscous stress), a 3x3 matrix a
@@ -31,7 +31,10 @@ forms ``p2g_fused`` and ``g2p_fused`` instead: the law's stress inside the scatt
 map inside the gather, two launches a substep fewer and no stress buffer, where a forward kernel
 carrying every law's branches costs little. Only the taped replay runs the split kernels, for
 their adjoints. Both forms compute the same values in the same order: bit for bit on the CPU
-(tests/test_transfer_reads.py).
+(tests/test_transfer_reads.py). They differ only for a particle that diverged: the fused G2P
+resets x, v, C, F and plastic_J together, the split kernels reset x, v, C in the gather and F,
+plastic_J in the update, each flagging the substep (the backward raises on a flag of its
+re-simulation, so a replay never goes on from there).
 
 Each kernel reads each particle array once per thread, into a local used from then on (Warp's
 adjoint of a read a[p] is one atomic add into a's gradient per read in the code; kernels.py).
@@ -159,7 +162,9 @@ p2g = wp.kernel(_scatter, name="p2g")
 
 #: the same scatter with its node loops left as loops (max_unroll 1), for the backward's taped
 #: replay: Warp's adjoint of the unrolled scatter holds the values of all 27 nodes at once,
-#: while a loop's adjoint replays one node at a time
+#: while a loop's adjoint replays one node at a time. Only recorded on tapes, never launched
+#: forward (MPMRun.p2g runs the unrolled p2g): its forward's atomics in a dynamic loop could
+#: exceed the records that deterministic atomics size per thread, its adjoint has none there
 p2g_looped = wp.kernel(
     _scatter, name="p2g_looped", module="unique", module_options={"max_unroll": 1}
 )

@@ -49,7 +49,7 @@ def test_one_deterministic_setting_per_process() -> None:
         """
         import warp as wp
         from mosiv_framework.errors import ConfigError
-        from mosiv_warp_mpm import kernels, laws
+        from mosiv_warp_mpm import expression_kernels, kernels, laws, transfer_kernels
         from mosiv_warp_mpm.simulator import WarpMPMSimulator
 
         def build(on):
@@ -59,9 +59,11 @@ def test_one_deterministic_setting_per_process() -> None:
         second = build(True)  # the same setting again is fine
         assert first.deterministic and second.deterministic
         run_to_run = wp.DeterministicMode.RUN_TO_RUN
-        for module in (kernels, laws):
+        for module in (kernels, laws, transfer_kernels, expression_kernels):
             mode = wp.get_module_options(module)["deterministic"]
             assert mode == run_to_run, (module.__name__, mode)
+        looped = transfer_kernels.p2g_looped.module  # its own module (module="unique")
+        assert looped.options["deterministic"] == run_to_run
         try:
             build(False)
         except ConfigError as e:

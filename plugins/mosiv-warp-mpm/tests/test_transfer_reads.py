@@ -3,11 +3,13 @@ and the split kernels equal to the fused ones they replaced.
 
 Warp's adjoint of a read a[p] is one atomic add into a's gradient per read in the code, so each
 transfer kernel reads each particle array once, into a local. P2G and G2P were each one kernel
-with the law's stress or return map inside (tests/previous_transfer.py, kept verbatim); now the
-stress impulse and the deformation update are kernels of their own. The forward is the same
-arithmetic on the same values, so a rollout is bit for bit the same on the CPU; the gradients
-are the same sums, grouped differently (measured on the CPU: within 2e-6 of the largest
-magnitude, E's).
+with the law's stress or return map inside (tests/previous_transfer.py, kept verbatim with the
+launches that taped them); forward rollouts still run those fused forms (transfer_kernels.
+p2g_fused, g2p_fused), while the backward's taped replay now runs the split kernels. So the
+rollouts below are the same code, and what the comparison checks is the backward: the split
+kernels' adjoints give the fused kernels' gradients, the same sums grouped differently
+(measured on the CPU: within 2e-6 of the largest magnitude, E's); and that the split kernels
+compute what the fused ones do, over every law.
 """
 
 from __future__ import annotations
