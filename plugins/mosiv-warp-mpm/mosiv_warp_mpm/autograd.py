@@ -13,9 +13,9 @@ is overwritten before its adjoint runs. Memory: checkpoints grow with frames; th
 does not grow with the number of frames.
 
 On CUDA one frame's adjoint (re-simulation, tapes and their reverse launches: some 40 launches
-per substep, more with several laws) is captured once into a graph and replayed for every frame and, because the
-simulator keeps the run, for every later rollout of the same layout: launched from Python it
-cost about 2 ms per substep, far more than the kernels themselves.
+per substep, more with several laws) is captured once into a graph and replayed for every frame
+and, because the simulator keeps the run, for every later rollout of the same layout: launched
+from Python it cost about 2 ms per substep, far more than the kernels themselves.
 
 Parameter gradients: in Warp the adjoint of a read a[i] is atomic_add(adj_a[i]), so taped
 kernels reading the per-object tables in every particle thread would add every particle's

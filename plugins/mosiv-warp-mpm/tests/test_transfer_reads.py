@@ -3,11 +3,12 @@ and the split kernels equal to the fused ones they replaced.
 
 Warp's adjoint of a read a[p] is one atomic add into a's gradient per read in the code, so each
 transfer kernel reads each particle array once, into a local. P2G and G2P were each one kernel
-with the law's stress or return map inside (tests/previous_transfer.py, kept verbatim with the
-launches that taped them); forward rollouts still run those fused forms (transfer_kernels.
-p2g_fused, g2p_fused), while the backward's taped replay now runs the split kernels. So the
-rollouts below are the same code, and what the comparison checks is the backward: the split
-kernels' adjoints give the fused kernels' gradients, the same sums grouped differently
+with the law's stress or return map inside; forward rollouts still run those fused forms
+(transfer_kernels.p2g_fused, g2p_fused), while the backward's taped replay runs the split
+kernels. The comparison below tapes the fused forms in the replay instead (MPMRun's own
+launches, asked for the fused form), so the rollouts are the same code and what it checks is
+the backward: the split kernels' adjoints give the fused kernels' gradients, the same sums
+grouped differently
 (measured on the CPU: within 2e-6 of the largest magnitude, E's); and that the split kernels
 compute what the fused ones do, over every law.
 """
@@ -15,12 +16,9 @@ compute what the fused ones do, over every law.
 from __future__ import annotations
 
 import ast
-import importlib.util
 import inspect
-import sys
 import textwrap
 from collections import Counter
-from pathlib import Path
 
 import pytest
 import torch
@@ -32,22 +30,20 @@ from mosiv_framework.laws import FAMILIES
 from mosiv_framework.testing.shapes import combine, default_params, sphere
 from mosiv_framework.types import World
 
-
-def _load_previous():
-    """The previous kernels, by path: the suite imports test modules with importlib (several
-    plugins have test modules of the same name), so this folder is not on sys.path."""
-    name = "mosiv_warp_mpm_tests_previous_transfer"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(
-            name, Path(__file__).with_name("previous_transfer.py")
-        )
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module  # Warp finds a kernel's module by name
-        spec.loader.exec_module(module)
-    return sys.modules[name]
+_own_p2g = MPMRun.p2g
+_own_g2p_launches = MPMRun._g2p_launches
 
 
-previous = _load_previous()
+def _fused_p2g(run, src, grid, gathered=None, stress=None, looped_on=None) -> None:
+    """MPMRun.p2g in its fused form even where the replay asks for the split one: one launch,
+    the stress inside the scatter, taped as it ran."""
+    _own_p2g(run, src, grid, gathered)
+
+
+def _fused_g2p_launches(run, src, dst, grid, s, gathered=None, *, split=False) -> list[tuple]:
+    """MPMRun._g2p_launches in its fused form even where the replay asks for the split one."""
+    return _own_g2p_launches(run, src, dst, grid, s, gathered, split=False)
+
 
 WORLD = World((0.0, 0.0, 0.0), (0.5, 0.5, 0.5), ground_height=0.0, fps=24.0)
 #: |new - old| <= RTOL max |old| per gradient: float32 round-off in F's gradient, carried
@@ -148,11 +144,11 @@ def test_split_transfers_compute_what_the_fused_ones_do(make_warp_simulator, mon
         assert torch.allclose(split.positions, fused.positions, rtol=1e-4, atol=1e-6)
 
 
-def test_rollout_and_gradients_match_the_previous_kernels(make_warp_simulator, monkeypatch):
+def test_split_adjoints_give_the_fused_kernels_gradients(make_warp_simulator, monkeypatch):
     pos_new, new = _rollout(make_warp_simulator(grid=16, substeps=30))
     with monkeypatch.context() as m:
-        m.setattr(MPMRun, "p2g", previous.fused_p2g)
-        m.setattr(MPMRun, "_g2p_launches", previous.fused_g2p_launches)
+        m.setattr(MPMRun, "p2g", _fused_p2g)
+        m.setattr(MPMRun, "_g2p_launches", _fused_g2p_launches)
         pos_old, old = _rollout(make_warp_simulator(grid=16, substeps=30))
     on_cpu = not wp.get_device(make_warp_simulator().device).is_cuda
     if on_cpu:
