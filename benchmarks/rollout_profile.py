@@ -16,7 +16,9 @@ Usage (GPU machine):
 
 ``--settle`` runs one untimed rollout of the timed length first (the bench times the first
 rollout of that length after a one-frame warm-up): a difference between the two says how much
-of the gap is first-use work (buffers, graph captures).
+of the gap is first-use work (buffers, graph captures). ``--forward-only`` profiles the bench's
+forward timing instead: a rollout under ``torch.no_grad`` (for taichi-mpm, whose forward rate
+is far below warp-mpm's, to see whether kernels or the host set it).
 """
 
 from __future__ import annotations
@@ -41,6 +43,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--substeps", type=int, default=50)
     ap.add_argument("--frames", type=int, default=2)
     ap.add_argument("--settle", action="store_true", help="an untimed rollout of --frames first")
+    ap.add_argument(
+        "--forward-only", action="store_true", help="profile a rollout under torch.no_grad"
+    )
     ap.add_argument("--rows", type=int, default=15, help="rows of each profiler table")
     ap.add_argument("--trace", default=None, help="write the profiler's Chrome trace here")
     ap.add_argument("--json", default=None, help="write the timings here")
@@ -71,6 +76,18 @@ def _differentiable(simulator, parts, world, device, frames: int):
     return t1 - t0, t2 - t1
 
 
+def _forward(simulator, parts, world, device, frames: int):
+    """One rollout under torch.no_grad (the bench's forward timing), timed by the wall clock
+    after a synchronisation; (rollout s, 0.0) so it reads like ``_differentiable``."""
+    params = bench_params(device, requires_grad=False)
+    _sync(device)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        simulator.rollout(parts, params, world=world, frames=frames)
+    _sync(device)
+    return time.perf_counter() - t0, 0.0
+
+
 def device_busy_ms(prof) -> float | None:
     """Summed time of the device kernels, memsets and copies the profiler saw (None on CPU)."""
     events = [e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA]
@@ -88,14 +105,16 @@ def main(argv=None) -> dict:
     parts = bench_particles(args.particles, grid=args.grid).to(device)
     with torch.no_grad():  # the bench's warm-up: a forward frame, then a differentiable one
         simulator.rollout(parts, bench_params(device, requires_grad=False), world=world, frames=1)
-    _differentiable(simulator, parts, world, device, 1)
+    timed = _forward if args.forward_only else _differentiable
+    if not args.forward_only:
+        _differentiable(simulator, parts, world, device, 1)
     if args.settle:
-        _differentiable(simulator, parts, world, device, args.frames)
+        timed(simulator, parts, world, device, args.frames)
     activities = [ProfilerActivity.CPU]
     if device.type == "cuda":
         activities.append(ProfilerActivity.CUDA)
     with profile(activities=activities) as prof:
-        rollout_s, backward_s = _differentiable(simulator, parts, world, device, args.frames)
+        rollout_s, backward_s = timed(simulator, parts, world, device, args.frames)
     work = len(parts) * args.substeps * args.frames
     out = {
         "backend": args.backend,
@@ -105,6 +124,7 @@ def main(argv=None) -> dict:
         "substeps": args.substeps,
         "frames": args.frames,
         "settled": args.settle,
+        "forward_only": args.forward_only,
         "rollout_s": rollout_s,
         "backward_s": backward_s,
         "rate": work / (rollout_s + backward_s),

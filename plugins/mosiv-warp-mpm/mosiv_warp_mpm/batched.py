@@ -30,6 +30,7 @@ import warp as wp
 
 from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.interfaces import Simulator, member_particles
+from mosiv_framework.particle_order import permute_rows
 from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, World
 from mosiv_warp_mpm.packing import check_inputs, initial_velocities, pack_theta
 from mosiv_warp_mpm.run import MPMRun
@@ -136,10 +137,10 @@ def _split_members(pos, vel, errors, particles: ParticleSet, inverse, world: Wor
         rows = slice(b * n, (b + 1) * n)
         results.append(
             Trajectory(
-                positions=pos[:, rows][:, inverse].to(out_dev),
+                positions=permute_rows(pos[:, rows], inverse, dim=1).to(out_dev),
                 object_ids=particles.object_ids,
                 fps=world.fps,
-                velocities=vel[:, rows][:, inverse].detach().to(out_dev),
+                velocities=vel[:, rows].detach().index_select(1, inverse).to(out_dev),
             )
         )
     return results

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from mosiv_framework.particle_order import interleaved_cell_order
 from mosiv_framework.types import World
 from mosiv_warp_mpm.expression_kernels import N_FEATURES
 from mosiv_warp_mpm.kernels import PAD, clear_box
@@ -58,24 +59,11 @@ class GridLayout:
         return (c[:, 0] * self.nodes[1] + c[:, 1]) * self.nodes[2] + c[:, 2]
 
     def scatter_order(self, positions: torch.Tensor) -> torch.Tensor:
-        """A particle permutation for P2G: cell by cell, but the k-th particles of all cells
-        come before the (k+1)-th ones.
-
-        Neighbouring threads then handle neighbouring cells: their 3x3x3 stencils share cache
-        lines yet rarely the same node, so the scatter's atomic adds seldom collide inside a
-        GPU warp (plain cell sorting puts a cell's ~8 particles, and their 27 identical nodes,
-        in one warp; measured in benchmarks/warp_profile.py).
-        """
-        keys = self.cell_keys(positions)
-        by_cell = torch.argsort(keys, stable=True)
-        sorted_keys = keys[by_cell]
-        index = torch.arange(keys.numel(), device=keys.device)
-        new_cell = torch.ones_like(sorted_keys, dtype=torch.bool)
-        new_cell[1:] = sorted_keys[1:] != sorted_keys[:-1]
-        run_start = torch.cummax(torch.where(new_cell, index, 0), dim=0).values
-        rank_in_cell = index - run_start
-        n_cells = int(sorted_keys[-1]) + 1 if keys.numel() else 1
-        return by_cell[torch.argsort(rank_in_cell * n_cells + sorted_keys, stable=True)]
+        """A particle permutation for P2G (particle_order.interleaved_cell_order): cell by cell,
+        but the k-th particles of all cells come before the (k+1)-th ones, so that the
+        scatter's atomic adds seldom collide inside a GPU warp (measured in
+        benchmarks/warp_profile.py)."""
+        return interleaved_cell_order(self.cell_keys(positions))
 
 
 class ParticleState:

@@ -1,0 +1,98 @@
+"""Particle orders for a simulator's scatter kernels, and the permutation back to the caller's.
+
+A GPU particle-to-grid scatter is fastest when neighbouring threads add into different grid
+nodes (their atomic adds then do not serialise) that still share cache lines. Simulators keep
+their particles in such an order and hand results back in the caller's order; ``permute_rows``
+does that with a backward that is one gather, where torch's own backward of ``x[:, index]``
+accumulates through a sort (about 0.1 s per call at 1M particles on an H200, measured with
+benchmarks/rollout_profile.py).
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def cell_keys(
+    positions: torch.Tensor, origin: tuple[float, float, float], dx: float, nodes: tuple[int, ...]
+) -> torch.Tensor:
+    """The linear index of each particle's grid cell.
+
+    Args:
+        positions: [N, 3] (m); origin: the world position of node (0, 0, 0) (m); dx: the cell
+            size (m); nodes: grid nodes per axis.
+
+    Returns:
+        [N] int64 keys, increasing along the last axis fastest.
+    """
+    start = torch.tensor(origin, dtype=positions.dtype, device=positions.device)
+    c = ((positions - start) / dx).floor().long()
+    return (c[:, 0] * nodes[1] + c[:, 1]) * nodes[2] + c[:, 2]
+
+
+def interleaved_cell_order(cell_keys: torch.Tensor) -> torch.Tensor:
+    """A permutation of particles with integer cell keys [N]: cell by cell, but the k-th
+    particles of all cells come before the (k+1)-th ones.
+
+    Neighbouring threads then handle neighbouring cells: their 3x3x3 stencils share cache lines
+    yet rarely the same node, so the scatter's atomic adds seldom collide inside a GPU warp
+    (plain cell sorting puts a cell's ~8 particles, and their 27 identical nodes, in one warp).
+
+    Args:
+        cell_keys: [N] int64, the linear index of each particle's cell (any non-negative key).
+
+    Returns:
+        [N] int64: particle indices in scatter order.
+    """
+    by_cell = torch.argsort(cell_keys, stable=True)
+    sorted_keys = cell_keys[by_cell]
+    index = torch.arange(cell_keys.numel(), device=cell_keys.device)
+    new_cell = torch.ones_like(sorted_keys, dtype=torch.bool)
+    new_cell[1:] = sorted_keys[1:] != sorted_keys[:-1]
+    run_start = torch.cummax(torch.where(new_cell, index, 0), dim=0).values
+    rank_in_cell = index - run_start
+    n_cells = int(sorted_keys[-1]) + 1 if cell_keys.numel() else 1
+    return by_cell[torch.argsort(rank_in_cell * n_cells + sorted_keys, stable=True)]
+
+
+def inverse_permutation(order: torch.Tensor) -> torch.Tensor:
+    """The permutation that undoes ``order``: ``x[order][inverse] == x``."""
+    inverse = torch.empty_like(order)
+    inverse[order] = torch.arange(order.numel(), device=order.device)
+    return inverse
+
+
+class _PermuteRows(torch.autograd.Function):
+    """y = x.index_select(dim, index) for a permutation ``index`` whose inverse is given, so
+    that the backward is the gather grad.index_select(dim, inverse): no accumulation, and the
+    same bits on every run."""
+
+    @staticmethod
+    def forward(ctx, x, index, inverse, dim):
+        ctx.inverse, ctx.dim = inverse, dim
+        return x.index_select(dim, index)
+
+    @staticmethod
+    def backward(ctx, grad):
+        return grad.index_select(ctx.dim, ctx.inverse), None, None, None
+
+
+def permute_rows(
+    x: torch.Tensor, index: torch.Tensor, dim: int = 0, inverse: torch.Tensor | None = None
+) -> torch.Tensor:
+    """``x`` with its entries along ``dim`` put in the order ``index`` (a permutation),
+    differentiable with a gather as backward.
+
+    Args:
+        x: any tensor; index: [x.shape[dim]] int64 on x's device.
+        dim: the particle axis (1 for trajectories [T, N, 3]).
+        inverse: the inverse of ``index`` where the caller has it (else computed here).
+
+    Returns:
+        A new tensor of x's shape.
+    """
+    if x.requires_grad and torch.is_grad_enabled():
+        if inverse is None:
+            inverse = inverse_permutation(index)
+        return _PermuteRows.apply(x, index, inverse, dim)
+    return x.index_select(dim, index)
