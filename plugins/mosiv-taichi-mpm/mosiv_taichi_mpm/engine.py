@@ -85,16 +85,20 @@ class Engine:
     def step(self, s: int, *, diagnostics: bool) -> None:
         """One substep from the state at substep boundary s to that at s + 1."""
         k, n, dt = self.kernels, self.n, self.dt
-        self._grid(s, fused=self.fused_forward)
+        if self.fused_forward:
+            _, time, ground_h = self._force_args(s)
+            k.substep(
+                s, n, dt, self._pm_level(), time, ground_h, self.ground_z, self.has_ground,
+                diagnostics,
+            )  # fmt: skip
+            return
+        self._grid(s)
         if diagnostics and k.multi:
             k.detect_contact(self.ground_z, self.has_ground)
-        if self.fused_forward:
-            k.g2p_advect(s, n, dt)
-        else:
-            k.clear_particle_velocity(s, n)
-            for i, j in STENCIL_ROWS:
-                k.g2p(s, n, i, j)
-            k.advect(s, n, dt)
+        k.clear_particle_velocity(s, n)
+        for i, j in STENCIL_ROWS:
+            k.g2p(s, n, i, j)
+        k.advect(s, n, dt)
         if k.needs_svd:
             k.svd(s, n)
         else:
@@ -103,17 +107,14 @@ class Engine:
         if diagnostics:
             k.check(s + 1, n, s)
 
-    def _grid(self, s: int, *, fused: bool = False) -> None:
-        """The grid of substep s: P2G (the fused kernel, or the split ones whose adjoints the
-        reverse pass runs), then the grid forces and contact."""
+    def _grid(self, s: int) -> None:
+        """The grid of substep s through the split kernels, whose adjoints the reverse pass
+        runs: P2G, then the grid forces and contact."""
         k = self.kernels
         k.clear_grid(False)
-        if fused:
-            k.p2g_fused(s, self.n, self.dt, self._pm_level())
-        else:
-            k.stress(s, self.n, self.dt)
-            for i, j in STENCIL_ROWS:
-                k.p2g(s, self.n, i, j, self._pm_level())
+        k.stress(s, self.n, self.dt)
+        for i, j in STENCIL_ROWS:
+            k.p2g(s, self.n, i, j, self._pm_level())
         k.grid_forces(*self._force_args(s))
         k.grid_contact(self.ground_z, self.has_ground)
 

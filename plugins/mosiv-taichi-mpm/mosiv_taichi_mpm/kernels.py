@@ -6,6 +6,8 @@ A substep from the particle state at substep boundary ``s`` to that at ``s + 1``
 Every kernel except ``svd`` is differentiated by Taichi (``kernel.grad``); ``svd_backward`` is the
 hand-written adjoint of ``svd``. Kernels read and write disjoint fields so that the recorded
 values survive until their adjoints run. ``check`` and ``detect_contact`` are forward-only.
+Each kernel's body is a ``ti.func`` per particle or node (``forces_at``, ``contact_at``,
+``svd_at``, ...) so that the one-call forward substep of forward_kernels.py runs the same code.
 
 Kernels find boundary s's state in buffer ``state_at(s)`` and substep s's trial F in
 ``trial_at(s)``: the buffer of that index on differentiable fields, one of two (or the one) on
@@ -232,10 +234,16 @@ class MPMKernels:
                 self.vf.grad[I] = ti.Vector.zero(ti.f32, 3)
                 self.vg.grad[I] = ti.Vector.zero(ti.f32, 3)
             else:
-                self.m[I] = 0.0
-                self.mv[I] = ti.Vector.zero(ti.f32, 3)
-                self.gm[I] = ti.Vector.zero(ti.f32, 3)
-                self.pm[I] = ti.Vector.zero(ti.f32, 3)
+                self.clear_node(I)
+
+    @ti.func
+    def clear_node(self, I):
+        """Zero grid node I = (field, i, j, l) before P2G adds into it."""
+        self.m[I] = 0.0
+        self.mv[I] = ti.Vector.zero(ti.f32, 3)
+        if ti.static(self.multi):
+            self.gm[I] = ti.Vector.zero(ti.f32, 3)
+        self.pm[I] = ti.Vector.zero(ti.f32, 3)
 
     # ------------------------------------------------------------------------------------------
     # one substep
@@ -272,14 +280,16 @@ class MPMKernels:
 
     @ti.func
     def scatter_node(self, g, base, fx, offset, mass, mom, A, MC, ground_z):
-        """One P2G node: m_i += w m_p; (m v)_i += w (m_p v_p + A dpos); (grad m)_i += m_p grad
-        w; on nodes at or below ground_z (m) the arriving momentum (p m)_i += w m_p (v_p + C
-        dpos). mom = m_p v_p, MC = m_p C."""
+        """One P2G node: m_i += w m_p; (m v)_i += w (m_p v_p + A dpos); with several fields
+        (grad m)_i += m_p grad w (only multi-field contact reads it); on nodes at or below
+        ground_z (m) the arriving momentum (p m)_i += w m_p (v_p + C dpos). mom = m_p v_p,
+        MC = m_p C."""
         weight, grad_w, dcell = stencil(fx, offset)
         node = base + offset
         self.m[g, node[0], node[1], node[2]] += weight * mass
         self.mv[g, node[0], node[1], node[2]] += weight * (mom + A @ (dcell * self.dx))
-        self.gm[g, node[0], node[1], node[2]] += (mass * self.inv_dx) * grad_w
+        if ti.static(self.multi):  # only multi-field contact reads the mass gradient
+            self.gm[g, node[0], node[1], node[2]] += (mass * self.inv_dx) * grad_w
         if self.origin[2] + node[2] * self.dx <= ground_z:  # for ground_restitution
             self.pm[g, node[0], node[1], node[2]] += weight * (mom + MC @ (dcell * self.dx))
 
@@ -317,17 +327,22 @@ class MPMKernels:
         with mass; ``time`` (s) since frame 0 at this substep, ``ground_h`` (m) the ground's
         height (0 without one) for the expression's height feature."""
         for I in ti.grouped(self.m):
-            vel = ti.Vector.zero(ti.f32, 3)
-            if self.m[I] > MASS_EPS:
-                vel = self.mv[I] / self.m[I]
-                speed = ti.sqrt(vel.dot(vel) + NORMAL_EPS)
-                acc = self.gravity[None] + self.wind[None]
-                acc -= self.lin_drag[None] * vel + self.quad_drag[None] * speed * vel
-                if self.expr_on[None] != 0:
-                    node = self.origin + self.dx * ti.Vector([I[1], I[2], I[3]], ti.f32)
-                    acc += self._expression(node, vel, speed, time, ground_h)
-                vel += dt * acc
-            self.vf[I] = vel
+            self.forces_at(I, dt, time, ground_h)
+
+    @ti.func
+    def forces_at(self, I, dt, time, ground_h):
+        """``grid_forces`` at node I = (field, i, j, l)."""
+        vel = ti.Vector.zero(ti.f32, 3)
+        if self.m[I] > MASS_EPS:
+            vel = self.mv[I] / self.m[I]
+            speed = ti.sqrt(vel.dot(vel) + NORMAL_EPS)
+            acc = self.gravity[None] + self.wind[None]
+            acc -= self.lin_drag[None] * vel + self.quad_drag[None] * speed * vel
+            if self.expr_on[None] != 0:
+                node = self.origin + self.dx * ti.Vector([I[1], I[2], I[3]], ti.f32)
+                acc += self._expression(node, vel, speed, time, ground_h)
+            vel += dt * acc
+        self.vf[I] = vel
 
     @ti.func
     def _expression(self, x, v, speed, time, ground_h):
@@ -374,45 +389,48 @@ class MPMKernels:
     def grid_contact(self, ground_z: ti.f32, has_ground: ti.i32):
         """Multi-field contact (mu = (mu_a + mu_b)/2, free separation), ground, slip walls."""
         for i, j, l in ti.ndrange(*self.nodes):
-            m_tot = 0.0
-            mom = ti.Vector.zero(ti.f32, 3)
-            grad_sum = ti.Vector.zero(ti.f32, 3)
-            fric_mass = 0.0
-            n_with_mass = 0
-            for g in ti.static(range(self.G)):
-                m_tot += self.m[g, i, j, l]
-                mom += self.m[g, i, j, l] * self.vf[g, i, j, l]
+            self.contact_at(i, j, l, ground_z, has_ground)
+
+    @ti.func
+    def contact_at(self, i, j, l, ground_z, has_ground):
+        """``grid_contact`` at the nodes (i, j, l) of every field."""
+        m_tot = 0.0
+        mom = ti.Vector.zero(ti.f32, 3)
+        grad_sum = ti.Vector.zero(ti.f32, 3)
+        fric_mass = 0.0
+        n_with_mass = 0
+        for g in ti.static(range(self.G)):
+            m_tot += self.m[g, i, j, l]
+            mom += self.m[g, i, j, l] * self.vf[g, i, j, l]
+            if ti.static(self.multi):
                 grad_sum += self.gm[g, i, j, l]
-                if ti.static(self.multi):
-                    fric_mass += self.m[g, i, j, l] * self.friction[g]
-                if self.m[g, i, j, l] > MASS_EPS:
-                    n_with_mass += 1
-            v_cm = mom / ti.max(m_tot, MASS_EPS)
-            z = self.origin[2] + l * self.dx
-            for g in ti.static(range(self.G)):
-                vel = self.vf[g, i, j, l]
-                m_g = self.m[g, i, j, l]
-                if ti.static(self.multi):
-                    if n_with_mass >= 2 and m_g > MASS_EPS:
-                        # outward normal of object g: towards the others' mass, away from its own
-                        nrm = grad_sum - 2.0 * self.gm[g, i, j, l]
-                        nrm = nrm / ti.sqrt(nrm.dot(nrm) + NORMAL_EPS)
-                        mu_other = (fric_mass - m_g * self.friction[g]) / ti.max(
-                            m_tot - m_g, MASS_EPS
-                        )
-                        mu = 0.5 * (self.friction[g] + mu_other)
-                        vel = v_cm + self._coulomb(vel - v_cm, nrm, mu)
-                if has_ground != 0:  # nested ifs: `and` confuses Taichi's adjoint of locals
-                    if z <= ground_z:
-                        # outward normal of the table is -e_z: moving down = approaching it
-                        v_in = self.pm[g, i, j, l][2] / ti.max(m_g, MASS_EPS)
-                        vel = self._ground(vel, v_in, self.ground_mu[None], self.ground_e[None])
-                for d in ti.static(range(3)):
-                    if (i, j, l)[d] < WALL_LAYERS:
-                        vel[d] = ti.max(vel[d], 0.0)  # slip: no outward normal velocity
-                    if (i, j, l)[d] >= self.nodes[d] - WALL_LAYERS:
-                        vel[d] = ti.min(vel[d], 0.0)
-                self.vg[g, i, j, l] = vel
+                fric_mass += self.m[g, i, j, l] * self.friction[g]
+            if self.m[g, i, j, l] > MASS_EPS:
+                n_with_mass += 1
+        v_cm = mom / ti.max(m_tot, MASS_EPS)
+        z = self.origin[2] + l * self.dx
+        for g in ti.static(range(self.G)):
+            vel = self.vf[g, i, j, l]
+            m_g = self.m[g, i, j, l]
+            if ti.static(self.multi):
+                if n_with_mass >= 2 and m_g > MASS_EPS:
+                    # outward normal of object g: towards the others' mass, away from its own
+                    nrm = grad_sum - 2.0 * self.gm[g, i, j, l]
+                    nrm = nrm / ti.sqrt(nrm.dot(nrm) + NORMAL_EPS)
+                    mu_other = (fric_mass - m_g * self.friction[g]) / ti.max(m_tot - m_g, MASS_EPS)
+                    mu = 0.5 * (self.friction[g] + mu_other)
+                    vel = v_cm + self._coulomb(vel - v_cm, nrm, mu)
+            if has_ground != 0:  # nested ifs: `and` confuses Taichi's adjoint of locals
+                if z <= ground_z:
+                    # outward normal of the table is -e_z: moving down = approaching it
+                    v_in = self.pm[g, i, j, l][2] / ti.max(m_g, MASS_EPS)
+                    vel = self._ground(vel, v_in, self.ground_mu[None], self.ground_e[None])
+            for d in ti.static(range(3)):
+                if (i, j, l)[d] < WALL_LAYERS:
+                    vel[d] = ti.max(vel[d], 0.0)  # slip: no outward normal velocity
+                if (i, j, l)[d] >= self.nodes[d] - WALL_LAYERS:
+                    vel[d] = ti.min(vel[d], 0.0)
+            self.vg[g, i, j, l] = vel
 
     @ti.kernel
     def clear_particle_velocity(self, s: ti.i32, n: ti.i32):
@@ -449,11 +467,16 @@ class MPMKernels:
     def svd(self, s: ti.i32, n: ti.i32):
         """F_trial = U diag(s) V^T with proper rotations (not differentiated by Taichi)."""
         for p in range(n):
-            b, t = self.state_at(s + 1), self.trial_at(s)
-            U, S, V = ti.svd(self.F_trial[t, p])
-            self.U[b, p] = U
-            self.V[b, p] = V
-            self.sig_trial[t, p] = ti.Vector([S[0, 0], S[1, 1], S[2, 2]])
+            self.svd_at(s, p)
+
+    @ti.func
+    def svd_at(self, s, p):
+        """``svd`` of particle p."""
+        b, t = self.state_at(s + 1), self.trial_at(s)
+        U, S, V = ti.svd(self.F_trial[t, p])
+        self.U[b, p] = U
+        self.V[b, p] = V
+        self.sig_trial[t, p] = ti.Vector([S[0, 0], S[1, 1], S[2, 2]])
 
     @ti.kernel
     def svd_backward(self, s: ti.i32, n: ti.i32):
@@ -469,24 +492,34 @@ class MPMKernels:
     def plasticity(self, s: ti.i32, n: ti.i32, dt: ti.f32):
         """Return map of the particle's law: (F_trial, plastic_J) -> (F, s, plastic_J)."""
         for p in range(n):
-            a, b, t = self.state_at(s), self.state_at(s + 1), self.trial_at(s)
-            k = self.obj[p]
-            F_new, s_new, Jp_new = return_map(
-                self.present, self.law_id[k], self.F_trial[t, p], self.U[b, p], self.sig_trial[t, p],
-                self.V[b, p], self.Jp[a, p], self.law_p[k], dt,
-            )  # fmt: skip
-            self.F[b, p] = F_new
-            self.sig[b, p] = s_new
-            self.Jp[b, p] = Jp_new
+            self.plasticity_at(s, p, dt)
+
+    @ti.func
+    def plasticity_at(self, s, p, dt):
+        """``plasticity`` of particle p."""
+        a, b, t = self.state_at(s), self.state_at(s + 1), self.trial_at(s)
+        k = self.obj[p]
+        F_new, s_new, Jp_new = return_map(
+            self.present, self.law_id[k], self.F_trial[t, p], self.U[b, p], self.sig_trial[t, p],
+            self.V[b, p], self.Jp[a, p], self.law_p[k], dt,
+        )  # fmt: skip
+        self.F[b, p] = F_new
+        self.sig[b, p] = s_new
+        self.Jp[b, p] = Jp_new
 
     @ti.kernel
     def copy_identity_svd(self, s: ti.i32, n: ti.i32):
         """Without SVD laws U, V are unused; keep them (and the trial s) defined anyway."""
         for p in range(n):
-            b, t = self.state_at(s + 1), self.trial_at(s)
-            self.U[b, p] = ti.Matrix.identity(ti.f32, 3)
-            self.V[b, p] = ti.Matrix.identity(ti.f32, 3)
-            self.sig_trial[t, p] = ti.Vector([1.0, 1.0, 1.0])
+            self.identity_svd_at(s, p)
+
+    @ti.func
+    def identity_svd_at(self, s, p):
+        """``copy_identity_svd`` of particle p."""
+        b, t = self.state_at(s + 1), self.trial_at(s)
+        self.U[b, p] = ti.Matrix.identity(ti.f32, 3)
+        self.V[b, p] = ti.Matrix.identity(ti.f32, 3)
+        self.sig_trial[t, p] = ti.Vector([1.0, 1.0, 1.0])
 
     # ------------------------------------------------------------------------------------------
     # diagnostics (forward only)
@@ -495,32 +528,42 @@ class MPMKernels:
     def check(self, s: ti.i32, n: ti.i32, step: ti.i32):
         """Flag non-finite state or particles pinned at the grid clamp: div_code = step*4+reason."""
         for p in range(n):
-            a = self.state_at(s)
-            total = self.x[a, p].sum() + self.v[a, p].sum() + self.F[a, p].sum() + self.Jp[a, p]
-            reason = 0
-            if not (ti.abs(total) < FLOAT_BIG):
-                reason = REASON_NONFINITE
-            else:
-                xg = (self.x[a, p] - self.origin) * self.inv_dx
-                if (xg <= self.lo + 1e-4).any() or (xg >= self.hi - 1e-4).any():
-                    reason = REASON_LEFT_DOMAIN
-            if reason != 0:
-                ti.atomic_min(self.div_code[self.obj[p]], step * 4 + reason)
+            self.check_at(s, p, step)
+
+    @ti.func
+    def check_at(self, s, p, step):
+        """``check`` of particle p at substep boundary s."""
+        a = self.state_at(s)
+        total = self.x[a, p].sum() + self.v[a, p].sum() + self.F[a, p].sum() + self.Jp[a, p]
+        reason = 0
+        if not (ti.abs(total) < FLOAT_BIG):
+            reason = REASON_NONFINITE
+        else:
+            xg = (self.x[a, p] - self.origin) * self.inv_dx
+            if (xg <= self.lo + 1e-4).any() or (xg >= self.hi - 1e-4).any():
+                reason = REASON_LEFT_DOMAIN
+        if reason != 0:
+            ti.atomic_min(self.div_code[self.obj[p]], step * 4 + reason)
 
     @ti.kernel
     def detect_contact(self, ground_z: ti.f32, has_ground: ti.i32):
         """contact[a, b] = 1 where a and b share an approaching node; contact[a, K] for ground."""
         for i, j, l in ti.ndrange(*self.nodes):
-            z = self.origin[2] + l * self.dx
-            for a in ti.static(range(self.G)):
-                if self.m[a, i, j, l] > MASS_EPS:
-                    if has_ground != 0 and z <= ground_z and self.vf[a, i, j, l][2] < 0.0:
-                        self.contact[a, self.K] = 1
-                    for b in ti.static(range(self.G)):
-                        if ti.static(a != b):
-                            if self.m[b, i, j, l] > MASS_EPS:
-                                nrm = self.gm[b, i, j, l] - self.gm[a, i, j, l]
-                                rel = self.vf[a, i, j, l] - self.vf[b, i, j, l]
-                                if rel.dot(nrm) > 0.0:
-                                    self.contact[a, b] = 1
-                                    self.contact[b, a] = 1
+            self.detect_contact_at(i, j, l, ground_z, has_ground)
+
+    @ti.func
+    def detect_contact_at(self, i, j, l, ground_z, has_ground):
+        """``detect_contact`` at the nodes (i, j, l) of every field."""
+        z = self.origin[2] + l * self.dx
+        for a in ti.static(range(self.G)):
+            if self.m[a, i, j, l] > MASS_EPS:
+                if has_ground != 0 and z <= ground_z and self.vf[a, i, j, l][2] < 0.0:
+                    self.contact[a, self.K] = 1
+                for b in ti.static(range(self.G)):
+                    if ti.static(a != b):
+                        if self.m[b, i, j, l] > MASS_EPS:
+                            nrm = self.gm[b, i, j, l] - self.gm[a, i, j, l]
+                            rel = self.vf[a, i, j, l] - self.vf[b, i, j, l]
+                            if rel.dot(nrm) > 0.0:
+                                self.contact[a, b] = 1
+                                self.contact[b, a] = 1

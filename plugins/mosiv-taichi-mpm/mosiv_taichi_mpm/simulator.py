@@ -21,6 +21,12 @@ from mosiv_framework.expression import (
     up_vector,
 )
 from mosiv_framework.interfaces import Simulator
+from mosiv_framework.particle_order import (
+    cell_keys,
+    interleaved_cell_order,
+    inverse_permutation,
+    permute_rows,
+)
 from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, World
 from mosiv_taichi_mpm import runtime
 from mosiv_taichi_mpm.autograd import RolloutFunction, RolloutRun
@@ -124,14 +130,20 @@ class TaichiMPMSimulator(Simulator):
         differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
         engine = self.engine_for(len(particles), families, world, differentiable=differentiable)
 
-        index_of = {k: i for i, k in enumerate(object_ids)}
-        obj = particles.object_ids.detach().cpu().numpy()
-        obj_index = torch.from_numpy(np.vectorize(index_of.get)(obj).astype(np.int32)).to(dev)
         self._check_inside(particles, world)
+        # the engine keeps its particles in scatter order (particle_order.py); the outputs go
+        # back to the caller's
+        positions0 = particles.positions.detach().to(dev, torch.float32)
+        lay = engine.layout
+        order = interleaved_cell_order(cell_keys(positions0, lay.origin, lay.dx, lay.nodes))
+        inverse = inverse_permutation(order)
+        # object id -> object index, vectorised (a Python loop costs ~0.2 s per 1M particles)
+        id_values = torch.tensor(object_ids, device=dev)
+        obj_index = torch.searchsorted(id_values, particles.object_ids.to(dev)).to(torch.int32)
         setup = {
-            "positions": particles.positions.detach().to(dev, torch.float32).contiguous(),
-            "volumes": particles.volumes.detach().to(dev, torch.float32).contiguous(),
-            "obj_index": obj_index.contiguous(),
+            "positions": positions0[order].contiguous(),
+            "volumes": particles.volumes.detach().to(dev, torch.float32)[order].contiguous(),
+            "obj_index": obj_index[order].contiguous(),
             "object_ids": object_ids,
             "dt": 1.0 / (world.fps * self.options.substeps),
             "ground_z": world.ground_height,
@@ -165,10 +177,10 @@ class TaichiMPMSimulator(Simulator):
         self._peak_bytes = max(self._peak_bytes, field_bytes + run.checkpoint_bytes())
         out_device = particles.positions.device
         return Trajectory(
-            positions=positions.to(out_device),
+            positions=permute_rows(positions, inverse, dim=1, inverse=order).to(out_device),
             object_ids=particles.object_ids,
             fps=world.fps,
-            velocities=run.velocities.to(out_device),
+            velocities=run.velocities.index_select(1, inverse).to(out_device),
             contact=None if run.contact is None else run.contact.to(out_device),
         )
 
