@@ -3,7 +3,10 @@
 The scene is a cube of elastic particles falling onto the ground inside a unit domain: the same
 workload for every backend, so figures are comparable side by side. Throughput is reported in
 particle-substeps per second (particles x substeps x frames / wall seconds), after one untimed
-warm-up rollout that pays for kernel compilation.
+warm-up rollout of the same length that pays for kernel compilation: of the same length because
+a backend may compile some kernels only when a rollout crosses a frame boundary (taichi-mpm's
+state transfer between frames), which a one-frame warm-up left inside the timed rollout (0.45
+s on an H200).
 
 ``run_batch_bench`` measures ``Simulator.rollout_batch``: B members (the same cube, stiffnesses
 spread over a decade) in one batched call against the same B members rolled out one after the
@@ -167,7 +170,7 @@ def run_batch_bench(
 
     def timed(call) -> tuple[float, int | None]:
         with torch.set_grad_enabled(gradients):
-            call(1)  # warm-up: compilation, buffers and graph capture are not timed
+            call(frames)  # warm-up: compilation, buffers and graph capture are not timed
             simulator.reset_peak_memory()
             if torch_device.type == "cuda":
                 torch.cuda.synchronize()
@@ -260,7 +263,7 @@ def measure(
 
     with torch.no_grad():  # warm-up: kernel compilation and graph capture are not timed
         simulator.rollout(
-            parts, bench_params(torch_device, requires_grad=False), world=world, frames=1
+            parts, bench_params(torch_device, requires_grad=False), world=world, frames=frames
         )
     simulator.reset_peak_memory()
     sync()
@@ -277,7 +280,7 @@ def measure(
     fb_s = fb_rate = peak_fb = None
     if backward:
         params = bench_params(torch_device, requires_grad=True)
-        warm = simulator.rollout(parts, params, world=world, frames=1)
+        warm = simulator.rollout(parts, params, world=world, frames=frames)
         warm.positions[-1].sum().backward()
         simulator.reset_peak_memory()
         params = bench_params(torch_device, requires_grad=True)

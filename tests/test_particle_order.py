@@ -9,6 +9,7 @@ from mosiv_framework.particle_order import (
     interleaved_cell_order,
     inverse_permutation,
     permute_rows,
+    rows_of,
 )
 
 
@@ -59,3 +60,20 @@ def test_permute_rows_without_grad_is_a_plain_index_select():
     out = permute_rows(x, index)
     assert not out.requires_grad
     assert torch.equal(out, x[index])
+
+
+def test_rows_of_backward_sums_per_row_as_indexing_does():
+    gen = torch.Generator().manual_seed(3)
+    table = torch.randn(4, 3, generator=gen, requires_grad=True)
+    index = torch.randint(0, 3, (200,), generator=gen)  # row 3 unused: its gradient is zero
+    weights = torch.randn(200, 3, generator=gen)
+
+    out = rows_of(table, index)
+    (out * weights).sum().backward()
+    ours = table.grad.clone()
+    table.grad = None
+    (table[index] * weights).sum().backward()
+
+    assert torch.equal(out.detach(), table.detach()[index])
+    torch.testing.assert_close(ours, table.grad, rtol=1e-6, atol=1e-6)
+    assert torch.all(ours[3] == 0)

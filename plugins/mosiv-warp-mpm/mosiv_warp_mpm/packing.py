@@ -13,6 +13,7 @@ from mosiv_framework.expression import (
     uses_relative,
 )
 from mosiv_framework.expression import NAME as EXPRESSION
+from mosiv_framework.particle_order import rows_of
 from mosiv_framework.types import ParticleSet, SimulationParams, World
 from mosiv_warp_mpm.laws import LAW_IDS, LAW_PARAM_NAMES, N_SLOTS
 
@@ -95,7 +96,7 @@ def initial_velocities(
             for k in object_ids
         ]
     )
-    return v_obj[obj_index]
+    return rows_of(v_obj, obj_index)
 
 
 def check_inputs(
