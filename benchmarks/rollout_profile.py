@@ -1,9 +1,10 @@
 """Where a whole differentiable rollout's time goes, the frames' kernels and everything around.
 
 `mosiv bench sim` times a rollout of the bench cube and its backward as a whole; on an H200
-at 1M particles that ran at 1.82e8 particle-substeps/s while the frame alone, its captured
-forward and adjoint graphs replayed, ran at 3.13e8 (benchmarks/warp_profile.py,
-docs/BENCHMARKS.md): some 0.23 s of the 0.55 s rollout lie outside the frames. This script
+at 1M particles warp-mpm's ran at 1.82e8 particle-substeps/s while the frame alone, its
+captured forward and adjoint graphs replayed, ran at 3.13e8 (benchmarks/warp_profile.py): this
+script found the 0.2 s outside the frames in torch's backward of the initial velocities'
+per-particle rows (docs/BENCHMARKS.md, "GPU: warp-mpm and taichi-mpm side by side"). It
 runs the rollout as `mosiv bench sim` does (the same simulator, workload and warm-up), times
 its two calls (the rollout, then the loss's backward) by the wall clock, and profiles them with
 torch.profiler: host-side operations and, on CUDA, every kernel on the device (Warp's too,

@@ -15,7 +15,15 @@ import torch
 
 from mosiv_framework.errors import ConfigError
 
-_state = {"device": None, "generation": 0}
+_state = {"device": None, "generation": 0, "kernel_profiler": False}
+
+
+def profile_kernels() -> None:
+    """Start later runtimes with Taichi's kernel profiler on (``ti.profiler``: the device time
+    of every kernel launch; benchmarks/taichi_profile.py). Call before the first rollout."""
+    if _state["device"] is not None:
+        raise RuntimeError("profile_kernels() must come before the Taichi runtime starts")
+    _state["kernel_profiler"] = True
 
 
 def resolve_device(device: str) -> str:
@@ -36,7 +44,14 @@ def ensure(device: str) -> int:
     # ti.init prints "Starting on arch=..." on stdout whatever the log level; stdout belongs to
     # the command's own output (`mosiv bench sim --json`), so the line goes to stderr
     with contextlib.redirect_stdout(sys.stderr):
-        ti.init(arch=arch, default_fp=ti.f32, offline_cache=True, fast_math=False, log_level="warn")
+        ti.init(
+            arch=arch,
+            default_fp=ti.f32,
+            offline_cache=True,
+            fast_math=False,
+            log_level="warn",
+            kernel_profiler=_state["kernel_profiler"],
+        )
     actual = ti.lang.impl.current_cfg().arch
     if device == "cuda" and actual != ti.cuda:
         ti.reset()
