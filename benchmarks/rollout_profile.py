@@ -15,11 +15,11 @@ Usage (GPU machine):
     python benchmarks/rollout_profile.py --device cuda --particles 1000000 --grid 128 \\
         --substeps 50 --frames 2 [--settle] [--trace OUT.json] [--json OUT.json]
 
-``--settle`` runs one untimed rollout of the timed length first (the bench times the first
-rollout of that length after a one-frame warm-up): a difference between the two says how much
-of the gap is first-use work (buffers, graph captures). ``--forward-only`` profiles the bench's
-forward timing instead: a rollout under ``torch.no_grad`` (for taichi-mpm, whose forward rate
-is far below warp-mpm's, to see whether kernels or the host set it).
+The warm-up is the bench's: a forward rollout and a differentiable one, each of the timed
+length. ``--settle`` runs one more untimed rollout of the timed kind first: a difference
+between the two says how much of the timing is still first-use work (buffers, graph
+captures). ``--forward-only`` profiles the bench's forward timing instead: a rollout under
+``torch.no_grad`` (for taichi-mpm, to see whether kernels or the host set its rate).
 """
 
 from __future__ import annotations
@@ -104,11 +104,11 @@ def main(argv=None) -> dict:
     simulator = get_registry().create("simulator", args.backend, config)
     world = bench_world()
     parts = bench_particles(args.particles, grid=args.grid).to(device)
-    with torch.no_grad():  # the bench's warm-up: a forward frame, then a differentiable one
-        simulator.rollout(parts, bench_params(device, requires_grad=False), world=world, frames=1)
+    # the bench's warm-up: a forward rollout, then a differentiable one, of the timed length
+    _forward(simulator, parts, world, device, args.frames)
     timed = _forward if args.forward_only else _differentiable
     if not args.forward_only:
-        _differentiable(simulator, parts, world, device, 1)
+        _differentiable(simulator, parts, world, device, args.frames)
     if args.settle:
         timed(simulator, parts, world, device, args.frames)
     activities = [ProfilerActivity.CPU]

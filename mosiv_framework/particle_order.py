@@ -32,7 +32,7 @@ def cell_keys(
     return (c[:, 0] * nodes[1] + c[:, 1]) * nodes[2] + c[:, 2]
 
 
-def interleaved_cell_order(cell_keys: torch.Tensor) -> torch.Tensor:
+def interleaved_cell_order(keys: torch.Tensor) -> torch.Tensor:
     """A permutation of particles with integer cell keys [N]: cell by cell, but the k-th
     particles of all cells come before the (k+1)-th ones.
 
@@ -41,19 +41,19 @@ def interleaved_cell_order(cell_keys: torch.Tensor) -> torch.Tensor:
     (plain cell sorting puts a cell's ~8 particles, and their 27 identical nodes, in one warp).
 
     Args:
-        cell_keys: [N] int64, the linear index of each particle's cell (any non-negative key).
+        keys: [N] int64, the linear index of each particle's cell (any non-negative key).
 
     Returns:
         [N] int64: particle indices in scatter order.
     """
-    by_cell = torch.argsort(cell_keys, stable=True)
-    sorted_keys = cell_keys[by_cell]
-    index = torch.arange(cell_keys.numel(), device=cell_keys.device)
+    by_cell = torch.argsort(keys, stable=True)
+    sorted_keys = keys[by_cell]
+    index = torch.arange(keys.numel(), device=keys.device)
     new_cell = torch.ones_like(sorted_keys, dtype=torch.bool)
     new_cell[1:] = sorted_keys[1:] != sorted_keys[:-1]
     run_start = torch.cummax(torch.where(new_cell, index, 0), dim=0).values
     rank_in_cell = index - run_start
-    n_cells = int(sorted_keys[-1]) + 1 if cell_keys.numel() else 1
+    n_cells = int(sorted_keys[-1]) + 1 if keys.numel() else 1
     return by_cell[torch.argsort(rank_in_cell * n_cells + sorted_keys, stable=True)]
 
 

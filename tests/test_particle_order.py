@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 
 from mosiv_framework.particle_order import (
+    cell_keys,
     interleaved_cell_order,
     inverse_permutation,
     permute_rows,
@@ -77,3 +78,38 @@ def test_rows_of_backward_sums_per_row_as_indexing_does():
     assert torch.equal(out.detach(), table.detach()[index])
     torch.testing.assert_close(ours, table.grad, rtol=1e-6, atol=1e-6)
     assert torch.all(ours[3] == 0)
+
+
+def test_cell_keys_index_cells_along_the_last_axis_fastest():
+    positions = torch.tensor([[0.05, 0.05, 0.05], [0.05, 0.05, 0.15], [0.15, 0.25, 0.35]])
+    keys = cell_keys(positions, origin=(0.0, 0.0, 0.0), dx=0.1, nodes=(5, 6, 7))
+    assert keys.tolist() == [0, 1, (1 * 6 + 2) * 7 + 3]
+
+
+def test_interleaved_order_of_nothing_is_empty():
+    assert interleaved_cell_order(torch.zeros(0, dtype=torch.long)).numel() == 0
+
+
+def test_permute_rows_with_a_given_inverse_puts_results_back():
+    """As a simulator uses it: results in scatter order, put back with index = the inverse of
+    the order and the order itself as that index's inverse."""
+    gen = torch.Generator().manual_seed(4)
+    order = torch.randperm(50, generator=gen)
+    caller = torch.randn(2, 50, 3, generator=gen, requires_grad=True)
+    in_scatter_order = caller[:, order]
+    back = permute_rows(in_scatter_order, inverse_permutation(order), dim=1, inverse=order)
+    assert torch.equal(back.detach(), caller.detach())
+    weights = torch.randn(2, 50, 3, generator=gen)
+    (back * weights).sum().backward()
+    assert torch.equal(caller.grad, weights)  # the identity map's gradient, exactly
+
+
+def test_rows_of_a_one_dimensional_table_and_without_grad():
+    table = torch.tensor([1.0, 2.0, 3.0], requires_grad=True)
+    index = torch.tensor([2, 2, 0, 1, 2])
+    out = rows_of(table, index)
+    out.sum().backward()
+    assert table.grad.tolist() == [1.0, 1.0, 3.0]
+    with torch.no_grad():
+        plain = rows_of(table, index)
+    assert not plain.requires_grad and plain.tolist() == [3.0, 3.0, 1.0, 2.0, 3.0]

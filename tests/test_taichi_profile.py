@@ -40,6 +40,6 @@ def test_profile_lists_the_forward_substep_kernels(tmp_path):
 def test_profile_refuses_a_count_below_one():
     pytest.importorskip("mosiv_taichi_mpm")
     run = subprocess.run(
-        [sys.executable, str(SCRIPT), "--repeats", "0"], capture_output=True, text=True
+        [sys.executable, str(SCRIPT), "--repeats", "0"], capture_output=True, text=True, timeout=300
     )
     assert run.returncode == 2 and "--repeats must be at least 1" in run.stderr

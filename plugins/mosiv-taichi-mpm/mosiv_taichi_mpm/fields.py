@@ -163,8 +163,10 @@ class SimFields:
         that reads x then reads the x of neighbouring particles from neighbouring addresses.
         Fields placed together would interleave per element (x, v, C, F, ... of particle 0,
         then of particle 1), so every read would stride over all of them; on an H200 the
-        separate blocks made the forward kernels 4x faster at 1M particles
-        (docs/BENCHMARKS.md, "taichi-mpm's fused forward")."""
+        separate blocks made the forward kernels 2.8x faster at 1M particles
+        (docs/BENCHMARKS.md, "taichi-mpm's forward"). On differentiable fields ``lazy_grad``
+        places each adjoint in its value's block, so there a block interleaves a field with
+        its adjoint (two arrays' worth of stride, not all of them)."""
         N, K = layout.capacity, layout.n_objects
         fb = ti.FieldsBuilder()
         for state in (self.x, self.v, self.C, self.F, self.U, self.V, self.sig, self.Jp):

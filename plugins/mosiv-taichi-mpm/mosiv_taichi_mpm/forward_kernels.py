@@ -13,7 +13,7 @@ detection] -> G2P with advection, the SVD and the return map -> [divergence chec
 with the same equations (the node and particle functions of ``kernels.py``), evaluated in the
 same order per particle, writing the same per-substep fields. One call instead of one per pass
 matters on a GPU: Taichi spends about 0.1 ms of Python per kernel call on this class, as long as
-a whole pass over 1M particles takes (docs/BENCHMARKS.md, "taichi-mpm's fused forward"). The
+a whole pass over 1M particles takes (docs/BENCHMARKS.md, "taichi-mpm's forward"). The
 reverse pass re-simulates a frame with this kernel too and then runs the split kernels'
 adjoints, which recompute the substep's grid with the split P2G (the same sums in another order
 of the particles' atomic adds).

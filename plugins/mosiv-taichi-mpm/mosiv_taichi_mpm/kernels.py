@@ -260,7 +260,7 @@ class MPMKernels:
     @ti.func
     def mass_and_affine(self, s, p, dt):
         """Particle p's mass m_p = rho V0 (kg) and MLS affine term A = -dt 4/dx^2 V0 tau + m_p C
-        at substep boundary s (shared with the fused forward)."""
+        at substep boundary s (shared with the one-call forward substep)."""
         a, k = self.state_at(s), self.obj[p]
         mass = self.rho[k] * self.vol[p]
         tau = kirchhoff_stress(
@@ -304,8 +304,9 @@ class MPMKernels:
     @ti.kernel
     def p2g(self, s: ti.i32, n: ti.i32, i: ti.template(), j: ti.template(), ground_z: ti.f32):
         """MLS-MPM P2G over the 3 stencil nodes with offsets (i, j, 0..2):
-        m_i += w m_p; (m v)_i += w (m_p v_p + A dpos); (grad m)_i += m_p grad w; on nodes at or
-        below ground_z (m) also the arriving momentum (p m)_i += w m_p (v_p + C dpos).
+        m_i += w m_p; (m v)_i += w (m_p v_p + A dpos); with several fields (grad m)_i += m_p grad
+        w; on nodes at or below ground_z (m) also the arriving momentum (p m)_i += w m_p (v_p +
+        C dpos).
 
         The stencil is unrolled (Taichi's adjoint of a dynamic inner loop is wrong here) and
         split in nine kernels because the adjoint's compile time grows faster than linearly

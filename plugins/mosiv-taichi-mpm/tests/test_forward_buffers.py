@@ -79,11 +79,3 @@ def test_forward_only_memory_does_not_grow_with_substeps(thrown_spheres):
     n = len(particles)
     assert taped[40] - taped[10] >= 30 * 58 * 2 * 4 * n, f"differentiable bytes: {taped}"
     assert taped[10] > forward[10]
-
-
-def test_the_kernel_profiler_cannot_be_chosen_once_the_runtime_runs():
-    from mosiv_taichi_mpm import runtime
-
-    runtime.ensure("cpu")
-    with pytest.raises(RuntimeError, match="before the Taichi runtime starts"):
-        runtime.profile_kernels()

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from mosiv_framework.particle_order import interleaved_cell_order
+from mosiv_framework.particle_order import cell_keys, interleaved_cell_order
 from mosiv_framework.types import World
 from mosiv_warp_mpm.expression_kernels import N_FEATURES
 from mosiv_warp_mpm.kernels import PAD, clear_box
@@ -54,9 +54,7 @@ class GridLayout:
 
     def cell_keys(self, positions: torch.Tensor) -> torch.Tensor:
         """Linear cell index of each position [N, 3] (for sorting particles by cell)."""
-        origin = torch.tensor(self.origin, dtype=positions.dtype, device=positions.device)
-        c = ((positions - origin) / self.dx).floor().long()
-        return (c[:, 0] * self.nodes[1] + c[:, 1]) * self.nodes[2] + c[:, 2]
+        return cell_keys(positions, self.origin, self.dx, self.nodes)
 
     def scatter_order(self, positions: torch.Tensor) -> torch.Tensor:
         """A particle permutation for P2G (particle_order.interleaved_cell_order): cell by cell,
