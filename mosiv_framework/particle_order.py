@@ -102,10 +102,11 @@ def permute_rows(
 
 class _RowsOf(torch.autograd.Function):
     """y = table[index] for a small table (one row per object, say) and many indices, with a
-    backward that sums the gradient per row by masked reductions: torch's own backward of
-    ``table[index]`` accumulates through a sort, which took 0.2 s for 1M particles of one
-    object on an H200 (benchmarks/rollout_profile.py); this takes one pass per row, in a fixed
-    order."""
+    backward that sums the gradient per row in a fixed order: torch's own backward of
+    ``table[index]`` accumulates through a sort, which took 0.21 s for 1M particles of one
+    object on an H200 (benchmarks/rollout_profile.py). On the CPU ``index_add_`` adds in index
+    order in one pass; on a GPU it would add in schedule order, so there each row is a masked
+    sum (one bandwidth-bound pass per row)."""
 
     @staticmethod
     def forward(ctx, table, index):
@@ -116,12 +117,23 @@ class _RowsOf(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         (index,) = ctx.saved_tensors
-        zero = grad.new_zeros(())
-        shape = (grad.shape[0],) + (1,) * (grad.dim() - 1)
-        sums = [
-            torch.where((index == row).reshape(shape), grad, zero).sum(0) for row in range(ctx.rows)
-        ]
-        return torch.stack(sums), None
+        if grad.device.type == "cpu":
+            return row_sums_in_order(grad, index, ctx.rows), None
+        return row_sums_masked(grad, index, ctx.rows), None
+
+
+def row_sums_in_order(values: torch.Tensor, index: torch.Tensor, rows: int) -> torch.Tensor:
+    """[rows, ...]: the sum of ``values`` [N, ...] per row ``index`` [N] by ``index_add_``
+    (in index order on the CPU)."""
+    return values.new_zeros((rows, *values.shape[1:])).index_add_(0, index, values)
+
+
+def row_sums_masked(values: torch.Tensor, index: torch.Tensor, rows: int) -> torch.Tensor:
+    """The same sums, one masked reduction per row: a fixed order on any device."""
+    zero = values.new_zeros(())
+    shape = (values.shape[0],) + (1,) * (values.dim() - 1)
+    sums = [torch.where((index == row).reshape(shape), values, zero).sum(0) for row in range(rows)]
+    return torch.stack(sums)
 
 
 def rows_of(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:

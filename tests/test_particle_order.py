@@ -10,6 +10,8 @@ from mosiv_framework.particle_order import (
     interleaved_cell_order,
     inverse_permutation,
     permute_rows,
+    row_sums_in_order,
+    row_sums_masked,
     rows_of,
 )
 
@@ -113,3 +115,13 @@ def test_rows_of_a_one_dimensional_table_and_without_grad():
     with torch.no_grad():
         plain = rows_of(table, index)
     assert not plain.requires_grad and plain.tolist() == [3.0, 3.0, 1.0, 2.0, 3.0]
+
+
+def test_both_row_sums_agree():
+    """The CPU's index_add_ sums and the masked ones a GPU uses give the same per-row sums."""
+    gen = torch.Generator().manual_seed(5)
+    values = torch.randn(300, 3, generator=gen)
+    index = torch.randint(0, 6, (300,), generator=gen)
+    expected = torch.stack([values[index == r].sum(0) for r in range(7)])
+    torch.testing.assert_close(row_sums_in_order(values, index, 7), expected)
+    torch.testing.assert_close(row_sums_masked(values, index, 7), expected)
