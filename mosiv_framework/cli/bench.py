@@ -47,6 +47,13 @@ def add_parser(sub) -> None:
         "grid_window=particles for warp-mpm",
     )
     sim.add_argument("--json", action="store_true")
+    sim.add_argument(
+        "--jsonl",
+        default=None,
+        metavar="FILE",
+        help="also append each result to FILE as one JSON line the moment it is measured, so a "
+        "run cut short keeps the rows it finished (FILE must not exist yet)",
+    )
     sim.set_defaults(handler=run_sim)
 
 
@@ -63,6 +70,30 @@ def sim_options(pairs: list[str]) -> dict:
             raise ConfigError(f"--sim-option {pair!r}: expected KEY=VALUE, e.g. grid_window=whole")
         options[key.strip()] = yaml.safe_load(value)
     return options
+
+
+def result_log(path: str | None):
+    """A function that appends one result to ``path`` as a JSON line and flushes it (a no-op
+    without a path). An existing file is refused, so a user's file is never overwritten or
+    mixed with another run's rows."""
+    if path is None:
+        return lambda row: None
+    from pathlib import Path
+
+    from mosiv_framework.errors import ConfigError
+
+    target = Path(path)
+    if target.exists():
+        raise ConfigError(f"--jsonl {path}: the file exists already; give a new path")
+    if not target.parent.is_dir():
+        raise ConfigError(f"--jsonl {path}: folder {target.parent} does not exist")
+    target.touch(exist_ok=False)
+
+    def append(row: dict) -> None:
+        with target.open("a") as f:
+            f.write(json.dumps(row) + "\n")
+
+    return append
 
 
 def run_sim(args) -> int:
@@ -85,6 +116,7 @@ def run_sim(args) -> int:
         from mosiv_framework.bench_peer import resolve_peer
 
         resolve_peer(args.peer)
+    log = result_log(args.jsonl)
     results = []
     for n in args.particles:
         for grid in args.grid:
@@ -101,11 +133,13 @@ def run_sim(args) -> int:
                     options=sim_options(args.sim_option),
                 )
                 ours.append(result.as_dict())
+                log(result.as_dict())
                 if not args.json:
                     print(_line(result.as_dict()), flush=True)
             results += ours
             if args.peer:
                 results.append(_run_peer(args, n, grid, ours))
+                log(results[-1])
     if args.json:
         print(json.dumps(results, indent=2))
     return 0
@@ -154,6 +188,7 @@ def run_batch(args) -> int:
 
     if min(args.batch) < 1:
         raise ConfigError(f"--batch {args.batch}: every B must be >= 1")
+    log = result_log(args.jsonl)
     results = []
     for n in args.particles:
         for grid in args.grid:
@@ -171,6 +206,7 @@ def run_batch(args) -> int:
                         gradients=args.gradients,
                     ).as_dict()
                     results.append(r)
+                    log(r)
                     if not args.json:
                         print(_batch_line(r), flush=True)
     if args.json:
