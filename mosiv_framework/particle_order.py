@@ -12,7 +12,11 @@ docs/BENCHMARKS.md).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
+
+from mosiv_framework.types import ParticleSet
 
 
 def cell_keys(
@@ -62,6 +66,51 @@ def inverse_permutation(order: torch.Tensor) -> torch.Tensor:
     inverse = torch.empty_like(order)
     inverse[order] = torch.arange(order.numel(), device=order.device)
     return inverse
+
+
+@dataclass(frozen=True)
+class ScatterOrdered:
+    """A ParticleSet's arrays in scatter order on a simulator's device (``scatter_ordered``),
+    and the permutations both ways. positions [N, 3] float32 (autograd kept), volumes [N],
+    obj_index [N] int64 (index into the object ids given); order: the caller's index of each
+    scatter-ordered particle; inverse: its inverse."""
+
+    positions: torch.Tensor
+    volumes: torch.Tensor
+    obj_index: torch.Tensor
+    order: torch.Tensor
+    inverse: torch.Tensor
+
+    def to_caller(self, values: torch.Tensor, dim: int = 1) -> torch.Tensor:
+        """``values`` in scatter order along ``dim`` (1 for trajectories [T, N, ...]) put back
+        in the caller's order, differentiable (``permute_rows``)."""
+        return permute_rows(values, self.inverse, dim=dim, inverse=self.order)
+
+
+def scatter_ordered(
+    particles: ParticleSet,
+    object_ids: list[int],
+    *,
+    origin: tuple[float, float, float],
+    dx: float,
+    nodes: tuple[int, ...],
+    device: torch.device,
+) -> ScatterOrdered:
+    """The particles in ``interleaved_cell_order`` of the grid (origin (m), cell size dx (m),
+    nodes per axis), with each particle's object index into ``object_ids`` (ascending, as
+    ``ParticleSet.object_list``)."""
+    positions = particles.positions.to(device, torch.float32)
+    order = interleaved_cell_order(cell_keys(positions, origin, dx, nodes))
+    # object id -> object index, vectorised (a Python loop costs ~0.2 s per 1M particles)
+    id_values = torch.tensor(object_ids, device=device)
+    obj_index = torch.searchsorted(id_values, particles.object_ids.to(device))
+    return ScatterOrdered(
+        positions=positions[order],
+        volumes=particles.volumes.to(device)[order],
+        obj_index=obj_index[order],
+        order=order,
+        inverse=inverse_permutation(order),
+    )
 
 
 class _PermuteRows(torch.autograd.Function):

@@ -13,7 +13,9 @@ from mosiv_framework.particle_order import (
     row_sums_in_order,
     row_sums_masked,
     rows_of,
+    scatter_ordered,
 )
+from mosiv_framework.types import ParticleSet
 
 
 def test_interleaved_order_puts_the_kth_particle_of_every_cell_before_the_next():
@@ -125,3 +127,20 @@ def test_both_row_sums_agree():
     expected = torch.stack([values[index == r].sum(0) for r in range(7)])
     torch.testing.assert_close(row_sums_in_order(values, index, 7), expected)
     torch.testing.assert_close(row_sums_masked(values, index, 7), expected)
+
+
+def test_scatter_ordered_particles_go_back_to_the_callers_order():
+    gen = torch.Generator().manual_seed(6)
+    positions = torch.rand(200, 3, generator=gen)
+    ids = torch.where(positions[:, 0] < 0.5, 3, 7)  # object ids, not indices
+    particles = ParticleSet(positions, torch.rand(200, generator=gen), ids, {3: "a", 7: "b"})
+    ordered = scatter_ordered(
+        particles, [3, 7], origin=(0.0, 0.0, 0.0), dx=0.25, nodes=(5, 5, 5), device="cpu"
+    )
+    assert torch.equal(ordered.positions, positions[ordered.order])
+    assert torch.equal(ordered.volumes, particles.volumes[ordered.order])
+    assert torch.equal(ordered.obj_index, (ids[ordered.order] == 7).long())
+    keys = cell_keys(ordered.positions, (0.0, 0.0, 0.0), 0.25, (5, 5, 5))
+    assert torch.equal(ordered.order, ordered.order[interleaved_cell_order(keys)])
+    trajectory = ordered.positions.expand(2, 200, 3)
+    assert torch.equal(ordered.to_caller(trajectory)[1], positions)

@@ -21,12 +21,7 @@ from mosiv_framework.expression import (
     up_vector,
 )
 from mosiv_framework.interfaces import Simulator
-from mosiv_framework.particle_order import (
-    cell_keys,
-    interleaved_cell_order,
-    inverse_permutation,
-    permute_rows,
-)
+from mosiv_framework.particle_order import scatter_ordered
 from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, World
 from mosiv_taichi_mpm import runtime
 from mosiv_taichi_mpm.autograd import RolloutFunction, RolloutRun
@@ -131,19 +126,15 @@ class TaichiMPMSimulator(Simulator):
         engine = self.engine_for(len(particles), families, world, differentiable=differentiable)
 
         self._check_inside(particles, world)
-        # the engine keeps its particles in scatter order (particle_order.py); the outputs go
-        # back to the caller's
-        positions0 = particles.positions.detach().to(dev, torch.float32)
+        # the engine keeps its particles in scatter order; the outputs go back to the caller's
         lay = engine.layout
-        order = interleaved_cell_order(cell_keys(positions0, lay.origin, lay.dx, lay.nodes))
-        inverse = inverse_permutation(order)
-        # object id -> object index, vectorised (a Python loop costs ~0.2 s per 1M particles)
-        id_values = torch.tensor(object_ids, device=dev)
-        obj_index = torch.searchsorted(id_values, particles.object_ids.to(dev)).to(torch.int32)
+        ordered = scatter_ordered(
+            particles, object_ids, origin=lay.origin, dx=lay.dx, nodes=lay.nodes, device=dev
+        )
         setup = {
-            "positions": positions0[order].contiguous(),
-            "volumes": particles.volumes.detach().to(dev, torch.float32)[order].contiguous(),
-            "obj_index": obj_index[order].contiguous(),
+            "positions": ordered.positions.detach().contiguous(),
+            "volumes": ordered.volumes.detach().to(torch.float32).contiguous(),
+            "obj_index": ordered.obj_index.to(torch.int32).contiguous(),
             "object_ids": object_ids,
             "dt": 1.0 / (world.fps * self.options.substeps),
             "ground_z": world.ground_height,
@@ -177,10 +168,10 @@ class TaichiMPMSimulator(Simulator):
         self._peak_bytes = max(self._peak_bytes, field_bytes + run.checkpoint_bytes())
         out_device = particles.positions.device
         return Trajectory(
-            positions=permute_rows(positions, inverse, dim=1, inverse=order).to(out_device),
+            positions=ordered.to_caller(positions).to(out_device),
             object_ids=particles.object_ids,
             fps=world.fps,
-            velocities=run.velocities.index_select(1, inverse).to(out_device),
+            velocities=ordered.to_caller(run.velocities).to(out_device),
             contact=None if run.contact is None else run.contact.to(out_device),
         )
 

@@ -30,7 +30,7 @@ import warp as wp
 
 from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.interfaces import Simulator, member_particles
-from mosiv_framework.particle_order import permute_rows
+from mosiv_framework.particle_order import ScatterOrdered
 from mosiv_framework.types import ParticleSet, SimulationParams, Trajectory, World
 from mosiv_warp_mpm.packing import check_inputs, initial_velocities, pack_theta
 from mosiv_warp_mpm.run import MPMRun
@@ -65,12 +65,13 @@ def rollout_batch(
         return []
     if _needs_grad(particles, params_list):
         return _differentiable_batch(sim, particles, params_list, world=world, frames=frames)
-    layout, ids, x0s, obj_index, volumes, inverse = sim.scatter_layout(particles, world)
+    layout, ids, ordered = sim.scatter_layout(particles, world)
+    x0s, obj_index, volumes = ordered.positions, ordered.obj_index, ordered.volumes
     run = _batch_run(sim, params_list, layout, world, ids, obj_index, volumes, grad=False)
     with torch.no_grad():
         v0, theta = _member_inputs(params_list, ids, obj_index, world, x0s.device)
         pos, vel, errors = forward_batch(run, x0s.repeat(len(params_list), 1), v0, theta, frames)
-    return _split_members(pos, vel, errors, particles, inverse, world)
+    return _split_members(pos, vel, errors, particles, ordered, world)
 
 
 def _differentiable_batch(
@@ -85,7 +86,8 @@ def _differentiable_batch(
     members); the members one by one where one of them diverges."""
     from mosiv_warp_mpm.autograd import WarpRollout  # autograd imports run, as this does
 
-    layout, ids, x0s, obj_index, volumes, inverse = sim.scatter_layout(particles, world)
+    layout, ids, ordered = sim.scatter_layout(particles, world)
+    x0s, obj_index, volumes = ordered.positions, ordered.obj_index, ordered.volumes
     run = _batch_run(sim, params_list, layout, world, ids, obj_index, volumes, grad=True)
     v0, theta = _member_inputs(params_list, ids, obj_index, world, x0s.device)
     try:
@@ -93,7 +95,7 @@ def _differentiable_batch(
     except SimulationDiverged:
         # which members diverged, where and why, is what the one-by-one loop reports
         return Simulator.rollout_batch(sim, particles, params_list, world=world, frames=frames)
-    return _split_members(pos, vel, [None] * len(params_list), particles, inverse, world)
+    return _split_members(pos, vel, [None] * len(params_list), particles, ordered, world)
 
 
 def _batch_run(sim, params_list, layout, world, ids, obj_index, volumes, *, grad: bool) -> MPMRun:
@@ -125,10 +127,12 @@ def _member_inputs(params_list, ids, obj_index, world, device) -> tuple[torch.Te
     return v0, theta
 
 
-def _split_members(pos, vel, errors, particles: ParticleSet, inverse, world: World) -> list:
+def _split_members(
+    pos, vel, errors, particles: ParticleSet, ordered: ScatterOrdered, world: World
+) -> list:
     """Per member its Trajectory (in the caller's particle order, on its device), or its
     SimulationDiverged."""
-    n, out_dev = inverse.shape[0], particles.positions.device
+    n, out_dev = ordered.order.shape[0], particles.positions.device
     results: list[Trajectory | SimulationDiverged] = []
     for b, err in enumerate(errors):
         if err is not None:
@@ -137,10 +141,10 @@ def _split_members(pos, vel, errors, particles: ParticleSet, inverse, world: Wor
         rows = slice(b * n, (b + 1) * n)
         results.append(
             Trajectory(
-                positions=permute_rows(pos[:, rows], inverse, dim=1).to(out_dev),
+                positions=ordered.to_caller(pos[:, rows]).to(out_dev),
                 object_ids=particles.object_ids,
                 fps=world.fps,
-                velocities=vel[:, rows].detach().index_select(1, inverse).to(out_dev),
+                velocities=ordered.to_caller(vel[:, rows].detach()).to(out_dev),
             )
         )
     return results
