@@ -101,7 +101,7 @@ class RolloutRun:
             for s in reversed(range(S)):
                 eng.step_adjoint(s)
             carry = eng.export(0, grads=True)
-        eng.initial_velocity_adjoint()
+        eng.rollout_start_adjoint()
 
 
 class RolloutFunction(torch.autograd.Function):

@@ -63,13 +63,17 @@ class Engine:
         self.kernels.set_particles(self.n, obj_index, volumes)
 
     def set_params(self, arrays: dict[str, np.ndarray]) -> None:
-        """Copy packed parameter arrays (numpy float32/int32) into their fields."""
+        """Copy packed parameter arrays (numpy float32/int32) into their fields, and on a
+        differentiable engine into each particle's copy (after ``configure``, which set the
+        particles' objects)."""
         f = self.fields
         f.law_id.from_numpy(arrays["law_id"])
         f.expr_on[None] = int(arrays["expr_on"])
         f.up.from_numpy(arrays["up"])
         for name, fld in f.param_fields().items():
             fld.from_numpy(arrays[name])
+        if self.differentiable:
+            self.kernels.spread_params(self.n)
 
     def set_frame(self, frame: int) -> None:
         """Substeps run next belong to ``frame`` (0-based: the one from frame to frame + 1);
@@ -181,6 +185,8 @@ class Engine:
             raise RuntimeError("a forward-only taichi-mpm engine has no adjoints to run")
         for fld in self.fields.param_fields().values():
             fld.grad.fill(0)
+        self.fields.p_law.grad.fill(0)
+        self.fields.p_rho.grad.fill(0)
 
     def zero_state_grads(self) -> None:
         f = self.fields
@@ -209,8 +215,11 @@ class Engine:
             k.p2g.grad(s, n, i, j, self._pm_level())
         k.stress.grad(s, n, dt)
 
-    def initial_velocity_adjoint(self) -> None:
+    def rollout_start_adjoint(self) -> None:
+        """Adjoints of what a rollout runs once before its substeps: the initial velocities
+        and the per-particle parameter copies (their sums reach the objects' rows here)."""
         self.kernels.initial_velocity.grad(self.n)
+        self.kernels.spread_params.grad(self.n)
 
     def param_grads(self) -> dict[str, np.ndarray]:
         return {name: fld.grad.to_numpy() for name, fld in self.fields.param_fields().items()}

@@ -117,6 +117,15 @@ class SimFields:
         self.pmass = ti.field(f32, needs_grad=g)
         self.affine = ti.field(mat, needs_grad=g)
 
+        # differentiable fields only: each particle's copy of its object's law parameters and
+        # density (``MPMKernels.spread_params``), which the stress and the return map read.
+        # Reading the object's row instead, every particle's adjoint adds into the same few
+        # addresses of law_p.grad and rho.grad every substep, and a GPU serialises those adds;
+        # the copies' adjoints add into one address per particle, and their sum reaches the
+        # object's row once per backward.
+        self.p_law = ti.field(ti.types.vector(MAX_LAW_PARAMS, f32), needs_grad=g) if g else None
+        self.p_rho = ti.field(f32, needs_grad=g) if g else None
+
         # constant per particle
         self.obj = ti.field(ti.i32)  # object index 0..K-1
         self.vol = ti.field(f32)  # rest volume (m^3)
@@ -175,6 +184,9 @@ class SimFields:
             fb.dense(ti.ij, (self.trial_buffers, N)).place(trial)
         for per_particle in (self.obj, self.vol, self.pmass, self.affine):
             fb.dense(ti.i, N).place(per_particle)
+        if self.differentiable:
+            for copy in (self.p_law, self.p_rho):
+                fb.dense(ti.i, N).place(copy)
         grid_shape = (layout.n_fields, *layout.nodes)
         for node_field in (self.m, self.mv, self.gm, self.pm, self.vf, self.vg):
             fb.dense(ti.ijkl, grid_shape).place(node_field)

@@ -95,6 +95,9 @@ class MPMKernels:
         self.hi = ti.Vector([n - 2.0 - 1e-3 for n in lay.nodes], ti.f32)
         #: forward-only fields: two state buffers taking turns, one trial buffer
         self.rotating = not fields.differentiable
+        #: differentiable fields: particles read their own copies of the law parameters and
+        #: density (fields.py, ``p_law``), which ``spread_params`` fills
+        self.per_particle_params = fields.differentiable
 
     @ti.func
     def state_at(self, s):
@@ -135,6 +138,35 @@ class MPMKernels:
             self.V[0, p] = ti.Matrix.identity(ti.f32, 3)
             self.sig[0, p] = ti.Vector([1.0, 1.0, 1.0])
             self.Jp[0, p] = 1.0
+
+    @ti.kernel
+    def spread_params(self, n: ti.i32):
+        """Each particle's copy of its object's law parameters and density (differentiable
+        fields only). Its adjoint sums the copies' adjoints into the objects' rows: one add per
+        particle and backward, where reading the rows directly costs one per particle and
+        substep, all into the same few addresses."""
+        for p in range(n):
+            k = self.obj[p]
+            self.p_law[p] = self.law_p[k]
+            self.p_rho[p] = self.rho[k]
+
+    @ti.func
+    def law_params_of(self, p, k):
+        """The law parameters particle p of object k uses: its own copy on differentiable
+        fields, its object's row otherwise. (Two static branches: a read of the row that a
+        later assignment overwrote would still leave its adjoint's adds in the kernel.)"""
+        if ti.static(self.per_particle_params):
+            return self.p_law[p]
+        else:
+            return self.law_p[k]
+
+    @ti.func
+    def density_of(self, p, k):
+        """The density (kg/m^3) particle p of object k uses; see ``law_params_of``."""
+        if ti.static(self.per_particle_params):
+            return self.p_rho[p]
+        else:
+            return self.rho[k]
 
     @ti.kernel
     def initial_velocity(self, n: ti.i32):
@@ -262,10 +294,10 @@ class MPMKernels:
         """Particle p's mass m_p = rho V0 (kg) and MLS affine term A = -dt 4/dx^2 V0 tau + m_p C
         at substep boundary s (shared with the one-call forward substep)."""
         a, k = self.state_at(s), self.obj[p]
-        mass = self.rho[k] * self.vol[p]
+        mass = self.density_of(p, k) * self.vol[p]
         tau = kirchhoff_stress(
             self.present, self.law_id[k], self.F[a, p], self.U[a, p], self.sig[a, p],
-            self.C[a, p], self.Jp[a, p], self.law_p[k],
+            self.C[a, p], self.Jp[a, p], self.law_params_of(p, k),
         )  # fmt: skip
         tau += kelvin_voigt_tau(self.damping[None], self.F[a, p], self.C[a, p])
         A = -dt * 4.0 * self.inv_dx * self.inv_dx * self.vol[p] * tau + mass * self.C[a, p]
@@ -502,7 +534,7 @@ class MPMKernels:
         k = self.obj[p]
         F_new, s_new, Jp_new = return_map(
             self.present, self.law_id[k], self.F_trial[t, p], self.U[b, p], self.sig_trial[t, p],
-            self.V[b, p], self.Jp[a, p], self.law_p[k], dt,
+            self.V[b, p], self.Jp[a, p], self.law_params_of(p, k), dt,
         )  # fmt: skip
         self.F[b, p] = F_new
         self.sig[b, p] = s_new
