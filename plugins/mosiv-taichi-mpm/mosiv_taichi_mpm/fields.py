@@ -168,28 +168,35 @@ class SimFields:
     def _place(self, layout: Layout):
         """Place every field in one SNode tree, which ``destroy`` frees as a whole.
 
-        Each particle and grid field gets its own dense block (structure of arrays): a kernel
-        that reads x then reads the x of neighbouring particles from neighbouring addresses.
-        Fields placed together would interleave per element (x, v, C, F, ... of particle 0,
-        then of particle 1), so every read would stride over all of them; on an H200 the
-        separate blocks made the forward kernels 2.8x faster at 1M particles
-        (docs/BENCHMARKS.md, "taichi-mpm's forward"). On differentiable fields ``lazy_grad``
-        places each adjoint in its value's block, so there a block interleaves a field with
-        its adjoint (two arrays' worth of stride, not all of them)."""
+        Each particle and grid field gets its own dense block (structure of arrays), and on
+        differentiable fields so does each one's adjoint: a kernel that reads x then reads the
+        x of neighbouring particles from neighbouring addresses. Fields placed together would
+        interleave per element (x, v, C, F, ... of particle 0, then of particle 1), so every
+        read would stride over all of them; on an H200 the separate blocks made the forward
+        kernels 2.8x faster at 1M particles (docs/BENCHMARKS.md, "taichi-mpm's forward").
+        ``lazy_grad`` would put each adjoint in its value's block (value and adjoint
+        interleaved, every read striding over both), so it is left only the small per-object
+        and global parameter fields."""
         N, K = layout.capacity, layout.n_objects
         fb = ti.FieldsBuilder()
-        for state in (self.x, self.v, self.C, self.F, self.U, self.V, self.sig, self.Jp):
-            fb.dense(ti.ij, (self.state_buffers, N)).place(state)
-        for trial in (self.F_trial, self.sig_trial):
-            fb.dense(ti.ij, (self.trial_buffers, N)).place(trial)
-        for per_particle in (self.obj, self.vol, self.pmass, self.affine):
-            fb.dense(ti.i, N).place(per_particle)
+
+        def own_blocks(axes, shape, *fields):
+            for fld in fields:
+                fb.dense(axes, shape).place(fld)
+                if self.differentiable:
+                    fb.dense(axes, shape).place(fld.grad)
+
+        state_shape = (self.state_buffers, N)
+        own_blocks(ti.ij, state_shape, self.x, self.v, self.C, self.F, self.U, self.V)
+        own_blocks(ti.ij, state_shape, self.sig, self.Jp)
+        own_blocks(ti.ij, (self.trial_buffers, N), self.F_trial, self.sig_trial)
+        for constant in (self.obj, self.vol):
+            fb.dense(ti.i, N).place(constant)
+        own_blocks(ti.i, N, self.pmass, self.affine)
         if self.differentiable:
-            for copy in (self.p_law, self.p_rho):
-                fb.dense(ti.i, N).place(copy)
+            own_blocks(ti.i, N, self.p_law, self.p_rho)
         grid_shape = (layout.n_fields, *layout.nodes)
-        for node_field in (self.m, self.mv, self.gm, self.pm, self.vf, self.vg):
-            fb.dense(ti.ijkl, grid_shape).place(node_field)
+        own_blocks(ti.ijkl, grid_shape, self.m, self.mv, self.gm, self.pm, self.vf, self.vg)
         fb.dense(ti.i, K).place(
             self.law_id, self.law_p, self.rho, self.friction, self.v0, self.div_code
         )
@@ -198,7 +205,7 @@ class SimFields:
         fb.dense(ti.i, N_NODE_FEATURES).place(self.expr_coef)
         fb.dense(ti.ij, (K, K + 1)).place(self.contact)
         if self.differentiable:
-            fb.lazy_grad()  # places an adjoint beside every float field (needs_grad or not)
+            fb.lazy_grad()  # the adjoints not placed above, beside their values
         return fb.finalize()
 
     #: the differentiable parameter fields, by the name the simulator maps tensors to
