@@ -197,9 +197,16 @@ class Engine:
         self.kernels.add_position_grad(s, self.n, g.contiguous())
 
     def step_adjoint(self, s: int) -> None:
-        """Adjoint of substep s: recompute its grid, then run the kernels' adjoints in reverse."""
+        """Adjoint of substep s: recompute its grid (one call with the fused kernels, else the
+        split ones), then run the split kernels' adjoints in reverse."""
         k, n, dt = self.kernels, self.n, self.dt
-        self._grid(s)
+        if self.fused_forward:
+            _, time, ground_h = self._force_args(s)
+            k.grid_of_substep(
+                s, n, dt, self._pm_level(), time, ground_h, self.ground_z, self.has_ground
+            )
+        else:
+            self._grid(s)
         k.clear_grid(True)
         self.fields.affine.grad.fill(0)
         self.fields.pmass.grad.fill(0)

@@ -4,7 +4,7 @@ All fields of a problem live in one SNode tree built with ``ti.FieldsBuilder`` s
 be freed together (``destroy``) when a later rollout needs another size.
 
 Differentiable fields keep the particle state of every substep of one video frame (buffers
-0..substeps) and an adjoint beside every float field: Taichi's reverse-mode autodiff needs every
+0..substeps) and an adjoint for every float field: Taichi's reverse-mode autodiff needs every
 value a kernel read to still be there when its adjoint runs (the global data access rule), so
 substep s+1 is written to fresh storage instead of overwriting substep s. Forward-only fields
 (``differentiable=False``) have no adjoints and two state buffers that substeps take in turn
@@ -226,8 +226,8 @@ class SimFields:
         }
 
     def nbytes(self) -> int:
-        """Bytes held by these fields, read from their shapes: values, and the adjoints that
-        ``lazy_grad`` placed beside every float field of differentiable ones."""
+        """Bytes held by these fields, read from their shapes: values, and on differentiable
+        fields the adjoint of every float field (``_place``)."""
         total = 0
         for fld in vars(self).values():
             if not isinstance(fld, ti.Field):

@@ -14,9 +14,11 @@ with the same equations (the node and particle functions of ``kernels.py``), eva
 same order per particle, writing the same per-substep fields. One call instead of one per pass
 matters on a GPU: Taichi spends about 0.1 ms of Python per kernel call on this class, as long as
 a whole pass over 1M particles takes (docs/BENCHMARKS.md, "taichi-mpm's forward"). The
-reverse pass re-simulates a frame with this kernel too and then runs the split kernels'
-adjoints, which recompute the substep's grid with the split P2G (the same sums in another order
-of the particles' atomic adds).
+reverse pass re-simulates a frame with this kernel too, and before each substep's adjoints
+recomputes that substep's grid with ``grid_of_substep``: the first half of ``substep``, which
+also stores what the split kernels' adjoints read of it (the particles' mass and affine term).
+The split kernels' sums come in another order of the particles' atomic adds, so the two paths
+agree to float32 round-off.
 """
 
 # no `from __future__ import annotations`: Taichi reads the annotations at runtime
@@ -27,7 +29,8 @@ from mosiv_taichi_mpm.kernels import MPMKernels
 
 @ti.data_oriented
 class FusedForwardKernels(MPMKernels):
-    """``MPMKernels`` plus the one-call forward substep (forward only)."""
+    """``MPMKernels`` plus the one-call forward substep and the one-call grid of a substep
+    (neither differentiated)."""
 
     @ti.kernel
     def substep(
@@ -50,7 +53,7 @@ class FusedForwardKernels(MPMKernels):
         for I in ti.grouped(self.m):
             self.clear_node(I)
         for p in range(n):
-            self.p2g_particle(s, p, dt, pm_level)
+            self.p2g_particle(s, p, dt, pm_level, False)
         for I in ti.grouped(self.m):
             self.forces_at(I, dt, time, ground_h)
         for i, j, l in ti.ndrange(*self.nodes):
@@ -68,16 +71,45 @@ class FusedForwardKernels(MPMKernels):
             if ti.static(diagnostics):
                 self.check_at(s + 1, p, s)
 
+    @ti.kernel
+    def grid_of_substep(
+        self,
+        s: ti.i32,
+        n: ti.i32,
+        dt: ti.f32,
+        pm_level: ti.f32,
+        time: ti.f32,
+        ground_h: ti.f32,
+        ground_z: ti.f32,
+        has_ground: ti.i32,
+    ):
+        """Substep s's grid as the split ``clear_grid``, ``stress``, nine ``p2g``,
+        ``grid_forces`` and ``grid_contact`` leave it for their adjoints, in one call: the
+        reverse pass recomputes it before every substep's adjoints (about 13 calls fewer a
+        substep). Arguments as ``substep``'s."""
+        for I in ti.grouped(self.m):
+            self.clear_node(I)
+        for p in range(n):
+            self.p2g_particle(s, p, dt, pm_level, True)
+        for I in ti.grouped(self.m):
+            self.forces_at(I, dt, time, ground_h)
+        for i, j, l in ti.ndrange(*self.nodes):
+            self.contact_at(i, j, l, ground_z, has_ground)
+
     @ti.func
-    def p2g_particle(self, s, p, dt, ground_z):
+    def p2g_particle(self, s, p, dt, ground_z, keep: ti.template()):
         """``stress`` and the nine ``p2g`` kernels for particle p:
         tau = the law's Kirchhoff stress + the viscous stress, A = -dt 4/dx^2 V0 tau + m_p C,
         then over the 27 stencil nodes m_i += w m_p; (m v)_i += w (m_p v_p + A dpos);
         (grad m)_i += m_p grad w (several fields only); on nodes at or below ground_z (m) the
-        arriving momentum (p m)_i += w m_p (v_p + C dpos)."""
+        arriving momentum (p m)_i += w m_p (v_p + C dpos). ``keep``: also store m_p and A as
+        ``stress`` does, for the split kernels' adjoints."""
         a = self.state_at(s)
         g = self.obj[p] if ti.static(self.multi) else 0
         mass, A = self.mass_and_affine(s, p, dt)
+        if ti.static(keep):
+            self.pmass[p] = mass
+            self.affine[p] = A
         base, fx = self.stencil_cell(self.x[a, p])
         mom = mass * self.v[a, p]
         MC = mass * self.C[a, p]

@@ -11,9 +11,10 @@ from mosiv_framework.simulation import MPMOptions
 class TaichiMPMOptions(MPMOptions):
     """The shared MPM options (see mosiv_framework.simulation.MPMOptions); grid <= 1024.
 
-    fused_forward: advance the forward substeps with the fused kernels of forward_kernels.py
-    (true, the default) or with the split kernels whose adjoints the reverse pass runs (false:
-    the same equations, kept to measure what the fusion saves)."""
+    fused_forward: advance the forward substeps, and recompute each substep's grid before its
+    adjoints, with the fused kernels of forward_kernels.py (true, the default) or with the
+    split kernels whose adjoints the reverse pass runs (false: the same equations, kept to
+    measure what the fusion saves and to check it)."""
 
     fused_forward: bool = True
 
