@@ -35,9 +35,9 @@ _RELAYED = pytest.StashKey[list]()
 #: units of work larger than a module, (start of the node ids, group name), handed out in this
 #: order before everything else: the longest first, so that they run side by side
 GROUPS = (
-    # Taichi compiles a kernel once per process and field layout: kept on one worker, the
-    # backend's tests and the parity suite share their simulators' compiled kernels (spread
-    # over the workers, each worker compiled them again)
+    # Taichi's offline cache keys a kernel by the fields made before it in the process: run in
+    # the same order from a fresh process, the backend's tests and the parity suite find their
+    # kernels in the cache every run (spread over the workers, they compiled them again)
     ("plugins/mosiv-taichi-mpm/tests/", "mosiv-taichi-mpm"),
     ("tests/test_parity.py::", "parity"),
     # one module, the longest after those (its three diagnosis fixtures): started early, it

@@ -43,15 +43,11 @@ def ensure(device: str) -> int:
     # float32 throughout; fast_math off so NaN/inf checks are not optimised away
     # ti.init prints "Starting on arch=..." on stdout whatever the log level; stdout belongs to
     # the command's own output (`mosiv bench sim --json`), so the line goes to stderr
-    # offline_cache off: with Taichi's on-disk kernel cache on, a kernel the cache lacks took
-    # about 12x longer to build (a differentiable two-body rollout and its backward on the CPU:
-    # 328 s cold, 25 s warm, 27 s with the cache off; docs/BENCHMARKS.md, "CI time"), and a
-    # cache kept across versions of this plugin served one version's kernels to another
     with contextlib.redirect_stdout(sys.stderr):
         ti.init(
             arch=arch,
             default_fp=ti.f32,
-            offline_cache=False,
+            offline_cache=True,
             fast_math=False,
             log_level="warn",
             kernel_profiler=_state["kernel_profiler"],

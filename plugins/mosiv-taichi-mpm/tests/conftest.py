@@ -2,8 +2,8 @@
 kernel once per field layout; re-using simulators keeps the suite within minutes).
 
 On several processes (pytest-xdist) these tests are one unit of work, which one worker runs
-first, in their order (GROUPS in the repository's conftest.py), so they share the simulators
-above and the kernels compiled for them.
+first, in their order (GROUPS in the repository's conftest.py): Taichi's offline cache keys a
+kernel by the fields made before it in the process, so the same history finds the cache.
 """
 
 import pytest
