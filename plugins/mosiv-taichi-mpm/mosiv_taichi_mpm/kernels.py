@@ -25,10 +25,10 @@ MASS_EPS = 1e-12  # kg; grid nodes lighter than this count as empty
 NORMAL_EPS = 1e-20  # guards normalisation of near-zero mass gradients
 WALL_LAYERS = 3  # outer node layers with slip walls (contract)
 
-# divergence reasons (stored in the low 2 bits of div_code)
 #: (i, j) offsets of the stencil rows; each row of 3 nodes is one p2g / g2p kernel
 STENCIL_ROWS = tuple((i, j) for i in range(3) for j in range(3))
 
+# divergence reasons (stored in the low 2 bits of div_code)
 REASON_NONFINITE = 1
 REASON_LEFT_DOMAIN = 2
 
@@ -57,6 +57,21 @@ def stencil(fx, offset):
     w1, g1 = spline_weight(d[1])
     w2, g2 = spline_weight(d[2])
     return w0 * w1 * w2, ti.Vector([g0 * w1 * w2, w0 * g1 * w2, w0 * w1 * g2]), -d
+
+
+@ti.func
+def pick(cond, a, b):
+    """a where cond holds, else b, component by component of two 3-vectors: a select, which
+    Taichi's reverse mode takes without an adjoint stack (see ``MPMKernels.forces_at``)."""
+    return ti.Vector([ti.select(cond, a[d], b[d]) for d in ti.static(range(3))])
+
+
+@ti.func
+def slip_wall(v, node, n_nodes):
+    """One velocity component v at node index ``node`` of ``n_nodes``: no outward component in
+    the outer ``WALL_LAYERS`` layers on either side."""
+    low = ti.select(node < WALL_LAYERS, ti.max(v, 0.0), v)
+    return ti.select(node >= n_nodes - WALL_LAYERS, ti.min(low, 0.0), low)
 
 
 @ti.func
@@ -342,7 +357,10 @@ class MPMKernels:
 
         The stencil is unrolled (Taichi's adjoint of a dynamic inner loop is wrong here) and
         split in nine kernels because the adjoint's compile time grows faster than linearly
-        with kernel size."""
+        with kernel size. Nine top-level loops in one kernel, one a row, would save the host
+        eight calls a substep but not the build time: with ``g2p`` so written, a two-body
+        rollout and its backward took about twice as long to build on a CPU (134 s against
+        70), and with ``p2g`` too it had not finished after five minutes."""
         for p in range(n):
             a = self.state_at(s)
             g = self.obj[p] if ti.static(self.multi) else 0
@@ -364,18 +382,27 @@ class MPMKernels:
 
     @ti.func
     def forces_at(self, I, dt, time, ground_h):
-        """``grid_forces`` at node I = (field, i, j, l)."""
-        vel = ti.Vector.zero(ti.f32, 3)
+        """``grid_forces`` at node I = (field, i, j, l).
+
+        Written for Taichi's reverse mode: every local is assigned once and each branch writes
+        the node itself. A local that is stored again after being read, or stored in a branch
+        and read after it, becomes an adjoint stack (``AdStackAllocaStmt``) in the reverse
+        kernel, kept in each thread's local memory; ``contact_at`` and ``_ground`` follow the
+        same rule."""
         if self.m[I] > MASS_EPS:
             vel = self.mv[I] / self.m[I]
             speed = ti.sqrt(vel.dot(vel) + NORMAL_EPS)
-            acc = self.gravity[None] + self.wind[None]
-            acc -= self.lin_drag[None] * vel + self.quad_drag[None] * speed * vel
+            acc = (self.gravity[None] + self.wind[None]) - (
+                self.lin_drag[None] * vel + self.quad_drag[None] * speed * vel
+            )
             if self.expr_on[None] != 0:
                 node = self.origin + self.dx * ti.Vector([I[1], I[2], I[3]], ti.f32)
-                acc += self._expression(node, vel, speed, time, ground_h)
-            vel += dt * acc
-        self.vf[I] = vel
+                extra = self._expression(node, vel, speed, time, ground_h)
+                self.vf[I] = vel + dt * (acc + extra)
+            else:
+                self.vf[I] = vel + dt * acc
+        else:
+            self.vf[I] = ti.Vector.zero(ti.f32, 3)
 
     @ti.func
     def _expression(self, x, v, speed, time, ground_h):
@@ -392,14 +419,12 @@ class MPMKernels:
     @ti.func
     def _coulomb(self, rel, normal, mu):
         """Remove the approaching normal part of rel and apply Coulomb friction mu (tangential
-        change at most mu times the normal change; full stop beyond)."""
+        change at most mu times the normal change; full stop beyond). Both outcomes are
+        computed and one is selected (no branch: see ``forces_at``)."""
         vn = rel.dot(normal)
-        out = rel
-        if vn > 0.0:
-            tangent = rel - vn * normal
-            t_norm = ti.sqrt(tangent.dot(tangent) + NORMAL_EPS)
-            out = tangent * ti.max(1.0 - mu * vn / t_norm, 0.0)
-        return out
+        tangent = rel - vn * normal
+        t_norm = ti.sqrt(tangent.dot(tangent) + NORMAL_EPS)
+        return pick(vn > 0.0, tangent * ti.max(1.0 - mu * vn / t_norm, 0.0), rel)
 
     @ti.func
     def _ground(self, vel, v_in, mu, e):
@@ -409,14 +434,20 @@ class MPMKernels:
         stress and body-force impulse: only arriving material bounces, a body pressed onto the
         table is stopped rather than re-launched every substep (which pumps energy)."""
         vn = -vel[2]
-        out = vel
-        if vn > 0.0:
-            tangent = ti.Vector([vel[0], vel[1], 0.0])
-            t_norm = ti.sqrt(tangent.dot(tangent) + NORMAL_EPS)
-            bounce = e * ti.max(-v_in, 0.0)
-            scale = ti.max(1.0 - mu * (vn + bounce) / t_norm, 0.0)
-            out = ti.Vector([tangent[0] * scale, tangent[1] * scale, bounce])
-        return out
+        tangent = ti.Vector([vel[0], vel[1], 0.0])
+        t_norm = ti.sqrt(tangent.dot(tangent) + NORMAL_EPS)
+        bounce = e * ti.max(-v_in, 0.0)
+        scale = ti.max(1.0 - mu * (vn + bounce) / t_norm, 0.0)
+        landed = ti.Vector([tangent[0] * scale, tangent[1] * scale, bounce])
+        return pick(vn > 0.0, landed, vel)
+
+    @ti.func
+    def _walls(self, i, j, l, vel):
+        """Slip walls: no outward normal velocity in the outer ``WALL_LAYERS`` node layers."""
+        node = ti.Vector([i, j, l])
+        return ti.Vector([
+            slip_wall(vel[d], node[d], self.nodes[d]) for d in ti.static(range(3))
+        ])  # fmt: skip
 
     @ti.kernel
     def grid_contact(self, ground_z: ti.f32, has_ground: ti.i32):
@@ -426,44 +457,58 @@ class MPMKernels:
 
     @ti.func
     def contact_at(self, i, j, l, ground_z, has_ground):
-        """``grid_contact`` at the nodes (i, j, l) of every field."""
+        """``grid_contact`` at the nodes (i, j, l) of every field. A field without mass at the
+        node gets zero velocity (as ``forces_at`` leaves it: contact, ground and walls keep a
+        zero velocity zero) without reading anything else."""
         m_tot = 0.0
         mom = ti.Vector.zero(ti.f32, 3)
         grad_sum = ti.Vector.zero(ti.f32, 3)
         fric_mass = 0.0
         n_with_mass = 0
-        for g in ti.static(range(self.G)):
+        for g in ti.static(range(self.G)):  # straight-line sums: no adjoint stack
             m_tot += self.m[g, i, j, l]
             mom += self.m[g, i, j, l] * self.vf[g, i, j, l]
             if ti.static(self.multi):
                 grad_sum += self.gm[g, i, j, l]
                 fric_mass += self.m[g, i, j, l] * self.friction[g]
-            if self.m[g, i, j, l] > MASS_EPS:
-                n_with_mass += 1
+            n_with_mass += ti.select(self.m[g, i, j, l] > MASS_EPS, 1, 0)
         v_cm = mom / ti.max(m_tot, MASS_EPS)
         z = self.origin[2] + l * self.dx
+        below = ti.select(z <= ground_z, has_ground, 0)
         for g in ti.static(range(self.G)):
-            vel = self.vf[g, i, j, l]
             m_g = self.m[g, i, j, l]
-            if ti.static(self.multi):
-                if n_with_mass >= 2 and m_g > MASS_EPS:
-                    # outward normal of object g: towards the others' mass, away from its own
-                    nrm = grad_sum - 2.0 * self.gm[g, i, j, l]
-                    nrm = nrm / ti.sqrt(nrm.dot(nrm) + NORMAL_EPS)
-                    mu_other = (fric_mass - m_g * self.friction[g]) / ti.max(m_tot - m_g, MASS_EPS)
-                    mu = 0.5 * (self.friction[g] + mu_other)
-                    vel = v_cm + self._coulomb(vel - v_cm, nrm, mu)
-            if has_ground != 0:  # nested ifs: `and` confuses Taichi's adjoint of locals
-                if z <= ground_z:
-                    # outward normal of the table is -e_z: moving down = approaching it
-                    v_in = self.pm[g, i, j, l][2] / ti.max(m_g, MASS_EPS)
-                    vel = self._ground(vel, v_in, self.ground_mu[None], self.ground_e[None])
-            for d in ti.static(range(3)):
-                if (i, j, l)[d] < WALL_LAYERS:
-                    vel[d] = ti.max(vel[d], 0.0)  # slip: no outward normal velocity
-                if (i, j, l)[d] >= self.nodes[d] - WALL_LAYERS:
-                    vel[d] = ti.min(vel[d], 0.0)
-            self.vg[g, i, j, l] = vel
+            if m_g > MASS_EPS:
+                vel = self.vf[g, i, j, l]
+                if ti.static(self.multi):
+                    if n_with_mass >= 2:
+                        # outward normal of object g: towards the others' mass, away from its own
+                        raw = grad_sum - 2.0 * self.gm[g, i, j, l]
+                        nrm = raw / ti.sqrt(raw.dot(raw) + NORMAL_EPS)
+                        mu_other = (fric_mass - m_g * self.friction[g]) / ti.max(
+                            m_tot - m_g, MASS_EPS
+                        )
+                        mu = 0.5 * (self.friction[g] + mu_other)
+                        self._ground_and_walls(
+                            g, i, j, l, v_cm + self._coulomb(vel - v_cm, nrm, mu), below
+                        )
+                    else:
+                        self._ground_and_walls(g, i, j, l, vel, below)
+                else:
+                    self._ground_and_walls(g, i, j, l, vel, below)
+            else:
+                self.vg[g, i, j, l] = ti.Vector.zero(ti.f32, 3)
+
+    @ti.func
+    def _ground_and_walls(self, g, i, j, l, vel, below):
+        """Field g's node (i, j, l) after its contact velocity ``vel``: the table where
+        ``below`` (the node at or under it), then the walls, written to ``vg``."""
+        if below != 0:
+            # outward normal of the table is -e_z: moving down = approaching it
+            v_in = self.pm[g, i, j, l][2] / ti.max(self.m[g, i, j, l], MASS_EPS)
+            landed = self._ground(vel, v_in, self.ground_mu[None], self.ground_e[None])
+            self.vg[g, i, j, l] = self._walls(i, j, l, landed)
+        else:
+            self.vg[g, i, j, l] = self._walls(i, j, l, vel)
 
     @ti.kernel
     def clear_particle_velocity(self, s: ti.i32, n: ti.i32):

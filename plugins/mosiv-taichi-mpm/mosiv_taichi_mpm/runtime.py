@@ -8,6 +8,7 @@ simulators notice through ``generation()`` and answer by re-allocating.
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
 
 import taichi as ti
@@ -40,6 +41,10 @@ def ensure(device: str) -> int:
     if _state["device"] is not None:
         ti.reset()
     arch = ti.cuda if device == "cuda" else ti.cpu
+    # the offline kernel cache stays on unless TI_OFFLINE_CACHE=0 (an A/B of two plugin
+    # versions in one place needs it off): Taichi lets an explicit argument override that
+    # variable, so the argument is only passed when the variable is unset
+    cache = {} if "TI_OFFLINE_CACHE" in os.environ else {"offline_cache": True}
     # float32 throughout; fast_math off so NaN/inf checks are not optimised away
     # ti.init prints "Starting on arch=..." on stdout whatever the log level; stdout belongs to
     # the command's own output (`mosiv bench sim --json`), so the line goes to stderr
@@ -47,10 +52,10 @@ def ensure(device: str) -> int:
         ti.init(
             arch=arch,
             default_fp=ti.f32,
-            offline_cache=True,
             fast_math=False,
             log_level="warn",
             kernel_profiler=_state["kernel_profiler"],
+            **cache,
         )
     actual = ti.lang.impl.current_cfg().arch
     if device == "cuda" and actual != ti.cuda:

@@ -6,6 +6,8 @@ first, in their order (GROUPS in the repository's conftest.py): Taichi's offline
 kernel by the fields made before it in the process, so the same history finds the cache.
 """
 
+import os
+
 import pytest
 
 _CACHE: dict = {}
@@ -15,12 +17,14 @@ THROWN_VELOCITIES = {1: (1.2, 0.1, -0.4), 2: (-1.2, 0.0, -0.6)}
 
 
 def make_simulator(**options):
-    """A cached TaichiMPMSimulator for these options (CPU)."""
+    """A cached TaichiMPMSimulator for these options, on the CPU unless MOSIV_TEST_DEVICE=cuda
+    (the same suite on a GPU)."""
     from mosiv_taichi_mpm.plugin import make_simulator as factory
 
+    options.setdefault("device", os.environ.get("MOSIV_TEST_DEVICE", "cpu"))
     key = tuple(sorted(options.items()))
     if key not in _CACHE:
-        _CACHE[key] = factory(device="cpu", **options)
+        _CACHE[key] = factory(**options)
     return _CACHE[key]
 
 
