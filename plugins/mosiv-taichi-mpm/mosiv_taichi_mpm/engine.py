@@ -217,7 +217,6 @@ class Engine:
         for i, j in STENCIL_ROWS:
             k.g2p.grad(s, n, i, j)
         k.grid_contact.grad(self.ground_z, self.has_ground)
-        k.body_force_adjoint(*self._force_args(s))
         k.grid_forces.grad(*self._force_args(s))
         for i, j in STENCIL_ROWS:
             k.p2g.grad(s, n, i, j, self._pm_level())

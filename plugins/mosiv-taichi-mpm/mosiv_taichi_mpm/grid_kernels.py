@@ -4,16 +4,16 @@ the walls), node by node, and the adjoint of the body-force parameters.
 The functions are written for Taichi's reverse mode, which differentiates ``grid_forces`` and
 ``grid_contact``: every local is assigned once, the Coulomb, table and wall cases are selected
 rather than branched into (``pick``, ``slip_wall``), and each branch writes the node itself.
-A node without mass is skipped before anything else is read: its velocity stays zero. The
-body-force parameters (gravity, wind, drag, the expression's coefficients) are read by every
-node with mass, so Taichi's own adjoint would add into their gradients from every such node;
-``grid_forces`` stops those gradients and ``body_force_adjoint`` sums them as reductions.
+A node without mass is skipped before anything else is read: its velocity stays zero.
+
+``grid_forces``' adjoint adds into the body-force parameters' gradients (gravity, wind, drag)
+from every node with mass. Summing those in a kernel of their own instead, as reductions
+(``ti.stop_grad`` on the parameters in ``grid_forces``), was slower on an H200: 20.5 + 25.4 ms
+against 36.4 ms for the adjoint alone, 100 substeps at 97,336 particles (docs/BENCHMARKS.md).
 """
 
 # no `from __future__ import annotations`: Taichi reads the annotations at runtime
 import taichi as ti
-
-from mosiv_taichi_mpm.fields import N_NODE_FEATURES
 
 MASS_EPS = 1e-12  # kg; grid nodes lighter than this count as empty
 NORMAL_EPS = 1e-20  # guards normalisation of near-zero mass gradients
@@ -43,47 +43,9 @@ class GridKernels:
     def grid_forces(self, dt: ti.f32, time: ti.f32, ground_h: ti.f32):
         """v = (m v)/m + dt (gravity + wind - c_lin v - c_quad |v| v + expression) on nodes
         with mass; ``time`` (s) since frame 0 at this substep, ``ground_h`` (m) the ground's
-        height (0 without one) for the expression's height feature. Its adjoint leaves the
-        body-force parameters to ``body_force_adjoint``."""
+        height (0 without one) for the expression's height feature."""
         for I in ti.grouped(self.m):
-            self.stop_body_force_grads()
             self.forces_at(I, dt, time, ground_h)
-
-    @ti.func
-    def stop_body_force_grads(self):
-        """No adjoint into the body-force parameters from here: each node with mass would add
-        into the same few numbers (``body_force_adjoint`` sums them instead)."""
-        ti.stop_grad(self.lin_drag)
-        ti.stop_grad(self.quad_drag)
-        # a vector field's components are fields of their own, and ti.stop_grad takes one
-        for d in ti.static(range(3)):
-            ti.stop_grad(self.gravity.get_scalar_field(d))
-            ti.stop_grad(self.wind.get_scalar_field(d))
-            ti.stop_grad(self.expr_coef.get_scalar_field(d))
-
-    @ti.kernel
-    def body_force_adjoint(self, dt: ti.f32, time: ti.f32, ground_h: ti.f32):
-        """The body-force parameters' adjoints from ``grid_forces``, given the adjoint of its
-        output vf: over nodes with mass, with u = dt vf.grad, d gravity += u, d wind += u,
-        d c_lin -= u . v, d c_quad -= |v| u . v, d c_k += phi_k u for the expression's
-        coefficients. Run while vf.grad is complete (after ``grid_contact``'s adjoint). Sums
-        into one number from every node are reductions, which Taichi accumulates per thread
-        block before it adds them up. Arguments as ``grid_forces``'."""
-        for I in ti.grouped(self.m):
-            if self.m[I] > MASS_EPS:
-                vel = self.mv[I] / self.m[I]
-                speed = ti.sqrt(vel.dot(vel) + NORMAL_EPS)
-                u = dt * self.vf.grad[I]
-                along = u.dot(vel)
-                self.gravity.grad[None] += u
-                self.wind.grad[None] += u
-                self.lin_drag.grad[None] -= along
-                self.quad_drag.grad[None] -= speed * along
-                if self.expr_on[None] != 0:
-                    node = self.origin + self.dx * ti.Vector([I[1], I[2], I[3]], ti.f32)
-                    phi = self._expression_features(node, vel, speed, time, ground_h)
-                    for k in ti.static(range(N_NODE_FEATURES)):
-                        self.expr_coef.grad[k] += phi[k] * u
 
     @ti.func
     def forces_at(self, I, dt, time, ground_h):
@@ -117,15 +79,6 @@ class GridKernels:
         a += (speed * v[0]) * self.expr_coef[8] + (speed * v[1]) * self.expr_coef[9]
         a += (speed * v[2]) * self.expr_coef[10]
         return a + time * self.expr_coef[11]
-
-    @ti.func
-    def _expression_features(self, x, v, speed, time, ground_h):
-        """The features phi_k of ``_expression``, in its order, as one vector."""
-        h = x.dot(self.up[None]) - ground_h
-        return ti.Vector([
-            1.0, x[0], x[1], x[2], h, v[0], v[1], v[2],
-            speed * v[0], speed * v[1], speed * v[2], time,
-        ], ti.f32)  # fmt: skip
 
     @ti.func
     def _coulomb(self, rel, normal, mu):
