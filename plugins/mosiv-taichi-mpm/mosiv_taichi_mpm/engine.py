@@ -115,7 +115,7 @@ class Engine:
         """The grid of substep s through the split kernels, whose adjoints the reverse pass
         runs: P2G, then the grid forces and contact."""
         k = self.kernels
-        k.clear_grid(False)
+        k.clear_grid()
         k.stress(s, self.n, self.dt)
         for i, j in STENCIL_ROWS:
             k.p2g(s, self.n, i, j, self._pm_level())
@@ -207,9 +207,7 @@ class Engine:
             )
         else:
             self._grid(s)
-        k.clear_grid(True)
-        self.fields.affine.grad.fill(0)
-        self.fields.pmass.grad.fill(0)
+        k.clear_adjoints(n)
         k.plasticity.grad(s, n, dt)
         if k.needs_svd:
             k.svd_backward(s, n)

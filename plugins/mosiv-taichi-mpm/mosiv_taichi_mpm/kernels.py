@@ -252,18 +252,26 @@ class MPMKernels(GridKernels):
             self.x.grad[a, p] += ti.Vector([g[p, 0], g[p, 1], g[p, 2]])
 
     @ti.kernel
-    def clear_grid(self, grads: ti.template()):
-        """Zero the grid (or its adjoints) before a substep's transfer."""
+    def clear_grid(self):
+        """Zero the grid before a substep's transfer."""
         for I in ti.grouped(self.m):
-            if ti.static(grads):
-                self.m.grad[I] = 0.0
-                self.mv.grad[I] = ti.Vector.zero(ti.f32, 3)
-                self.gm.grad[I] = ti.Vector.zero(ti.f32, 3)
-                self.pm.grad[I] = ti.Vector.zero(ti.f32, 3)
-                self.vf.grad[I] = ti.Vector.zero(ti.f32, 3)
-                self.vg.grad[I] = ti.Vector.zero(ti.f32, 3)
-            else:
-                self.clear_node(I)
+            self.clear_node(I)
+
+    @ti.kernel
+    def clear_adjoints(self, n: ti.i32):
+        """Zero the grid's adjoints and those of the particles' mass and affine term (which
+        every substep's ``stress`` rewrites) before a substep's adjoints: one call, as the
+        host's calls set the pace of a small backward."""
+        for I in ti.grouped(self.m):
+            self.m.grad[I] = 0.0
+            self.mv.grad[I] = ti.Vector.zero(ti.f32, 3)
+            self.gm.grad[I] = ti.Vector.zero(ti.f32, 3)
+            self.pm.grad[I] = ti.Vector.zero(ti.f32, 3)
+            self.vf.grad[I] = ti.Vector.zero(ti.f32, 3)
+            self.vg.grad[I] = ti.Vector.zero(ti.f32, 3)
+        for p in range(n):
+            self.pmass.grad[p] = 0.0
+            self.affine.grad[p] = ti.Matrix.zero(ti.f32, 3, 3)
 
     @ti.func
     def clear_node(self, I):
