@@ -100,8 +100,7 @@ class Engine:
         if diagnostics and k.multi:
             k.detect_contact(self.ground_z, self.has_ground)
         k.clear_particle_velocity(s, n)
-        for i, j in STENCIL_ROWS:
-            k.g2p(s, n, i, j)
+        k.g2p(s, n)
         k.advect(s, n, dt)
         if k.needs_svd:
             k.svd(s, n)
@@ -212,8 +211,7 @@ class Engine:
         if k.needs_svd:
             k.svd_backward(s, n)
         k.advect.grad(s, n, dt)
-        for i, j in STENCIL_ROWS:
-            k.g2p.grad(s, n, i, j)
+        k.g2p.grad(s, n)
         k.grid_contact.grad(self.ground_z, self.has_ground)
         k.grid_forces.grad(*self._force_args(s))
         for i, j in STENCIL_ROWS:

@@ -2,7 +2,7 @@
 
 A substep from the particle state at substep boundary ``s`` to that at ``s + 1`` runs, in order:
 ``clear_grid`` -> ``stress(s)`` -> ``p2g(s, 0..2)`` -> ``grid_forces`` -> ``grid_contact`` ->
-``clear_particle_velocity(s)`` -> ``g2p(s, 0..2)`` -> ``advect(s)`` -> ``svd(s)`` -> ``plasticity(s)``.
+``clear_particle_velocity(s)`` -> ``g2p(s)`` -> ``advect(s)`` -> ``svd(s)`` -> ``plasticity(s)``.
 Every kernel except ``svd`` is differentiated by Taichi (``kernel.grad``); ``svd_backward`` is the
 hand-written adjoint of ``svd``. Kernels read and write disjoint fields so that the recorded
 values survive until their adjoints run. ``check`` and ``detect_contact`` are forward-only.
@@ -22,7 +22,7 @@ from mosiv_taichi_mpm.grid_kernels import MASS_EPS, GridKernels
 from mosiv_taichi_mpm.laws import J_MIN, kirchhoff_stress, return_map
 from mosiv_taichi_mpm.svd_grad import svd_adjoint
 
-#: (i, j) offsets of the stencil rows; each row of 3 nodes is one p2g / g2p kernel
+#: (i, j) offsets of the stencil rows: each row of 3 nodes is one p2g kernel, one loop of g2p
 STENCIL_ROWS = tuple((i, j) for i in range(3) for j in range(3))
 
 # divergence reasons (stored in the low 2 bits of div_code)
@@ -347,10 +347,9 @@ class MPMKernels(GridKernels):
 
         The stencil is unrolled (Taichi's adjoint of a dynamic inner loop is wrong here) and
         split in nine kernels because the adjoint's compile time grows faster than linearly
-        with kernel size. Nine top-level loops in one kernel, one a row, would save the host
-        eight calls a substep but not the build time: with ``g2p`` so written, a two-body
-        rollout and its backward took about twice as long to build on a CPU (134 s against
-        70), and with ``p2g`` too it had not finished after five minutes."""
+        with kernel size: as nine top-level loops of one kernel (as ``g2p``), the build of a
+        two-body rollout's adjoints had not finished after five minutes, where it otherwise
+        takes about two (benchmarks/data/taichi_grid_adjoint_cpu/)."""
         for p in range(n):
             a = self.state_at(s)
             g = self.obj[p] if ti.static(self.multi) else 0
@@ -371,17 +370,21 @@ class MPMKernels(GridKernels):
             self.C[b, p] = ti.Matrix.zero(ti.f32, 3, 3)
 
     @ti.kernel
-    def g2p(self, s: ti.i32, n: ti.i32, i: ti.template(), j: ti.template()):
-        """G2P gather over the 3 stencil nodes with offsets (i, j, 0..2): v += w v_i,
-        C += 4/dx^2 w v_i dpos^T (APIC); accumulated into the fields (see ``p2g``)."""
-        for p in range(n):
-            a, b = self.state_at(s), self.state_at(s + 1)
-            g = self.obj[p] if ti.static(self.multi) else 0
-            base, fx = self.stencil_cell(self.x[a, p])
-            for l in ti.static(range(3)):
-                dv, dC = self.gather_node(g, base, fx, ti.Vector([i, j, l]))
-                self.v[b, p] += dv
-                self.C[b, p] += dC
+    def g2p(self, s: ti.i32, n: ti.i32):
+        """G2P gather over the 27 stencil nodes: v += w v_i, C += 4/dx^2 w v_i dpos^T (APIC),
+        accumulated into the fields. Each stencil row (i, j, 0..2) is a top-level loop of its
+        own, which Taichi launches and differentiates on its own: one call a substep, and an
+        adjoint that builds about as fast as nine one-row kernels (``p2g`` stays nine kernels:
+        so written, its adjoint's build took several times as long)."""
+        for i, j in ti.static(STENCIL_ROWS):
+            for p in range(n):
+                a, b = self.state_at(s), self.state_at(s + 1)
+                g = self.obj[p] if ti.static(self.multi) else 0
+                base, fx = self.stencil_cell(self.x[a, p])
+                for l in ti.static(range(3)):
+                    dv, dC = self.gather_node(g, base, fx, ti.Vector([i, j, l]))
+                    self.v[b, p] += dv
+                    self.C[b, p] += dC
 
     @ti.kernel
     def advect(self, s: ti.i32, n: ti.i32, dt: ti.f32):
