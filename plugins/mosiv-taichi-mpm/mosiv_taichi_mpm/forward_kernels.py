@@ -1,9 +1,10 @@
 """The forward substep as one kernel: the same MLS-MPM transfer in fewer passes and one call.
 
 The kernels of ``kernels.py`` are shaped for Taichi's reverse mode: the 27-node stencil is split
-into nine three-node kernels (the adjoint's compile time grows faster than linearly with kernel
-size) and each step of the particle update is its own kernel, so every particle is read and its
-B-spline weights recomputed nine times in P2G and nine times in G2P. Nothing here is
+into nine three-node passes (nine ``p2g`` kernels, nine top-level loops of ``g2p``: the
+adjoint's compile time grows faster than linearly with a loop's size) and each step of the
+particle update is its own kernel, so every particle is read and its B-spline weights
+recomputed nine times in P2G and nine times in G2P. Nothing here is
 differentiated, so a substep becomes one kernel, ``substep``, whose top-level loops Taichi runs
 one after another on the device:
 
@@ -118,7 +119,7 @@ class FusedForwardKernels(MPMKernels):
 
     @ti.func
     def g2p_advect_particle(self, s, p, dt):
-        """``clear_particle_velocity``, the nine ``g2p`` kernels and ``advect`` for particle p:
+        """``clear_particle_velocity``, ``g2p``'s nine row loops and ``advect`` for particle p:
         v = sum w v_i and C = sum 4/dx^2 w v_i dpos^T over the 27 nodes (in the split kernels'
         order), then x += dt v (kept inside the padded grid) and F_trial = (I + dt C) F."""
         a, b, t = self.state_at(s), self.state_at(s + 1), self.trial_at(s)

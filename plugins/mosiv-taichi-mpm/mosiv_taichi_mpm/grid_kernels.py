@@ -1,5 +1,5 @@
 """The grid half of a substep: body forces, then contact (between objects, with the table, with
-the walls), node by node, and the adjoint of the body-force parameters.
+the walls), node by node.
 
 The functions are written for Taichi's reverse mode, which differentiates ``grid_forces`` and
 ``grid_contact``: every local is assigned once, the Coulomb, table and wall cases are selected
@@ -23,7 +23,7 @@ WALL_LAYERS = 3  # outer node layers with slip walls (contract)
 @ti.func
 def pick(cond, a, b):
     """a where cond holds, else b, component by component of two 3-vectors: a select, which
-    Taichi's reverse mode takes without an adjoint stack (see ``MPMKernels.forces_at``)."""
+    Taichi's reverse mode takes without an adjoint stack (see ``GridKernels.forces_at``)."""
     return ti.Vector([ti.select(cond, a[d], b[d]) for d in ti.static(range(3))])
 
 
