@@ -22,6 +22,7 @@ from diagnose_fakes import (  # noqa: E402
     _elastic_pair_params,
     _FakeContext,
     _OneByOneLosses,
+    windy_block_context,
 )
 
 
@@ -483,3 +484,55 @@ def test_a_diverged_null_is_continued_from_a_candidate_state_that_predicts():
     warm = converge_null(ctx, null, [candidate], fit_frames=[1], options=options)
     assert warm.diverged is None and warm.trajectory is not None
     assert warm.started_from == "calm" and warm.loss > null.loss
+
+
+@pytest.mark.parametrize(
+    ("reidentify", "identified"),
+    [("every", [None, "wind", "linear_drag"]), ("null-model", [None])],
+)
+def test_the_budget_chooses_which_models_are_identified_afresh(monkeypatch, reidentify, identified):
+    """``diagnose.reidentify``: "every" identifies the null and every kept candidate afresh,
+    "null-model" the null alone; a candidate left out keeps its refit, in its place."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from omegaconf import OmegaConf
+
+    from mosiv_framework.diagnose import diagnosis
+    from mosiv_framework.diagnose.candidates import build_candidates
+    from mosiv_framework.diagnose.hypothesise import Screen
+    from mosiv_framework.diagnose.model import Fit
+    from mosiv_framework.recipes.schema import IdentifySection
+
+    params = _elastic_pair_params()
+    ctx = SimpleNamespace(recipe=OmegaConf.create({"identify": IdentifySection()}))
+    names = {c.name: c for c in build_candidates(windy_block_context(3))[0]}
+    kept = [
+        Screen(names[n], True, [-1.0], torch.tensor([0.1]), 0.3, 5.0)
+        for n in ("wind", "linear_drag")
+    ]  # fmt: skip
+    fits = [
+        Fit(n, None, params, torch.zeros(3), 2.0, 4, starts=[]) for n in ("wind", "linear_drag")
+    ]
+    null = Fit("null", None, params, torch.zeros(3), 2.0, 4, starts=[])
+    asked = []
+
+    def fresh_fits(ctx, models, **_):
+        asked.extend(None if c is None else c.name for c, _ in models)
+        name = lambda c: "null" if c is None else c.name  # noqa: E731
+        return [Fit(name(c), None, params, torch.ones(3), 1.0, 4, starts=[], reidentified=True)
+                for c, _ in models]  # fmt: skip
+
+    monkeypatch.setattr(diagnosis, "reidentify_together", fresh_fits)
+    plan = SimpleNamespace(
+        ctx=ctx,
+        fit_frames=[1, 2],
+        budget=replace(diagnosis.BUDGETS["full"], reidentify=reidentify),
+        steps=SimpleNamespace(get_many=lambda names, make: make(names)),
+        say=lambda *a, **k: None,
+    )
+    new_null, new_fits = diagnosis._identify_afresh(plan, null, fits, kept)
+    assert asked == identified
+    assert new_null.reidentified
+    assert [f.name for f in new_fits] == ["wind", "linear_drag"]
+    assert [f.reidentified for f in new_fits] == [reidentify == "every"] * 2

@@ -228,9 +228,15 @@ def test_a_recipe_sets_the_refit_budget_and_bad_values_are_named(tmp_path):
     assert resolve_budget(
         "full", load_recipe(recipe, ["diagnose.far_start=true"]).diagnose
     ).far_start
+    # the fresh identifications: the full budget's (every model) unless the recipe says
+    assert BUDGETS["full"].reidentify == "every"
+    fresh = load_recipe(recipe, ["diagnose.reidentify=null-model"]).diagnose
+    assert resolve_budget("full", fresh).reidentify == "null-model"
     assert resolve_budget("full", OmegaConf.create({})) == BUDGETS["full"]
     with pytest.raises(ConfigError, match="budget 'huge' is unknown; valid: \\['full', 'small'\\]"):
         resolve_budget("huge")
+    with pytest.raises(ConfigError, match="diagnose.reidentify='some': valid values are every, "):
+        load_recipe(recipe, ["diagnose.reidentify=some"])
     with pytest.raises(ConfigError) as err:
         load_recipe(recipe, ["diagnose.refit_velocity_lr=0", "diagnose.polish=-1"])
     assert "diagnose.refit_velocity_lr=0.0: must be a positive step in m/s" in str(err.value)

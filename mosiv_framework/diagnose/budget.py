@@ -8,6 +8,7 @@ from dataclasses import dataclass, replace
 
 from mosiv_framework.diagnose.model import RefitOptions
 from mosiv_framework.errors import ConfigError
+from mosiv_framework.recipes.schema import REIDENTIFY
 
 
 @dataclass(frozen=True)
@@ -15,15 +16,15 @@ class Budget:
     """How much a diagnosis may compute: candidates refitted, refit iterations and starts,
     bootstrap resamples, the fraction of the observed window held out, the steps a
     regression start settles the shared parameters first (``RefitOptions.settle``),
-    whether every model is also identified afresh with the run's schedule (``reidentify``;
-    the better of that and its refit is kept), the backtracking steps that end every
+    which models are also identified afresh with the run's schedule (``reidentify``: every,
+    null-model or none; the better of that and its refit is kept), the backtracking steps that end every
     refit (``RefitOptions.polish``), the refit's initial-velocity step (m/s per step) and
     whether contact and material candidates get a start at the far end of the screening's
     walk (``diagnosis.refit_starts``), whether a named effect must be stable across grid
     resolution (``grid_stability``), and whether the models' descents run in lockstep
     (``together``, ``diagnose.descent``). A recipe's ``diagnose`` section may set
-    max_candidates, bootstrap, starts, iterations, polish, far_start, grid_check, together and
-    (as ``refit_velocity_lr``) velocity_lr."""
+    max_candidates, bootstrap, starts, iterations, polish, far_start, grid_check, together,
+    reidentify and (as ``refit_velocity_lr``) velocity_lr."""
 
     max_candidates: int
     iterations: int
@@ -31,7 +32,7 @@ class Budget:
     bootstrap: int
     heldout_fraction: float = 0.25
     settle: int = 0
-    reidentify: bool = False
+    reidentify: str = "none"
     polish: int = 0
     velocity_lr: float = RefitOptions.velocity_lr
     far_start: bool = False
@@ -51,11 +52,18 @@ BUDGETS = {
         starts=3,
         bootstrap=1000,
         settle=20,
-        reidentify=True,
+        reidentify="every",
         polish=10,
         grid_check=True,  # the null's refit and one per named effect, beside 5 fresh fits
     ),
 }
+
+
+def reidentifies(budget: Budget, model: str | None) -> bool:
+    """Whether ``budget`` identifies ``model`` afresh: the null (None) or a candidate's name."""
+    if budget.reidentify == "every":
+        return True
+    return budget.reidentify == "null-model" and model is None
 
 
 def resolve_budget(budget: str | Budget, section=None) -> Budget:
@@ -76,7 +84,13 @@ def resolve_budget(budget: str | Budget, section=None) -> Budget:
         "far_start": ("far_start", bool),
         "grid_check": ("grid_check", bool),
         "together": ("together", bool),
+        "reidentify": ("reidentify", str),
     }
+    fresh = section.get("reidentify")
+    if fresh is not None and fresh not in REIDENTIFY:
+        raise ConfigError(
+            f"diagnose.reidentify={fresh!r}: valid values are {', '.join(REIDENTIFY)}"
+        )
     return replace(
         budget,
         **{

@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 # BUDGETS is imported for the callers that read the named budgets from here
-from mosiv_framework.diagnose.budget import BUDGETS, Budget, resolve_budget  # noqa: F401
+from mosiv_framework.diagnose.budget import BUDGETS, Budget, reidentifies, resolve_budget  # noqa: F401
 from mosiv_framework.diagnose.candidates import build_candidates
 from mosiv_framework.diagnose.context import RunContext, load_run
 from mosiv_framework.diagnose.decide import (
@@ -282,12 +282,17 @@ def _identify_afresh(plan: _Plan, null, fits: list, kept: list) -> tuple:
     """(null, fits), each replaced by the model identified afresh on the fit frames with the
     run's schedule where that fits better (``_better``), each a saved step."""
     ctx, fit_frames = plan.ctx, plan.fit_frames
-    plan.say("identifying the null model and each candidate afresh on the fit frames")
     schedule = ReidentifyOptions.from_recipe(ctx.recipe.identify)
-    # name -> (the refitted model, the candidate, its coefficients' start)
+    # step name -> (the refitted model, the candidate, its coefficients' start); the null
+    # first, then the candidates the budget identifies afresh, at their places in ``fits``
     models = {"fresh-null": (null, None, None)}
-    for fit, s in zip(fits, kept):
-        models[f"fresh-{s.candidate.name}"] = (fit, s.candidate, refit_starts(s, 1)[0][0])
+    places = []
+    for place, (fit, s) in enumerate(zip(fits, kept)):
+        if reidentifies(plan.budget, s.candidate.name):
+            models[f"fresh-{s.candidate.name}"] = (fit, s.candidate, refit_starts(s, 1)[0][0])
+            places.append(place)
+    which = "the null model and each candidate" if places else "the null model"
+    plan.say(f"identifying {which} afresh on the fit frames")
 
     def afresh(names: list[str]) -> list:
         wanted = [models[n] for n in names]
@@ -300,7 +305,10 @@ def _identify_afresh(plan: _Plan, null, fits: list, kept: list) -> tuple:
         )
         return [_better(fit, new) for (fit, _, _), new in zip(wanted, fresh)]
 
-    null, *fits = plan.steps.get_many(list(models), afresh)
+    null, *fresh_fits = plan.steps.get_many(list(models), afresh)
+    fits = list(fits)  # the candidates not identified afresh keep their refits
+    for place, fit in zip(places, fresh_fits):
+        fits[place] = fit
     fresh = [f.name for f in [null, *fits] if f.reidentified]
     plan.say(f"identified afresh, better than refitted: {fresh or 'none'}")
     return null, fits
@@ -395,7 +403,7 @@ def _investigate(plan: _Plan, location, rule: DecideOptions) -> dict:
     screens = _screen_candidates(plan, location, candidates)
     kept = choose_refits(screens, plan.budget.max_candidates)
     null, fits = _refit_models(plan, location, kept)
-    if plan.budget.reidentify:
+    if plan.budget.reidentify != "none":
         null, fits = _identify_afresh(plan, null, fits, kept)
     null, fits = _converge_models(plan, null, fits)
     return {
@@ -434,7 +442,7 @@ def _test_formula(plan: _Plan, location, rule: DecideOptions, found: dict, disco
             options=plan.refit_options,
         ),
     )
-    if plan.budget.reidentify:
+    if reidentifies(plan.budget, candidate.name):
         schedule = ReidentifyOptions.from_recipe(ctx.recipe.identify)
         fit = plan.steps.get(
             "fresh-expression",

@@ -404,6 +404,10 @@ class DiagnoseSection:
     #: step (``diagnose.descent``); false: one after another, the same results (bit for bit
     #: on warp-mpm's CPU path), for timing what the batch saves. Default on
     together: bool | None = None
+    #: which models are also identified afresh with the run's schedule beside their refit,
+    #: the better kept (``diagnose.budget.REIDENTIFY``): every, null-model or none; default:
+    #: the budget's (every in full, none in small)
+    reidentify: str | None = None
 
     @staticmethod
     def value_problems(values: dict[str, Any]) -> list[str]:
@@ -418,11 +422,20 @@ class DiagnoseSection:
         ):
             if values.get(key) is not None and values[key] < least:
                 out.append(f"diagnose.{key}={values[key]!r}: must be >= {least} (or null)")
+        fresh = values.get("reidentify")
+        if fresh is not None and fresh not in REIDENTIFY:
+            out.append(
+                f"diagnose.reidentify={fresh!r}: valid values are {', '.join(REIDENTIFY)} "
+                "(or null: the budget's)"
+            )
         lr = values.get("refit_velocity_lr")
         if lr is not None and not lr > 0:
             out.append(f"diagnose.refit_velocity_lr={lr!r}: must be a positive step in m/s")
         return out + grid_option_problems(values)
 
+
+#: which models a diagnosis identifies afresh beside their refits (``diagnose.reidentify``)
+REIDENTIFY = ("every", "null-model", "none")
 
 #: the second grid over simulator.grid a recipe may ask the grid check for (besides 1)
 GRID_FACTOR_RANGE = (0.25, 4.0)
