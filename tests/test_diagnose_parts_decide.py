@@ -36,6 +36,25 @@ def test_bootstrap_drop_is_significant_only_for_a_consistent_improvement():
     assert abs(drop) < 2 * spread
 
 
+def test_the_log_drop_weighs_every_unit_by_its_factor_not_its_size():
+    """Two objects, 8 held-out frames: a candidate that halves the error of the first six
+    frames, where the errors are small, and is 20 % worse on the last two, where every
+    prediction has left the recording (errors 1000x larger). Summed, the last frames decide
+    (a negative drop); the geometric mean of the (object, block) ratios counts three units
+    halved against one 1.2x worse: 1 - (0.5^3 x 1.2)^(1/4) per object."""
+    null = np.concatenate([np.full((2, 6), 1e-6), np.full((2, 2), 1e-3)], axis=1)
+    cand = np.concatenate([np.full((2, 6), 0.5e-6), np.full((2, 2), 1.2e-3)], axis=1)
+    summed, _ = bootstrap_drop(null, cand, block=2, resamples=50, seed=0, statistic="sum")
+    assert summed == pytest.approx(1 - (6 * 0.5e-6 + 2 * 1.2e-3) / (6e-6 + 2e-3), rel=1e-9)
+    assert summed < 0
+    logged, spread = bootstrap_drop(null, cand, block=2, resamples=300, seed=0)
+    # within the log-ratio floor (1e-10 m^2 on units of 1e-6)
+    assert logged == pytest.approx(1 - (0.5**3 * 1.2) ** 0.25, rel=1e-4)
+    assert 0 < spread < logged
+    with pytest.raises(ValueError, match="statistic 'mean': valid: log, sum"):
+        bootstrap_drop(null, cand, block=2, resamples=5, seed=0, statistic="mean")
+
+
 def test_bic_penalises_a_parameter_that_buys_nothing():
     errors = np.full((2, 5), 2e-5)
     floor = np.full((2, 1), 1e-5)

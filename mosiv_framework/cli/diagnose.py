@@ -76,7 +76,7 @@ def _add_suite_parser(sub) -> None:
         action="store_true",
         help="run nothing: re-decide the finished entries in OUT from their saved error tables "
         "under the rule given by --z, --min-drop, --bic-margin, --block, --require-nonzero, "
-        "--min-effect and --grid-bic, and print the table",
+        "--min-effect, --grid-bic and --heldout-statistic, and print the table",
     )
     _add_decision_rule_flags(suite)
     suite.add_argument(
@@ -115,6 +115,13 @@ def _add_decision_rule_flags(suite) -> None:
         default=None,
         help="the grid-stability check also requires the information criterion at the second "
         "grid (on); decided again from the second grid's saved tables where recorded",
+    )
+    suite.add_argument(
+        "--heldout-statistic",
+        choices=["log", "sum"],
+        help="how the held-out drop summarises the (object, time block) units: log, one minus "
+        "the geometric mean of their error ratios (the default), or sum, one minus the ratio "
+        "of the summed errors",
     )
 
 
@@ -184,6 +191,7 @@ def _replay(args) -> int:
         "require_nonzero": args.require_nonzero,
         "min_effect": args.min_effect,
         "grid_bic": args.grid_bic,
+        "heldout_statistic": args.heldout_statistic,
     }
     options = DecideOptions(**{k: v for k, v in given.items() if v is not None})
     from mosiv_framework.cli.stages import require_folder

@@ -87,6 +87,18 @@ class DecideOptions:
     #: whether the grid-stability check (``grid_stability``) also requires the information
     #: criterion at the second grid, or only the held-out test and the coefficients' agreement
     grid_bic: bool = True
+    #: how a held-out drop summarises the (object, time block) units (``bootstrap_drop``):
+    #: "log", one minus the geometric mean of their error ratios, every unit weighing alike;
+    #: "sum", one minus the ratio of the summed errors, which the largest errors decide (the
+    #: last frames of predictions that have all left the recording)
+    heldout_statistic: str = "log"
+
+
+#: the held-out statistics ``bootstrap_drop`` offers
+HELDOUT_STATISTICS = ("log", "sum")
+#: added to each unit's error (m^2) before a log ratio: a unit both models predict exactly
+#: (frame 0's lifted state) counts as a tie, not as 0/0
+LOG_RATIO_FLOOR_M2 = 1e-10
 
 
 def frame_errors(ctx: RunContext, fit_or_traj) -> np.ndarray:
@@ -113,22 +125,46 @@ def _chamfer_table(ctx: RunContext, traj, frames: int) -> np.ndarray:
 
 
 def bootstrap_drop(
-    null: np.ndarray, cand: np.ndarray, *, block: int, resamples: int, seed: int
+    null: np.ndarray,
+    cand: np.ndarray,
+    *,
+    block: int,
+    resamples: int,
+    seed: int,
+    statistic: str = "log",
 ) -> tuple[float, float]:
-    """Relative drop of the mean error, 1 - sum(cand) / sum(null), over [K, F] held-out errors,
-    and its bootstrap standard deviation over (object, time block) units."""
+    """Relative drop of the error over [K, F] held-out errors and its bootstrap standard
+    deviation over (object, time block) units.
+
+    Args:
+        null, cand: the two models' errors (m^2), the reference first.
+        block: frames per time block.
+        resamples, seed: the bootstrap's draws and seed.
+        statistic: "log": 1 - exp(mean over units of log(null / cand)), the geometric mean
+            of the units' error ratios, so a unit counts by the factor it changes, not by its
+            size; "sum": 1 - sum(cand) / sum(null), which the largest units decide.
+
+    Returns:
+        (drop, spread); spread is infinite with fewer than two units.
+    """
+    if statistic not in HELDOUT_STATISTICS:
+        raise ValueError(f"statistic {statistic!r}: valid: {', '.join(HELDOUT_STATISTICS)}")
     k, f = null.shape
     blocks = [list(range(s, min(s + block, f))) for s in range(0, f, block)]
     units = [(i, b) for i in range(k) for b in blocks]
     sums = np.array([[null[i, b].sum(), cand[i, b].sum()] for i, b in units])
-    drop = 1.0 - sums[:, 1].sum() / max(sums[:, 0].sum(), 1e-300)
+
+    def drop_of(rows: np.ndarray) -> float:
+        if statistic == "sum":
+            return 1.0 - rows[:, 1].sum() / max(rows[:, 0].sum(), 1e-300)
+        ratios = np.log((rows[:, 0] + LOG_RATIO_FLOOR_M2) / (rows[:, 1] + LOG_RATIO_FLOOR_M2))
+        return 1.0 - math.exp(-float(ratios.mean()))
+
+    drop = drop_of(sums)
     if len(units) < 2:  # one unit has no spread to measure: no evidence either way
         return float(drop), math.inf
     rng = np.random.default_rng(seed)
-    draws = []
-    for _ in range(resamples):
-        pick = sums[rng.integers(0, len(units), len(units))]
-        draws.append(1.0 - pick[:, 1].sum() / max(pick[:, 0].sum(), 1e-300))
+    draws = [drop_of(sums[rng.integers(0, len(units), len(units))]) for _ in range(resamples)]
     return float(drop), float(np.std(draws))
 
 
@@ -312,6 +348,7 @@ def weigh(
                 block=options.block,
                 resamples=options.bootstrap,
                 seed=options.seed,
+                statistic=options.heldout_statistic,
             )
         else:  # its prediction diverged, or no held-out frame is left to judge it on
             drop, spread = -math.inf, math.inf

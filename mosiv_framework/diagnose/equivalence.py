@@ -165,9 +165,11 @@ def indistinguishable(
     block: int,
     resamples: int,
     seed: int = 0,
+    statistic: str = "log",
 ) -> list[dict]:
     """Candidates among ``names`` whose held-out error differs from ``best``'s by less than
-    ``z`` bootstrap standard deviations: the data cannot tell them apart from it."""
+    ``z`` bootstrap standard deviations (``decide.bootstrap_drop`` with ``statistic``): the
+    data cannot tell them apart from it."""
     out = []
     ref = errors.get(best)
     if ref is None or not heldout:
@@ -179,7 +181,7 @@ def indistinguishable(
         if not np.isfinite(other).all() or not np.isfinite(ref[:, heldout]).all():
             continue
         diff, spread = bootstrap_drop(
-            ref[:, heldout], other, block=block, resamples=resamples, seed=seed
+            ref[:, heldout], other, block=block, resamples=resamples, seed=seed, statistic=statistic
         )
         if math.isfinite(spread) and abs(diff) <= z * spread:
             out.append({"term": name, "heldout_difference": diff, "spread": spread})
@@ -209,6 +211,7 @@ def equivalents(evidence, errors, samples, gravity, heldout, options) -> dict:
         block=options.block,
         resamples=options.bootstrap,
         seed=options.seed,
+        statistic=options.heldout_statistic,
     )
     names = [e["term"] for e in (uniform or {}).get("equivalent", [])]
     names += [e["term"] for e in same if e["term"] not in names]

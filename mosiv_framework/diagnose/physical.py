@@ -165,6 +165,7 @@ def judge_physical(nuisance: np.ndarray | None, cand: np.ndarray, judged, consis
         block=options.block,
         resamples=options.bootstrap,
         seed=options.seed,
+        statistic=options.heldout_statistic,
     )
     beats = drop > 0 and drop > options.z * spread and drop >= options.nuisance_min_drop
     ties = math.isfinite(spread) and drop > -options.z * spread

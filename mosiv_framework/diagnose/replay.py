@@ -92,7 +92,8 @@ def _versioned(diagnosis: dict) -> bool:
 def saved_rule(diagnosis: dict) -> DecideOptions:
     """The rule a diagnosis ran with: its ``rule`` field, complete in a versioned file."""
     if _versioned(diagnosis):
-        return DecideOptions(**diagnosis["rule"])
+        # a rule saved before the held-out statistic was recorded summed the errors
+        return DecideOptions(**{"heldout_statistic": "sum", **diagnosis["rule"]})
     return legacy_rule(diagnosis)
 
 
@@ -102,8 +103,16 @@ def legacy_rule(diagnosis: dict) -> DecideOptions:
     file without any ``rule`` ran z 2 with a BIC margin of 2 and no effect-size test, with its
     budget's bootstrap count."""
     if diagnosis.get("rule"):
-        return DecideOptions(**{"require_nonzero": False, "min_effect": 0.0, **diagnosis["rule"]})
+        return DecideOptions(
+            **{
+                "require_nonzero": False,
+                "min_effect": 0.0,
+                "heldout_statistic": "sum",
+                **diagnosis["rule"],
+            }
+        )
     return DecideOptions(
+        heldout_statistic="sum",
         bootstrap=diagnosis.get("budget", {}).get("bootstrap", 200),
         bic_margin=2.0,
         min_drop=0.0,
