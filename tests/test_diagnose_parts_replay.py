@@ -155,13 +155,21 @@ def test_the_format_field_decides_how_a_diagnosis_is_read():
     assert all(v == () for v in saved_special_cases(versioned).values())
 
     complete = json.loads(_kept_diagnosis("gravity-1", "gravity").read_text())
-    # a file written before the physical-evidence tests and the grid check's switch lacks only
-    # their thresholds; without a nuisance table, consistency or grid records those tests leave
-    # its decision as it was
-    later = {"nuisance_degree", "nuisance_min_drop", "consistency_level", "grid_bic"}
+    # a file written before the physical-evidence tests, the grid check's switch and the
+    # held-out statistic lacks only their thresholds; without a nuisance table, consistency or
+    # grid records those tests leave its decision as it was, and it replays with the sum it ran
+    later = {
+        "nuisance_degree",
+        "nuisance_min_drop",
+        "consistency_level",
+        "grid_bic",
+        "heldout_statistic",
+    }
     assert set(complete["rule"]) | later == set(DecideOptions().__dict__)
     assert all("special_case_of" in e for e in complete["evidence"])
     as_unversioned = replay_diagnosis(complete)
     as_versioned = replay_diagnosis({**complete, "format": DIAGNOSIS_FORMAT})
     as_versioned.pop("format")
     assert as_versioned == as_unversioned
+    assert saved_rule(complete).heldout_statistic == "sum"
+    assert saved_rule({**complete, "format": DIAGNOSIS_FORMAT}).heldout_statistic == "sum"
