@@ -208,6 +208,12 @@ def test_suite_figure_draws_every_kind_of_entry(tmp_path):
     assert image[..., :3].std() > 10
     with pytest.raises(ValueError, match="no scored entries"):
         plot_suite(summarise([]), tmp_path / "empty.png")
+    # the figure's title names its data
+    from mosiv_framework.diagnose.suite_plot import _data_line
+
+    genesis = _data_line({**summary, "source": "genesis", "split": "dev"})
+    assert genesis.startswith("data: the dev split of the genesis suite, scenes made by the Gen")
+    assert "mosiv-synth" in _data_line(summary)
 
 
 def test_a_recipe_sets_the_refit_budget_and_bad_values_are_named(tmp_path):

@@ -16,6 +16,14 @@ TARGET_FUTURE_REDUCTION = 0.5
 SMALLEST_DRAWN_ERROR = 1e-3
 
 
+def _data_line(summary: dict) -> str:
+    """Which suite the figure shows (``suite.suite_selection``'s source and split)."""
+    source, split = summary.get("source") or "synth", summary.get("split")
+    made = "the Genesis engine" if source == "genesis" else "mosiv-synth (warp-mpm)"
+    which = f"{split} split of the {source} suite" if split else f"{source} suite"
+    return f"data: the {which}, scenes made by {made}, oracle geometry"
+
+
 def plot_suite(summary: dict, path: str | Path) -> Path:
     """Write the figure of ``summary`` (``suite.summarise``'s output) to ``path``."""
     import matplotlib
@@ -65,6 +73,7 @@ def plot_suite(summary: dict, path: str | Path) -> Path:
         return "-" if x is None else f"{100 * x:.0f} %"
 
     fig.suptitle(
+        f"{_data_line(summary)}\n"
         f"correct first {pct(summary['correct_first_rate'])}, "
         f"false controls {pct(summary['control_false_discovery_rate'])}, "
         f"outside unexplained {pct(summary['outside_reported_unexplained_rate'])}, "
