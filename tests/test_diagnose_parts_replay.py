@@ -164,6 +164,7 @@ def test_the_format_field_decides_how_a_diagnosis_is_read():
         "consistency_level",
         "grid_bic",
         "heldout_statistic",
+        "consistency_tolerance",
     }
     assert set(complete["rule"]) | later == set(DecideOptions().__dict__)
     assert all("special_case_of" in e for e in complete["evidence"])
@@ -173,6 +174,7 @@ def test_the_format_field_decides_how_a_diagnosis_is_read():
     assert as_versioned == as_unversioned
     assert saved_rule(complete).heldout_statistic == "sum"
     assert saved_rule({**complete, "format": DIAGNOSIS_FORMAT}).heldout_statistic == "sum"
+    assert saved_rule(complete).consistency_tolerance == 0.0
 
 
 def test_the_genesis_dev_entries_replay_under_both_held_out_statistics():
@@ -181,7 +183,8 @@ def test_the_genesis_dev_entries_replay_under_both_held_out_statistics():
     their conceal specs. The held-out statistic decides gravity-0: summed, the last frames,
     where every prediction has left the recording, fail the gravity change; as a geometric
     mean of the (object, block) ratios it is named, within a few percent of the truth, and
-    the control stays without an effect either way."""
+    the control stays without an effect either way. The agreement test's tolerance decides
+    gravity-1."""
     from mosiv_framework.diagnose.decide import DecideOptions
     from mosiv_framework.diagnose.replay import replay_suite
 
@@ -198,3 +201,12 @@ def test_the_genesis_dev_entries_replay_under_both_held_out_statistics():
     gravity = by_rule["log"]["gravity-0"]
     assert gravity["accepted"] == "gravity" and gravity["correct"]
     assert gravity["coefficient_error"] < 0.05
+    # gravity-1: the two bodies' gravity changes differ by 2 %, beyond their intervals; the
+    # agreement test's tolerance (a standard deviation of 5 % of the pooled value, the
+    # default) lets them agree
+    weaker = by_rule["log"]["gravity-1"]
+    assert weaker["accepted"] == "gravity" and weaker["coefficient_error"] < 0.05
+    strict = replay_suite(
+        folder, DecideOptions(consistency_tolerance=0.0), source="genesis", split="dev"
+    )
+    assert {s["name"]: s for s in strict["scores"]}["gravity-1"]["accepted"] == "quadratic_drag"

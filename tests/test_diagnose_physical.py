@@ -48,6 +48,31 @@ def test_same_wind_on_every_object_is_consistent_and_different_biases_are_not():
     assert single["consistent"] is None
 
 
+def test_the_tolerance_allows_a_few_percent_between_objects_and_no_more():
+    """Two bodies with well-sampled free flight (noise 0.002 m/s^2, 200 samples each) whose
+    winds differ by 2 %: their intervals alone disagree; with a standard deviation of 5 % of
+    the pooled magnitude added to each, they agree. Winds 40 % apart disagree under that
+    tolerance too. A replay that has only the intervals decides the tolerance on them
+    (diagonal covariances)."""
+    from mosiv_framework.diagnose.physical import agreement
+
+    wind, near, far = [0.0, 0.0, 2.3], [0.0, 0.0, 2.346], [0.0, 0.0, 3.2]
+
+    def two(second):
+        return {0: samples(wind, 0, n=200, noise=0.002), 1: samples(second, 1, n=200, noise=0.002)}
+
+    assert consistency(WindCandidate(), two(near))["consistent"] is False
+    close = consistency(WindCandidate(), two(near), tolerance=0.05)
+    assert close["consistent"] is True
+    assert close["pooled"] == pytest.approx([0.0, 0.0, 2.323], abs=2e-3)
+    assert consistency(WindCandidate(), two(far), tolerance=0.05)["consistent"] is False
+    intervals_only = {
+        k: {"theta": r["theta"], "interval": r["interval"]} for k, r in close["per_object"].items()
+    }
+    assert agreement(intervals_only, 0.95, 0.05)["consistent"] is True
+    assert agreement(intervals_only, 0.95, 0.0)["consistent"] is False
+
+
 def test_a_candidate_without_acceleration_has_no_consistency_test():
     class Contact:
         dim = 1

@@ -76,7 +76,8 @@ def _add_suite_parser(sub) -> None:
         action="store_true",
         help="run nothing: re-decide the finished entries in OUT from their saved error tables "
         "under the rule given by --z, --min-drop, --bic-margin, --block, --require-nonzero, "
-        "--min-effect, --grid-bic and --heldout-statistic, and print the table",
+        "--min-effect, --grid-bic, --heldout-statistic and --consistency-tolerance, and print "
+        "the table",
     )
     _add_decision_rule_flags(suite)
     suite.add_argument(
@@ -122,6 +123,12 @@ def _add_decision_rule_flags(suite) -> None:
         help="how the held-out drop summarises the (object, time block) units: log, one minus "
         "the geometric mean of their error ratios (the default), or sum, one minus the ratio "
         "of the summed errors",
+    )
+    suite.add_argument(
+        "--consistency-tolerance",
+        type=float,
+        help="standard deviation, relative to the pooled coefficient, that the agreement test "
+        "across objects adds to each object's estimate (0.05)",
     )
 
 
@@ -192,6 +199,7 @@ def _replay(args) -> int:
         "min_effect": args.min_effect,
         "grid_bic": args.grid_bic,
         "heldout_statistic": args.heldout_statistic,
+        "consistency_tolerance": args.consistency_tolerance,
     }
     options = DecideOptions(**{k: v for k, v in given.items() if v is not None})
     from mosiv_framework.cli.stages import require_folder

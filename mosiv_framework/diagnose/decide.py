@@ -84,6 +84,10 @@ class DecideOptions:
     nuisance_min_drop: float = 0.2
     #: chi-square level of the test that a body force's coefficient agrees across objects
     consistency_level: float = 0.95
+    #: a standard deviation, relative to the pooled coefficient, that the agreement test adds
+    #: to each object's estimate (``physical.agreement``): another engine's bodies differ by
+    #: a few percent. At 0.05 two objects' single coefficients may differ by about 14 %
+    consistency_tolerance: float = 0.05
     #: whether the grid-stability check (``grid_stability``) also requires the information
     #: criterion at the second grid, or only the held-out test and the coefficients' agreement
     grid_bic: bool = True
@@ -469,9 +473,13 @@ def apply_physical_tests(
         e.consistency = consistencies.get(e.name, e.consistency)
         if not e.explains or e.name not in errors:
             continue
-        e.passes_consistency, e.passes_nuisance, e.nuisance_drop, e.nuisance_spread = (
-            judge_physical(nuisance, errors[e.name], judged, e.consistency, options)
-        )
+        (
+            e.passes_consistency,
+            e.passes_nuisance,
+            e.nuisance_drop,
+            e.nuisance_spread,
+            e.consistency,
+        ) = judge_physical(nuisance, errors[e.name], judged, e.consistency, options)
     return rank_evidence(evidence, min_drop=options.min_drop)
 
 

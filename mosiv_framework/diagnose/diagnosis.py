@@ -343,7 +343,13 @@ def _physical(plan: _Plan, location, null, fits: list, evidence, errors, rule) -
     traj = null.trajectory if null.trajectory is not None else ctx.identified_rollout()
     samples = run_samples(ctx, traj, frames=plan.fit_frames, regimes=location.regimes)
     consistencies = {
-        f.name: consistency(f.candidate, samples, level=rule.consistency_level) for f in fits
+        f.name: consistency(
+            f.candidate,
+            samples,
+            level=rule.consistency_level,
+            tolerance=rule.consistency_tolerance,
+        )
+        for f in fits
     }
     if rule.nuisance_degree > 0:
         table = nuisance_errors(ctx, null.trajectory, plan.fit_frames, rule.nuisance_degree)

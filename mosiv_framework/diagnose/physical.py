@@ -76,19 +76,23 @@ def object_coefficient(basis: np.ndarray, residual: np.ndarray) -> tuple | None:
 
 
 def consistency(
-    candidate, samples: dict[int, ResidualSamples], *, level: float = 0.95
+    candidate,
+    samples: dict[int, ResidualSamples],
+    *,
+    level: float = 0.95,
+    tolerance: float = 0.0,
 ) -> dict | None:
     """Whether a body-force candidate's coefficient agrees across objects.
 
     Returns None for a candidate that is not a body force. Otherwise {"objects": how many had
-    an estimate, "per_object": {id: {"theta", "interval"}}, "pooled", "chi2", "dof",
-    "consistent"}; "consistent" is None with fewer than 2 estimates (nothing to compare). A
-    discovered law (an ``expression`` candidate) is a body force of the objects' state:
-    its basis holds each sample's features (``formula.object_designs``)."""
+    an estimate, "per_object": {id: {"theta", "interval", "covariance"}}, "pooled", "chi2",
+    "dof", "consistent"} (``agreement``); "consistent" is None with fewer than 2 estimates
+    (nothing to compare). A discovered law (an ``expression`` candidate) is a body force of the
+    objects' state: its basis holds each sample's features (``formula.object_designs``)."""
     designs = _object_designs(candidate, samples)
     if designs is None:
         return None
-    per, fits = {}, []
+    per = {}
     for k, (basis, residual) in designs.items():
         fit = object_coefficient(basis, residual)
         if fit is None:  # too few free-flight samples of this object
@@ -98,20 +102,52 @@ def consistency(
         per[str(k)] = {
             "theta": theta.tolist(),
             "interval": np.stack([theta - half, theta + half], 1).tolist(),
+            "covariance": np.asarray(cov).tolist(),
         }
-        fits.append(fit)
-    out = {"objects": len(fits), "per_object": per, "pooled": None, "chi2": None, "dof": 0}
+    return {"objects": len(per), "per_object": per, **agreement(per, level, tolerance)}
+
+
+def agreement(per_object: dict, level: float, tolerance: float) -> dict:
+    """The chi-square test that the objects' estimates (``consistency``'s "per_object") share
+    one coefficient: {"pooled", "chi2", "dof", "consistent"} ("consistent" None with fewer than
+    two estimates).
+
+    Each estimate's covariance (a record without one: its 95 % interval read as 1.96 standard
+    deviations) is widened by (``tolerance`` x |pooled|)^2 on every coefficient: another
+    simulator than the recording's leaves each body's estimate a few percent off the others',
+    which intervals of free flight alone, narrow for a well-sampled effect, would call a
+    disagreement. 0 tests the intervals alone."""
+    fits = []
+    for record in per_object.values():
+        theta = np.asarray(record["theta"], dtype=float)
+        if record.get("covariance") is not None:
+            cov = np.asarray(record["covariance"], dtype=float)
+        else:
+            half = (np.asarray(record["interval"], dtype=float) @ [-0.5, 0.5]) / 1.96
+            cov = np.diag(half**2)
+        fits.append((theta, cov))
     if len(fits) < 2:
-        out["consistent"] = None
-        return out
+        return {"pooled": None, "chi2": None, "dof": 0, "consistent": None}
+    pooled = _pooled(fits)
+    if tolerance > 0:  # widen by the tolerance about the first pooled estimate, pool again
+        spread = (tolerance * float(np.linalg.norm(pooled))) ** 2
+        fits = [(t, c + spread * np.eye(len(t))) for t, c in fits]
+        pooled = _pooled(fits)
     weights = [np.linalg.pinv(cov) for _, cov in fits]
-    pooled = np.linalg.pinv(sum(weights)) @ sum(w @ t for (t, _), w in zip(fits, weights))
     stat = float(sum((t - pooled) @ w @ (t - pooled) for (t, _), w in zip(fits, weights)))
     dof = len(pooled) * (len(fits) - 1)
-    out.update(
-        pooled=pooled.tolist(), chi2=stat, dof=dof, consistent=bool(stat <= chi2.ppf(level, dof))
-    )
-    return out
+    return {
+        "pooled": pooled.tolist(),
+        "chi2": stat,
+        "dof": dof,
+        "consistent": bool(stat <= chi2.ppf(level, dof)),
+    }
+
+
+def _pooled(fits: list) -> np.ndarray:
+    """The inverse-covariance-weighted mean of (theta, covariance) estimates."""
+    weights = [np.linalg.pinv(cov) for _, cov in fits]
+    return np.linalg.pinv(sum(weights)) @ sum(w @ t for (t, _), w in zip(fits, weights))
 
 
 def nuisance_displacement(
@@ -151,14 +187,18 @@ def nuisance_parameters(n_objects: int, degree: int) -> int:
 
 
 def judge_physical(nuisance: np.ndarray | None, cand: np.ndarray, judged, consistent, options):
-    """(passes_consistency, passes_nuisance, nuisance_drop, nuisance_spread) of a candidate's
-    [K, T] errors ``cand`` against the nuisance table on the ``judged`` held-out frames, given its ``consistent``
-    record (``consistency``; None where not a body force)."""
+    """(passes_consistency, passes_nuisance, nuisance_drop, nuisance_spread, consistency) of a
+    candidate's [K, T] errors ``cand`` against the nuisance table on the ``judged`` held-out
+    frames, given its ``consistent`` record (``consistency``; None where not a body force),
+    whose agreement is decided again under the options' level and tolerance (``agreement``)
+    where it holds the per-object estimates; a record of intervals only, judged without a
+    tolerance, keeps its saved outcome (its covariances are not all in the intervals)."""
     from mosiv_framework.diagnose.decide import bootstrap_drop
 
+    consistent = _agreement_under(consistent, options)
     passes_consistency = consistent is None or consistent.get("consistent") is not False
     if nuisance is None or not judged or not np.isfinite(cand[:, judged]).all():
-        return passes_consistency, True, None, None
+        return passes_consistency, True, None, None, consistent
     drop, spread = bootstrap_drop(
         nuisance[:, judged],
         cand[:, judged],
@@ -170,4 +210,19 @@ def judge_physical(nuisance: np.ndarray | None, cand: np.ndarray, judged, consis
     beats = drop > 0 and drop > options.z * spread and drop >= options.nuisance_min_drop
     ties = math.isfinite(spread) and drop > -options.z * spread
     agreed = consistent is not None and consistent.get("consistent") is True
-    return passes_consistency, beats or (agreed and ties), drop, spread
+    return passes_consistency, beats or (agreed and ties), drop, spread, consistent
+
+
+def _agreement_under(record: dict | None, options) -> dict | None:
+    """``record`` with its agreement decided under ``options`` (see ``judge_physical``)."""
+    if not record or len(record.get("per_object") or {}) < 2:
+        return record
+    per = record["per_object"]
+    has_covariance = all(r.get("covariance") is not None for r in per.values())
+    if not has_covariance and options.consistency_tolerance == 0:
+        return record
+    return {
+        **record,
+        **agreement(per, options.consistency_level, options.consistency_tolerance),
+        "tolerance": options.consistency_tolerance,
+    }

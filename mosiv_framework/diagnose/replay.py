@@ -89,11 +89,16 @@ def _versioned(diagnosis: dict) -> bool:
     return diagnosis.get(FIELD) is not None
 
 
+#: the rule's settings that saved rules did not record at first, as those diagnoses ran
+BEFORE_RECORDED = {"heldout_statistic": "sum", "consistency_tolerance": 0.0}
+
+
 def saved_rule(diagnosis: dict) -> DecideOptions:
     """The rule a diagnosis ran with: its ``rule`` field, complete in a versioned file."""
     if _versioned(diagnosis):
-        # a rule saved before the held-out statistic was recorded summed the errors
-        return DecideOptions(**{"heldout_statistic": "sum", **diagnosis["rule"]})
+        # a rule saved before the held-out statistic and the agreement's tolerance were
+        # recorded summed the errors and compared the objects' intervals alone
+        return DecideOptions(**{**BEFORE_RECORDED, **diagnosis["rule"]})
     return legacy_rule(diagnosis)
 
 
@@ -107,12 +112,12 @@ def legacy_rule(diagnosis: dict) -> DecideOptions:
             **{
                 "require_nonzero": False,
                 "min_effect": 0.0,
-                "heldout_statistic": "sum",
+                **BEFORE_RECORDED,
                 **diagnosis["rule"],
             }
         )
     return DecideOptions(
-        heldout_statistic="sum",
+        **BEFORE_RECORDED,
         bootstrap=diagnosis.get("budget", {}).get("bootstrap", 200),
         bic_margin=2.0,
         min_drop=0.0,
