@@ -183,12 +183,20 @@ def test_the_genesis_dev_entries_replay_under_both_held_out_statistics():
     their conceal specs. The held-out statistic decides gravity-0: summed, the last frames,
     where every prediction has left the recording, fail the gravity change; as a geometric
     mean of the (object, block) ratios it is named, within a few percent of the truth, and
-    the control stays without an effect either way. The agreement test's tolerance decides
-    gravity-1."""
+    the control stays without an effect either way. The agreement test's tolerance lets
+    gravity-1's gravity pass; its grid check never ran, so it is not named."""
     from mosiv_framework.diagnose.decide import DecideOptions
-    from mosiv_framework.diagnose.replay import replay_suite
+    from mosiv_framework.diagnose.replay import (
+        GRID_NOT_CHECKED,
+        load_diagnosis,
+        replay_diagnosis,
+        replay_suite,
+    )
 
     folder = KEPT / "diagnosis_genesis_dev_full"
+    # the replay draws the bootstrap resamples the entries ran with (1000, the full budget's)
+    wind = replay_diagnosis(load_diagnosis(folder / "wind-1" / "diagnosis.json"), DecideOptions())
+    assert {e["name"]: e for e in wind["evidence"]}["wind"]["passes_heldout"]
     by_rule = {}
     for statistic in ("sum", "log"):
         summary = replay_suite(
@@ -203,10 +211,16 @@ def test_the_genesis_dev_entries_replay_under_both_held_out_statistics():
     assert gravity["coefficient_error"] < 0.05
     # gravity-1: the two bodies' gravity changes differ by 2 %, beyond their intervals; the
     # agreement test's tolerance (a standard deviation of 5 % of the pooled value, the
-    # default) lets them agree
-    weaker = by_rule["log"]["gravity-1"]
-    assert weaker["accepted"] == "gravity" and weaker["coefficient_error"] < 0.05
-    strict = replay_suite(
-        folder, DecideOptions(consistency_tolerance=0.0), source="genesis", split="dev"
-    )
-    assert {s["name"]: s for s in strict["scores"]}["gravity-1"]["accepted"] == "quadratic_drag"
+    # default) lets them agree, and the gravity then passes every test a replay can decide,
+    # but the entry never checked it at a second grid, so the replay does not name it
+    saved = load_diagnosis(folder / "gravity-1" / "diagnosis.json")
+    for tolerance, agrees in ((0.05, True), (0.0, False)):
+        replayed = replay_diagnosis(saved, DecideOptions(consistency_tolerance=tolerance))
+        gravity = {e["name"]: e for e in replayed["evidence"]}["gravity"]
+        assert gravity["passes_consistency"] is agrees
+        assert gravity["passes_heldout"] and gravity["passes_bic"] and gravity["passes_nuisance"]
+    assert gravity["grid"] is None  # at tolerance 0 it failed before the grid check, as it ran
+    named = replay_diagnosis(saved, DecideOptions())
+    unchecked = {e["name"]: e for e in named["evidence"]}["gravity"]
+    assert unchecked["grid"]["reason"] == GRID_NOT_CHECKED and not unchecked["passes_grid"]
+    assert named["accepted"]["name"] == "quadratic_drag"  # grid-checked when the entry ran

@@ -22,6 +22,7 @@ against the suite entry's conceal spec, the truth the generator was given.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 from mosiv_framework.diagnose.decide import (
@@ -57,7 +58,8 @@ def replay_diagnosis(
 
     Args:
         diagnosis: the parsed file.
-        options: the rule; default: the one the diagnosis ran with (``saved_rule``).
+        options: the rule; default: the one the diagnosis ran with (``saved_rule``). Its
+            bootstrap count is always the saved one (the budget's).
         source: where the file came from, named in errors.
 
     Returns:
@@ -70,8 +72,10 @@ def replay_diagnosis(
         ValueError: the file holds no error tables to replay.
     """
     file_format(diagnosis, source, SUPPORTED)
-    if options is None:
-        options = saved_rule(diagnosis)
+    ran_with = saved_rule(diagnosis)
+    # the bootstrap's resample count is the budget's, not a threshold of the rule: a replay
+    # draws as many as the diagnosis did (a spread from fewer draws can flip a close test)
+    options = ran_with if options is None else replace(options, bootstrap=ran_with.bootstrap)
     tables = {name: loaded_table(t) / MM2 for name, t in _tables(diagnosis, source).items()}
     ranked: list[Evidence] = []
     if diagnosis["evidence"] and "null" in tables:
@@ -88,6 +92,13 @@ def _versioned(diagnosis: dict) -> bool:
     layout."""
     return diagnosis.get(FIELD) is not None
 
+
+#: why a replay does not name a candidate that passes every other test under the new rule
+#: but never reached the grid-stability check of the budget it ran with
+GRID_NOT_CHECKED = (
+    "not checked at a second grid: the diagnosis stopped this candidate before the check; "
+    "diagnose again to run it"
+)
 
 #: the rule's settings that saved rules did not record at first, as those diagnoses ran
 BEFORE_RECORDED = {"heldout_statistic": "sum", "consistency_tolerance": 0.0}
@@ -152,6 +163,7 @@ def _redecide(diagnosis: dict, tables: dict, options: DecideOptions) -> list[Evi
         options,
     )
     saved = {e["name"]: e for e in diagnosis["evidence"]}
+    checks_grid = bool(diagnosis.get("budget", {}).get("grid_check", False))
     for e in ranked:  # what the fits were: unchanged by a new rule
         e.theta = saved[e.name].get("theta")
         e.started_from = saved[e.name].get("started_from")
@@ -166,6 +178,10 @@ def _redecide(diagnosis: dict, tables: dict, options: DecideOptions) -> list[Evi
             frames = diagnosis["frames"]
             e.grid = regrade_grid_check(e.grid, frames["fit"], frames["heldout"], options)
             e.passes_grid = bool(e.grid["stable"])
+        elif checks_grid and e.accepted:
+            # the rule it ran with stopped this candidate before the check: a replay cannot
+            # refit it on the second grid, so it is not named until diagnosed again
+            e.grid, e.passes_grid = {"stable": False, "reason": GRID_NOT_CHECKED}, False
     return rank_evidence(ranked, min_drop=options.min_drop)
 
 
@@ -258,7 +274,7 @@ def replay_suite(
         scores.append(score_entry(entry, diagnosis, truth, _law(entry, out, diagnosis)))
     summary = summarise(scores)
     summary["missing"] = missing
-    summary["rule"] = dict(options.__dict__)
+    summary["rule"] = {**options.__dict__, "bootstrap": "each diagnosis's own"}
     summary.update(source=source, split=split)
     return summary
 
