@@ -8,7 +8,6 @@ from dataclasses import dataclass, replace
 
 from mosiv_framework.diagnose.model import RefitOptions
 from mosiv_framework.errors import ConfigError
-from mosiv_framework.recipes.schema import REIDENTIFY
 
 
 @dataclass(frozen=True)
@@ -17,9 +16,9 @@ class Budget:
     bootstrap resamples, the fraction of the observed window held out, the steps a
     regression start settles the shared parameters first (``RefitOptions.settle``),
     which models are also identified afresh with the run's schedule (``reidentify``: every,
-    null-model or none; the better of that and its refit is kept), the backtracking steps that end every
-    refit (``RefitOptions.polish``), the refit's initial-velocity step (m/s per step) and
-    whether contact and material candidates get a start at the far end of the screening's
+    null-model or none, ``recipes.schema.REIDENTIFY``; the better of that and its refit is
+    kept), the backtracking steps that end every refit (``RefitOptions.polish``), the
+    refit's initial-velocity step (m/s per step) and whether contact and material candidates get a start at the far end of the screening's
     walk (``diagnosis.refit_starts``), whether a named effect must be stable across grid
     resolution (``grid_stability``), and whether the models' descents run in lockstep
     (``together``, ``diagnose.descent``). A recipe's ``diagnose`` section may set
@@ -86,11 +85,6 @@ def resolve_budget(budget: str | Budget, section=None) -> Budget:
         "together": ("together", bool),
         "reidentify": ("reidentify", str),
     }
-    fresh = section.get("reidentify")
-    if fresh is not None and fresh not in REIDENTIFY:
-        raise ConfigError(
-            f"diagnose.reidentify={fresh!r}: valid values are {', '.join(REIDENTIFY)}"
-        )
     return replace(
         budget,
         **{

@@ -158,17 +158,22 @@ def bootstrap_drop(
     units = [(i, b) for i in range(k) for b in blocks]
     sums = np.array([[null[i, b].sum(), cand[i, b].sum()] for i, b in units])
 
-    def drop_of(rows: np.ndarray) -> float:
-        if statistic == "sum":
-            return 1.0 - rows[:, 1].sum() / max(rows[:, 0].sum(), 1e-300)
-        ratios = np.log((rows[:, 0] + LOG_RATIO_FLOOR_M2) / (rows[:, 1] + LOG_RATIO_FLOOR_M2))
-        return 1.0 - math.exp(-float(ratios.mean()))
+    if statistic == "sum":
 
-    drop = drop_of(sums)
+        def drop_of(pick: np.ndarray) -> float:
+            return 1.0 - sums[pick, 1].sum() / max(sums[pick, 0].sum(), 1e-300)
+
+    else:  # each unit's log ratio once; a resample averages the drawn units' ratios
+        ratios = np.log((sums[:, 0] + LOG_RATIO_FLOOR_M2) / (sums[:, 1] + LOG_RATIO_FLOOR_M2))
+
+        def drop_of(pick: np.ndarray) -> float:
+            return 1.0 - math.exp(-float(ratios[pick].mean()))
+
+    drop = drop_of(np.arange(len(units)))
     if len(units) < 2:  # one unit has no spread to measure: no evidence either way
         return float(drop), math.inf
     rng = np.random.default_rng(seed)
-    draws = [drop_of(sums[rng.integers(0, len(units), len(units))]) for _ in range(resamples)]
+    draws = [drop_of(rng.integers(0, len(units), len(units))) for _ in range(resamples)]
     return float(drop), float(np.std(draws))
 
 

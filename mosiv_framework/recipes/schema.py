@@ -405,7 +405,7 @@ class DiagnoseSection:
     #: on warp-mpm's CPU path), for timing what the batch saves. Default on
     together: bool | None = None
     #: which models are also identified afresh with the run's schedule beside their refit,
-    #: the better kept (``diagnose.budget.REIDENTIFY``): every, null-model or none; default:
+    #: the better kept (``REIDENTIFY``): every, null-model or none; default:
     #: the budget's (every in full, none in small)
     reidentify: str | None = None
 
