@@ -7,11 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mosiv_framework.diagnose.decide import Evidence
 from mosiv_framework.diagnose.equivalence import (
     drag_exponent,
     drag_form,
     drag_from_samples,
     indistinguishable,
+    told_from_lead,
     uniform_acceleration,
 )
 from mosiv_framework.diagnose.kinematics import residual_samples
@@ -114,3 +116,31 @@ def test_indistinguishable_lists_equal_predictions_only():
         "wind", errors, ["gravity", "linear_drag"], list(range(20)), z=2.0, block=2, resamples=200
     )
     assert [e["term"] for e in same] == ["gravity"]
+
+
+def _explaining(name: str):
+    return Evidence(
+        name=name,
+        heldout_drop=0.8,
+        heldout_spread=0.05,
+        delta_bic=-10.0,
+        passes_heldout=True,
+        passes_bic=True,
+        fit_loss=1.0,
+        n_new=1,
+    )
+
+
+def test_equivalence_is_said_of_the_term_ranked_first():
+    """The drag form's preference can move linear drag ahead of quadratic drag after the
+    equivalences were found from quadratic drag: the report then names linear drag as the
+    reference and quadratic drag as the term it cannot be told apart from."""
+    forms = {"best": "quadratic_drag", "equivalent": ["linear_drag"], "drag": None}
+    ranked = [_explaining("linear_drag"), _explaining("quadratic_drag")]
+    told = told_from_lead(forms, ranked)
+    assert told["best"] == "linear_drag"
+    assert told["equivalent"] == ["quadratic_drag"]
+    # a lead not among the equivalents leaves the statement as found
+    ranked = [_explaining("wind"), _explaining("quadratic_drag")]
+    assert told_from_lead(forms, ranked) == forms
+    assert told_from_lead({}, ranked) == {}

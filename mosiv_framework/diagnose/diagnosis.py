@@ -36,7 +36,7 @@ from mosiv_framework.diagnose.decide import (
     verdict,
 )
 from mosiv_framework.diagnose.effect import measure_effect
-from mosiv_framework.diagnose.equivalence import equivalents, prefer_drag_form
+from mosiv_framework.diagnose.equivalence import equivalents, prefer_drag_form, told_from_lead
 from mosiv_framework.diagnose.floor import resolution_floor, summarise_floor
 from mosiv_framework.diagnose.formula import (
     discover_law,
@@ -391,6 +391,7 @@ def _judge(plan: _Plan, location, null, fits: list, rule: DecideOptions) -> dict
     evidence, samples = _physical(plan, location, null, fits, evidence, model_errors, rule)
     forms = equivalents(evidence, model_errors, samples, ctx.world.gravity, plan.heldout, rule)
     evidence = prefer_drag_form(evidence, forms.get("drag"))
+    forms = told_from_lead(forms, evidence)
     accepted = by_name[evidence[0].name] if evidence and evidence[0].accepted else None
     return {
         "samples": samples,
@@ -528,7 +529,7 @@ def diagnose_run(
         result["formula"] = found["formula"]
         result["skipped_candidates"] += found["formula"].get("skipped", [])
     result["verdict"] = verdict(location.significant, found["evidence"])
-    result["equivalent"] = found.get("equivalent")
+    result["equivalent"] = told_from_lead(found.get("equivalent"), found["evidence"])
     result["screening"] = [s.to_json() for s in found["screens"]]
     result["evidence"] = [e.to_json() for e in found["evidence"]]
     result["fits"] = found["fits"]

@@ -242,3 +242,16 @@ def prefer_drag_form(evidence: list, drag: dict | None) -> list:
     if other is not None and other < i and order[i].accepted and order[other].accepted:
         order.insert(other, order.pop(i))
     return order
+
+
+def told_from_lead(forms: dict, evidence: list) -> dict:
+    """``forms`` (``equivalents``) said of the candidate the diagnosis finally ranks first among
+    those that improve the model. The ranking can change after ``equivalents`` ran (the drag
+    form's preference, the grid check); where the new lead is one of the terms that cannot be
+    told apart from the old, the two swap places, so the report never says that the named term
+    cannot be told apart from another while naming the other as the reference."""
+    lead = next((e.name for e in evidence if e.explains), None)
+    if not forms or lead is None or lead == forms["best"] or lead not in forms["equivalent"]:
+        return forms
+    others = [n for n in forms["equivalent"] if n != lead]
+    return {**forms, "best": lead, "equivalent": [forms["best"], *others]}
