@@ -30,6 +30,7 @@ def plot_suite(summary: dict, path: str | Path) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     scores = summary["scores"]
     if not scores:
@@ -57,11 +58,16 @@ def plot_suite(summary: dict, path: str | Path) -> Path:
             )
         if s["future_reduction"] is not None:
             future_ax.barh(row, 100 * s["future_reduction"], color=colour, height=0.6)
-    snr_ax.set_xscale("log")
+    for log_ax in (snr_ax, coef_ax):
+        # the minor ticks' labels overlap once a log axis spans less than a decade or two
+        log_ax.set_xscale("log")
+        log_ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        log_ax.xaxis.set_minor_formatter(NullFormatter())
+    snr_ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
+    coef_ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{100 * x:g} %"))
     snr_ax.axvline(3.0, color="grey", ls=":", lw=1)
     snr_ax.set_xlabel("residual / noise floor (SNR); square: control, diamond: outside")
     snr_ax.set_yticks(rows, names, fontsize=8)
-    coef_ax.set_xscale("log")
     coef_ax.axvline(TARGET_COEFFICIENT_ERROR, color="grey", ls="--", lw=1)
     coef_ax.set_xlabel("coefficient error (target <= 15 %)")
     future_ax.axvline(100 * TARGET_FUTURE_REDUCTION, color="grey", ls="--", lw=1)
