@@ -137,3 +137,28 @@ def test_a_refit_step_keeps_every_stiffness_inside_the_stability_limit():
     p = {n: float(v) for n, v in vector.physical().objects[1].values.items()}
     speed = math.sqrt(p["E"] * (1 - p["nu"]) / ((1 + p["nu"]) * (1 - 2 * p["nu"])) / p["rho"])
     assert abs(speed - limit) <= 1e-4 * limit and abs(p["nu"] - 0.44) < 1e-6
+
+
+def test_a_long_descent_says_how_far_it_has_gone(monkeypatch, caplog):
+    """A refit that takes minutes (a CPU, a large scene) logs its step, the descents still
+    going and the lowest loss, here at every step (interval 0)."""
+    import logging
+
+    from mosiv_framework.diagnose import descent
+    from mosiv_framework.diagnose.model import RefitOptions, refit_together
+
+    monkeypatch.setattr(descent, "PROGRESS_INTERVAL_S", 0.0)
+    ctx = _windy_context()
+    options = RefitOptions(iterations=2, settle=1, polish=1)
+    with caplog.at_level(logging.INFO, logger=descent.__name__):
+        fits = refit_together(ctx, _requests(ctx)[1:], fit_frames=FIT, options=options)
+    lines = [r.getMessage() for r in caplog.records if r.name == descent.__name__]
+    # one line before each pass: the steps, the polish and the last pass that only scores
+    total = int(lines[0].split(" of ")[1].split(",")[0])
+    assert len(lines) == total >= 3
+    for step, line in enumerate(lines):
+        assert line.startswith(f"descending: step {step} of {total}, 2 of 2 descents going")
+    assert lines[0].endswith("lowest loss inf m^2")  # nothing rolled out yet
+    lowest = float(lines[-1].split("lowest loss ")[1].split(" ")[0])
+    best_before_last = min(min(f.history[:-1]) for f in fits)
+    assert abs(lowest - best_before_last) <= 1e-3 * best_before_last

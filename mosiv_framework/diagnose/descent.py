@@ -15,7 +15,9 @@ backtracking steps, and a last pass that only scores (``RefitOptions`` says why 
 
 from __future__ import annotations
 
+import logging
 import math
+import time
 from dataclasses import dataclass, field
 
 import torch
@@ -26,6 +28,12 @@ from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.pipeline.identify import gradients_finite
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.types import SimulationParams, Trajectory
+
+log = logging.getLogger(__name__)
+
+#: seconds between the progress lines of a long descent: on a CPU one refit can take many
+#: minutes, with no other sign of life (``descend_together``)
+PROGRESS_INTERVAL_S = 60.0
 
 
 @dataclass
@@ -99,7 +107,11 @@ def descend_together(ctx: RunContext, descents: list[Descent], *, fit_frames: li
         fit_frames: the frames the loss averages over; rollouts run to the last.
     """
     horizon = max(fit_frames)
+    last_said = time.monotonic()
     while active := [d for d in descents if not d.done]:
+        if time.monotonic() - last_said >= PROGRESS_INTERVAL_S:
+            log.info(progress_line(descents))
+            last_said = time.monotonic()
         for d in active:
             d.optimizer.zero_grad()
         params = [assemble(d.vector, d.candidate, d.u, d.scale) for d in active]
@@ -111,6 +123,18 @@ def descend_together(ctx: RunContext, descents: list[Descent], *, fit_frames: li
         for d, loss in zip(active, losses):
             if not d.done:
                 _advance(d, loss)
+
+
+def progress_line(descents: list[Descent]) -> str:
+    """How far ``descents`` have gone: the furthest step of the total, the descents still
+    going and the lowest loss found so far."""
+    total = max(d.main_steps + d.polish + 1 for d in descents)
+    going = sum(not d.done for d in descents)
+    best = min((d.best_loss for d in descents), default=math.inf)
+    return (
+        f"descending: step {max(d.step for d in descents)} of {total}, {going} of "
+        f"{len(descents)} descents going, lowest loss {best:.4g} m^2"
+    )
 
 
 def rollouts(ctx: RunContext, params: list[SimulationParams], frames: int) -> list:
