@@ -191,3 +191,29 @@ def test_a_dev_folder_replays_under_its_split(tmp_path):
     assert len(summary["missing"]) == 17 and summary["split"] == "dev"
     with pytest.raises(ConfigError):
         replay_suite(tmp_path, DecideOptions(), source="genesis", split="test")
+
+
+def test_a_tested_law_scores_its_future_on_out_of_library_entries():
+    """An out-of-library entry whose diagnosis tested the discovered law as a model (its
+    ``expression`` row) records how much of the identified model's future Chamfer the law
+    removes, accepted or not; the summary counts the laws that at least halve it (issue 40's
+    bar) and the table shows the figure where no term was accepted."""
+    from mosiv_framework.diagnose.suite import table
+
+    vortex = next(e for e in genesis_split("test") if e.kind == "vortex")
+    halved = _diagnosis("unexplained", None)
+    halved["errors"]["expression"] = {"future_cd_mm2": 4.0}
+    worse = _diagnosis("unexplained", None)
+    worse["errors"]["expression"] = {"future_cd_mm2": 15.0}
+    scores = [score_entry(vortex, d, [], None) for d in (halved, worse)]
+    assert scores[0].extra["law_future_reduction"] == pytest.approx(0.6)
+    assert scores[1].extra["law_future_reduction"] == pytest.approx(-0.5)
+    assert scores[0].future_reduction is None  # nothing accepted
+    untested = score_entry(vortex, _diagnosis("unexplained", None), [], None)
+    assert "law_future_reduction" not in untested.extra
+    summary = summarise([*scores, untested])
+    assert summary["outside_law_future_halved_rate"] == 0.5
+    text = table(summary)
+    assert "discovered law: 60 %" in text and "law's future Chamfer at least halved 50 %" in text
+    control = next(e for e in genesis_split("test") if not e.conceal)
+    assert "law_future_reduction" not in score_entry(control, halved, [], None).extra

@@ -280,16 +280,28 @@ def replay_suite(
 
 
 def _law(entry, out: Path, diagnosis: dict) -> dict | None:
-    """The law's score of an out-of-library entry whose scene is kept (``suite.scored_law``
-    of the replayed decision)."""
+    """The law's score of an out-of-library entry (``suite.scored_law`` of the replayed
+    decision) against its kept scene; in a folder kept without scenes (benchmarks/data/), the
+    score its own run wrote, where the replay accepts what the run accepted (the law scored is
+    then the same one)."""
     from mosiv_framework.diagnose.law_score import law_score
     from mosiv_framework.diagnose.suite import scored_law
     from mosiv_framework.scene import read_scene
 
     scene = out / entry.name / "scene"
-    if not entry.outside or not scene.is_dir():
+    if not entry.outside:
         return None
-    return law_score(scored_law(diagnosis), read_scene(scene).gt_effects(), scene)
+    if scene.is_dir():
+        return law_score(scored_law(diagnosis), read_scene(scene).gt_effects(), scene)
+    saved = out / entry.name / "score.json"
+    if not saved.exists():
+        return None
+    ran = json.loads(saved.read_text())
+    accepted = (diagnosis.get("accepted") or {}).get("name")
+    if ran.get("accepted") != accepted:
+        return None
+    law_keys = ("law_error", "form_correct", "law_samples")
+    return {k: v for k, v in (ran.get("extra") or {}).items() if k in law_keys} or None
 
 
 def _truth(entry, out: Path, accepted: dict | None) -> list[dict]:

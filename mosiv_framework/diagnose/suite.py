@@ -196,6 +196,9 @@ def score_entry(
     coef = None
     if accepted is not None and effects and candidate_kind(accepted["name"]) == effects[0]["kind"]:
         coef = coefficient_error(accepted, effects[0])
+    extra = dict(law or {})
+    if entry.outside:
+        extra.update(law_future_reduction(errors))
     return Score(
         entry.name,
         entry.conceal or "-",
@@ -206,8 +209,19 @@ def score_entry(
         float(diagnosis["where"]["signal_to_noise"]),
         coef,
         reduction,
-        dict(law or {}),
+        extra,
     )
+
+
+def law_future_reduction(errors: dict) -> dict:
+    """{"law_future_reduction": 1 - the discovered law's future Chamfer over the identified
+    model's}, where the diagnosis tested the law as a model (its ``expression`` row), accepted
+    or not: how much of the future an out-of-library field's law predicts. Empty otherwise."""
+    before = errors.get("identified", {}).get("future_cd_mm2")
+    after = errors.get(EXPRESSION, {}).get("future_cd_mm2")
+    if not before or after is None:
+        return {}
+    return {"law_future_reduction": 1.0 - after / before}
 
 
 def entry_overrides(entry: Entry, run_dir: Path) -> list[str]:
@@ -480,6 +494,7 @@ def summarise(scores: list[Score]) -> dict:
     # the discovered laws of out-of-library fields (``law_score``), where scored
     laws = [s.extra["law_error"] for s in outside if s.extra.get("law_error") is not None]
     forms = [s for s in outside if s.extra.get("form_correct") is not None]
+    law_futures = [s for s in outside if s.extra.get("law_future_reduction") is not None]
 
     def rate(items, pred):
         return sum(1 for s in items if pred(s)) / len(items) if items else None
@@ -493,6 +508,10 @@ def summarise(scores: list[Score]) -> dict:
         "median_future_reduction": statistics.median(reductions) if reductions else None,
         "outside_median_law_error": statistics.median(laws) if laws else None,
         "outside_law_form_rate": rate(forms, lambda s: s.extra["form_correct"]),
+        # issue 40's bar for a discovered law: the future Chamfer at least halved
+        "outside_law_future_halved_rate": rate(
+            law_futures, lambda s: s.extra["law_future_reduction"] >= 0.5
+        ),
     }
 
 
@@ -508,10 +527,14 @@ def table(summary: dict) -> str:
         "|---|---|---|---|---|---|---|---|",
     ]
     for s in summary["scores"]:
+        future = f(s["future_reduction"], True)
+        law_future = s["extra"].get("law_future_reduction")
+        if s["future_reduction"] is None and law_future is not None:
+            future = f"discovered law: {f(law_future, True)}"  # tested, not accepted
         lines.append(
             f"| {s['name']} | {s['concealed']} | {f(s['signal_to_noise'])} | {s['verdict']} | "
             f"{s['accepted'] or '-'} | {'yes' if s['correct'] else 'no'} | "
-            f"{f(s['coefficient_error'], True)} | {f(s['future_reduction'], True)} |"
+            f"{f(s['coefficient_error'], True)} | {future} |"
         )
     lines += [
         "",
@@ -522,11 +545,19 @@ def table(summary: dict) -> str:
         f"median coefficient error: {f(summary['median_coefficient_error'], True)}; "
         f"median future-error reduction: {f(summary['median_future_reduction'], True)}",
     ]
-    if summary.get("outside_median_law_error") is not None or summary.get("outside_law_form_rate"):
+    if any(
+        summary.get(k) is not None
+        for k in (
+            "outside_median_law_error",
+            "outside_law_form_rate",
+            "outside_law_future_halved_rate",
+        )
+    ):
         lines.append(
             "out-of-library fields: median discovered-law error "
             f"{f(summary.get('outside_median_law_error'), True)}; law of the right form "
-            f"{f(summary.get('outside_law_form_rate'), True)}"
+            f"{f(summary.get('outside_law_form_rate'), True)}; law's future Chamfer at least "
+            f"halved {f(summary.get('outside_law_future_halved_rate'), True)}"
         )
     if summary.get("missing"):
         lines.append(f"not scored (failed or not yet run): {', '.join(summary['missing'])}")
