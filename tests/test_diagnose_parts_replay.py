@@ -224,3 +224,36 @@ def test_the_genesis_dev_entries_replay_under_both_held_out_statistics():
     unchecked = {e["name"]: e for e in named["evidence"]}["gravity"]
     assert unchecked["grid"]["reason"] == GRID_NOT_CHECKED and not unchecked["passes_grid"]
     assert named["accepted"]["name"] == "quadratic_drag"  # grid-checked when the entry ran
+
+
+def test_the_genesis_test_entries_replay_as_they_ran():
+    """The Genesis suite's test split (benchmarks/data/diagnosis_genesis_test_full) ran under
+    the current rule, so its replay must give every entry the verdict and the named term its
+    own run wrote (score.json), and the suite's summary the same rates: no control with an
+    effect, every out-of-library field without a library term."""
+    import json
+
+    from mosiv_framework.diagnose.decide import DecideOptions
+    from mosiv_framework.diagnose.replay import replay_suite
+
+    folder = KEPT / "diagnosis_genesis_test_full"
+    summary = replay_suite(folder, DecideOptions(), source="genesis", split="test")
+    replayed = {s["name"]: s for s in summary["scores"]}
+    ran = {path.parent.name: json.loads(path.read_text()) for path in folder.glob("*/score.json")}
+    assert replayed.keys() == ran.keys() and len(ran) >= 14
+    for name, score in ran.items():
+        assert (replayed[name]["verdict"], replayed[name]["accepted"]) == (
+            score["verdict"],
+            score["accepted"],
+        ), name
+    assert summary["control_false_discovery_rate"] == 0.0
+    assert summary["outside_reported_unexplained_rate"] == 1.0
+    drags = [s for n, s in replayed.items() if "drag" in n]
+    assert len(drags) == 4 and all(s["correct"] for s in drags)
+    # kept without scenes, the out-of-library entries carry the law scores their runs wrote
+    for name, score in ran.items():
+        if name.startswith("outside-"):
+            law_error = replayed[name]["extra"]["law_error"]
+            assert law_error == score["extra"]["law_error"] is not None
+            assert replayed[name]["extra"]["law_future_reduction"] is not None
+    assert summary["outside_law_future_halved_rate"] is not None
