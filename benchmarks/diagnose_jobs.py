@@ -5,7 +5,7 @@ runs best as one ``mosiv diagnose-suite OUT --only ENTRY`` process per entry, se
 each GPU under MPS (docs/BENCHMARKS.md, Diagnosis time)::
 
     python benchmarks/diagnose_jobs.py OUT --source genesis --split test --budget full > JOBS
-    python3 benchmarks/device_queue.py start JOBS --mps --slots 5 --threads 3
+    python3 benchmarks/device_queue.py start JOBS --mps --slots 6 --threads 2
 
 Entries already scored in OUT (their ``score.json``) are left out, so the same command after
 a lease lists what is still to run. OUT is written as an absolute path: each job runs in its
