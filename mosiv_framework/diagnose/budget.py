@@ -18,8 +18,9 @@ class Budget:
     which models are also identified afresh with the run's schedule (``reidentify``: every,
     null-model or none, ``recipes.schema.REIDENTIFY``; the better of that and its refit is
     kept), the backtracking steps that end every refit (``RefitOptions.polish``), the
-    refit's initial-velocity step (m/s per step) and whether contact and material candidates get a start at the far end of the screening's
-    walk (``diagnosis.refit_starts``), whether a named effect must be stable across grid
+    refit's initial-velocity step (m/s per step) and whether contact and material
+    candidates get a start at the far end of the screening's walk
+    (``diagnosis.refit_starts``), whether a named effect must be stable across grid
     resolution (``grid_stability``), and whether the models' descents run in lockstep
     (``together``, ``diagnose.descent``). A recipe's ``diagnose`` section may set
     max_candidates, bootstrap, starts, iterations, polish, far_start, grid_check, together,

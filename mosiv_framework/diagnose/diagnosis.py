@@ -391,7 +391,6 @@ def _judge(plan: _Plan, location, null, fits: list, rule: DecideOptions) -> dict
     evidence, samples = _physical(plan, location, null, fits, evidence, model_errors, rule)
     forms = equivalents(evidence, model_errors, samples, ctx.world.gravity, plan.heldout, rule)
     evidence = prefer_drag_form(evidence, forms.get("drag"))
-    forms = told_from_lead(forms, evidence)
     accepted = by_name[evidence[0].name] if evidence and evidence[0].accepted else None
     return {
         "samples": samples,

@@ -128,12 +128,11 @@ def agreement(per_object: dict, level: float, tolerance: float) -> dict:
         fits.append((theta, cov))
     if len(fits) < 2:
         return {"pooled": None, "chi2": None, "dof": 0, "consistent": None}
-    pooled = _pooled(fits)
+    pooled, weights = _pooled(fits)
     if tolerance > 0:  # widen by the tolerance about the first pooled estimate, pool again
         spread = (tolerance * float(np.linalg.norm(pooled))) ** 2
         fits = [(t, c + spread * np.eye(len(t))) for t, c in fits]
-        pooled = _pooled(fits)
-    weights = [np.linalg.pinv(cov) for _, cov in fits]
+        pooled, weights = _pooled(fits)
     stat = float(sum((t - pooled) @ w @ (t - pooled) for (t, _), w in zip(fits, weights)))
     dof = len(pooled) * (len(fits) - 1)
     return {
@@ -144,10 +143,12 @@ def agreement(per_object: dict, level: float, tolerance: float) -> dict:
     }
 
 
-def _pooled(fits: list) -> np.ndarray:
-    """The inverse-covariance-weighted mean of (theta, covariance) estimates."""
+def _pooled(fits: list) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The inverse-covariance-weighted mean of (theta, covariance) estimates, and the weights
+    (each inverse covariance)."""
     weights = [np.linalg.pinv(cov) for _, cov in fits]
-    return np.linalg.pinv(sum(weights)) @ sum(w @ t for (t, _), w in zip(fits, weights))
+    pooled = np.linalg.pinv(sum(weights)) @ sum(w @ t for (t, _), w in zip(fits, weights))
+    return pooled, weights
 
 
 def nuisance_displacement(

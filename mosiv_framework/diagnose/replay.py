@@ -309,8 +309,7 @@ def _truth(entry, out: Path, accepted: dict | None) -> list[dict]:
     folder kept without its scenes (benchmarks/data/) the entry's conceal spec, which is what
     the generator wrote there. None for a newly accepted candidate without a recorded physical
     value (an unversioned file): it has no coefficient to compare."""
-    from mosiv_framework.conceal import CONCEAL_DEFAULTS, parse_conceal
-    from mosiv_framework.conceal_fields import OUT_OF_LIBRARY_KINDS
+    from mosiv_framework.conceal import ALL_DEFAULTS, parse_conceal
     from mosiv_framework.scene import read_scene
 
     if accepted is not None and "value" not in accepted:
@@ -319,5 +318,5 @@ def _truth(entry, out: Path, accepted: dict | None) -> list[dict]:
     if scene.is_dir():
         return read_scene(scene).gt_effects()
     # a Genesis entry may conceal an out-of-library field (vortex, attractor)
-    kinds = (*CONCEAL_DEFAULTS, *OUT_OF_LIBRARY_KINDS)
+    kinds = tuple(ALL_DEFAULTS)
     return [effect.to_json() for effect in parse_conceal(entry.conceal or None, kinds=kinds)]
