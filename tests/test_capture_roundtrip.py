@@ -185,19 +185,30 @@ def test_the_import_leaves_the_late_camera_out_or_trims_every_camera():
 
 
 def test_the_paper_size_import_table_is_the_one_its_data_holds():
-    """docs/RESULTS.md's trim/drop rows (rig and back, paper size) carry the future Chamfer,
-    its ratio to the direct run and the E of each object as kept under benchmarks/data."""
+    """docs/RESULTS.md's paper-size table (rig and back) carries, for the direct run and the
+    keep and drop imports, the future Chamfer, its ratio to the direct run, the E of each
+    object and the contact the identification chose, as kept under benchmarks/data."""
     root = Path(__file__).resolve().parents[1]
     data = root / "benchmarks" / "data" / "capture_roundtrip_paper"
     results = (root / "docs" / "RESULTS.md").read_text()
-    for name in ("trim", "drop"):
+
+    def row_of(start: str) -> str:
+        return next(line for line in results.splitlines() if line.startswith(start))
+
+    for name in ("keep", "drop"):
         record = json.loads((data / f"roundtrip_{name}.json").read_text())
         imported, direct = record["imported"], record["direct"]
         ratio = imported["future_cd_mm2"] / direct["future_cd_mm2"]
-        row = next(line for line in results.splitlines() if line.startswith(f"| {name}:"))
-        assert f"| {imported['future_cd_mm2']:.0f} ({ratio:.1f}x) |" in row
+        row = row_of(f"| {name}:")
+        assert f"| {imported['future_cd_mm2']:,.0f} ({ratio:.2g}x) /" in row
         for obj in imported["objects"].values():
             assert f"{obj['E']:,.0f} Pa ({100 * obj['E_rel_error']:.0f}" in row
+        metrics = json.loads((data / f"imported_{name}_metrics.json").read_text())
+        assert f"| {metrics['params']['contact']['mode']} (" in row
+        direct_row = row_of("| direct |")
+        assert f"| {direct['future_cd_mm2']:,.0f} (1.0x) /" in direct_row
+        for obj in direct["objects"].values():
+            assert f"{obj['E']:,.0f} Pa ({100 * obj['E_rel_error']:.0f})" in direct_row
 
 
 def test_the_late_camera_policy_table_is_the_one_its_data_holds():
