@@ -28,6 +28,11 @@ data decide:
    the margin of the lowest loss, ``tied``) first continue their brief fits by that many
    steps, and the rule decides on their new losses (a tie after a few steps may be one mode
    still converging from farther away).
+4. A choice that half or twice the margin would have made otherwise is a close call
+   (``close_call``): decided by the margin's exact value more than by the data. It is recorded
+   and warned about, not changed: on the capture of a paper-size scene (docs/RESULTS.md, "A
+   recording through a rig and back") single_field won by 5.4 % against the 5 % margin and
+   predicted the future 20x worse than the runs that kept multi_field.
 
 The same brief fits also choose the stress (``identify.law_choice: auto``): each contact mode is
 tried with the recipe's laws (``identify.laws``) and with those laws overridden by
@@ -44,7 +49,7 @@ The choice is recorded in the history (phase ``contact``; the brief fits are pha
 ``contact_fit``, the global stage's records tagged with their ``contact`` mode), in
 identified.json under ``contact`` (``choice``, ``mode``, and for ``auto`` the
 ``recipe_mode``, each variant's ``losses``, the ``margin`` and the last of the ``frames``
-scored, after a tie the ``brief_losses`` before it was continued and the ``tie_iterations``,
+scored, ``close_call`` naming the variant half or twice the margin would have chosen, after a tie the ``brief_losses`` before it was continued and the ``tie_iterations``,
 and with the law choice the chosen ``laws`` set and its ``law_map``, object id -> law)
 and in the log. With ``identify.contact: fixed`` identified.json records the recipe's mode.
 The parameter phase continues from the chosen mode's brief fit, and it, the intervals,
@@ -157,6 +162,18 @@ def pick(losses: dict[str, float], default: str, margin: float) -> str:
     return default
 
 
+def close_call(losses: dict[str, float], default: str, margin: float) -> str | None:
+    """The variant the rule would choose with half or twice ``margin`` where that is not the one
+    it chooses with ``margin`` (the choice is then a close call, decided by the margin's exact
+    value more than by the data); None where both agree with it."""
+    chosen = pick(losses, default, margin)
+    for other_margin in (0.5 * margin, 2.0 * margin):
+        other = pick(losses, default, other_margin)
+        if other != chosen:
+            return other
+    return None
+
+
 def tied(losses: dict[str, float], margin: float) -> list[str]:
     """The variants the rule cannot tell apart: those whose loss the lowest one does not beat
     by more than ``margin`` (a fraction of their loss); empty unless there are two or more."""
@@ -235,6 +252,10 @@ def choose_contact(
     leaves[chosen].apply(vector)
     _use_variant(modes, fit, vector, mode, laws)
     record = _choice_record(modes, mode, laws, losses, brief if close else None, frames, vector)
+    rival = close_call(losses, default, modes.margin)
+    if rival is not None:
+        record["close_call"] = rival
+        log.warning(close_call_warning(chosen, rival, modes.margin))
     history.append(record)
     log.info(
         "contact between objects: %s (%s; the recipe's %s is kept unless another is more "
@@ -245,6 +266,17 @@ def choose_contact(
         100 * modes.margin,
     )
     return record
+
+
+def close_call_warning(chosen: str, rival: str, margin: float) -> str:
+    """What a run says of a close call between ``chosen`` and ``rival`` (variant labels)."""
+    mode = rival.split(" + ")[0]
+    return (
+        f"contact between objects: {chosen} was a close call (with half or twice "
+        f"identify.contact_margin={margin:g} the rule would choose {rival}); the two can "
+        f"predict the future very differently: compare a run that holds {mode} "
+        f"(identify.contact=fixed simulator.contact={mode})"
+    )
 
 
 def _finite(losses: dict[str, float]) -> dict[str, float | None]:
@@ -308,7 +340,7 @@ def contact_json(history: list[dict], simulator_section) -> dict | None:
     record = choice_record(history)
     if record is not None:
         keep = ("choice", "mode", "recipe_mode", "losses", "margin", "frames", "laws", "law_map",
-                "brief_losses", "tie_iterations")  # fmt: skip
+                "brief_losses", "tie_iterations", "close_call")  # fmt: skip
         return {k: record[k] for k in keep if k in record}
     mode = simulator_section.get("contact", None)
     return None if mode is None else {"choice": "fixed", "mode": str(mode)}

@@ -12,7 +12,12 @@ from omegaconf import OmegaConf
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.losses import WeightedSum
 from mosiv_framework.pipeline import formats
-from mosiv_framework.pipeline.contact import contact_json, contact_modes, law_sets
+from mosiv_framework.pipeline.contact import (
+    close_call_warning,
+    contact_json,
+    contact_modes,
+    law_sets,
+)
 from mosiv_framework.pipeline.evaluate import plot_history, plot_parameters
 from mosiv_framework.pipeline.identify import identify
 from mosiv_framework.pipeline.landing import landing_friction
@@ -122,8 +127,12 @@ def identify_stage(
         identified_json["contact"] = contact
         if modes is not None:  # the library baseline picks with the chosen contact too
             simulator = modes.simulators[contact["mode"]]
+    warnings = list(warnings)
+    if contact is not None and contact.get("close_call"):
+        label = modes.label(contact["mode"], contact.get("laws")) if modes else contact["mode"]
+        warnings.append(close_call_warning(label, contact["close_call"], contact["margin"]))
     if warnings:
-        identified_json["warnings"] = list(warnings)
+        identified_json["warnings"] = warnings
     _note_stopped_early(history, identified_json)
     attach_intervals(history, identified_json)
     if library:
