@@ -3,8 +3,8 @@
 # call beside the tracked tree (64 MiB a call): the warp wheel staged by
 # ../shared/tools/stage-device-wheels.sh (.wp1 .wp2 .wp3, with the small wheels in .wp3), Ray
 # with the dependencies that machine lacks, and any FOLDERs given (a scene suite, say), which
-# land under /root/stash/data/NAME there. One tar, split into 50 MB parts .dv1 .dv2 ...
-# (git-ignored).
+# land under /root/stash/data/NAME there. One tar, split into parts .dv1 .dv2 ... (git-ignored)
+# each as large as the working tree leaves of a call's 64 MiB.
 #   bash benchmarks/stage_device_parts.sh [--no-ray] [--genesis] [--taichi] [FOLDER ...]
 # (--no-ray: leave Ray out, one part less, for work that runs --part processes itself;
 #  --taichi: add the taichi wheel at the version installed here and the small pure-Python
@@ -83,7 +83,17 @@ fi
 for folder in "$@"; do
   cp -r "$folder" "$pack/data/$(basename "$folder")"
 done
-tar -cf - -C "$pack" wheels data | split -b 50m -d - "$pack/bundle.part."
+# a call carries the working tree (tracked and untracked-not-ignored files) beside its part:
+# the parts are as large as what the tree leaves of 64 MiB, less 2 MiB of headroom. The tree
+# is counted as the disk space its files take (whole blocks, what du says): counted by bytes,
+# a 13.5 MB tree beside a 50 MiB part looked like room to spare and the call was refused.
+tree_bytes=$(($(git ls-files -z --cached --others --exclude-standard | du -c -k --files0-from=- | tail -1 | cut -f1) * 1024))
+part_bytes=$((64 * 1048576 - tree_bytes - 2 * 1048576))
+if [ "$part_bytes" -lt $((8 * 1048576)) ]; then
+  echo "the working tree takes $((tree_bytes / 1048576)) MiB of a call's 64 MiB: too little is left for a part" >&2
+  exit 1
+fi
+tar -cf - -C "$pack" wheels data | split -b "$part_bytes" -d - "$pack/bundle.part."
 n=0
 for part in "$pack"/bundle.part.*; do
   n=$((n + 1))
