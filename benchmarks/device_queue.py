@@ -389,7 +389,7 @@ def stop(jobs_dir: Path, grace_seconds: float = 10.0) -> list[str]:
     return sorted(running)
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
         "verb",
@@ -425,6 +425,11 @@ def main(argv: list[str] | None = None) -> int:
         "checkout's commit; a device machine's copy has no git history: pass "
         "$(git rev-parse --short HEAD) from the machine that sent it)",
     )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
     args = parser.parse_args(argv)
     if args.verb == "stop" and args.only is not None:
         names = [n for n in args.only.split(",") if n]

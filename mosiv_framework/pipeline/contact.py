@@ -255,17 +255,23 @@ def choose_contact(
     rival = close_call(losses, default, modes.margin)
     if rival is not None:
         record["close_call"] = rival
-        log.warning(close_call_warning(chosen, rival, modes.margin))
     history.append(record)
+    _log_choice(chosen, default, losses, modes.margin, rival)
+    return record
+
+
+def _log_choice(chosen: str, default: str, losses: dict, margin: float, rival: str | None):
+    """The log's line of the choice, and a warning where it was a close call."""
     log.info(
         "contact between objects: %s (%s; the recipe's %s is kept unless another is more "
         "than %g %% lower)",
         chosen,
         ", ".join(f"{m} {v:.6g}" for m, v in losses.items()),
         default,
-        100 * modes.margin,
+        100 * margin,
     )
-    return record
+    if rival is not None:
+        log.warning(close_call_warning(chosen, rival, margin))
 
 
 def close_call_warning(chosen: str, rival: str, margin: float) -> str:
