@@ -87,12 +87,19 @@ done
 # the parts are as large as what the tree leaves of 64 MiB, less 2 MiB of headroom. The tree
 # is counted as the disk space its files take (whole blocks, what du says): counted by bytes,
 # a 13.5 MB tree beside a 50 MiB part looked like room to spare and the call was refused.
-tree_bytes=$(($(git ls-files -z --cached --others --exclude-standard | du -c -k --files0-from=- | tail -1 | cut -f1) * 1024))
-part_bytes=$((64 * 1048576 - tree_bytes - 2 * 1048576))
+tree_kib=$(git ls-files -z --cached --others --exclude-standard | du -c -k --files0-from=- | tail -1 | cut -f1)
+case "$tree_kib" in
+'' | *[!0-9]*)
+  echo "could not measure the working tree (git ls-files | du --files0-from, GNU du)" >&2
+  exit 1
+  ;;
+esac
+part_bytes=$((64 * 1048576 - tree_kib * 1024 - 2 * 1048576))
 if [ "$part_bytes" -lt $((8 * 1048576)) ]; then
-  echo "the working tree takes $((tree_bytes / 1048576)) MiB of a call's 64 MiB: too little is left for a part" >&2
+  echo "the working tree takes $((tree_kib / 1024)) MiB of a call's 64 MiB: too little is left for a part" >&2
   exit 1
 fi
+echo "working tree $((tree_kib / 1024)) MiB: parts of $((part_bytes / 1048576)) MiB"
 tar -cf - -C "$pack" wheels data | split -b "$part_bytes" -d - "$pack/bundle.part."
 n=0
 for part in "$pack"/bundle.part.*; do

@@ -28,7 +28,8 @@ data decide:
    the margin of the lowest loss, ``tied``) first continue their brief fits by that many
    steps, and the rule decides on their new losses (a tie after a few steps may be one mode
    still converging from farther away).
-4. A choice that half or twice the margin would have made otherwise is a close call
+4. A choice that about half or twice the margin would have made otherwise, or one between
+   variants that are not the recipe's and lie within the margin of each other, is a close call
    (``close_call``): decided by the margin's exact value more than by the data. It is recorded
    and warned about, not changed: on the capture of a paper-size scene (docs/RESULTS.md, "A
    recording through a rig and back") single_field won by 5.4 % against the 5 % margin and
@@ -49,7 +50,7 @@ The choice is recorded in the history (phase ``contact``; the brief fits are pha
 ``contact_fit``, the global stage's records tagged with their ``contact`` mode), in
 identified.json under ``contact`` (``choice``, ``mode``, and for ``auto`` the
 ``recipe_mode``, each variant's ``losses``, the ``margin`` and the last of the ``frames``
-scored, ``close_call`` naming the variant half or twice the margin would have chosen, after a tie the ``brief_losses`` before it was continued and the ``tie_iterations``,
+scored, ``close_call`` naming the rival of a close call, after a tie the ``brief_losses`` before it was continued and the ``tie_iterations``,
 and with the law choice the chosen ``laws`` set and its ``law_map``, object id -> law)
 and in the log. With ``identify.contact: fixed`` identified.json records the recipe's mode.
 The parameter phase continues from the chosen mode's brief fit, and it, the intervals,
@@ -163,14 +164,23 @@ def pick(losses: dict[str, float], default: str, margin: float) -> str:
 
 
 def close_call(losses: dict[str, float], default: str, margin: float) -> str | None:
-    """The variant the rule would choose with half or twice ``margin`` where that is not the one
-    it chooses with ``margin`` (the choice is then a close call, decided by the margin's exact
-    value more than by the data); None where both agree with it."""
+    """The rival of a choice decided by the margin's exact value more than by the data, else
+    None: the variant the rule would choose with about half or twice the margin (the factor
+    ``1 - margin`` a rival's loss must beat, taken to its square root or its square, which stay
+    margins below 1 for any margin), or, where a variant other than the recipe's won, another
+    such variant it does not beat by the margin (between those the lower loss decides alone).
+    A margin of 0 has no close calls: the lower loss decides."""
     chosen = pick(losses, default, margin)
-    for other_margin in (0.5 * margin, 2.0 * margin):
-        other = pick(losses, default, other_margin)
+    factor = 1.0 - margin
+    for other_factor in (math.sqrt(factor), factor**2):
+        other = pick(losses, default, 1.0 - other_factor)
         if other != chosen:
             return other
+    if chosen != default:
+        for label, loss in losses.items():
+            unbeaten = not losses[chosen] < factor * loss
+            if label not in (chosen, default) and math.isfinite(loss) and unbeaten:
+                return label
     return None
 
 
@@ -275,14 +285,29 @@ def _log_choice(chosen: str, default: str, losses: dict, margin: float, rival: s
 
 
 def close_call_warning(chosen: str, rival: str, margin: float) -> str:
-    """What a run says of a close call between ``chosen`` and ``rival`` (variant labels)."""
-    mode = rival.split(" + ")[0]
+    """What a run says of a close call between ``chosen`` and ``rival`` (variant labels, see
+    ``ContactModes.label``), with the settings of a run that holds the rival."""
+    (mode, laws), (rival_mode, rival_laws) = _split_label(chosen), _split_label(rival)
+    settings = []
+    if rival_mode != mode:
+        settings.append(f"identify.contact=fixed simulator.contact={rival_mode}")
+    if rival_laws != laws:
+        settings.append(
+            "identify.law_choice=fixed"
+            + (" with identify.laws as identify.law_alternatives sets them" if rival_laws else "")
+        )
     return (
-        f"contact between objects: {chosen} was a close call (with half or twice "
-        f"identify.contact_margin={margin:g} the rule would choose {rival}); the two can "
-        f"predict the future very differently: compare a run that holds {mode} "
-        f"(identify.contact=fixed simulator.contact={mode})"
+        f"contact between objects: {chosen} was a close call (with identify.contact_margin="
+        f"{margin:g} about halved or doubled, or between variants the margin does not protect, "
+        f"{rival} would do as well); the two can predict the future very differently: compare "
+        f"a run that holds {rival} ({'; '.join(settings)})"
     )
+
+
+def _split_label(label: str) -> tuple[str, str | None]:
+    """A variant label's contact mode and law set (None: the recipe's laws)."""
+    mode, _, laws = label.partition(" + ")
+    return mode, laws or None
 
 
 def _finite(losses: dict[str, float]) -> dict[str, float | None]:
@@ -321,6 +346,9 @@ def restore_choice(modes: ContactModes, fit: Fit, history: list[dict], vector=No
         fit.simulator = modes.simulators[record["mode"]]
         if vector is not None and record.get("laws") in modes.law_sets:
             _use_variant(modes, fit, vector, record["mode"], record["laws"])
+        if record.get("close_call"):  # said again: this process's log has not said it yet
+            chosen = modes.label(record["mode"], record.get("laws"))
+            log.warning(close_call_warning(chosen, record["close_call"], record["margin"]))
 
 
 def _use_variant(modes: ContactModes, fit: Fit, vector, mode: str, laws: str | None) -> None:

@@ -10,7 +10,8 @@ the list under ``entries``.
 
 ``run.json`` marks a folder as a run folder (see ``mosiv_framework.pipeline.rundir``).
 ``identified.json`` may hold ``warnings``: what the recipe's settings cap (e.g. a stiffness
-ceiling below a law's bound), as the run logged them.
+ceiling below a law's bound) and a contact choice that was a close call, as the run logged
+them.
 """
 
 from __future__ import annotations

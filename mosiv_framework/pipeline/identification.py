@@ -80,7 +80,8 @@ def identify_stage(
     identify/history.json and the identification plots. Returns detached SimulationParams.
 
     ``warnings``: what the recipe's settings cap (``check_stiffness``), stored under
-    ``warnings`` in identified.json so the results say how they were limited. identified.json's
+    ``warnings`` in identified.json so the results say how they were limited, with a contact
+    choice that was a close call (``contact.close_call_warning``). identified.json's
     ``contact`` says which contact between objects the parameters were identified with (chosen
     from the data with ``identify.contact: auto``, see ``mosiv_framework.pipeline.contact``)."""
     section = recipe.identify
