@@ -346,6 +346,21 @@ def test_fixed_contact_is_recorded_and_a_resumed_run_keeps_the_choice():
     assert fit.simulator == "sim-multi"
 
 
+def test_a_resumed_run_says_its_close_call_again(caplog):
+    """A run resumed past a close choice warns of it in its own log too."""
+    modes = ContactModes(
+        {"single_field": "sim-single", "multi_field": "sim-multi"}, "single_field", 0.05
+    )
+    chosen = {"phase": "contact", "choice": "auto", "mode": "multi_field", "margin": 0.05}
+    fit = SimpleNamespace(simulator="sim-single")
+    with caplog.at_level(logging.WARNING, logger="mosiv_framework.pipeline.contact"):
+        restore_choice(modes, fit, [chosen])
+        assert "close call" not in caplog.text
+        restore_choice(modes, fit, [{**chosen, "close_call": "single_field"}])
+    assert "multi_field was a close call" in caplog.text
+    assert "simulator.contact=single_field" in caplog.text
+
+
 class NoContact:
     def __init__(self, **options):
         pass
