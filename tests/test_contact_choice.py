@@ -245,6 +245,29 @@ def test_a_run_with_a_close_call_says_so_in_identified_json(identified_run, tmp_
     assert first.get("close_call") is None  # at the recipe's margin the data decided
 
 
+def test_the_close_calls_docs_count_on_the_genesis_test_scenes():
+    """docs/PHYSICS.md counts the close calls among the contact and law choices of the Genesis
+    test scenes' identification (benchmarks/data/genesis_identify): recomputed here from the
+    losses each run recorded."""
+    root = Path(__file__).resolve().parents[1]
+    close = {}
+    files = sorted((root / "benchmarks" / "data" / "genesis_identify").glob("scene_*.json"))
+    for path in files:
+        contact = json.loads(path.read_text())["contact"]
+        losses = {k: float("inf") if v is None else v for k, v in contact["losses"].items()}
+        rival = close_call(losses, contact["recipe_mode"], contact["margin"])
+        if rival is not None:
+            close[path.stem.removeprefix("scene_")] = (
+                pick(losses, contact["recipe_mode"], contact["margin"]),
+                rival,
+            )
+    physics = " ".join((root / "docs" / "PHYSICS.md").read_text().split())
+    pairs = ", ".join(sorted(close))
+    assert f"{len(close)} of the {len(files)} choices are close calls ({pairs})" in physics
+    # each between the two stresses in single-field contact, none between contact modes
+    assert all(a.split(" + ")[0] == b.split(" + ")[0] == "single_field" for a, b in close.values())
+
+
 class _Descent:
     """A fake fit with one parameter x: loss = the mode's floor + |x| (x = 0 is every mode's
     optimum); the brief fit leaves x at half the mode's start, each continued step halves it.
