@@ -266,6 +266,20 @@ def test_the_close_calls_docs_count_on_the_genesis_test_scenes():
     assert f"{len(close)} of the {len(files)} choices are close calls ({pairs})" in physics
     # each between the two stresses in single-field contact, none between contact modes
     assert all(a.split(" + ")[0] == b.split(" + ")[0] == "single_field" for a, b in close.values())
+    # and the future Chamfer of those runs beside the runs with the recipe's stresses alone
+    fixed = root / "benchmarks" / "data" / "genesis_identify_fixed_laws"
+    futures = {}
+    for pair in close:
+        chosen = json.loads((files[0].parent / f"scene_{pair}.json").read_text())
+        alone = json.loads((fixed / f"scene_{pair}.json").read_text())
+        futures[pair] = (chosen["future_cd_mm2"], alone["future_cd_mm2"])
+    for pair in ("E-S", "P-P"):
+        assert abs(futures[pair][0] / futures[pair][1] - 1) <= 0.03
+    assert f"({futures['P-F'][0]:.0f} mm^2 each)" in physics
+    assert round(futures["P-F"][0]) == round(futures["P-F"][1])
+    chosen, alone = futures["P-S"]
+    assert f"P-S's is {chosen / alone:.1f}x higher" in physics
+    assert f"({chosen:.0f} against {alone:.0f} mm^2)" in physics
 
 
 class _Descent:
