@@ -206,8 +206,9 @@ def test_the_close_call_warning_names_the_settings_that_hold_the_rival():
 
 def test_a_close_call_is_recorded_and_warned_about(caplog):
     """The fake fit's brief losses, 1.25 (multi-field, the recipe's) and 1.2 (single-field), are
-    4 % apart: multi-field is kept at the 5 % margin, single-field would win at about 2.5 %. The record
-    and identified.json's contact name the rival, and the log says how to compare."""
+    4 % apart: multi-field is kept at the 5 % margin, single-field would win at about 2.5 %.
+    The record and identified.json's contact name the rival, and the log says how to
+    compare."""
     modes = ContactModes(
         {"multi_field": "multi_field", "single_field": "single_field"}, "multi_field", 0.05
     )

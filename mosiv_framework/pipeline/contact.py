@@ -50,8 +50,8 @@ The choice is recorded in the history (phase ``contact``; the brief fits are pha
 ``contact_fit``, the global stage's records tagged with their ``contact`` mode), in
 identified.json under ``contact`` (``choice``, ``mode``, and for ``auto`` the
 ``recipe_mode``, each variant's ``losses``, the ``margin`` and the last of the ``frames``
-scored, ``close_call`` naming the rival of a close call, after a tie the ``brief_losses`` before it was continued and the ``tie_iterations``,
-and with the law choice the chosen ``laws`` set and its ``law_map``, object id -> law)
+scored, ``close_call`` naming the rival of a close call, after a tie the ``brief_losses``
+before it was continued and the ``tie_iterations``, and with the law choice the chosen ``laws`` set and its ``law_map``, object id -> law)
 and in the log. With ``identify.contact: fixed`` identified.json records the recipe's mode.
 The parameter phase continues from the chosen mode's brief fit, and it, the intervals,
 evaluation and every later rollout of the run (``mosiv eval``, ``mosiv simulate``, ``mosiv
@@ -304,6 +304,15 @@ def close_call_warning(chosen: str, rival: str, margin: float) -> str:
     )
 
 
+def recorded_close_call(modes: ContactModes, record: dict) -> str | None:
+    """``close_call_warning`` of a recorded choice (the history's record, or identified.json's
+    ``contact``), None where it was no close call."""
+    if not record.get("close_call"):
+        return None
+    chosen = modes.label(record["mode"], record.get("laws"))
+    return close_call_warning(chosen, record["close_call"], record["margin"])
+
+
 def _split_label(label: str) -> tuple[str, str | None]:
     """A variant label's contact mode and law set (None: the recipe's laws)."""
     mode, _, laws = label.partition(" + ")
@@ -346,9 +355,9 @@ def restore_choice(modes: ContactModes, fit: Fit, history: list[dict], vector=No
         fit.simulator = modes.simulators[record["mode"]]
         if vector is not None and record.get("laws") in modes.law_sets:
             _use_variant(modes, fit, vector, record["mode"], record["laws"])
-        if record.get("close_call"):  # said again: this process's log has not said it yet
-            chosen = modes.label(record["mode"], record.get("laws"))
-            log.warning(close_call_warning(chosen, record["close_call"], record["margin"]))
+        warning = recorded_close_call(modes, record)
+        if warning:  # said again: this process's log has not said it yet
+            log.warning(warning)
 
 
 def _use_variant(modes: ContactModes, fit: Fit, vector, mode: str, laws: str | None) -> None:

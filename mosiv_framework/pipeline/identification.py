@@ -13,10 +13,10 @@ from mosiv_framework.errors import ConfigError
 from mosiv_framework.losses import WeightedSum
 from mosiv_framework.pipeline import formats
 from mosiv_framework.pipeline.contact import (
-    close_call_warning,
     contact_json,
     contact_modes,
     law_sets,
+    recorded_close_call,
 )
 from mosiv_framework.pipeline.evaluate import plot_history, plot_parameters
 from mosiv_framework.pipeline.identify import identify
@@ -81,7 +81,7 @@ def identify_stage(
 
     ``warnings``: what the recipe's settings cap (``check_stiffness``), stored under
     ``warnings`` in identified.json so the results say how they were limited, with a contact
-    choice that was a close call (``contact.close_call_warning``). identified.json's
+    choice that was a close call (``contact.recorded_close_call``). identified.json's
     ``contact`` says which contact between objects the parameters were identified with (chosen
     from the data with ``identify.contact: auto``, see ``mosiv_framework.pipeline.contact``)."""
     section = recipe.identify
@@ -129,9 +129,8 @@ def identify_stage(
         if modes is not None:  # the library baseline picks with the chosen contact too
             simulator = modes.simulators[contact["mode"]]
     warnings = list(warnings)
-    if contact is not None and contact.get("close_call"):
-        label = modes.label(contact["mode"], contact.get("laws")) if modes else contact["mode"]
-        warnings.append(close_call_warning(label, contact["close_call"], contact["margin"]))
+    close = recorded_close_call(modes, contact) if modes is not None and contact else None
+    warnings += [close] if close else []
     if warnings:
         identified_json["warnings"] = warnings
     _note_stopped_early(history, identified_json)
