@@ -14,7 +14,7 @@ from mosiv_framework.errors import SimulationDiverged
 from mosiv_taichi_mpm.autograd import STATE_NAMES, empty_state
 from mosiv_taichi_mpm.fields import NO_DIVERGENCE, Layout, SimFields
 from mosiv_taichi_mpm.forward_kernels import FusedForwardKernels
-from mosiv_taichi_mpm.kernels import REASON_LEFT_DOMAIN, REASON_NONFINITE, STENCIL_ROWS
+from mosiv_taichi_mpm.kernels import REASON_LEFT_DOMAIN, REASON_NONFINITE, STENCIL_PLANES
 
 
 class Engine:
@@ -116,8 +116,8 @@ class Engine:
         k = self.kernels
         k.clear_grid()
         k.stress(s, self.n, self.dt)
-        for i, j in STENCIL_ROWS:
-            k.p2g(s, self.n, i, j, self._pm_level())
+        for i in STENCIL_PLANES:
+            k.p2g(s, self.n, i, self._pm_level())
         k.grid_forces(*self._force_args(s))
         k.grid_contact(self.ground_z, self.has_ground)
 
@@ -214,8 +214,8 @@ class Engine:
         k.g2p.grad(s, n)
         k.grid_contact.grad(self.ground_z, self.has_ground)
         k.grid_forces.grad(*self._force_args(s))
-        for i, j in STENCIL_ROWS:
-            k.p2g.grad(s, n, i, j, self._pm_level())
+        for i in STENCIL_PLANES:
+            k.p2g.grad(s, n, i, self._pm_level())
         k.stress.grad(s, n, dt)
 
     def rollout_start_adjoint(self) -> None:

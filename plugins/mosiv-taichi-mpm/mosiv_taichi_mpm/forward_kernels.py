@@ -1,8 +1,8 @@
 """The forward substep as one kernel: the same MLS-MPM transfer in fewer passes and one call.
 
 The kernels of ``kernels.py`` are shaped for Taichi's reverse mode: the 27-node stencil is split
-into nine three-node passes (nine ``p2g`` kernels, nine top-level loops of ``g2p``: the
-adjoint's compile time grows faster than linearly with a loop's size) and each step of the
+into nine three-node passes (nine top-level loops of ``g2p``, and of ``p2g`` in three kernels:
+the adjoint's compile time grows faster than linearly with a loop's size) and each step of the
 particle update is its own kernel, so every particle is read and its B-spline weights
 recomputed nine times in P2G and nine times in G2P. Nothing here is
 differentiated, so a substep becomes one kernel, ``substep``, whose top-level loops Taichi runs
@@ -84,9 +84,9 @@ class FusedForwardKernels(MPMKernels):
         ground_z: ti.f32,
         has_ground: ti.i32,
     ):
-        """Substep s's grid as the split ``clear_grid``, ``stress``, nine ``p2g``,
+        """Substep s's grid as the split ``clear_grid``, ``stress``, three ``p2g``,
         ``grid_forces`` and ``grid_contact`` leave it for their adjoints, in one call: the
-        reverse pass recomputes it before every substep's adjoints (about 13 calls fewer a
+        reverse pass recomputes it before every substep's adjoints (six calls fewer a
         substep). Arguments as ``substep``'s."""
         for I in ti.grouped(self.m):
             self.clear_node(I)
@@ -99,7 +99,7 @@ class FusedForwardKernels(MPMKernels):
 
     @ti.func
     def p2g_particle(self, s, p, dt, ground_z, keep: ti.template()):
-        """``stress`` and the nine ``p2g`` kernels for particle p:
+        """``stress`` and the three ``p2g`` kernels for particle p:
         tau = the law's Kirchhoff stress + the viscous stress, A = -dt 4/dx^2 V0 tau + m_p C,
         then over the 27 stencil nodes m_i += w m_p; (m v)_i += w (m_p v_p + A dpos);
         (grad m)_i += m_p grad w (several fields only); on nodes at or below ground_z (m) the

@@ -1,7 +1,7 @@
 """Taichi kernels of one MLS-MPM substep (Hu et al. 2018, APIC, quadratic B-splines).
 
 A substep from the particle state at substep boundary ``s`` to that at ``s + 1`` runs, in order:
-``clear_grid`` -> ``stress(s)`` -> ``p2g(s, 0..2)`` -> ``grid_forces`` -> ``grid_contact`` ->
+``clear_grid`` -> ``stress(s)`` -> ``p2g(s, i = 0..2)`` -> ``grid_forces`` -> ``grid_contact`` ->
 ``clear_particle_velocity(s)`` -> ``g2p(s)`` -> ``advect(s)`` -> ``svd(s)`` -> ``plasticity(s)``.
 Every kernel except ``svd`` is differentiated by Taichi (``kernel.grad``); ``svd_backward`` is the
 hand-written adjoint of ``svd``. Kernels read and write disjoint fields so that the recorded
@@ -22,8 +22,10 @@ from mosiv_taichi_mpm.grid_kernels import MASS_EPS, GridKernels
 from mosiv_taichi_mpm.laws import J_MIN, kirchhoff_stress, return_map
 from mosiv_taichi_mpm.svd_grad import svd_adjoint
 
-#: (i, j) offsets of the stencil rows: each row of 3 nodes is one p2g kernel, one loop of g2p
+#: (i, j) offsets of the stencil rows of 3 nodes: each is one top-level loop of g2p and of p2g
 STENCIL_ROWS = tuple((i, j) for i in range(3) for j in range(3))
+#: i offsets of the stencil planes of 9 nodes: each is one p2g kernel
+STENCIL_PLANES = (0, 1, 2)
 
 # divergence reasons (stored in the low 2 bits of div_code)
 REASON_NONFINITE = 1
@@ -339,27 +341,29 @@ class MPMKernels(GridKernels):
         return weight * gv, (4.0 * self.inv_dx * weight) * gv.outer_product(dcell)
 
     @ti.kernel
-    def p2g(self, s: ti.i32, n: ti.i32, i: ti.template(), j: ti.template(), ground_z: ti.f32):
-        """MLS-MPM P2G over the 3 stencil nodes with offsets (i, j, 0..2):
+    def p2g(self, s: ti.i32, n: ti.i32, i: ti.template(), ground_z: ti.f32):
+        """MLS-MPM P2G over the 9 stencil nodes with offsets (i, 0..2, 0..2):
         m_i += w m_p; (m v)_i += w (m_p v_p + A dpos); with several fields (grad m)_i += m_p grad
         w; on nodes at or below ground_z (m) also the arriving momentum (p m)_i += w m_p (v_p +
         C dpos).
 
-        The stencil is unrolled (Taichi's adjoint of a dynamic inner loop is wrong here) and
-        split in nine kernels because the adjoint's compile time grows faster than linearly
+        The stencil is unrolled (Taichi's adjoint of a dynamic inner loop is wrong here). Each
+        row (i, j, 0..2) is a top-level loop of its own, and the 27 nodes are split in three
+        kernels, one a plane i, because the adjoint's compile time grows faster than linearly
         with kernel size: as nine top-level loops of one kernel (as ``g2p``), the build of a
         two-body rollout's adjoints had not finished after five minutes, where it otherwise
         takes about two (benchmarks/data/taichi_grid_adjoint_cpu/)."""
-        for p in range(n):
-            a = self.state_at(s)
-            g = self.obj[p] if ti.static(self.multi) else 0
-            mass = self.pmass[p]
-            base, fx = self.stencil_cell(self.x[a, p])
-            mom = mass * self.v[a, p]
-            MC = mass * self.C[a, p]
-            for l in ti.static(range(3)):
-                offset = ti.Vector([i, j, l])
-                self.scatter_node(g, base, fx, offset, mass, mom, self.affine[p], MC, ground_z)
+        for j in ti.static(range(3)):
+            for p in range(n):
+                a = self.state_at(s)
+                g = self.obj[p] if ti.static(self.multi) else 0
+                mass = self.pmass[p]
+                base, fx = self.stencil_cell(self.x[a, p])
+                mom = mass * self.v[a, p]
+                MC = mass * self.C[a, p]
+                for l in ti.static(range(3)):
+                    offset = ti.Vector([i, j, l])
+                    self.scatter_node(g, base, fx, offset, mass, mom, self.affine[p], MC, ground_z)
 
     @ti.kernel
     def clear_particle_velocity(self, s: ti.i32, n: ti.i32):
@@ -374,8 +378,8 @@ class MPMKernels(GridKernels):
         """G2P gather over the 27 stencil nodes: v += w v_i, C += 4/dx^2 w v_i dpos^T (APIC),
         accumulated into the fields. Each stencil row (i, j, 0..2) is a top-level loop of its
         own, which Taichi launches and differentiates on its own: one call a substep, and an
-        adjoint that builds about as fast as nine one-row kernels (``p2g`` stays nine kernels:
-        so written, its adjoint's build took several times as long)."""
+        adjoint that builds about as fast as nine one-row kernels (``p2g`` so written did not
+        build in reasonable time: it is three kernels of three loops)."""
         for i, j in ti.static(STENCIL_ROWS):
             for p in range(n):
                 a, b = self.state_at(s), self.state_at(s + 1)
