@@ -38,6 +38,8 @@ from mosiv_framework.pipeline.rundir import (
     scene_digest,
 )
 from mosiv_framework.recipes import check_stiffness
+from mosiv_framework.recipes.cell_size import KEY as CELL_SIZE
+from mosiv_framework.recipes.cell_size import resolve_cell_size
 from mosiv_framework.registry import get_registry
 from mosiv_framework.scene import read_scene, require_valid_scene
 from mosiv_framework.types import ParticleSet
@@ -134,8 +136,10 @@ def no_ground_truth_message(plain: dict, path: Path) -> str:
 
 def prepare_scene(recipe: DictConfig, plain: dict):
     """The scene, generated if needed and validated in full, and the warnings of the recipe's
-    stiffness caps in it (an impossible cap raises ConfigError). Nothing of the run is written
-    yet, so a scene or recipe the run cannot use leaves no run folder behind."""
+    stiffness caps in it (an impossible cap raises ConfigError). A ``simulator.cell_size``
+    becomes the grid it gives in the scene's domain, in ``recipe`` and ``plain`` alike
+    (``mosiv_framework.recipes.cell_size``). Nothing of the run is written yet, so a scene or
+    recipe the run cannot use leaves no run folder behind."""
     generate_scene(recipe.scene)
     path = Path(plain["scene"]["path"])
     need_gt = needs_ground_truth(plain)
@@ -144,6 +148,8 @@ def prepare_scene(recipe: DictConfig, plain: dict):
         raise SceneFormatError(no_ground_truth_message(plain, path))
     require_valid_scene(path, need_ground_truth=need_gt)
     scene = read_scene(path)
+    if resolve_cell_size(recipe, scene.world.extent) is not None:
+        plain["simulator"] = OmegaConf.to_container(recipe.simulator, resolve=True)
     warnings = check_stiffness(plain, world=scene.world, families=scene.materials)
     for warning in warnings:
         log.warning("%s", warning)
@@ -410,6 +416,12 @@ def build_simulator(section):
     torch deterministic: the losses' gathers scatter their gradients on the GPU too, in a fixed
     order then, so an identification repeats bit for bit (cuBLAS products already do)."""
     name, options = component(section)
+    if options.get(CELL_SIZE) is not None:
+        raise ConfigError(
+            f"simulator.{CELL_SIZE}={options[CELL_SIZE]!r} is a resolution in metres that a run "
+            "turns into simulator.grid for its scene (resolve_cell_size) before building the "
+            "simulator"
+        )
     simulator = get_registry().create("simulator", name, options)
     if simulator.deterministic and torch.device(simulator.torch_device).type == "cuda":
         torch.use_deterministic_algorithms(True, warn_only=True)

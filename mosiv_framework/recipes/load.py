@@ -19,6 +19,8 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from mosiv_framework.errors import ConfigError
+from mosiv_framework.recipes.cell_size import KEY as CELL_SIZE
+from mosiv_framework.recipes.cell_size import take_cell_size
 from mosiv_framework.recipes.interpolation import resolve_recipe, syntax_problems
 from mosiv_framework.recipes.rules import cross_section_findings
 from mosiv_framework.recipes.schema import COMPONENT_SECTIONS, MULTI_COMPONENT_SECTIONS, Recipe
@@ -113,12 +115,20 @@ def validate_recipe(
                 f"unknown recipe section {key!r}; valid sections: {', '.join(sections)}"
             )
     defaults = Recipe()
+    cell_notes: list[str] = []
     for name, _fld in sections.items():
         value = raw.get(name, getattr(defaults, name))
         if name in COMPONENT_SECTIONS:
+            cell_size = None
+            if name == "simulator" and isinstance(value, Mapping):
+                value = dict(value)
+                has_grid = _has_option(registry, "simulator", value.get("name"), "grid")
+                cell_size = take_cell_size(name, value, has_grid, problems, cell_notes)
             resolved[name] = _check_component(
                 name, COMPONENT_SECTIONS[name], value, registry, problems
             )
+            if cell_size is not None:  # the run turns it into the grid of its scene
+                resolved[name][CELL_SIZE] = cell_size
         elif name == "physics_terms":
             resolved[name] = check_physics_terms(value, registry, problems)
         elif name in MULTI_COMPONENT_SECTIONS:
@@ -137,7 +147,19 @@ def validate_recipe(
         problems.extend(more)
         if warnings is not None:
             warnings.extend(notes)
+    if warnings is not None:
+        warnings.extend(cell_notes)
     return resolved, problems
+
+
+def _has_option(registry: Registry, kind: str, name: Any, option: str) -> bool:
+    """Whether the registered component ``name`` of ``kind`` takes ``option`` (True when the
+    name is not registered: that problem is reported on its own)."""
+    try:
+        component = registry.get(kind, name)
+    except (ConfigError, TypeError):
+        return True
+    return option in getattr(component.options, "__dataclass_fields__", {})
 
 
 def check_recipe(

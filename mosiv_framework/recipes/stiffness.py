@@ -28,6 +28,8 @@ from typing import Any
 
 from mosiv_framework.errors import ConfigError
 from mosiv_framework.laws import LAWS, get_law
+from mosiv_framework.recipes.cell_size import KEY as CELL_SIZE
+from mosiv_framework.recipes.cell_size import grid_for
 from mosiv_framework.recipes.schema import IdentifySection
 from mosiv_framework.scene import MATERIAL_FAMILIES
 
@@ -101,6 +103,8 @@ def stiffness_findings(recipe: Mapping[str, Any], facts: SceneFacts) -> tuple[li
 
     simulator, identify = recipe.get("simulator") or {}, recipe.get("identify") or {}
     grid, substeps = simulator.get("grid"), simulator.get("substeps")
+    if simulator.get(CELL_SIZE) is not None:  # the grid the run will derive for this scene
+        grid = grid_for(facts.extent, float(simulator[CELL_SIZE]))
     cfl = identify.get("stiffness_cfl", IdentifySection.stiffness_cfl)
     if not (_is_count(grid) and _is_count(substeps) and cfl > 0 and facts.fps > 0):
         return [], []  # no grid, no cap: nothing the recipe limits
