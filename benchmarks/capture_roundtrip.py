@@ -167,8 +167,10 @@ def import_argv(
     argv += ["--observed", str(observed)]
     argv += [f"--segmenter-option={option}" for option in segmenter]
     # the visual hull is tight around the objects (0.41 m for the quick scene): a margin of
-    # 0.7 of its size brings the domain near the synthetic scene's 0.8 m, so the simulator
-    # grid, and the stiffness cap it implies, match the direct run's
+    # 0.7 of its size brings the domain near the synthetic scene's 0.8 m, so that a recipe
+    # giving a grid count (the quick one) simulates the import at about the direct run's
+    # cell; recipes/video_paper.yaml gives its cell in metres (simulator.cell_size), which
+    # holds whatever the domain (at paper size the hull made it 1.08 m)
     argv += ["--margin", str(MARGIN)]
     return argv
 
