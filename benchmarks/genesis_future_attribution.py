@@ -57,6 +57,7 @@ from mosiv_framework.pipeline.evaluate import score
 from mosiv_framework.pipeline.params import ParameterVector
 from mosiv_framework.pipeline.run import build_simulator
 from mosiv_framework.recipes import load_recipe
+from mosiv_framework.recipes.cell_size import resolve_cell_size
 from mosiv_framework.scene import read_scene
 from mosiv_framework.types import ObjectParams, SimulationParams
 
@@ -166,6 +167,7 @@ def last_frame_offsets(traj, reference: dict[int, torch.Tensor]) -> dict[str, fl
 def measure_scene(recipe, scene, row: dict, *, emd_samples: int, label: str, skip=()) -> list[dict]:
     """Every variant of one row not in ``skip``, rolled out and scored; a divergence is a row
     that says so. ``label`` names the run the row comes from (its folder)."""
+    resolve_cell_size(recipe, scene.world.extent)  # a recipe giving its cell in metres
     section = recipe.simulator.copy()
     section.contact = row["contact"]["mode"]
     simulator, _ = build_simulator(section)

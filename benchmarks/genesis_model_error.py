@@ -51,6 +51,7 @@ from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.pipeline.evaluate import score
 from mosiv_framework.pipeline.run import build_simulator, component, with_identified_laws
 from mosiv_framework.recipes import load_recipe
+from mosiv_framework.recipes.cell_size import resolve_cell_size
 from mosiv_framework.registry import get_registry
 from mosiv_framework.scene import read_scene
 from mosiv_framework.types import ObjectParams, SimulationParams
@@ -134,6 +135,7 @@ def rollout_truth(recipe, scene, particles, config: dict):
     ``laws`` (default: each material's own); ``ground_friction`` (when not None) in place of
     the truth's, the table ``ground_offset_mm`` higher (warp-mpm's ground acts on the node
     layers at or below it, so an offset counts in whole cells); raises SimulationDiverged."""
+    resolve_cell_size(recipe, scene.world.extent)  # a recipe giving its cell in metres
     section = recipe.simulator.copy()
     section.contact = config["contact"]
     section.grid = config["grid"]

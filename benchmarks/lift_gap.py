@@ -17,6 +17,11 @@ with the run's simulator and scores them over the observed and future frames. Th
 row rolls the truth out from the scene's own frame-0 points (the gt-points lifter): on a
 scene the project simulated at the run's settings it is near exact.
 
+The truth is rolled out with the run's simulator as its recipe gives it: its contact (give
+the generator's with ``--contact``, e.g. ``single_field`` for a Genesis scene), each
+material's own law, and none of the effects a diagnosis scene conceals. A scene whose ground
+truth lacks the initial velocities (an import that trimmed its first frames) is refused.
+
     python benchmarks/lift_gap.py RUN [RUN ...] --variant "" --variant mask_dilation_px=0 \\
         --device cpu --out OUT.json
 
@@ -77,6 +82,12 @@ def load_run(run: Path, device: str, sets: list[str] = ()):
         )
     scene = read_scene(scene_path)
     resolve_cell_size(recipe, scene.world.extent)
+    missing = [o["id"] for o in scene.gt_params()["objects"] if "initial_velocity" not in o]
+    if missing:
+        raise SystemExit(
+            f"{scene_path}: gt/params.json gives no initial velocity for object(s) {missing} "
+            "(an import that trimmed its first frames): the truth cannot be rolled out"
+        )
     if (run / "reconstruction.pt").is_file():
         reconstruction = torch.load(run / "reconstruction.pt", weights_only=False)
     elif (run / "gauss-dynamic").is_dir():
@@ -105,6 +116,7 @@ def geometry_row(scene, particles) -> dict:
         volume = float(particles.volumes[mine].sum())
         true = volumes.get(k)
         objects[str(k)] = {
+            "material": particles.materials[k],
             "particles": int(mine.sum()),
             "volume_m3": volume,
             "true_volume_m3": true,

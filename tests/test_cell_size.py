@@ -83,6 +83,10 @@ def test_the_check_keeps_a_cell_size_and_refuses_what_is_no_length(tmp_path, reg
         _raw(tmp_path, {"name": "still-grid", "cell_size": 0.0125}), registry
     )
     assert problems == [] and resolved["simulator"]["cell_size"] == 0.0125
+    assert resolved["simulator"]["grid"] is None  # so that a second check keeps the cell size
+    again, problems = validate_recipe(resolved, registry)
+    assert problems == [] and again["simulator"]["cell_size"] == 0.0125
+    assert again["simulator"]["grid"] is None
     for bad in (0, -0.01, "fine", True):
         _, problems = validate_recipe(
             _raw(tmp_path, {"name": "still-grid", "cell_size": bad}), registry
@@ -92,13 +96,15 @@ def test_the_check_keeps_a_cell_size_and_refuses_what_is_no_length(tmp_path, reg
     assert len(problems) == 1 and "has no 'grid' option" in problems[0]
 
 
-def test_an_explicit_grid_wins_with_a_note(tmp_path, registry):
+def test_an_explicit_grid_wins_with_a_note(tmp_path, registry, caplog):
     warnings: list[str] = []
     raw = _raw(tmp_path, {"name": "still-grid", "cell_size": 0.0125, "grid": 48})
     resolved, problems = validate_recipe(raw, registry, warnings=warnings)
     assert problems == [] and resolved["simulator"]["grid"] == 48
     assert "cell_size" not in resolved["simulator"]
-    assert any("simulator.grid=48 given beside simulator.cell_size=0.0125" in w for w in warnings)
+    note = "simulator.grid=48 given beside simulator.cell_size=0.0125"
+    assert any(note in w for w in warnings)
+    assert note in caplog.text  # load_recipe keeps no warnings: a run shows it in its log
 
 
 def test_resolving_sets_the_nearest_grid_and_drops_the_key():
@@ -119,7 +125,7 @@ def test_the_stiffness_caps_follow_the_derived_grid():
     facts = SceneFacts(fps=24.0, extent=1.08, families={1: "elastic"})
     identify = {"stiffness_cfl": 0.5}
     by_cell = stiffness_findings(
-        {"simulator": {"grid": 8, "substeps": 20, "cell_size": 0.0125}, "identify": identify},
+        {"simulator": {"grid": None, "substeps": 20, "cell_size": 0.0125}, "identify": identify},
         facts,
     )
     by_grid = stiffness_findings(

@@ -44,7 +44,9 @@ def take_cell_size(
     """Remove ``cell_size`` from a simulator section's raw ``options`` and check it.
 
     Returns the cell size (m) the run resolves into a grid, or None: none given, given with an
-    explicit ``grid`` (which wins; a note says so) or invalid (a problem says why)."""
+    explicit ``grid`` (which wins; a note says so, in ``notes`` and the log) or invalid (a
+    problem says why). The checked section keeps the cell size with ``grid: None``, so that
+    checking it again keeps it too."""
     if KEY not in options:
         return None
     value = options.pop(KEY)
@@ -63,10 +65,12 @@ def take_cell_size(
     if "grid" in options and options["grid"] is None:  # grid=null: the cell size decides
         del options["grid"]
     if "grid" in options:
-        notes.append(
+        note = (
             f"{where}.grid={options['grid']!r} given beside {where}.{KEY}={value!r}: the grid "
             f"is used (set {where}.{KEY}=null to silence this)"
         )
+        notes.append(note)
+        log.warning("%s", note)  # load_recipe keeps no warnings: `mosiv run` shows this one
         return None
     return float(number)
 

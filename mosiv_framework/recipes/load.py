@@ -128,7 +128,7 @@ def validate_recipe(
                 name, COMPONENT_SECTIONS[name], value, registry, problems
             )
             if cell_size is not None:  # the run turns it into the grid of its scene
-                resolved[name][CELL_SIZE] = cell_size
+                resolved[name].update({CELL_SIZE: cell_size, "grid": None})
         elif name == "physics_terms":
             resolved[name] = check_physics_terms(value, registry, problems)
         elif name in MULTI_COMPONENT_SECTIONS:

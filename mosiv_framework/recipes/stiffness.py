@@ -103,7 +103,7 @@ def stiffness_findings(recipe: Mapping[str, Any], facts: SceneFacts) -> tuple[li
 
     simulator, identify = recipe.get("simulator") or {}, recipe.get("identify") or {}
     grid, substeps = simulator.get("grid"), simulator.get("substeps")
-    if simulator.get(CELL_SIZE) is not None:  # the grid the run will derive for this scene
+    if grid is None and simulator.get(CELL_SIZE) is not None:  # the grid a run derives here
         grid = grid_for(facts.extent, float(simulator[CELL_SIZE]))
     cfl = identify.get("stiffness_cfl", IdentifySection.stiffness_cfl)
     if not (_is_count(grid) and _is_count(substeps) and cfl > 0 and facts.fps > 0):
