@@ -547,3 +547,23 @@ def test_a_plate_of_the_wrong_size_is_named(settling, tmp_path):
     expect_error(s, CaptureError, "cam_02.png", f"{SIZE + 4}x{SIZE}", f"{SIZE}x{SIZE}")
     (rig / "background" / "cam_02.png").unlink()
     expect_error(s, CaptureError, "cam_02", "background")
+
+
+def test_the_import_says_what_its_domain_means_for_the_simulator_cell():
+    from mosiv_framework.cli.importing import resolution_note
+
+    note = resolution_note(1.0798)
+    assert "largest side 1.08 m" in note
+    assert "simulator.grid=64 simulates it at 1.69 cm cells" in note
+    assert "simulator.cell_size=0.0125 (as recipes/video_paper.yaml) at grid 86" in note
+    assert "at grid 64" in resolution_note(0.8)
+    # the note names the shipped recipe's cell: it must be that recipe's
+    import inspect
+
+    import yaml
+
+    recipe = yaml.safe_load(
+        (Path(__file__).parents[1] / "recipes" / "video_paper.yaml").read_text()
+    )
+    default = inspect.signature(resolution_note).parameters["cell_size"].default
+    assert recipe["simulator"]["cell_size"] == default

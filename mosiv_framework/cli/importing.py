@@ -138,6 +138,19 @@ def settings_from_args(args):
     )
 
 
+def resolution_note(extent: float, *, grid: int = 64, cell_size: float = 0.0125) -> str:
+    """What the imported domain's size means for a simulator's resolution: a recipe's grid
+    counts cells along its largest side (``extent`` m), ``simulator.cell_size`` fixes the cell
+    (``mosiv_framework.recipes.cell_size``; the defaults are recipes/video_paper.yaml's)."""
+    from mosiv_framework.recipes.cell_size import grid_for
+
+    return (
+        f"domain: largest side {extent:.3g} m; a recipe's simulator.grid={grid} simulates it at "
+        f"{100 * extent / grid:.3g} cm cells, simulator.cell_size={cell_size:g} (as "
+        f"recipes/video_paper.yaml) at grid {grid_for(extent, cell_size)}"
+    )
+
+
 def run_import(args) -> int:
     from mosiv_framework.capture import import_recording
     from mosiv_framework.cli.stages import check_writable_folder
@@ -145,6 +158,8 @@ def run_import(args) -> int:
 
     check_writable_folder(args.out_dir, "OUT_DIR")
     out = import_recording(settings_from_args(args))
-    print(f"wrote scene {out}: {summary(read_scene(out))}")
+    scene = read_scene(out)
+    print(f"wrote scene {out}: {summary(scene)}")
+    print(resolution_note(scene.world.extent))
     print(f"preview: {out / 'preview' / 'contact_sheet.png'}")
     return 0
