@@ -34,17 +34,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import torch
 from genesis_identify import _device_name
-from genesis_model_error import rollout_truth
+from genesis_model_error import measure
 from identify_suite import code_version
 
-from mosiv_framework.errors import SimulationDiverged
 from mosiv_framework.metrics import chamfer_mm2
-from mosiv_framework.pipeline.evaluate import score
 from mosiv_framework.pipeline.run import component
 from mosiv_framework.recipes import load_recipe
 from mosiv_framework.recipes.cell_size import resolve_cell_size
@@ -127,27 +124,16 @@ def geometry_row(scene, particles) -> dict:
 
 
 def truth_row(recipe, scene, particles, contact: str | None) -> dict:
-    """The truth rolled out from ``particles`` with the recipe's simulator, scored."""
+    """The truth rolled out from ``particles`` with the recipe's simulator and each material's
+    own law, scored (``genesis_model_error.measure``; a divergence is a row that says so)."""
     section = recipe.simulator
     config = {
+        "laws": "own",
         "contact": contact or section.get("contact", "multi_field"),
         "grid": section.grid,
         "substeps": section.substeps,
     }
-    started = time.perf_counter()
-    try:
-        traj = rollout_truth(recipe, scene, particles, config)
-    except SimulationDiverged as exc:
-        return {**config, "diverged": str(exc), "time_s": time.perf_counter() - started}
-    blocks = score(
-        traj, scene.gt_points(), observed_frames=scene.observed_frames, n_samples=256, seed=0
-    )
-    return {
-        **config,
-        "observed_cd": blocks["observed"]["cd_mm2"],
-        "future_cd": blocks["future"]["cd_mm2"],
-        "time_s": time.perf_counter() - started,
-    }
+    return measure(recipe, scene, particles, config, emd_samples=256)
 
 
 def measure_run(

@@ -51,8 +51,8 @@ The choice is recorded in the history (phase ``contact``; the brief fits are pha
 identified.json under ``contact`` (``choice``, ``mode``, and for ``auto`` the
 ``recipe_mode``, each variant's ``losses``, the ``margin`` and the last of the ``frames``
 scored, ``close_call`` naming the rival of a close call, after a tie the ``brief_losses``
-before it was continued and the ``tie_iterations``, and with the law choice the chosen ``laws`` set and its ``law_map``, object id -> law)
-and in the log. With ``identify.contact: fixed`` identified.json records the recipe's mode.
+before it was continued and the ``tie_iterations``, and with the law choice the chosen
+``laws`` set and its ``law_map``, object id -> law) and in the log. With ``identify.contact: fixed`` identified.json records the recipe's mode.
 The parameter phase continues from the chosen mode's brief fit, and it, the intervals,
 evaluation and every later rollout of the run (``mosiv eval``, ``mosiv simulate``, ``mosiv
 diagnose``) use the chosen mode (``simulator_section``). The cost: per mode, the global

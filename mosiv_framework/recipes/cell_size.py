@@ -87,7 +87,8 @@ def resolve_cell_size(recipe: DictConfig, extent: float) -> int | None:
         simulator.grid = grid
         del simulator[KEY]
     log.info(
-        "simulator.cell_size=%g m in the scene's %.3g m domain: simulator.grid=%d (cells of %.4g m)",
+        "simulator.cell_size=%g m in the scene's %.3g m domain: simulator.grid=%d "
+        "(cells of %.4g m)",
         float(cell),
         extent,
         grid,
